@@ -1,0 +1,1 @@
+"""ago_export: checkpoint -> ONNX bundle, parity-checked (torch + onnx)."""

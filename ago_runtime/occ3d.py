@@ -1,0 +1,61 @@
+"""Occ3D ground-truth files: `gts/<scene>/<sample_token>/labels.npz`.
+
+Keys `semantics`, `mask_lidar`, `mask_camera`, each (X, Y, Z) uint8 in axis order [x, y, z];
+semantics 0..16 are classes, 17 = free, 255 = unknown (pseudo-labels only).
+The masks are stored as uint8 0/1 and must be used as bool.
+"""
+
+from __future__ import annotations
+
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .atomic import save_npz
+from .errors import AgoInputError
+
+KEYS = ("semantics", "mask_lidar", "mask_camera")
+
+
+@dataclass
+class Occ3DLabels:
+    semantics: np.ndarray    # (X, Y, Z) uint8
+    mask_lidar: np.ndarray   # (X, Y, Z) uint8 0/1
+    mask_camera: np.ndarray  # (X, Y, Z) uint8 0/1
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return tuple(self.semantics.shape)
+
+    @classmethod
+    def load(cls, path: str | Path, shape: tuple[int, int, int] | None = None) -> "Occ3DLabels":
+        """Read and check a labels.npz. `shape`, when given, must match (e.g. Grid.shape)."""
+        path = Path(path)
+        if not path.is_file():
+            raise AgoInputError(path, "Occ3D labels file not found")
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                missing = [k for k in KEYS if k not in z.files]
+                if missing:
+                    raise AgoInputError(path, f"missing keys {missing} (needs {list(KEYS)})")
+                arrays = {k: np.asarray(z[k]) for k in KEYS}
+        except (zipfile.BadZipFile, OSError, ValueError, EOFError) as e:
+            if isinstance(e, AgoInputError):
+                raise
+            raise AgoInputError(path, f"not a readable npz file ({e.__class__.__name__}: {e})") from None
+        shapes = {k: a.shape for k, a in arrays.items()}
+        if len(set(shapes.values())) != 1 or arrays["semantics"].ndim != 3:
+            raise AgoInputError(path, f"arrays must share one 3-D shape, got {shapes}")
+        if shape is not None and tuple(arrays["semantics"].shape) != tuple(shape):
+            raise AgoInputError(path, f"shape {arrays['semantics'].shape} does not match the grid {tuple(shape)}")
+        return cls(*(arrays[k].astype(np.uint8) for k in KEYS))
+
+    def save(self, path: str | Path) -> None:
+        save_npz(path, semantics=self.semantics.astype(np.uint8), mask_lidar=self.mask_lidar.astype(np.uint8),
+                 mask_camera=self.mask_camera.astype(np.uint8))
+
+
+def labels_path(gts_root: str | Path, scene: str, sample_token: str) -> Path:
+    return Path(gts_root) / scene / sample_token / "labels.npz"

@@ -1,0 +1,1 @@
+"""ago_train: data, pseudo-labels, model, losses, training, evaluation (torch)."""
