@@ -1,0 +1,37 @@
+"""`ago export model.ckpt -o BUNDLE [--int8] [--parity-frame DIR | --no-real-frame]` (needs torch)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("export")
+    def export_cmd(
+        checkpoint: Path = typer.Argument(..., help="checkpoint written by `ago train` (.pt)"),
+        out: Path = typer.Option(Path("ago_bundle"), "-o", "--out", help="bundle folder to write"),
+        int8: bool = typer.Option(False, "--int8", help="also write a dynamically quantised int8 encoder"),
+        parity_frame: Optional[Path] = typer.Option(
+            None, "--parity-frame",
+            help="frame for the ORT-vs-torch parity check: an images folder (CAM_*.jpg + calib.json) or a "
+                 "folder with mmdet3d_info.pkl; default: the real nuScenes keyframe in ../shared when present"),
+        no_real_frame: bool = typer.Option(False, "--no-real-frame", help="check parity on a synthetic frame"),
+        bank: Optional[list[str]] = typer.Option(
+            None, "--bank-prompts",
+            help="prompt file(s) to pre-build banks for (repeatable); default: every shipped prompt file"),
+        train_bank_only: bool = typer.Option(False, "--train-bank-only",
+                                             help="ship only the training label space's bank"),
+    ) -> None:
+        """Export a checkpoint to a self-describing ONNX bundle, parity-checked against torch."""
+        from ago_runtime.cli import require_torch
+
+        require_torch("export")
+        from .export import export_bundle
+
+        prompts = [] if train_bank_only else bank
+        export_bundle(checkpoint, out, int8=int8, parity_frame_dir=parity_frame,
+                      real_frame=not no_real_frame, bank_prompts=prompts,
+                      log=lambda s: typer.echo(s, err=True))

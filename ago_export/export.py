@@ -1,0 +1,334 @@
+"""`ago export`: a training checkpoint -> a self-describing, parity-checked bundle folder.
+
+Takes a checkpoint written by ago_train (torch.load(weights_only=True); keys "model",
+"model_config", "label_space", "bank", ...). Gives a bundle folder (layout: ago_runtime/bundle.py,
+docs/runtime.md):
+
+1. the camera-to-voxel encoder plus the modality adapter's hidden layers, as ONNX
+   (`encoder.onnx`: images (1,6,3,H,W) + ego2img (1,6,4,4) -> h (N,Dh), g (N,Da)); the model's
+   nn.Softplus layers are exported as relu(x) + log1p(exp(-|x|)) (same values; onnxruntime's
+   Softplus kernel was measured ~6x slower than torch's); key metadata also in metadata_props;
+2. the linear heads (`heads.npz`) and the learnt free embedding, for bank folding at run time;
+3. banks: "train" (the label-space embeddings saved in the checkpoint) and one per shipped prompt
+   file the installed text encoder could build;
+4. checks: onnx.checker, then parity ORT vs torch on one frame (a real nuScenes keyframe when one
+   is found, else a synthetic frame): ago_export.parity; optional int8 copy, parity-checked too.
+
+Everything is written into a temporary folder next to the target and renamed into place only when
+every check passed; a failed check raises AgoInputError (the CLI exits 2) and writes nothing.
+"""
+
+from __future__ import annotations
+
+import copy
+import datetime as _dt
+import json
+import shutil
+import tempfile
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+import ago_runtime
+from ago_runtime.atomic import write_json
+from ago_runtime.bank import PromptBank, bank_for_prompts
+from ago_runtime.bundle import BUNDLE_FORMAT, BUNDLE_FORMAT_VERSION, BUNDLE_JSON, file_sha256
+from ago_runtime.calibration import find_camera_images, load_images_folder
+from ago_runtime.camera import Rig
+from ago_runtime.errors import AgoInputError
+from ago_runtime.heads import HeadWeights
+from ago_runtime.preprocess import Preprocess
+from ago_runtime.prompts import LabelSpace, parse_prompt_text, shipped_label_spaces
+
+from .parity import FP32_TOLERANCE, INT8_TOLERANCE, Tolerance, check_parity, describe
+
+OPSET = 17
+DEFAULT_REAL_FRAME = Path(__file__).resolve().parents[2] / "shared" / "data" / "nuscenes-sample"
+
+
+# ---- model ---------------------------------------------------------------------------------
+def load_model(checkpoint: str | Path):
+    """checkpoint -> (AGOModel in eval mode, the checkpoint dict, ModelConfig)."""
+    from ago_train.checkpoint import load_checkpoint
+    from ago_train.model import ModelConfig
+
+    ckpt = load_checkpoint(checkpoint)
+    try:
+        cfg = ModelConfig.from_dict(dict(ckpt["model_config"]))
+    except (TypeError, AgoInputError) as e:
+        raise AgoInputError(checkpoint, f"bad model_config ({e})") from None
+    model = cfg.build()
+    try:
+        model.load_state_dict(ckpt["model"], strict=True)
+    except RuntimeError as e:
+        raise AgoInputError(checkpoint, f"weights do not fit the model config ({str(e).splitlines()[0]})") from None
+    return model.eval(), ckpt, cfg
+
+
+class StableSoftplus(nn.Module):
+    """softplus(x) = relu(x) + log1p(exp(-|x|)): the same function, faster in onnxruntime."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.relu(x) + torch.log1p(torch.exp(-torch.abs(x)))
+
+
+def with_stable_softplus(model: nn.Module) -> nn.Module:
+    """A deep copy of `model` whose nn.Softplus(beta=1) layers are StableSoftplus."""
+    model = copy.deepcopy(model)
+    for parent in model.modules():
+        for name, child in list(parent.named_children()):
+            if isinstance(child, nn.Softplus) and child.beta == 1:
+                setattr(parent, name, StableSoftplus())
+    return model
+
+
+class EncoderForExport(nn.Module):
+    """forward_hidden for one frame: images (1,6,3,H,W), ego2img (1,6,4,4) -> h (N,Dh), g (N,Da)."""
+
+    def __init__(self, model: nn.Module):
+        super().__init__()
+        self.model = model
+
+    def forward(self, images: torch.Tensor, ego2img: torch.Tensor):
+        h, g = self.model.forward_hidden(images, ego2img)
+        return h[0], g[0]
+
+
+def head_weights(model) -> HeadWeights:
+    def f(t):
+        return t.detach().cpu().numpy().astype(np.float32)
+
+    return HeadWeights(f(model.decoder_out.weight), f(model.decoder_out.bias), f(model.adapter_out.weight),
+                       f(model.adapter_out.bias), f(model.free_embedding))
+
+
+def export_onnx(model: nn.Module, path: Path, cfg, metadata: dict[str, str]) -> None:
+    import onnx
+
+    wrapped = EncoderForExport(with_stable_softplus(model)).eval()
+    images = torch.zeros(1, cfg.num_cameras, 3, cfg.image_height, cfg.image_width)
+    ego2img = torch.eye(4).expand(1, cfg.num_cameras, 4, 4).contiguous()
+    with warnings.catch_warnings(), torch.no_grad():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(wrapped, (images, ego2img), str(path), dynamo=False, opset_version=OPSET,
+                          input_names=["images", "ego2img"], output_names=["h", "g"], do_constant_folding=True)
+    proto = onnx.load(str(path))
+    del proto.metadata_props[:]
+    for k, v in metadata.items():
+        entry = proto.metadata_props.add()
+        entry.key, entry.value = k, v
+    proto.producer_name = "ago export"
+    proto.doc_string = "ago camera-to-voxel encoder: images (1,6,3,H,W) + ego2img (1,6,4,4) -> h (N,Dh), g (N,Da)"
+    onnx.save(proto, str(path))
+    try:
+        onnx.checker.check_model(str(path), full_check=True)
+    except onnx.checker.ValidationError as e:
+        raise AgoInputError(path, f"onnx.checker refused the exported encoder: {str(e).splitlines()[0]}") from None
+
+
+# ---- label space and banks -----------------------------------------------------------------
+def label_space_of(ckpt: dict, source) -> LabelSpace:
+    ls = ckpt["label_space"]
+    try:
+        space = parse_prompt_text(ls["prompt_text"], name=ls.get("name"), source=f"{source} (label_space)")
+    except KeyError:
+        raise AgoInputError(source, "checkpoint label_space has no prompt_text") from None
+    if list(space.class_names) != list(ls.get("class_names", space.class_names)):
+        raise AgoInputError(source, "checkpoint label_space class names disagree with its prompt text")
+    return space
+
+
+def train_bank(ckpt: dict, space: LabelSpace, source) -> PromptBank:
+    b = ckpt["bank"]
+    emb = b["embeddings"].detach().cpu().numpy().astype(np.float32)
+    pc = b["phrase_class"].detach().cpu().numpy().astype(np.int64)
+    phrases = space.phrases
+    if emb.shape[0] != len(phrases) or not np.array_equal(pc, space.phrase_class):
+        raise AgoInputError(source, f"checkpoint bank ({emb.shape[0]} phrases) does not match its label space "
+                            f"({len(phrases)} phrases)")
+    return PromptBank(
+        embeddings=emb, phrases=phrases, class_names=list(space.class_names), phrase_class=pc,
+        encoder_id=str(b["encoder_id"]), encoder_variant=str(b.get("encoder_variant", "checkpoint")),
+        encoder_hash=str(b["encoder_hash"]), dim=int(emb.shape[1]), source_hash=space.sha256,
+        label_space=space.name, known=[c for c in space.class_names if c in space.known],
+        occ3d_ids=[c.occ3d_ids for c in space.classes])
+
+
+def label_space_dict(space: LabelSpace) -> dict:
+    return {"name": space.name, "sha256": space.sha256,
+            "classes": [{"name": c.name, "occ3d_ids": list(c.occ3d_ids), "known": c.name in space.known,
+                         "phrases": list(c.phrases)} for c in space.classes]}
+
+
+# ---- parity frame --------------------------------------------------------------------------
+def synthetic_frame(rig: Rig, seed: int = 0) -> tuple[dict[str, np.ndarray], Rig, str]:
+    """Smooth random images (low-frequency noise) for the rig at a quarter of its native size."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    w, h = max(32, rig.cameras[0].width // 4), max(32, rig.cameras[0].height // 4)
+    small = rig.scaled(w, h)
+    images = {}
+    for cam in small:
+        coarse = rng.uniform(0, 255, size=(h // 8 + 1, w // 8 + 1, 3)).astype(np.float32)
+        images[cam.name] = np.clip(cv2.resize(coarse, (w, h), interpolation=cv2.INTER_CUBIC), 0, 255).astype(np.uint8)
+    return images, small, f"synthetic (seed {seed})"
+
+
+def parity_frame(spec: str | Path | None, real_frame: bool, rig: Rig) -> tuple[dict[str, np.ndarray], Rig, str]:
+    """The frame parity runs on: an images folder or a folder with an mmdet3d_info.pkl; by default
+    the real nuScenes keyframe next to the repo when present, else a synthetic frame."""
+    if spec is None and real_frame and (DEFAULT_REAL_FRAME / "mmdet3d_info.pkl").is_file():
+        spec = DEFAULT_REAL_FRAME
+    if spec is None:
+        return synthetic_frame(rig)
+    spec = Path(spec)
+    if (spec / "mmdet3d_info.pkl").is_file():
+        from ago_runtime.mmdet3d_info import load_mmdet3d_info
+
+        frame = load_mmdet3d_info(spec / "mmdet3d_info.pkl", spec)[0]
+        return frame.images, frame.rig, f"{spec} (sample {frame.token})"
+    find_camera_images(spec)   # a clear error when it is neither layout
+    images, frame_rig, _ = load_images_folder(spec, fallback_rig=rig)
+    return images, frame_rig, str(spec)
+
+
+# ---- the bundle ----------------------------------------------------------------------------
+def _file_entry(root: Path, rel: str) -> dict:
+    p = root / rel
+    return {"path": rel, "sha256": file_sha256(p), "size": p.stat().st_size}
+
+
+def _replace_dir(tmp: Path, out: Path) -> None:
+    """Move the finished temp folder onto `out` (an existing bundle there is replaced)."""
+    if out.exists():
+        if not out.is_dir() or (any(out.iterdir()) and not (out / BUNDLE_JSON).is_file()):
+            raise AgoInputError(out, "exists and is not an ago bundle; choose another -o")
+        old = out.with_name(f".{out.name}.old")
+        if old.exists():
+            shutil.rmtree(old)
+        out.rename(old)
+        tmp.rename(out)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        tmp.rename(out)
+
+
+def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
+                  parity_frame_dir: str | Path | None = None, real_frame: bool = True,
+                  bank_prompts: list[str] | None = None, tolerance: Tolerance = FP32_TOLERANCE,
+                  int8_tolerance: Tolerance = INT8_TOLERANCE, log=print, parity: bool = True) -> dict:
+    """Write a bundle for `checkpoint` at `out`; returns bundle.json's content.
+
+    parity=False skips the ORT-vs-torch check (benchmarks only; not offered by the CLI);
+    bundle.json then records "parity": {"skipped": true}.
+
+    bank_prompts: prompt files (paths or shipped names) to pre-build banks for; None = every
+    shipped prompt file (skipped with a note when no text encoder is installed).
+    """
+    checkpoint, out = Path(checkpoint), Path(out)
+    model, ckpt, cfg = load_model(checkpoint)
+    space = label_space_of(ckpt, checkpoint)
+    bank = train_bank(ckpt, space, checkpoint)
+    heads = head_weights(model)
+    if heads.embed_dim != bank.dim:
+        raise AgoInputError(checkpoint, f"model embedding width {heads.embed_dim} differs from its bank's {bank.dim}")
+    grid = cfg.grid_obj()
+    pre = Preprocess(width=cfg.image_width, height=cfg.image_height)
+    if "rig" in ckpt:
+        rig, rig_source = Rig.from_dict(ckpt["rig"]), "checkpoint"
+    else:
+        rig, rig_source = Rig.nuscenes_like(1600, 900), "Rig.nuscenes_like(1600, 900) (checkpoint has no rig)"
+    text_encoder = {"id": bank.encoder_id, "hash": bank.encoder_hash, "dim": int(bank.dim),
+                    "variant": bank.encoder_variant}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    try:
+        metadata = {
+            "ago.format": BUNDLE_FORMAT, "ago.format_version": str(BUNDLE_FORMAT_VERSION),
+            "ago.version": ago_runtime.__version__, "ago.grid": json.dumps(grid.to_dict()),
+            "ago.preprocess": json.dumps(pre.to_dict()), "ago.text_encoder": json.dumps(text_encoder),
+            "ago.class_names": json.dumps(list(space.class_names)), "ago.label_space": space.name,
+            "ago.outputs": "h (N, Dh) decoder hidden, g (N, Da) adapter hidden; N = X*Y*Z C order over [x, y, z]",
+        }
+        log(f"exporting the encoder to ONNX (opset {OPSET}) ...")
+        export_onnx(model, tmp / "encoder.onnx", cfg, metadata)
+        np.savez(tmp / "heads.npz", **heads.to_arrays())
+        (tmp / "banks").mkdir()
+        bank.save(tmp / "banks" / "train.npz")
+        banks = {"train": "banks/train.npz"}
+        bank_notes = {}
+        for name in (shipped_label_spaces() if bank_prompts is None else bank_prompts):
+            key = Path(name).stem
+            try:
+                b = bank_for_prompts(name)
+                b.check_compatible(bank.encoder_id, bank.dim, checkpoint)
+            except AgoInputError as e:
+                bank_notes[key] = f"not built: {e}"
+                log(f"note: bank {key!r} not built ({e})")
+                continue
+            b.save(tmp / "banks" / f"{key}.npz")
+            banks[key] = f"banks/{key}.npz"
+
+        images, frame_rig, frame_name = parity_frame(parity_frame_dir, real_frame, rig)
+        x = pre.images(images, frame_name)[None]
+        m = pre.ego2img(frame_rig)[None]
+        report: dict = {}
+        if parity:
+            log("checking parity onnxruntime vs torch ...")
+            report["fp32"] = check_parity(model, tmp / "encoder.onnx", heads, bank, x, m, tolerance, frame_name)
+            log(f"parity fp32: {describe(report['fp32'])}")
+            if not report["fp32"]["ok"]:
+                raise AgoInputError(checkpoint, f"export parity check failed on {frame_name}: {describe(report['fp32'])}")
+        else:
+            report["skipped"] = True
+        files = {"encoder": "encoder.onnx", "heads": "heads.npz"}
+        if int8:
+            from .quantize import quantize_encoder
+
+            log("quantising the encoder to int8 ...")
+            quantize_encoder(tmp / "encoder.onnx", tmp / "encoder.int8.onnx")
+            if parity:
+                report["int8"] = check_parity(model, tmp / "encoder.int8.onnx", heads, bank, x, m, int8_tolerance,
+                                              frame_name)
+                log(f"parity int8: {describe(report['int8'])}")
+                if not report["int8"]["ok"]:
+                    raise AgoInputError(checkpoint, f"int8 parity check failed on {frame_name}: "
+                                        f"{describe(report['int8'])}")
+            files["encoder_int8"] = "encoder.int8.onnx"
+        file_entries = {k: _file_entry(tmp, v) for k, v in files.items()}
+        file_entries.update({f"bank/{k}": _file_entry(tmp, v) for k, v in banks.items()})
+        meta = {
+            "format": BUNDLE_FORMAT,
+            "format_version": BUNDLE_FORMAT_VERSION,
+            "ago_version": ago_runtime.__version__,
+            "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+            "checkpoint": {"path": str(checkpoint), "sha256": file_sha256(checkpoint),
+                           "step": int(ckpt.get("step", 0) or 0), "epoch": int(ckpt.get("epoch", 0) or 0)},
+            "model": {"config": cfg.to_dict(), "hidden_dim": heads.hidden_dim, "adapter_dim": heads.adapter_dim,
+                      "embed_dim": heads.embed_dim, "num_voxels": grid.num_voxels, "opset": OPSET},
+            "grid": grid.to_dict(),
+            "preprocess": pre.to_dict(),
+            "rig": rig.to_dict(),
+            "rig_source": rig_source,
+            "label_space": label_space_dict(space),
+            "text_encoder": text_encoder,
+            "identifier": "min-entropy",
+            "default_bank": "train",
+            "banks": banks,
+            "bank_notes": bank_notes,
+            "files": file_entries,
+            "parity": report,
+        }
+        write_json(tmp / BUNDLE_JSON, meta)
+        for p in [tmp, *tmp.rglob("*")]:
+            p.chmod(0o755 if p.is_dir() else 0o644)
+        _replace_dir(tmp, out)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    log(f"wrote {out}")
+    return meta

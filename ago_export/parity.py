@@ -1,0 +1,98 @@
+"""Parity of an exported encoder (onnxruntime) against the torch model, on one frame.
+
+Takes the torch model, an ONNX encoder file, the bundle's heads and a prompt bank, and one
+preprocessed frame (images (1, 6, 3, H, W), ego2img (1, 6, 4, 4)). Gives a JSON-able report:
+
+- `rel_err_feat`, `rel_err_feat_adapted`: max |F_ort - F_torch| / max |F_torch| for the per-voxel
+  embeddings F_3D = decoder_out(h) and F~_3D = adapter_out(g) (torch: `model.forward`; ORT: the
+  encoder's h, g through the heads in numpy);
+- `agreement_main`, `agreement_adapted`, `agreement_identifier`: share of voxels whose argmax class
+  (K bank classes + free) agrees between the torch reference (float64 scores from the torch
+  embeddings, computed directly, unfolded) and the runtime (folded numpy heads on ORT features),
+  for the original branch, the adapted branch and the min-entropy identifier;
+- `ok` and the tolerances used.
+
+Tolerances (documented in docs/runtime.md): float32 export rel err <= 1e-3 and agreement >= 99.9 %;
+int8 (dynamic quantisation) rel err <= 0.25 and agreement >= 85 % (int8 is an opt-in speed trade).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import onnxruntime as ort
+
+from ago_runtime.heads import FoldedHeads, HeadWeights, embeddings
+from ago_runtime.predictor import session_options
+
+
+@dataclass(frozen=True)
+class Tolerance:
+    max_rel_err: float
+    min_agreement: float
+
+
+FP32_TOLERANCE = Tolerance(1e-3, 0.999)
+INT8_TOLERANCE = Tolerance(0.25, 0.85)
+
+
+def reference_labels(feat: np.ndarray, feat_ad: np.ndarray, bank, free: np.ndarray) -> dict[str, np.ndarray]:
+    """Unfolded float64 reference: per-voxel argmax (K classes + free) and entropy per branch, and the identifier."""
+    T = np.concatenate([bank.embeddings, free[None]]).astype(np.float64)       # (P+1, C)
+    out = {}
+    ent = {}
+    for name, f in (("main", feat), ("adapted", feat_ad)):
+        s = f.astype(np.float64) @ T.T                                          # (N, P+1)
+        z = np.concatenate([bank.class_scores(s[:, :-1]), s[:, -1:]], axis=1)   # (N, K+1)
+        z = z - z.max(axis=1, keepdims=True)
+        p = np.exp(z)
+        p /= p.sum(axis=1, keepdims=True)
+        ent[name] = -(p * np.log(np.maximum(p, 1e-300))).sum(axis=1)
+        out[name] = z.argmax(axis=1)
+    out["identifier"] = np.where(ent["adapted"] < ent["main"], out["adapted"], out["main"])
+    return out
+
+
+def check_parity(model, onnx_path, heads: HeadWeights, bank, images: np.ndarray, ego2img: np.ndarray,
+                 tolerance: Tolerance = FP32_TOLERANCE, frame: str = "") -> dict:
+    import torch
+
+    with torch.no_grad():
+        ref = model(torch.from_numpy(images), torch.from_numpy(ego2img))
+    feat_t = ref["feat"][0].numpy()
+    feat_ad_t = ref["feat_adapted"][0].numpy()
+    sess = ort.InferenceSession(str(onnx_path), session_options(), providers=["CPUExecutionProvider"])
+    h, g = sess.run(["h", "g"], {"images": images, "ego2img": ego2img})
+    feat_o = embeddings(h, heads.W_dec, heads.b_dec)
+    feat_ad_o = embeddings(g, heads.W_ad, heads.b_ad)
+
+    def rel(a, b):
+        return float(np.abs(a - b).max() / max(float(np.abs(b).max()), 1e-12))
+
+    want = reference_labels(feat_t, feat_ad_t, bank, heads.free_embedding)
+    folded = FoldedHeads(heads, bank.embeddings, bank.phrase_class, bank.num_classes)
+    got = {"main": folded.run(h, g, "none")["label"],
+           "adapted": folded.branch(g, "adapted").label,
+           "identifier": folded.run(h, g, "min-entropy")["label"]}
+    report = {
+        "frame": frame,
+        "num_voxels": int(h.shape[0]),
+        "rel_err_feat": rel(feat_o, feat_t),
+        "rel_err_feat_adapted": rel(feat_ad_o, feat_ad_t),
+        "agreement_main": float(np.mean(got["main"] == want["main"])),
+        "agreement_adapted": float(np.mean(got["adapted"] == want["adapted"])),
+        "agreement_identifier": float(np.mean(got["identifier"] == want["identifier"])),
+        "tolerance": {"max_rel_err": tolerance.max_rel_err, "min_agreement": tolerance.min_agreement},
+    }
+    worst_err = max(report["rel_err_feat"], report["rel_err_feat_adapted"])
+    worst_agree = min(report["agreement_main"], report["agreement_adapted"], report["agreement_identifier"])
+    report["ok"] = bool(worst_err <= tolerance.max_rel_err and worst_agree >= tolerance.min_agreement)
+    return report
+
+
+def describe(report: dict) -> str:
+    return (f"rel err F {report['rel_err_feat']:.2e}, F~ {report['rel_err_feat_adapted']:.2e}; argmax agreement "
+            f"main {report['agreement_main']:.4%}, adapted {report['agreement_adapted']:.4%}, "
+            f"identifier {report['agreement_identifier']:.4%} (tolerance: rel err <= "
+            f"{report['tolerance']['max_rel_err']:g}, agreement >= {report['tolerance']['min_agreement']:.1%})")

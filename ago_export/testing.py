@@ -1,0 +1,39 @@
+"""Random-weight checkpoints in the trainer's format, for tests and benchmarks (needs torch).
+
+`random_checkpoint(path, config)` writes what `ago train` writes (model state_dict, model_config,
+label_space with its prompt text, the label space's bank), with freshly initialised weights and the
+bank encoded by the installed ONNX text encoder. Useful to exercise export and runtime without
+training; the predictions are meaningless.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+def random_checkpoint(path: str | Path, config="tiny", prompts: str = "cw", seed: int = 0) -> Path:
+    """config: a ModelConfig or a preset name ("tiny", "cpu", "full"; "cpu"/"full" without ImageNet weights)."""
+    import torch
+
+    from ago_runtime.bank import build_bank
+    from ago_runtime.prompts import parse_prompt_file
+    from ago_runtime.text_encoder import default_text_encoder
+    from ago_train.checkpoint import save_checkpoint
+    from ago_train.model import ModelConfig
+
+    if isinstance(config, str):
+        config = ModelConfig.preset(config)
+        config.pretrained = False
+    torch.manual_seed(seed)
+    model = config.build()
+    space = parse_prompt_file(prompts)
+    bank = build_bank(space, default_text_encoder())
+    return save_checkpoint(path, {
+        "model": model.state_dict(), "model_config": config.to_dict(), "step": 0, "epoch": 0,
+        "label_space": {"name": space.name, "prompt_text": Path(space.source).read_text(encoding="utf-8"),
+                        "class_names": list(space.class_names), "num_classes": space.num_classes,
+                        "known": sorted(space.known)},
+        "bank": {"encoder_id": bank.encoder_id, "encoder_hash": bank.encoder_hash,
+                 "embeddings": torch.from_numpy(bank.embeddings), "phrase_class": torch.from_numpy(bank.phrase_class),
+                 "class_names": list(bank.class_names)},
+    })

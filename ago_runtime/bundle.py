@@ -1,0 +1,177 @@
+"""`Bundle`: an exported model folder (what `ago export` writes and `ago infer` reads), read and checked.
+
+A bundle is self-describing, like torchvision's Weights: it carries the grid, the label space the
+model was trained with, the text encoder its banks must come from, the preprocessing and the
+camera rig it was trained with. Layout (see docs/runtime.md):
+
+    bundle_dir/
+      bundle.json        metadata (below); format_version, sha256 of every file
+      encoder.onnx       images (1,6,3,H,W) f32 + ego2img (1,6,4,4) f32 -> h (N,Dh), g (N,Da)
+      encoder.int8.onnx  optional: the same, dynamically quantised (`ago export --int8`)
+      heads.npz          W_dec (C,Dh), b_dec (C,), W_ad (C,Da), b_ad (C,), free_embedding (C,)
+      banks/<name>.npz   prompt banks (ago_runtime.bank.PromptBank files); "train" = the
+                         training label space's embeddings stored in the checkpoint
+
+`Bundle.load(dir)` refuses (AgoInputError naming the file) a missing folder or file, a newer
+format_version, a file whose sha256 differs from bundle.json (e.g. a truncated ONNX), heads of
+the wrong shapes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .camera import Rig
+from .errors import AgoInputError
+from .grid import Grid
+from .heads import HeadWeights
+from .preprocess import Preprocess
+
+BUNDLE_FORMAT = "ago-bundle"
+BUNDLE_FORMAT_VERSION = 1
+BUNDLE_JSON = "bundle.json"
+ENV_BUNDLE = "AGO_BUNDLE"
+DEFAULT_BUNDLE_DIR = Path(__file__).resolve().parent / "assets" / "default_bundle"
+DEMO_FRAME_DIR = Path(__file__).resolve().parent / "assets" / "demo_frame"
+HOW_TO_MAKE_DEFAULT = ("build one with scripts/make_default_bundle.sh (synth data -> pseudo-labels -> "
+                       "train -> ago export), or pass --bundle DIR / set $AGO_BUNDLE")
+
+
+def file_sha256(path: str | Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+@dataclass
+class Bundle:
+    root: Path
+    meta: dict
+    grid: Grid
+    preprocess: Preprocess
+    rig: Rig                       # the training rig at native image size
+    heads: HeadWeights
+    label_space: dict              # {"name", "classes": [{"name", "occ3d_ids", "known"}], ...}
+    text_encoder: dict             # {"id", "hash", "dim"}
+    banks: dict[str, Path] = field(default_factory=dict)
+
+    # ---- paths -----------------------------------------------------------------------------
+    @property
+    def encoder_path(self) -> Path:
+        return self.root / self.meta["files"]["encoder"]["path"]
+
+    @property
+    def int8_encoder_path(self) -> Path | None:
+        entry = self.meta["files"].get("encoder_int8")
+        return self.root / entry["path"] if entry else None
+
+    @property
+    def default_bank(self) -> str:
+        return self.meta.get("default_bank", "train")
+
+    @property
+    def identifier(self) -> str:
+        return self.meta.get("identifier", "min-entropy")
+
+    @property
+    def embed_dim(self) -> int:
+        return int(self.text_encoder["dim"])
+
+    def bank_path(self, name: str | None = None) -> Path:
+        name = name or self.default_bank
+        if name not in self.banks:
+            raise AgoInputError(self.root / BUNDLE_JSON, f"bundle has no bank {name!r} (has {sorted(self.banks)})")
+        return self.banks[name]
+
+    def load_bank(self, name: str | None = None):
+        from .bank import PromptBank
+
+        return PromptBank.load(self.bank_path(name))
+
+    # ---- reading ---------------------------------------------------------------------------
+    @classmethod
+    def load(cls, root: str | Path, verify_hashes: bool = True) -> "Bundle":
+        root = Path(root)
+        if not root.is_dir():
+            raise AgoInputError(root, "bundle folder not found")
+        meta_path = root / BUNDLE_JSON
+        try:
+            meta = json.loads(meta_path.read_text())
+        except FileNotFoundError:
+            raise AgoInputError(meta_path, "not an ago bundle (no bundle.json)") from None
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+            raise AgoInputError(meta_path, f"unreadable bundle metadata ({e})") from None
+        if not isinstance(meta, dict) or meta.get("format") != BUNDLE_FORMAT:
+            raise AgoInputError(meta_path, f"not an ago bundle (format tag is not {BUNDLE_FORMAT!r})")
+        version = meta.get("format_version")
+        if not isinstance(version, int) or version < 1:
+            raise AgoInputError(meta_path, f"bad format_version {version!r}")
+        if version > BUNDLE_FORMAT_VERSION:
+            raise AgoInputError(meta_path, f"bundle format version {version} is newer than this ago reads "
+                                f"({BUNDLE_FORMAT_VERSION}); upgrade ago or re-export the model")
+        try:
+            grid = Grid.from_dict(meta["grid"])
+            pre = Preprocess.from_dict(meta["preprocess"])
+            rig = Rig.from_dict(meta["rig"])
+            label_space = meta["label_space"]
+            text_encoder = meta["text_encoder"]
+            files = meta["files"]
+            files["encoder"]["path"], files["heads"]["path"]
+        except (KeyError, TypeError, ValueError, AgoInputError) as e:
+            raise AgoInputError(meta_path, f"bundle metadata incomplete or malformed ({e.__class__.__name__}: {e})") from None
+        rig.validate(str(meta_path))
+        for key, entry in files.items():
+            p = root / entry["path"]
+            if not p.is_file():
+                raise AgoInputError(p, f"bundle file {key!r} is missing")
+            if "size" in entry and p.stat().st_size != int(entry["size"]):
+                raise AgoInputError(p, f"file has {p.stat().st_size} bytes, bundle.json says {entry['size']} "
+                                    "(truncated or replaced; re-export the bundle)")
+            if verify_hashes and "sha256" in entry and file_sha256(p) != entry["sha256"]:
+                raise AgoInputError(p, "sha256 differs from bundle.json (corrupt or replaced; re-export the bundle)")
+        heads = _load_heads(root / files["heads"]["path"], int(text_encoder["dim"]))
+        banks = {name: root / rel for name, rel in meta.get("banks", {}).items()}
+        for name, p in banks.items():
+            if not p.is_file():
+                raise AgoInputError(p, f"bundle bank {name!r} is missing")
+        return cls(root, meta, grid, pre, rig, heads, label_space, text_encoder, banks)
+
+
+def _load_heads(path: Path, dim: int) -> HeadWeights:
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: np.asarray(z[k], dtype=np.float32) for k in HeadWeights.KEYS}
+    except KeyError as e:
+        raise AgoInputError(path, f"heads file lacks array {e}") from None
+    except (ValueError, OSError, zipfile.BadZipFile, EOFError) as e:
+        raise AgoInputError(path, f"not a readable heads .npz ({e.__class__.__name__}: {e})") from None
+    w = HeadWeights(**arrays)
+    C = dim
+    ok = (w.W_dec.ndim == 2 and w.W_dec.shape[0] == C and w.b_dec.shape == (C,) and w.W_ad.ndim == 2
+          and w.W_ad.shape[0] == C and w.b_ad.shape == (C,) and w.free_embedding.shape == (C,))
+    if not ok:
+        raise AgoInputError(path, f"head shapes {[a.shape for a in arrays.values()]} do not fit embedding width {C}")
+    if not all(np.isfinite(a).all() for a in arrays.values()):
+        raise AgoInputError(path, "head weights contain NaN or inf")
+    return w
+
+
+def resolve_bundle(path: str | Path | None = None) -> Path:
+    """--bundle PATH, else $AGO_BUNDLE, else the shipped default bundle; a clear error when none exists."""
+    if path is not None:
+        return Path(path)
+    env = os.environ.get(ENV_BUNDLE)
+    if env:
+        return Path(env)
+    if (DEFAULT_BUNDLE_DIR / BUNDLE_JSON).is_file():
+        return DEFAULT_BUNDLE_DIR
+    raise AgoInputError(DEFAULT_BUNDLE_DIR, f"no default bundle installed; {HOW_TO_MAKE_DEFAULT}")

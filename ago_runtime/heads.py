@@ -1,0 +1,227 @@
+"""The voxel classification heads in numpy, folded with a prompt bank.
+
+Takes the encoder's hidden features for N voxels, h (N, Dh) and g (N, Da), the bundle's linear
+heads (heads.npz: W_dec (C, Dh), b_dec (C,), W_ad (C, Da), b_ad (C,), free_embedding (C,)) and a
+prompt bank (P phrase embeddings of width C, each phrase belonging to one of K classes).
+
+The model's per-voxel embeddings are F = h W_dec^T + b_dec (main branch) and
+F~ = g W_ad^T + b_ad (adapted branch); a phrase's score is the dot product with its embedding and
+the free score the dot product with the learnt free embedding. Both are linear, so when a bank is
+loaded we fold them once: with T = [phrase embeddings; free embedding] (P' = P + 1 rows),
+
+    S = F T^T = h (W_dec^T T^T) + b_dec T^T = h A + c,      A: (Dh, P'), c: (P',)
+
+and per voxel only one (Dh x P') product is needed instead of (Dh x C) + (C x P').
+Then: class score = max over the class's phrases, softmax over [K classes + free], entropy,
+confidence (max probability), argmax. The open-world identifier picks per voxel the branch with
+lower entropy ("min-entropy"), higher confidence ("max-conf"), or always the main one ("none").
+
+Speed: everything works "class-major": scores are computed as S^T (P', n) = A^T h^T, with the
+phrases sorted by class, so the max over a class's phrases, the softmax and the argmax are
+element-wise operations over long rows of n voxels (numpy is slow at reducing a short last
+axis). Voxels are processed in chunks, so memory stays bounded whatever the grid size.
+All float32.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+IDENTIFIERS = ("min-entropy", "max-conf", "none")
+DEFAULT_CHUNK = 16384
+
+
+@dataclass
+class HeadWeights:
+    """The linear heads of one bundle (heads.npz)."""
+
+    W_dec: np.ndarray          # (C, Dh)
+    b_dec: np.ndarray          # (C,)
+    W_ad: np.ndarray           # (C, Da)
+    b_ad: np.ndarray           # (C,)
+    free_embedding: np.ndarray  # (C,)
+
+    KEYS = ("W_dec", "b_dec", "W_ad", "b_ad", "free_embedding")
+
+    @property
+    def embed_dim(self) -> int:
+        return int(self.W_dec.shape[0])
+
+    @property
+    def hidden_dim(self) -> int:
+        return int(self.W_dec.shape[1])
+
+    @property
+    def adapter_dim(self) -> int:
+        return int(self.W_ad.shape[1])
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        return {k: np.asarray(getattr(self, k), dtype=np.float32) for k in self.KEYS}
+
+
+@dataclass
+class BranchResult:
+    """Per-voxel outputs of one branch for a chunk of n voxels."""
+
+    label: np.ndarray       # (n,) int64 index into [classes..., free]
+    entropy: np.ndarray     # (n,) float32, nats
+    confidence: np.ndarray  # (n,) float32, max softmax probability
+
+
+class FoldedHeads:
+    """A bank folded into both heads; call `classify(h, g)` per chunk or `run(h, g)` on all voxels.
+
+    `phrase_class` (P,) maps each phrase to its class in 0..K-1; the result's class index K is free.
+    """
+
+    def __init__(self, weights: HeadWeights, phrase_embeddings: np.ndarray, phrase_class: np.ndarray,
+                 num_classes: int):
+        emb = np.asarray(phrase_embeddings, dtype=np.float32)
+        pc = np.asarray(phrase_class, dtype=np.int64)
+        if emb.ndim != 2 or emb.shape[1] != weights.embed_dim:
+            raise ValueError(f"bank embeddings {emb.shape} do not match the head width {weights.embed_dim}")
+        if pc.shape != (emb.shape[0],) or pc.min(initial=0) < 0 or pc.max(initial=0) >= num_classes:
+            raise ValueError("phrase_class must give one class in 0..K-1 per phrase")
+        missing = sorted(set(range(num_classes)) - set(pc.tolist()))
+        if missing:
+            raise ValueError(f"classes {missing} have no phrase")
+        order = np.argsort(pc, kind="stable")            # phrases grouped by class
+        T = np.concatenate([emb[order], weights.free_embedding[None].astype(np.float32)])  # (P', C)
+        self.num_classes = int(num_classes)
+        # Row starts of each class (and free, the last row) in the sorted layout, for np.maximum.reduceat.
+        counts = np.bincount(pc, minlength=num_classes)
+        self.row_starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.intp)  # K+1 starts; last = free
+        self.one_phrase_per_class = bool(np.all(counts == 1))
+        T64 = T.astype(np.float64)
+        self.A_main_T = np.ascontiguousarray(T64 @ weights.W_dec.astype(np.float64), dtype=np.float32)  # (P', Dh)
+        self.c_main = (T64 @ weights.b_dec.astype(np.float64)).astype(np.float32)[:, None]              # (P', 1)
+        self.A_ad_T = np.ascontiguousarray(T64 @ weights.W_ad.astype(np.float64), dtype=np.float32)     # (P', Da)
+        self.c_ad = (T64 @ weights.b_ad.astype(np.float64)).astype(np.float32)[:, None]
+
+    @property
+    def num_rows(self) -> int:
+        return int(self.A_main_T.shape[0])
+
+    # --- one branch ------------------------------------------------------------------------
+    def phrase_scores(self, x: np.ndarray, branch: str) -> np.ndarray:
+        """(n, D) features -> (P', n) phrase-and-free scores WITHOUT the folded bias c, class-major."""
+        A = self.A_main_T if branch == "main" else self.A_ad_T
+        return A @ x.T               # BLAS handles the transposed view without a copy
+
+    def class_scores(self, s: np.ndarray, branch: str = "main") -> np.ndarray:
+        """(P', n) bias-free scores -> (K+1, n) class scores: bias added, max over each class's phrases;
+        the last row is free.
+
+        A loop over classes of row-wise maxima over contiguous rows (vectorised over n): measured
+        25x faster than np.maximum.reduceat(s, starts, axis=0) here. The bias is added in the same
+        pass (one fewer sweep over the scores).
+        """
+        c = self.c_main if branch == "main" else self.c_ad
+        if self.one_phrase_per_class:
+            s += c
+            return s
+        ends = np.append(self.row_starts[1:], s.shape[0])
+        out = np.empty((len(self.row_starts), s.shape[1]), np.float32)
+        for k, (a, b) in enumerate(zip(self.row_starts, ends)):
+            if b - a == 1:
+                np.add(s[a], c[a], out=out[k])
+            else:
+                rows = s[a:b]
+                rows += c[a:b]
+                np.max(rows, axis=0, out=out[k])
+        return out
+
+    @staticmethod
+    def softmax_stats(z: np.ndarray) -> BranchResult:
+        """(K+1, n) class scores -> argmax, entropy and max probability per voxel (z is overwritten)."""
+        m = z.max(axis=0)
+        z -= m                                  # z <= 0, 0 at the argmax
+        # argmax = first row where z == 0; a backwards loop of row compares is ~4x faster
+        # than np.argmax(z, axis=0) over the short first axis.
+        label = np.full(z.shape[1], z.shape[0] - 1, np.intp)
+        for k in range(z.shape[0] - 2, -1, -1):
+            label[z[k] == 0.0] = k
+        e = np.exp(z)
+        total = e.sum(axis=0)                   # >= 1
+        # entropy = log Z - sum(p * (z - m)) with p = e / Z
+        ez = np.einsum("kn,kn->n", e, z, optimize=False)
+        log_total = np.log(total)
+        entropy = log_total - ez / total
+        np.maximum(entropy, 0.0, out=entropy)
+        return BranchResult(label, entropy.astype(np.float32, copy=False),
+                            (1.0 / total).astype(np.float32, copy=False))
+
+    def branch(self, x: np.ndarray, branch: str) -> BranchResult:
+        return self.softmax_stats(self.class_scores(self.phrase_scores(x, branch), branch))
+
+    # --- both branches + identifier --------------------------------------------------------
+    def classify(self, h: np.ndarray, g: np.ndarray, identifier: str = "min-entropy"):
+        """One chunk: (n, Dh), (n, Da) -> (label (n,), entropy, confidence, branch (n,) uint8 0=main 1=adapted)."""
+        if identifier not in IDENTIFIERS:
+            raise ValueError(f"identifier must be one of {IDENTIFIERS}, got {identifier!r}")
+        main = self.branch(h, "main")
+        if identifier == "none":
+            return main.label, main.entropy, main.confidence, np.zeros(len(main.label), np.uint8)
+        ad = self.branch(g, "adapted")
+        if identifier == "min-entropy":
+            use_ad = ad.entropy < main.entropy
+        else:
+            use_ad = ad.confidence > main.confidence
+        label = np.where(use_ad, ad.label, main.label)
+        entropy = np.where(use_ad, ad.entropy, main.entropy)
+        confidence = np.where(use_ad, ad.confidence, main.confidence)
+        return label, entropy, confidence, use_ad.astype(np.uint8)
+
+    def run(self, h: np.ndarray, g: np.ndarray, identifier: str = "min-entropy",
+            chunk: int = DEFAULT_CHUNK) -> dict[str, np.ndarray]:
+        """All N voxels, in chunks -> dict of (N,) arrays: label (uint8/uint16), entropy, confidence, branch."""
+        n = h.shape[0]
+        if g.shape[0] != n:
+            raise ValueError(f"h has {n} voxels but g has {g.shape[0]}")
+        label_dtype = np.uint8 if self.num_classes + 1 <= 255 else np.uint16
+        out = {"label": np.empty(n, label_dtype), "entropy": np.empty(n, np.float32),
+               "confidence": np.empty(n, np.float32), "branch": np.empty(n, np.uint8)}
+        for start in range(0, n, chunk):
+            sl = slice(start, min(n, start + chunk))
+            label, ent, conf, br = self.classify(h[sl], g[sl], identifier)
+            out["label"][sl] = label
+            out["entropy"][sl] = ent
+            out["confidence"][sl] = conf
+            out["branch"][sl] = br
+        return out
+
+    def flops_per_voxel(self, identifier: str = "min-entropy") -> int:
+        """Multiply-adds x 2 of the folded matmuls per voxel (the dominant cost)."""
+        f = 2 * self.A_main_T.shape[0] * self.A_main_T.shape[1]
+        if identifier != "none":
+            f += 2 * self.A_ad_T.shape[0] * self.A_ad_T.shape[1]
+        return f
+
+
+def embeddings(x: np.ndarray, W: np.ndarray, b: np.ndarray, chunk: int = DEFAULT_CHUNK) -> np.ndarray:
+    """Unfolded per-voxel embeddings F = x W^T + b, (N, C) float32 (for retrieval and parity checks)."""
+    out = np.empty((x.shape[0], W.shape[0]), np.float32)
+    Wt = np.ascontiguousarray(W.T, dtype=np.float32)
+    for start in range(0, x.shape[0], chunk):
+        sl = slice(start, start + chunk)
+        np.matmul(x[sl], Wt, out=out[sl])
+        out[sl] += b
+    return out
+
+
+def cosine_to(x: np.ndarray, W: np.ndarray, b: np.ndarray, direction: np.ndarray,
+              chunk: int = DEFAULT_CHUNK) -> np.ndarray:
+    """Cosine similarity between each voxel's embedding x W^T + b and one direction (C,) -> (N,) float32."""
+    d = np.asarray(direction, dtype=np.float32)
+    d = d / max(float(np.linalg.norm(d)), 1e-12)
+    Wt = np.ascontiguousarray(W.T, dtype=np.float32)
+    out = np.empty(x.shape[0], np.float32)
+    for start in range(0, x.shape[0], chunk):
+        sl = slice(start, start + chunk)
+        f = x[sl] @ Wt
+        f += b
+        norm = np.sqrt(np.einsum("nc,nc->n", f, f))
+        out[sl] = (f @ d) / np.maximum(norm, 1e-12)
+    return out

@@ -1,0 +1,189 @@
+"""`Predictor`: a bundle + six images + a rig + a prompt bank -> an occupancy prediction. No torch.
+
+    p = Predictor("bundle_dir")                       # or Predictor(Bundle.load(...))
+    pred = p.predict(images, rig, bank)               # images: dict camera -> (H, W, 3) uint8 RGB
+    pred.semantics                                    # (X, Y, Z) uint8 bank class index, free = K
+
+Steps: Preprocess (resize to the model's input size, ImageNet normalisation; intrinsics scaled to
+match) -> the ONNX encoder (onnxruntime) -> hidden features h (N, Dh), g (N, Da) -> the bank folded
+into the linear heads (ago_runtime.heads.FoldedHeads): phrase scores, max over each class's phrases,
+softmax over [K classes + free], entropy, identifier, argmax; chunked over voxels.
+
+Swapping the bank (a new prompt file) changes the classes with no retraining and no re-export:
+folding a bank costs one (P+1, C) x (C, Dh) product, cached per bank.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+
+from .bundle import Bundle
+from .calibration import fit_rig_to_images
+from .camera import Rig
+from .classes import FREE, OCC3D_CLASSES
+from .errors import AgoInputError
+from .grid import Grid
+from .heads import DEFAULT_CHUNK, IDENTIFIERS, FoldedHeads
+
+
+@dataclass
+class Prediction:
+    """One frame's prediction over the grid (axis order [x, y, z])."""
+
+    semantics: np.ndarray          # (X, Y, Z) uint8: bank class index 0..K-1, free = free_index (= K)
+    class_names: list[str]         # K names, bank order
+    free_index: int
+    entropy: np.ndarray            # (X, Y, Z) float32, nats, of the chosen branch
+    confidence: np.ndarray         # (X, Y, Z) float32, max softmax probability of the chosen branch
+    branch: np.ndarray             # (X, Y, Z) uint8: 0 = original (main) branch, 1 = adapted branch
+    identifier: str
+    grid: Grid
+    occ3d: np.ndarray | None = None   # (X, Y, Z) uint8 Occ3D ids (free = 17) when every class is one Occ3D class
+    timings: dict = field(default_factory=dict)   # seconds: preprocess, encoder, heads
+
+    @property
+    def label_names(self) -> list[str]:
+        """Names of the values in `semantics`: classes then "free"."""
+        return list(self.class_names) + ["free"]
+
+    def output_arrays(self, volumes: bool = False) -> dict[str, np.ndarray]:
+        """The arrays of an Occ3D-format prediction file (see docs/runtime.md)."""
+        if self.occ3d is not None:
+            out = {"semantics": self.occ3d, "class_names": np.array(OCC3D_CLASSES, dtype=str),
+                   "free_index": np.array(FREE, np.int64), "bank_semantics": self.semantics,
+                   "bank_class_names": np.array(self.label_names, dtype=str)}
+        else:
+            out = {"semantics": self.semantics, "class_names": np.array(self.label_names, dtype=str),
+                   "free_index": np.array(self.free_index, np.int64)}
+        if volumes:
+            out.update(entropy=self.entropy, confidence=self.confidence, branch=self.branch)
+        return out
+
+
+def occ3d_lookup(bank) -> np.ndarray | None:
+    """(K+1,) uint8 bank index -> Occ3D id (free -> 17) when every bank class is exactly one Occ3D class."""
+    ids = []
+    for ids_k in bank.occ3d_ids:
+        if len(ids_k) != 1:
+            return None
+        ids.append(int(ids_k[0]))
+    return np.array(ids + [FREE], dtype=np.uint8)
+
+
+def bank_key(bank) -> str:
+    h = hashlib.sha256(np.ascontiguousarray(bank.embeddings).tobytes())
+    h.update(np.ascontiguousarray(bank.phrase_class).tobytes())
+    return h.hexdigest()
+
+
+def session_options(threads: int | None = None) -> ort.SessionOptions:
+    so = ort.SessionOptions()
+    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    if threads:
+        so.intra_op_num_threads = int(threads)
+    so.log_severity_level = 3
+    return so
+
+
+class Predictor:
+    def __init__(self, bundle: Bundle | str | Path, int8: bool = False, threads: int | None = None,
+                 chunk: int = DEFAULT_CHUNK):
+        self.bundle = bundle if isinstance(bundle, Bundle) else Bundle.load(bundle)
+        path = self.bundle.int8_encoder_path if int8 else self.bundle.encoder_path
+        if path is None:
+            raise AgoInputError(self.bundle.root, "bundle has no int8 encoder (export with `ago export --int8`)")
+        self.encoder_path = path
+        try:
+            self.session = ort.InferenceSession(str(path), session_options(threads),
+                                                providers=["CPUExecutionProvider"])
+        except Exception as e:  # onnxruntime raises its own Fail/InvalidProtobuf types
+            raise AgoInputError(path, f"onnxruntime cannot load the encoder ({str(e).splitlines()[0][:200]})") from None
+        names_in = [i.name for i in self.session.get_inputs()]
+        names_out = [o.name for o in self.session.get_outputs()]
+        if names_in != ["images", "ego2img"] or names_out != ["h", "g"]:
+            raise AgoInputError(path, f"encoder has inputs {names_in} and outputs {names_out}; "
+                                "expected ['images', 'ego2img'] -> ['h', 'g']")
+        self.chunk = int(chunk)
+        self._folded: dict[str, FoldedHeads] = {}
+
+    @property
+    def grid(self) -> Grid:
+        return self.bundle.grid
+
+    # ---- banks -----------------------------------------------------------------------------
+    def check_bank(self, bank, source=None) -> None:
+        te = self.bundle.text_encoder
+        bank.check_compatible(te["id"], int(te["dim"]), source or self.bundle.root)
+
+    def fold(self, bank) -> FoldedHeads:
+        """The bank folded into the heads (cached per bank content)."""
+        key = bank_key(bank)
+        if key not in self._folded:
+            self.check_bank(bank)
+            self._folded[key] = FoldedHeads(self.bundle.heads, bank.embeddings, bank.phrase_class,
+                                            bank.num_classes)
+        return self._folded[key]
+
+    # ---- encoder ---------------------------------------------------------------------------
+    def prepare(self, images: dict[str, np.ndarray], rig: Rig, source=None) -> tuple[np.ndarray, np.ndarray]:
+        """-> model inputs: images (1, 6, 3, H, W) float32, ego2img (1, 6, 4, 4) float32."""
+        rig.validate(source)
+        rig = fit_rig_to_images(rig, images)
+        pre = self.bundle.preprocess
+        x = pre.images(images, source)[None]
+        m = pre.ego2img(rig)[None]
+        if not np.isfinite(m).all():
+            raise AgoInputError(source, "calibration gives non-finite projection matrices")
+        return x, m
+
+    def encode(self, images: dict[str, np.ndarray], rig: Rig, source=None) -> tuple[np.ndarray, np.ndarray]:
+        """-> hidden features h (N, Dh), g (N, Da) float32."""
+        x, m = self.prepare(images, rig, source)
+        return self.encode_arrays(x, m)
+
+    def encode_arrays(self, x: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        h, g = self.session.run(["h", "g"], {"images": x, "ego2img": m})
+        n = self.grid.num_voxels
+        if h.shape[0] != n or g.shape[0] != n:
+            raise AgoInputError(self.encoder_path, f"encoder gives {h.shape[0]} voxels, the bundle grid has {n}")
+        return h, g
+
+    # ---- prediction ------------------------------------------------------------------------
+    def predict(self, images: dict[str, np.ndarray], rig: Rig, bank=None, identifier: str | None = None,
+                source=None) -> Prediction:
+        """Six images (dict camera -> RGB uint8) + their rig + a bank (default: the bundle's) -> Prediction."""
+        identifier = identifier or self.bundle.identifier
+        if identifier not in IDENTIFIERS:
+            raise AgoInputError(None, f"identifier must be one of {IDENTIFIERS}, got {identifier!r}")
+        bank = bank if bank is not None else self.bundle.load_bank()
+        folded = self.fold(bank)
+        t0 = time.perf_counter()
+        x, m = self.prepare(images, rig, source)
+        t1 = time.perf_counter()
+        h, g = self.encode_arrays(x, m)
+        t2 = time.perf_counter()
+        pred = self.predict_hidden(h, g, bank, identifier, folded)
+        pred.timings = {"preprocess": t1 - t0, "encoder": t2 - t1, "heads": time.perf_counter() - t2}
+        return pred
+
+    def predict_hidden(self, h: np.ndarray, g: np.ndarray, bank, identifier: str = "min-entropy",
+                       folded: FoldedHeads | None = None) -> Prediction:
+        folded = folded or self.fold(bank)
+        out = folded.run(h, g, identifier, self.chunk)
+        shape = self.grid.shape
+        K = bank.num_classes
+        if K + 1 > 255:
+            raise AgoInputError(None, f"a bank with {K} classes does not fit uint8 semantics (max 254 classes)")
+        sem = out["label"].astype(np.uint8).reshape(shape)
+        lut = occ3d_lookup(bank)
+        return Prediction(
+            semantics=sem, class_names=list(bank.class_names), free_index=K,
+            entropy=out["entropy"].reshape(shape), confidence=out["confidence"].reshape(shape),
+            branch=out["branch"].reshape(shape), identifier=identifier, grid=self.grid,
+            occ3d=lut[sem] if lut is not None else None)

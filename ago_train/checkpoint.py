@@ -1,0 +1,119 @@
+"""Training checkpoints: one `.pt` file that `torch.load(path, weights_only=True)` can read.
+
+A checkpoint holds ONLY tensors and plain python values (dict, list, str, int, float, bool, None):
+
+- "format": "ago-checkpoint", "version": 1
+- "model": model state_dict; "optimizer", "scheduler": their state_dicts (None in exports)
+- "step", "epoch": optimiser steps done, epochs started
+- "rng": {"torch": uint8 tensor, "cuda": [uint8 tensors], "numpy": {...tensor + ints}, "python": [...]}
+- "model_config", "train_config", "loss_config": dicts
+- "label_space": {"name", "prompt_text", "class_names", "num_classes"}
+- "bank": {"encoder_id", "encoder_hash", "embeddings" (P, C) float32, "phrase_class" (P,) int64,
+  "class_names"}: the label-space text embeddings, so export/eval need no text encoder.
+
+Files are written through `ago_runtime.atomic.atomic_path` (temp file + rename).
+"""
+
+from __future__ import annotations
+
+import random
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ago_runtime.atomic import atomic_path
+from ago_runtime.errors import AgoInputError
+
+FORMAT = "ago-checkpoint"
+VERSION = 1
+
+
+# ---- RNG states as tensors / lists ----------------------------------------------------------
+def rng_state() -> dict:
+    """torch, cuda, numpy (legacy global) and python RNG states in weights_only-loadable form."""
+    kind, keys, pos, has_gauss, cached = np.random.get_state()
+    py = random.getstate()  # (version, tuple of 625 ints, gauss_next)
+    return {
+        "torch": torch.get_rng_state(),
+        "cuda": [s for s in torch.cuda.get_rng_state_all()] if torch.cuda.is_available() else [],
+        "numpy": {"kind": str(kind), "keys": torch.from_numpy(np.asarray(keys, dtype=np.int64)), "pos": int(pos),
+                  "has_gauss": int(has_gauss), "cached": float(cached)},
+        "python": [int(py[0]), [int(x) for x in py[1]], None if py[2] is None else float(py[2])],
+    }
+
+
+def set_rng_state(state: dict) -> None:
+    torch.set_rng_state(state["torch"])
+    if state.get("cuda") and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"][: torch.cuda.device_count()])
+    n = state["numpy"]
+    np.random.set_state((n["kind"], n["keys"].numpy().astype(np.uint32), n["pos"], n["has_gauss"], n["cached"]))
+    v, keys, gauss = state["python"]
+    random.setstate((v, tuple(keys), gauss))
+
+
+# ---- save / load -----------------------------------------------------------------------------
+def save_checkpoint(path: str | Path, payload: dict) -> Path:
+    """Write `payload` (+ format/version) atomically; refuses values weights_only could not load."""
+    payload = {"format": FORMAT, "version": VERSION, **payload}
+    _check_plain(payload, "checkpoint")
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        torch.save(payload, tmp)
+    return path
+
+
+def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
+    """Read a checkpoint with weights_only=True and check its format; AgoInputError when it is not one."""
+    path = Path(path)
+    if not path.is_file():
+        raise AgoInputError(path, "checkpoint not found")
+    try:
+        ckpt = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as e:  # a corrupt file, a pickle with objects, not a torch file ...
+        raise AgoInputError(path, f"not a loadable ago checkpoint ({e.__class__.__name__}: {str(e)[:200]})") from None
+    if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
+        raise AgoInputError(path, "not an ago checkpoint (no format tag)")
+    if int(ckpt.get("version", -1)) > VERSION:
+        raise AgoInputError(path, f"checkpoint version {ckpt.get('version')} is newer than this ago ({VERSION})")
+    for key in ("model", "model_config", "label_space", "bank"):
+        if key not in ckpt:
+            raise AgoInputError(path, f"checkpoint lacks {key!r}")
+    return ckpt
+
+
+_PLAIN = (str, int, float, bool, type(None))
+
+
+def _check_plain(obj: Any, where: str) -> None:
+    """Raise TypeError on anything but tensors and plain python containers/scalars."""
+    if isinstance(obj, (torch.Tensor,) + _PLAIN):
+        return
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            if not isinstance(k, (str, int)):
+                raise TypeError(f"{where}: key {k!r} is not str/int")
+            _check_plain(v, f"{where}.{k}")
+        return
+    if isinstance(obj, (list, tuple)):
+        for i, v in enumerate(obj):
+            _check_plain(v, f"{where}[{i}]")
+        return
+    raise TypeError(f"{where}: {type(obj).__name__} cannot go into a weights_only checkpoint")
+
+
+def plain(obj: Any) -> Any:
+    """numpy scalars/arrays and tuples -> python values / tensors / lists (for config dicts)."""
+    if isinstance(obj, dict):
+        return {k: plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [plain(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return torch.from_numpy(obj.copy())
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj

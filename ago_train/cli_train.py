@@ -1,0 +1,123 @@
+"""CLI verbs `ago train`, `ago eval`, `ago open-world` (torch is imported inside the commands).
+
+    ago train --config cpu|tiny|full|cfg.json [--set key=value ...] [--resume] [--out DIR]
+    torchrun --nproc_per_node 2 -m ago_runtime.cli train --config ...      (DDP; gloo on CPU, nccl on GPU)
+    ago eval --ckpt RUN/last.pt --data DIR [--split val] [--prompts FILE] [--identifier ...] [--out DIR]
+    ago open-world --stage pretrain|zeroshot|fewshot|all --config cpu --data DIR \
+        --pseudo-pretrain DIR --pseudo-full DIR [--k 100] [--seeds 0,1,2] [--out DIR]
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+
+
+def _config(config: str, sets: Optional[List[str]], out: Optional[str], data: Optional[str] = None,
+            pseudo: Optional[str] = None, prompts: Optional[str] = None):
+    from .train_config import TrainConfig
+
+    cfg = TrainConfig.from_name_or_path(config).with_overrides(sets)
+    extra = []
+    for key, value in (("out", out), ("data", data), ("pseudo", pseudo), ("prompts", prompts)):
+        if value is not None:
+            extra.append(f"{key}={json.dumps(value)}")
+    return cfg.with_overrides(extra)
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("train")
+    def train_cmd(
+        config: str = typer.Option("cpu", "--config", help="preset (tiny, cpu, full) or a JSON config file"),
+        sets: Optional[List[str]] = typer.Option(None, "--set", help="override a config value: key=value "
+                                                  "(dotted keys for model./loss., JSON values)"),
+        resume: bool = typer.Option(False, "--resume", help="continue from <out>/last.pt exactly"),
+        out: Optional[str] = typer.Option(None, "--out", help="output folder (checkpoints, log, config)"),
+        data: Optional[str] = typer.Option(None, "--data", help="dataset root"),
+        pseudo: Optional[str] = typer.Option(None, "--pseudo", help="pseudo-label folder (ago pseudo-labels)"),
+        prompts: Optional[str] = typer.Option(None, "--prompts", help="prompt file (label space)"),
+        print_config: bool = typer.Option(False, "--print-config", help="print the resolved config and exit"),
+    ):
+        """Train AGO from pseudo-labels (single process, or DDP under torchrun)."""
+        from ago_runtime.cli import require_torch
+
+        require_torch("train")
+        cfg = _config(config, sets, out, data, pseudo, prompts)
+        if print_config:
+            typer.echo(json.dumps(cfg.to_dict(), indent=2))
+            return
+        from .trainer import train
+
+        r = train(cfg, resume=resume)
+        if r["last"]:
+            typer.echo(f"trained {r['step']} steps; checkpoint {r['last']}")
+
+    @app.command("eval")
+    def eval_cmd(
+        ckpt: Path = typer.Option(..., "--ckpt", help="checkpoint (.pt) from ago train"),
+        data: Path = typer.Option(..., "--data", help="dataset root with Occ3D gts/"),
+        split: str = typer.Option("val", "--split"),
+        prompts: Optional[str] = typer.Option(None, "--prompts", help="prompt file (default: the checkpoint's)"),
+        identifier: Optional[str] = typer.Option(None, "--identifier",
+                                                 help="min-entropy | max-conf | none (default: none in the "
+                                                      "closed world, min-entropy with unknown classes)"),
+        out: Optional[Path] = typer.Option(None, "--out", help="folder for metrics.json / metrics.md "
+                                                               "(default: <ckpt folder>/eval-<split>)"),
+        gts: Optional[str] = typer.Option(None, "--gts", help="Occ3D gts root when not <data>/gts"),
+        max_frames: Optional[int] = typer.Option(None, "--max-frames"),
+        device: str = typer.Option("auto", "--device"),
+    ):
+        """Score a checkpoint against Occ3D GT (per-class IoU, mIoU, known/unknown mIoU)."""
+        from ago_runtime.cli import require_torch
+
+        require_torch("eval")
+        from .evaluate import evaluate
+
+        out = out if out is not None else Path(ckpt).parent / f"eval-{split}"
+        r = evaluate(ckpt, data, split=split, prompts=prompts, identifier=identifier, out=out, gts=gts,
+                     max_frames=max_frames, device=device)
+        subs = ", ".join(f"{k} {v}" for k, v in r["subsets"].items())
+        typer.echo(f"mIoU {r['mIoU']} (%){'; ' + subs if subs else ''}; written {out}/metrics.json, metrics.md")
+
+    @app.command("open-world")
+    def open_world_cmd(
+        stage: str = typer.Option("all", "--stage", help="pretrain | zeroshot | fewshot | all"),
+        config: str = typer.Option("cpu", "--config", help="base training preset or JSON file"),
+        sets: Optional[List[str]] = typer.Option(None, "--set", help="override a base config value"),
+        data: Optional[str] = typer.Option(None, "--data", help="dataset root"),
+        pseudo_pretrain: Path = typer.Option(..., "--pseudo-pretrain",
+                                             help="pseudo-labels made with prompts/ow_pretrain.txt"),
+        pseudo_full: Optional[Path] = typer.Option(None, "--pseudo-full",
+                                                   help="pseudo-labels made with prompts/ow.txt (few-shot)"),
+        k: int = typer.Option(100, "--k", help="shots per class"),
+        seeds: str = typer.Option("0,1,2", "--seeds", help="comma-separated few-shot seeds"),
+        fewshot_epochs: Optional[int] = typer.Option(None, "--fewshot-epochs",
+                                                     help="fine-tuning epochs (default 12; 1 for tiny)"),
+        eval_split: str = typer.Option("val", "--eval-split"),
+        identifier: str = typer.Option("min-entropy", "--identifier"),
+        out: Path = typer.Option(Path("runs/open-world"), "--out"),
+    ):
+        """The paper's open-world protocol: pretrain (5 classes), zero-shot and few-shot on 15 classes."""
+        from ago_runtime.cli import require_torch
+        from ago_runtime.errors import AgoInputError
+
+        require_torch("open-world")
+        from .open_world import OpenWorldConfig, run_open_world
+
+        base = _config(config, sets, None, data)
+        if stage in ("fewshot", "all") and pseudo_full is None:
+            raise AgoInputError(None, "--pseudo-full is needed for the few-shot stage")
+        try:
+            seed_list = tuple(int(s) for s in seeds.split(",") if s.strip())
+        except ValueError:
+            raise AgoInputError(None, f"--seeds must be comma-separated integers, got {seeds!r}") from None
+        ow = OpenWorldConfig(base=base, pseudo_pretrain=str(pseudo_pretrain),
+                             pseudo_full=str(pseudo_full) if pseudo_full else "", out=str(out), k=k,
+                             seeds=seed_list, eval_split=eval_split, identifier=identifier,
+                             fewshot_epochs=fewshot_epochs if fewshot_epochs is not None else
+                             (1 if base.name == "tiny" else 12))
+        run_open_world(ow, stage=stage)
+        typer.echo(f"written {out}/results.json and {out}/results.md")

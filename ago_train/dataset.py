@@ -1,0 +1,252 @@
+"""Training / evaluation samples: frames + 3D pseudo-labels + voxel VLM embeddings (E_3D) + GT.
+
+`OccSampleDataset(frames, pseudo, label_space, grid, preprocess, ...)` is a torch Dataset; item i:
+
+- "images": (6, 3, H, W) float32, `ago_runtime.preprocess.Preprocess` (identical to the runtime);
+- "ego2img": (6, 4, 4) float32, ego -> resized-image projections (CAMERA_NAMES order);
+- "semantics": (N,) int64 pseudo-label per voxel of the model grid (N = X*Y*Z, C order over [x,y,z]),
+  as stored: 0..K-1 class, 17 = free, 255 = unknown (the losses map it: `pseudo_to_target` here does
+  the same mapping to 0..K-1 / K free / IGNORE_INDEX for evaluation code);
+- "e3d_index": (M,) int64 flat voxel indices with a lifted VLM embedding; "e3d_embeds": (M, C) float32;
+- "gt": (Xg, Yg, Zg) uint8 Occ3D GT mapped to the label space (0..K-1, K = free, 255 = ignore) and
+  "gt_mask": (Xg, Yg, Zg) bool camera-visibility mask — only when `with_gt` and the frame has GT;
+- "token", "scene": strings.
+
+`collate(items)` stacks the fixed-size tensors ("images" (B, 6, 3, H, W), "ego2img", "semantics" (B, N))
+and concatenates E_3D as the losses want it: "align_index" (sum M,) int64 indices into the batch's
+B*N voxels (b * N + voxel) and "align_embed" (sum M, C) float32. GT stays a list of numpy arrays
+(evaluation only).
+
+Pseudo-label directory layout (written by `ago pseudo-labels`): meta.json (label space classes, grid),
+`<scene>/<token>/labels.npz` (semantics: 0..K-1 class, 17 = free, 255 = unknown; masks) and
+`<scene>/<token>/embeds.npz` (index (M,) int32, embeds (M, C) float16).
+"""
+
+from __future__ import annotations
+
+import json
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from ago_runtime.classes import FREE
+from ago_runtime.errors import AgoInputError
+from ago_runtime.grid import Grid
+from ago_runtime.preprocess import Preprocess
+
+IGNORE_INDEX = -100  # torch's cross-entropy default
+
+
+# ---- the pseudo-label directory ---------------------------------------------------------------
+@dataclass
+class PseudoLabelSet:
+    """A checked pseudo-label directory: its meta, grid and label-space class names."""
+
+    root: Path
+    meta: dict
+    grid: Grid
+    class_names: list[str]
+
+    @classmethod
+    def open(cls, root: str | Path) -> "PseudoLabelSet":
+        root = Path(root)
+        if not root.is_dir():
+            raise AgoInputError(root, "pseudo-label directory not found (make it with `ago pseudo-labels`)")
+        meta_path = root / "meta.json"
+        if not meta_path.is_file():
+            raise AgoInputError(meta_path, "pseudo-label meta.json not found (make the directory with `ago pseudo-labels`)")
+        try:
+            meta = json.loads(meta_path.read_text())
+        except json.JSONDecodeError as e:
+            raise AgoInputError(meta_path, f"not valid JSON ({e})") from None
+        try:
+            grid = Grid.from_dict(meta["grid"])
+            names = _class_names_from_meta(meta)
+        except (KeyError, TypeError, ValueError) as e:
+            raise AgoInputError(meta_path, f"meta.json lacks the grid or the label space ({e})") from None
+        return cls(root, meta, grid, names)
+
+    def check(self, grid: Grid, class_names: Sequence[str]) -> None:
+        """Refuse a pseudo-label set made for another grid or another label space."""
+        if tuple(self.grid.shape) != tuple(grid.shape) or not np.allclose(self.grid.range_min, grid.range_min) \
+                or not np.allclose(self.grid.range_max, grid.range_max):
+            raise AgoInputError(self.root / "meta.json",
+                                f"pseudo-labels are on grid {self.grid.shape} {self.grid.range_min}..{self.grid.range_max} "
+                                f"but the model grid is {grid.shape} {grid.range_min}..{grid.range_max}; "
+                                "regenerate them with the model's grid")
+        if list(self.class_names) != list(class_names):
+            raise AgoInputError(self.root / "meta.json",
+                                f"pseudo-labels use the classes {self.class_names} but the prompt file has "
+                                f"{list(class_names)}; regenerate them with this prompt file")
+
+    def sample_dir(self, scene: str, token: str) -> Path:
+        return self.root / scene / token
+
+    def has(self, scene: str, token: str) -> bool:
+        return (self.sample_dir(scene, token) / "labels.npz").is_file()
+
+    def labels(self, scene: str, token: str) -> np.ndarray:
+        """(X, Y, Z) uint8 pseudo semantics (0..K-1, 17 = free, 255 = unknown)."""
+        path = self.sample_dir(scene, token) / "labels.npz"
+        z = _read_npz(path, ("semantics",))
+        sem = z["semantics"]
+        if tuple(sem.shape) != tuple(self.grid.shape):
+            raise AgoInputError(path, f"semantics shape {sem.shape} does not match the grid {self.grid.shape}")
+        return sem.astype(np.uint8)
+
+    def embeds(self, scene: str, token: str) -> tuple[np.ndarray, np.ndarray]:
+        """(M,) int64 flat voxel indices and (M, C) float32 VLM embeddings; empty when the file is absent."""
+        path = self.sample_dir(scene, token) / "embeds.npz"
+        if not path.is_file():
+            return np.zeros(0, np.int64), np.zeros((0, 0), np.float32)
+        z = _read_npz(path, ("index", "embeds"))
+        idx = z["index"].astype(np.int64).reshape(-1)
+        emb = z["embeds"].astype(np.float32)
+        if emb.ndim != 2 or emb.shape[0] != idx.shape[0]:
+            raise AgoInputError(path, f"index {idx.shape} and embeds {emb.shape} do not match")
+        if idx.size and (idx.min() < 0 or idx.max() >= self.grid.num_voxels):
+            raise AgoInputError(path, f"voxel indices outside 0..{self.grid.num_voxels - 1}")
+        return idx, emb
+
+
+def _class_names_from_meta(meta: dict) -> list[str]:
+    ls = meta.get("label_space", meta)
+    names = ls.get("class_names", ls.get("classes"))
+    if names is None:
+        raise KeyError("class_names")
+    if names and isinstance(names[0], dict):
+        names = [c["name"] for c in names]
+    return [str(n) for n in names]
+
+
+def _read_npz(path: Path, keys: Sequence[str]) -> dict[str, np.ndarray]:
+    if not path.is_file():
+        raise AgoInputError(path, "pseudo-label file not found (was `ago pseudo-labels` run on this frame?)")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            missing = [k for k in keys if k not in z.files]
+            if missing:
+                raise AgoInputError(path, f"missing keys {missing}")
+            return {k: np.asarray(z[k]) for k in keys}
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as e:
+        if isinstance(e, AgoInputError):
+            raise
+        raise AgoInputError(path, f"not a readable npz file ({e.__class__.__name__}: {e})") from None
+
+
+# ---- label mapping ----------------------------------------------------------------------------
+def pseudo_to_target(sem: np.ndarray, num_classes: int) -> np.ndarray:
+    """Pseudo semantics (0..K-1, 17 free, 255 unknown) -> (N,) int64 targets (0..K-1, K free, IGNORE_INDEX)."""
+    s = sem.reshape(-1).astype(np.int64)
+    out = np.full(s.shape, IGNORE_INDEX, dtype=np.int64)
+    cls = s < num_classes
+    if num_classes > FREE:  # 17 would be ambiguous between a class and free; the label space forbids it
+        raise AgoInputError(None, f"label spaces with more than {FREE} classes are not supported by the pseudo format")
+    out[cls & (s != FREE)] = s[cls & (s != FREE)]
+    out[s == FREE] = num_classes
+    return out
+
+
+def gt_to_label_space(gt_semantics: np.ndarray, lut: np.ndarray) -> np.ndarray:
+    """Occ3D ids (0..16, 17 free, 255) -> label-space ids through `lut` = LabelSpace.gt_lut(free_index=K)
+    (0..K-1 class, K free, 255 ignore)."""
+    lut = np.asarray(lut)
+    if lut.shape != (256,):
+        raise ValueError(f"gt lut must have 256 entries, got {lut.shape}")
+    return lut.astype(np.uint8)[gt_semantics.astype(np.uint8)]
+
+
+# ---- the dataset -------------------------------------------------------------------------------
+class OccSampleDataset(torch.utils.data.Dataset):
+    """Frames (a sequence of ago_runtime Frame) joined with their pseudo-labels. See the module docstring."""
+
+    def __init__(self, frames, pseudo: PseudoLabelSet | None, num_classes: int, grid: Grid,
+                 preprocess: Preprocess, gt_lut: np.ndarray | None = None, with_gt: bool = False,
+                 with_embeds: bool = True, color_jitter: float = 0.0, seed: int = 0):
+        self.frames = frames
+        self.pseudo = pseudo
+        self.num_classes = int(num_classes)
+        self.grid = grid
+        self.preprocess = preprocess
+        self.gt_lut = gt_lut
+        self.with_gt = with_gt
+        self.with_embeds = with_embeds
+        self.color_jitter = float(color_jitter)
+        self.seed = int(seed)
+        self.epoch = 0
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def set_epoch(self, epoch: int) -> None:
+        """Augmentations draw from a generator seeded by (seed, epoch, index): reproducible on resume."""
+        self.epoch = int(epoch)
+
+    def __getitem__(self, i: int) -> dict:
+        frame = self.frames[i]
+        source = f"{frame.scene}/{frame.token}"
+        images = self.preprocess.images(frame.images, source=source)
+        if self.color_jitter > 0:
+            rng = np.random.default_rng([self.seed, self.epoch, int(i)])
+            a = 1.0 + rng.uniform(-self.color_jitter, self.color_jitter, size=(6, 1, 1, 1)).astype(np.float32)
+            b = rng.uniform(-self.color_jitter, self.color_jitter, size=(6, 1, 1, 1)).astype(np.float32)
+            images = images * a + b
+        item = {
+            "images": torch.from_numpy(np.ascontiguousarray(images)),
+            "ego2img": torch.from_numpy(self.preprocess.ego2img(frame.rig)),
+            "token": frame.token,
+            "scene": frame.scene,
+        }
+        if self.pseudo is not None:
+            sem = self.pseudo.labels(frame.scene, frame.token)
+            item["semantics"] = torch.from_numpy(sem.reshape(-1).astype(np.int64))
+            if self.with_embeds:
+                idx, emb = self.pseudo.embeds(frame.scene, frame.token)
+                item["e3d_index"] = torch.from_numpy(idx)
+                item["e3d_embeds"] = torch.from_numpy(emb)
+        if self.with_gt:
+            if frame.gt is None:
+                raise AgoInputError(source, "frame has no Occ3D ground truth (needed for evaluation)")
+            if self.gt_lut is None:
+                raise ValueError("with_gt needs gt_lut (LabelSpace.gt_lut(free_index=K))")
+            item["gt"] = gt_to_label_space(frame.gt.semantics, self.gt_lut)
+            item["gt_mask"] = frame.gt.mask_camera.astype(bool)
+        return item
+
+
+def collate(items: list[dict]) -> dict:
+    """Batch a list of items (see module docstring); E_3D padded with a validity mask."""
+    out: dict = {
+        "images": torch.stack([it["images"] for it in items]),
+        "ego2img": torch.stack([it["ego2img"] for it in items]),
+        "token": [it["token"] for it in items],
+        "scene": [it["scene"] for it in items],
+    }
+    if all("semantics" in it for it in items):
+        out["semantics"] = torch.stack([it["semantics"] for it in items])
+    if all("e3d_index" in it for it in items):
+        n = int(items[0]["semantics"].shape[0]) if "semantics" in items[0] else 0
+        out["align_index"] = torch.cat([it["e3d_index"].long() + b * n for b, it in enumerate(items)])
+        out["align_embed"] = torch.cat([it["e3d_embeds"].float() for it in items])
+    if all("gt" in it for it in items):
+        out["gt"] = [it["gt"] for it in items]
+        out["gt_mask"] = [it["gt_mask"] for it in items]
+    return out
+
+
+class FrameList:
+    """A sequence view of a frame source restricted to some indices (e.g. a split or a few-shot subset)."""
+
+    def __init__(self, source, indices: Sequence[int]):
+        self.source = source
+        self.indices = [int(i) for i in indices]
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def __getitem__(self, i: int):
+        return self.source[self.indices[i]]

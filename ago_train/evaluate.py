@@ -1,0 +1,174 @@
+"""Evaluation of a training checkpoint against Occ3D ground truth (`ago eval`).
+
+Takes a checkpoint (checkpoint.py), a dataset root with GT, a split and a prompt file (default:
+the checkpoint's own label space). For each frame: the model's voxel embeddings -> class logits
+against the label space's text bank (class score = max over its phrases, plus free) -> labels
+0..K-1 (class) / K (free) on the model grid -> nearest-upsampled to the GT grid when the model grid
+is coarser -> `OccupancyMetric` over `mask_camera`, GT mapped into the label space with
+`LabelSpace.gt_lut(free_index=K)` (Occ3D classes the space does not cover are ignored).
+
+Identifier (`identifier`): "none" classifies with F_3D only (the closed-world default, as the
+paper's supplementary material); "min-entropy" / "max-conf" pick per voxel between F_3D and the
+adapted F~_3D (the open-world identifier; default when the prompt file has unknown classes).
+
+Writes `<out>/metrics.json` (the metric summary + known/unknown mIoU + run info) and
+`<out>/metrics.md` (per-class IoU table).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ago_runtime.atomic import write_json, write_text
+from ago_runtime.errors import AgoInputError
+from ago_runtime.metric import OccupancyMetric, upsample_nearest
+from ago_runtime.preprocess import Preprocess
+from ago_runtime.prompts import LabelSpace, parse_prompt_file, parse_prompt_text
+
+from .checkpoint import load_checkpoint
+from .dataset import FrameList, OccSampleDataset, collate
+from .distributed import pick_device
+
+IDENTIFIERS = ("min-entropy", "max-conf", "none")
+
+
+def load_model(ckpt: dict, device: torch.device):
+    from .model import ModelConfig
+
+    cfg = ModelConfig.from_dict(dict(ckpt["model_config"]))
+    model = cfg.build()
+    model.load_state_dict(ckpt["model"])
+    return cfg, model.to(device).eval()
+
+
+def checkpoint_label_space(ckpt: dict) -> LabelSpace:
+    rec = ckpt["label_space"]
+    return parse_prompt_text(rec["prompt_text"], name=rec.get("name"), source=rec.get("prompt_file"))
+
+
+def bank_for(ckpt: dict, label_space: LabelSpace) -> tuple[torch.Tensor, torch.Tensor]:
+    """(P, C) text embeddings and (P,) phrase classes of `label_space`: the checkpoint's own when it
+    is the training label space (same phrases), else encoded with the torch MiniLM (same encoder hash)."""
+    saved = checkpoint_label_space(ckpt)
+    bank = ckpt["bank"]
+    if saved.phrases == label_space.phrases and saved.class_names == label_space.class_names:
+        return bank["embeddings"].float(), bank["phrase_class"].long()
+    from ago_runtime.bank import build_bank
+
+    from .text.minilm import TorchMiniLMEncoder
+
+    enc = TorchMiniLMEncoder()
+    if enc.weights_hash != bank["encoder_hash"]:
+        raise AgoInputError(None, f"the installed text encoder ({enc.weights_hash[:12]}) differs from the one "
+                            f"the checkpoint was trained with ({str(bank['encoder_hash'])[:12]})")
+    new = build_bank(label_space, enc)
+    return torch.from_numpy(new.embeddings), torch.from_numpy(new.phrase_class)
+
+
+def default_identifier(label_space: LabelSpace) -> str:
+    """'min-entropy' when the label space has unknown (unseen) classes, else 'none' (closed world)."""
+    known = set(label_space.known)
+    return "min-entropy" if known and any(c not in known for c in label_space.class_names) else "none"
+
+
+@torch.no_grad()
+def predict_labels(model, images: torch.Tensor, ego2img: torch.Tensor, text: torch.Tensor,
+                   phrase_class: torch.Tensor, num_classes: int, identifier: str) -> torch.Tensor:
+    """(B, N) int64 labels on the model grid: 0..K-1 class, K free."""
+    from .model.scoring import class_logits, open_world_identify
+
+    out = model(images, ego2img)
+    free = out.get("free_embedding", model.free_embedding)
+    main = class_logits(out["feat"], text, phrase_class, num_classes, free, None)
+    if identifier == "none":
+        return main.argmax(dim=-1)
+    adapted = class_logits(out["feat_adapted"], text, phrase_class, num_classes, free, None)
+    pred, _branch, _entropy = open_world_identify(main, adapted, identifier, num_classes)
+    return pred.long()
+
+
+def scored_subsets(label_space: LabelSpace) -> dict[str, list[str]]:
+    """Known / unknown class subsets for mIoU (only classes with Occ3D ids are scored)."""
+    known = set(label_space.known)
+    scored = [c.name for c in label_space.classes if c.occ3d_ids]
+    if not known or all(c in known for c in label_space.class_names):
+        return {}
+    return {"known": [c for c in scored if c in known], "unknown": [c for c in scored if c not in known]}
+
+
+def evaluate(ckpt_path: str | Path, data: str | Path, split: str = "val", prompts: str | None = None,
+             identifier: str | None = None, out: str | Path | None = None, gts: str | None = None,
+             max_frames: int | None = None, device: str = "auto", quiet: bool = False) -> dict:
+    """Score a checkpoint; returns the results dict written to `<out>/metrics.json` (when `out`)."""
+    from .trainer import open_frames
+
+    if identifier is not None and identifier not in IDENTIFIERS:
+        raise AgoInputError(None, f"unknown identifier {identifier!r}; choose one of {list(IDENTIFIERS)}")
+    dev = pick_device(device)
+    ckpt = load_checkpoint(ckpt_path, map_location="cpu")
+    mcfg, model = load_model(ckpt, dev)
+    label_space = parse_prompt_file(prompts) if prompts else checkpoint_label_space(ckpt)
+    K = label_space.num_classes
+    identifier = identifier or default_identifier(label_space)
+    text, phrase_class = bank_for(ckpt, label_space)
+    text, phrase_class = text.to(dev), phrase_class.to(dev)
+
+    ds, indices = open_frames(data, gts, split, load_gt=True)
+    if max_frames is not None:
+        indices = indices[:max_frames]
+    if not indices:
+        raise AgoInputError(data, f"no frames in split {split!r}")
+    grid = mcfg.grid_obj()
+    pre = Preprocess(mcfg.image_width, mcfg.image_height)
+    dataset = OccSampleDataset(FrameList(ds, indices), None, K, grid, pre,
+                               gt_lut=label_space.gt_lut(free_index=K), with_gt=True)
+    names = list(label_space.class_names) + ["free"]
+    metric = OccupancyMetric(names, free_index=K)
+    loader = torch.utils.data.DataLoader(dataset, batch_size=1, shuffle=False, collate_fn=collate)
+    from ago_runtime.progress import track
+
+    iterator = loader if quiet else track(loader, description="eval", total=len(loader))
+    for batch in iterator:
+        pred = predict_labels(model, batch["images"].to(dev), batch["ego2img"].to(dev), text, phrase_class,
+                              K, identifier).cpu().numpy()
+        for b in range(pred.shape[0]):
+            vol = pred[b].reshape(grid.shape).astype(np.uint8)
+            gt, mask = batch["gt"][b], batch["gt_mask"][b]
+            vol = _to_gt_resolution(vol, gt.shape, f"{batch['scene'][b]}/{batch['token'][b]}")
+            metric.update(vol, gt, mask)
+
+    subsets = scored_subsets(label_space)
+    summary = metric.summary()
+    result = {
+        "checkpoint": str(ckpt_path), "data": str(data), "split": split, "frames": len(indices),
+        "label_space": label_space.name, "prompt_file": str(label_space.source) if label_space.source else None,
+        "identifier": identifier, "model_grid": list(grid.shape),
+        "mIoU": summary["mIoU"], "geometry_IoU": summary["geometry_IoU"],
+        "subsets": {name: _pct(metric.miou(sub)) if sub else None for name, sub in subsets.items()},
+        "metric": summary,
+    }
+    if out is not None:
+        out = Path(out)
+        write_json(out / "metrics.json", result)
+        header = (f"# Evaluation: {Path(str(ckpt_path)).name} on {data} ({split}, {len(indices)} frames)\n\n"
+                  f"Label space `{label_space.name}`, identifier `{identifier}`, model grid "
+                  f"{grid.shape}, scored over mask_camera at the GT resolution.\n\n")
+        write_text(out / "metrics.md", header + metric.to_markdown({k: v for k, v in subsets.items() if v}))
+    return result
+
+
+def _pct(x: float) -> float | None:
+    return None if x is None or not np.isfinite(x) else round(float(x) * 100.0, 2)
+
+
+def _to_gt_resolution(vol: np.ndarray, gt_shape: tuple, source: str) -> np.ndarray:
+    if tuple(vol.shape) == tuple(gt_shape):
+        return vol
+    factors = [g / v for g, v in zip(gt_shape, vol.shape)]
+    if any(f < 1 or abs(f - round(f)) > 1e-9 for f in factors):
+        raise AgoInputError(source, f"GT grid {tuple(gt_shape)} is not an integer multiple of the model grid "
+                            f"{tuple(vol.shape)}")
+    return upsample_nearest(vol, tuple(int(round(f)) for f in factors))

@@ -1,0 +1,149 @@
+"""The AGO training objective and its ablation variants.
+
+`compute_losses(outputs, batch, bank, cfg)`:
+- outputs: AGOModel.forward's dict: "feat" F_3D (B, N|M, C), "feat_adapted" F~_3D (B, N|M, C),
+  "free_embedding" (C,), and "voxel_index" (B, M) when the model ran on a voxel sample.
+- batch: "semantics" (B, X, Y, Z) or (B, N) pseudo-labels (0..K-1, 17 free, 255 unknown);
+  for the align variants "align_index" (Ma,) int64 flat indices into the batch's B*N voxels
+  (b * N + voxel) and "align_embed" (Ma, C) their E_3D embeddings (visible occupied voxels).
+- bank: `BankTensors` (text (P, C), phrase_class (P,), num_classes K, noise (Nn, C) or None).
+Returns a dict of scalar tensors: "total" plus the parts that were computed
+("grounding_ce", "grounding_lovasz", "occ", "align").
+
+Variants (`LossConfig.variant`):
+- "align":            align(F_3D, E_3D) only (no adapter, no grounding);
+- "grounding":        grounding (+ occ) on F_3D only;
+- "grounding+align":  grounding (+ occ) on F_3D and align(F_3D, E_3D);
+- "ago":              grounding (+ occ) on F_3D and align(F~_3D, E_3D)  (the paper).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import torch
+
+from ago_train.model.scoring import class_logits
+
+from .align import ALIGN_LOSSES, align_loss
+from .grounding import grounding_loss, semantics_to_targets
+from .occupancy import occupancy_loss
+
+VARIANTS = ("align", "grounding", "grounding+align", "ago")
+
+
+@dataclass
+class LossConfig:
+    variant: str = "ago"
+    use_noise: bool = True      # noise-word columns as negatives in the grounding softmax
+    use_occ: bool = True        # add the 2-way occupancy CE
+    align_loss: str = "cosine"  # "cosine" | "mse" | "l1"
+    w_ce: float = 1.0
+    w_lovasz: float = 1.0
+    w_occ: float = 1.0
+    w_align: float = 1.0
+    lovasz_only_present: bool = True
+
+    def __post_init__(self):
+        if self.variant not in VARIANTS:
+            raise ValueError(f"unknown loss variant {self.variant!r}; expected one of {VARIANTS}")
+        if self.align_loss not in ALIGN_LOSSES:
+            raise ValueError(f"unknown align loss {self.align_loss!r}; expected one of {ALIGN_LOSSES}")
+
+    @property
+    def uses_grounding(self) -> bool:
+        return self.variant != "align"
+
+    @property
+    def uses_align(self) -> bool:
+        return self.variant != "grounding"
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "LossConfig":
+        return cls(**d)
+
+
+@dataclass
+class BankTensors:
+    """A text bank as torch tensors: phrase embeddings, their class ids, the class count, noise words."""
+
+    text: torch.Tensor            # (P, C) float32
+    phrase_class: torch.Tensor    # (P,) int64 in 0..K-1
+    num_classes: int              # K
+    noise: torch.Tensor | None = None  # (Nn, C) float32
+
+    @classmethod
+    def from_arrays(cls, text, phrase_class, num_classes: int, noise=None, device="cpu") -> "BankTensors":
+        t = torch.as_tensor(text, dtype=torch.float32, device=device)
+        pc = torch.as_tensor(phrase_class, dtype=torch.long, device=device)
+        n = None if noise is None else torch.as_tensor(noise, dtype=torch.float32, device=device)
+        return cls(t, pc, int(num_classes), n)
+
+    def to(self, device) -> "BankTensors":
+        return BankTensors(self.text.to(device), self.phrase_class.to(device), self.num_classes,
+                           None if self.noise is None else self.noise.to(device))
+
+
+def _flat_targets(batch: dict, outputs: dict, num_classes: int) -> torch.Tensor:
+    sem = batch["semantics"]
+    B = outputs["feat"].shape[0]
+    target = semantics_to_targets(sem.reshape(B, -1), num_classes).to(outputs["feat"].device)
+    if "voxel_index" in outputs:
+        vi = outputs["voxel_index"]
+        if vi.dim() == 1:
+            vi = vi.unsqueeze(0).expand(B, -1)
+        target = torch.gather(target, 1, vi)
+    return target
+
+
+def _align_rows(batch: dict, outputs: dict, num_voxels: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """-> (rows into the flattened (B*N or B*M) features, E_3D rows) of the align voxels present."""
+    idx = batch["align_index"].long().to(outputs["feat"].device)
+    emb = batch["align_embed"].to(outputs["feat"].device)
+    if "voxel_index" not in outputs:
+        return idx, emb
+    vi = outputs["voxel_index"]
+    B = outputs["feat"].shape[0]
+    if vi.dim() == 1:
+        vi = vi.unsqueeze(0).expand(B, -1)
+    M = vi.shape[1]
+    inverse = torch.full((B * num_voxels,), -1, dtype=torch.long, device=idx.device)
+    full = (torch.arange(B, device=idx.device)[:, None] * num_voxels + vi).reshape(-1)
+    inverse[full] = torch.arange(B * M, device=idx.device)
+    rows = inverse[idx]
+    keep = rows >= 0          # align voxels outside the sample are skipped
+    return rows[keep], emb[keep]
+
+
+def compute_losses(outputs: dict, batch: dict, bank: BankTensors, cfg: LossConfig,
+                   free_embedding: torch.Tensor | None = None, num_voxels: int | None = None) -> dict:
+    """See the module docstring. `num_voxels` (N of the grid) is needed only with a voxel sample
+    ("voxel_index" in outputs) and align; by default it is read from batch["semantics"]."""
+    feat = outputs["feat"]
+    free = free_embedding if free_embedding is not None else outputs["free_embedding"]
+    K = bank.num_classes
+    losses: dict[str, torch.Tensor] = {}
+    total = feat.sum() * 0.0
+    if cfg.uses_grounding:
+        target = _flat_targets(batch, outputs, K)
+        noise = bank.noise if cfg.use_noise else None
+        logits = class_logits(feat, bank.text, bank.phrase_class, K, free, noise)
+        ce, lov = grounding_loss(logits, target, K, cfg.lovasz_only_present)
+        losses["grounding_ce"], losses["grounding_lovasz"] = ce, lov
+        total = total + cfg.w_ce * ce + cfg.w_lovasz * lov
+        if cfg.use_occ:
+            losses["occ"] = occupancy_loss(logits, target, K)
+            total = total + cfg.w_occ * losses["occ"]
+    if cfg.uses_align:
+        src = outputs["feat_adapted"] if cfg.variant == "ago" else feat
+        if num_voxels is None:
+            sem = batch["semantics"]
+            num_voxels = sem.reshape(sem.shape[0], -1).shape[1]
+        rows, emb = _align_rows(batch, outputs, num_voxels)
+        losses["align"] = align_loss(src.reshape(-1, src.shape[-1])[rows], emb, cfg.align_loss)
+        total = total + cfg.w_align * losses["align"]
+    losses["total"] = total
+    return losses

@@ -1,0 +1,5 @@
+"""The AGO network (torch): config, backbone, FPN, TPV encoder, voxel heads, text scoring."""
+
+from .config import ModelConfig
+
+__all__ = ["ModelConfig"]

@@ -1,0 +1,82 @@
+"""`AGOModel`: six camera images -> per-voxel embeddings in the text space.
+
+forward_hidden(images (B, 6, 3, H, W) float32 normalised by ago_runtime.preprocess.Preprocess,
+               ego2img (B, 6, 4, 4) float32 for the resized images)
+  -> h (B, N, Dh) decoder hidden, g (B, N, Da) adapter hidden; N = X*Y*Z, C order over [x, y, z].
+forward(images, ego2img, voxel_index=None) -> {"feat": F_3D = decoder_out(h) (B, N, C),
+                 "feat_adapted": F~_3D = adapter_out(g) (B, N, C),
+                 "free_embedding": (C,)}
+
+Pipeline: backbone (strides 8/16/32) -> FPN (tpv_dim) -> TPV encoder (three planes) ->
+planes_to_voxels -> decoder MLP -> decoder_out -> adapter.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from .aggregate import planes_at_voxels, planes_to_voxels
+from .backbone import build_backbone
+from .config import ModelConfig
+from .fpn import FPN
+from .heads import AdapterHidden, DecoderMLP
+from .tpv import TPVEncoder
+
+
+class AGOModel(nn.Module):
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        cfg.validate()
+        self.cfg = cfg
+        self.grid_shape = cfg.grid_obj().shape
+        self.backbone = build_backbone(cfg.backbone, cfg.image_height, cfg.image_width, cfg.pretrained,
+                                       cfg.frozen_stages)
+        self.fpn = FPN(self.backbone.out_channels, cfg.tpv_dim)
+        self.encoder = TPVEncoder(cfg, levels=3)
+        self.decoder = DecoderMLP(cfg.tpv_dim, cfg.hidden_dim, cfg.decoder_layers)
+        self.decoder_out = nn.Linear(cfg.hidden_dim, cfg.embed_dim)
+        self.adapter = AdapterHidden(cfg.embed_dim, cfg.adapter_hidden, cfg.adapter_depth)
+        self.adapter_out = nn.Linear(self.adapter.out_dim, cfg.embed_dim)
+        free = torch.randn(cfg.embed_dim)
+        self.free_embedding = nn.Parameter(free / free.norm())
+
+    @property
+    def num_voxels(self) -> int:
+        X, Y, Z = self.grid_shape
+        return X * Y * Z
+
+    def planes(self, images: torch.Tensor, ego2img: torch.Tensor) -> dict[str, torch.Tensor]:
+        """images (B, V, 3, H, W), ego2img (B, V, 4, 4) -> TPV plane maps {"xy", "xz", "yz"}: (B, D, rows, cols)."""
+        B, V, C, H, W = images.shape
+        feats = self.backbone(images.reshape(B * V, C, H, W))
+        feats = self.fpn(feats)
+        return self.encoder(feats, ego2img)
+
+    def voxel_features(self, images, ego2img, voxel_index: torch.Tensor | None = None) -> torch.Tensor:
+        """(B, N, D) TPV features of every voxel, or (B, M, D) of the voxels `voxel_index` (B, M) only."""
+        planes = self.planes(images, ego2img)
+        if voxel_index is None:
+            return planes_to_voxels(planes, self.grid_shape)
+        return planes_at_voxels(planes, self.grid_shape, voxel_index)
+
+    def forward_hidden(self, images: torch.Tensor, ego2img: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """-> h (B, N, Dh), g (B, N, Da): what the ONNX graph computes (last linears folded in later)."""
+        h = self.decoder(self.voxel_features(images, ego2img))
+        g = self.adapter(self.decoder_out(h))
+        return h, g
+
+    def forward(self, images: torch.Tensor, ego2img: torch.Tensor,
+                voxel_index: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """-> {"feat" (B, N, C), "feat_adapted" (B, N, C), "free_embedding" (C,)}.
+
+        With `voxel_index` (B, M) int64 flat voxel indices (training on a voxel sample), the features
+        are (B, M, C) for those voxels and the dict also holds "voxel_index"."""
+        h = self.decoder(self.voxel_features(images, ego2img, voxel_index))
+        feat = self.decoder_out(h)
+        feat_adapted = self.adapter_out(self.adapter(feat))
+        out = {"feat": feat, "feat_adapted": feat_adapted, "free_embedding": self.free_embedding}
+        if voxel_index is not None:
+            out["voxel_index"] = voxel_index
+        return out

@@ -1,0 +1,84 @@
+"""Text-space scoring of voxel embeddings (torch; training and evaluation, not exported).
+
+Column order of every logits tensor here:
+    [ K label classes | free (index K) | Nn noise words (each its own column) ]
+A label class scores the MAX of the dot products with its phrases (prompts); the free column is the
+dot product with the learnable free embedding; noise words are negatives seen in training only.
+
+- phrase_to_class_index(phrase_class (P,), K) -> index (K, Pmax) int64, mask (K, Pmax) bool
+- class_logits(feat (B, N, C), text (P, C), phrase_class (P,), K, free_embedding (C,), noise (Nn, C) | None)
+    -> (B, N, K + 1 + Nn)
+- open_world_identify(logits_main, logits_adapted, mode, num_classes) -> (pred, branch, entropy)
+"""
+
+from __future__ import annotations
+
+import torch
+
+NO_PHRASE_SCORE = -1e4  # a class without any phrase scores this (finite, so CE/softmax stay defined)
+
+
+def phrase_to_class_index(phrase_class: torch.Tensor, num_classes: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """phrase_class (P,) int64 class id of each phrase (0..K-1) -> (index (K, Pmax), mask (K, Pmax)).
+
+    Row k lists the phrase indices of class k, padded with 0 where mask is False. Pmax >= 1."""
+    phrase_class = phrase_class.long().reshape(-1)
+    if phrase_class.numel() and (phrase_class.min() < 0 or phrase_class.max() >= num_classes):
+        raise ValueError(f"phrase classes must lie in 0..{num_classes - 1}")
+    onehot = torch.nn.functional.one_hot(phrase_class, num_classes).T.bool()     # (K, P)
+    counts = onehot.sum(1)
+    pmax = max(int(counts.max()) if counts.numel() else 0, 1)
+    # stable sort puts each class's phrases first (in their original order), then the rest
+    order = torch.argsort((~onehot).to(torch.int8), dim=1, stable=True)[:, :pmax] if phrase_class.numel() \
+        else torch.zeros(num_classes, 1, dtype=torch.long)
+    mask = torch.arange(pmax)[None, :] < counts[:, None]
+    index = torch.where(mask, order, torch.zeros_like(order))
+    return index, mask
+
+
+def class_logits(feat: torch.Tensor, text: torch.Tensor, phrase_class: torch.Tensor, num_classes: int,
+                 free_embedding: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:
+    """feat (B, N, C) -> logits (B, N, K + 1 + Nn) in the column order of this module."""
+    index, mask = phrase_to_class_index(phrase_class.cpu(), num_classes)
+    index, mask = index.to(feat.device), mask.to(feat.device)
+    K, pmax = index.shape
+    phrase_scores = feat @ text.to(feat.dtype).T                                  # (B, N, P)
+    B, N, _ = phrase_scores.shape
+    gathered = phrase_scores[..., index.reshape(-1)].reshape(B, N, K, pmax)
+    gathered = gathered.masked_fill(~mask, float("-inf"))
+    cls = gathered.amax(-1)                                                       # (B, N, K)
+    has_phrase = mask.any(1)
+    cls = torch.where(has_phrase, cls, torch.full_like(cls, NO_PHRASE_SCORE))
+    cols = [cls, (feat @ free_embedding.to(feat.dtype)).unsqueeze(-1)]
+    if noise is not None and noise.shape[0] > 0:
+        cols.append(feat @ noise.to(feat.dtype).T)
+    return torch.cat(cols, -1)
+
+
+def entropy(prob: torch.Tensor, dim: int = -1) -> torch.Tensor:
+    return -(prob * torch.log(prob.clamp_min(1e-12))).sum(dim)
+
+
+def open_world_identify(logits_main: torch.Tensor, logits_adapted: torch.Tensor, mode: str = "min-entropy",
+                        num_classes: int | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Pick per voxel the branch (0 = main F_3D, 1 = adapted F~_3D) to trust, and its class.
+
+    logits_*: (..., K + 1 [+ Nn]); with num_classes=K the noise columns are dropped, without it every
+    column is taken as [K classes | free]. P = softmax over [K classes + free] of each branch.
+    mode: "min-entropy" (lower entropy wins), "max-conf" (higher max probability wins), "none" (main).
+    Returns pred (...) int64 in 0..K (K = free), branch (...) int64, entropy (...) of the chosen branch.
+    """
+    keep = logits_main.shape[-1] if num_classes is None else num_classes + 1
+    p_main = torch.softmax(logits_main[..., :keep].float(), -1)
+    p_adap = torch.softmax(logits_adapted[..., :keep].float(), -1)
+    h_main, h_adap = entropy(p_main), entropy(p_adap)
+    if mode == "min-entropy":
+        use_adapted = h_adap < h_main
+    elif mode == "max-conf":
+        use_adapted = p_adap.amax(-1) > p_main.amax(-1)
+    elif mode == "none":
+        use_adapted = torch.zeros_like(h_main, dtype=torch.bool)
+    else:
+        raise ValueError(f"unknown open-world mode {mode!r}; expected min-entropy, max-conf or none")
+    prob = torch.where(use_adapted.unsqueeze(-1), p_adap, p_main)
+    return prob.argmax(-1), use_adapted.long(), torch.where(use_adapted, h_adap, h_main)

@@ -1,0 +1,373 @@
+"""3-D pseudo-labels and voxel image embeddings for a dataset: the driver and the file format.
+
+`build_sample(key, lifted_frames, num_classes, config)` -> `PseudoSample` (one keyframe, in memory):
+superimposes the lifted frames in the keyframe's ego frame, votes one label per voxel, casts rays
+for free space and averages point features per voxel.
+
+`generate(ds, indices, out_dir, ...)` writes, resumably (samples whose files exist are skipped;
+an existing folder made with other settings is refused):
+
+    <out>/meta.json                                   settings (see `PseudoLabelDir`)
+    <out>/label_space.txt                             copy of the prompt file
+    <out>/<scene>/<sample_token>/labels.npz           semantics, mask_lidar, mask_camera: (X, Y, Z) uint8
+    <out>/<scene>/<sample_token>/embeds.npz           index (M,) int32, embeds (M, C) float16  (with an embedder)
+
+semantics: 0..K-1 = label-space class index, 17 = free, 255 = unknown (never observed, or
+occupied without a label). mask_lidar: voxels observed by the LiDAR (crossed by a ray or hit;
+without ray casting every voxel). mask_camera: observed and with its centre inside some keyframe
+camera's image. index: flat C-order indices into the (X, Y, Z) grid of the occupied voxels whose
+points were seen by a camera; embeds: the mean image feature of those points (E_3D), by default
+from the keyframe's own LiDAR points and images only (embed_all_frames=False: aggregated frames
+would smear moving objects' features too, and cost one embedding pass per frame per sample).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections import OrderedDict
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ago_runtime.atomic import save_npz, write_bytes, write_json
+from ago_runtime.camera import Rig
+from ago_runtime.classes import FREE, IGNORE
+from ago_runtime.errors import AgoInputError
+from ago_runtime.frame import Frame
+from ago_runtime.grid import Grid
+from ago_runtime.progress import track
+
+from .aggregate import EGO_BOX, LiftedFrame, attach_features, frames_to_aggregate, lift_frame, warp_to
+from .lift import feature_sums_per_voxel
+from .raycast import traverse, unique_rays
+from .voting import FeatureMean, vote
+
+FORMAT_VERSION = 1
+
+
+@dataclass
+class PseudoLabelConfig:
+    grid: Grid = field(default_factory=Grid)
+    num_sweeps: int = 1        # frames superimposed, keyframe included (paper: 30)
+    interval: int = 1          # keyframe stride between them (paper: 2)
+    raycast: bool = True       # free = crossed by a ray; else free = every voxel without a hit
+    embed_all_frames: bool = False  # E_3D from every aggregated frame (default: the keyframe's own images)
+    dedupe_rays: bool = True   # one ray per (sweep, hit voxel)
+    ego_box: tuple | None = EGO_BOX
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["grid"] = self.grid.to_dict()
+        d["ego_box"] = None if self.ego_box is None else [list(map(float, c)) for c in self.ego_box]
+        return d
+
+
+@dataclass
+class PseudoSample:
+    semantics: np.ndarray      # (X, Y, Z) uint8
+    mask_lidar: np.ndarray     # (X, Y, Z) uint8 0/1
+    mask_camera: np.ndarray    # (X, Y, Z) uint8 0/1
+    embed_index: np.ndarray | None = None   # (M,) int32
+    embeds: np.ndarray | None = None        # (M, C) float16
+    stats: dict = field(default_factory=dict)
+
+
+_FRUSTUM_CACHE: OrderedDict = OrderedDict()
+
+
+def frustum_mask(grid: Grid, rig: Rig) -> np.ndarray:
+    """(X*Y*Z,) bool: voxel centres inside some camera's image (in front of it)."""
+    key = (json.dumps(grid.to_dict()), rig.ego2img().tobytes(),
+           tuple((c.width, c.height) for c in rig))
+    if key in _FRUSTUM_CACHE:
+        return _FRUSTUM_CACHE[key]
+    centres = grid.centres().reshape(-1, 3)
+    inside = np.zeros(len(centres), dtype=bool)
+    for cam in rig:
+        inside |= cam.project(centres)[2]
+    _FRUSTUM_CACHE[key] = inside
+    while len(_FRUSTUM_CACHE) > 4:
+        _FRUSTUM_CACHE.popitem(last=False)
+    return inside
+
+
+def build_sample(key: Frame, lifted: list[LiftedFrame], num_classes: int, config: PseudoLabelConfig
+                 ) -> PseudoSample:
+    """Pseudo-labels of keyframe `key` from lifted frames (lifted[0] = the keyframe's own)."""
+    grid = config.grid
+    if num_classes > FREE:
+        raise AgoInputError(None, f"a label space for pseudo-labels has at most {FREE} classes "
+                            f"(index {FREE} means free), got {num_classes}")
+    V = grid.num_voxels
+    hit = np.zeros(V, dtype=bool)
+    crossed = np.zeros(V, dtype=bool)
+    vox_parts, lab_parts = [], []
+    fmean = FeatureMean()
+    n_points = n_labelled = rays = 0
+    for f_i, lf in enumerate(lifted):
+        pts, origin = warp_to(lf, key.ego2global)
+        idx, inside = grid.points_to_index(pts)
+        flat = grid.flat_index(idx)
+        hit[flat[inside]] = True
+        ok = inside & (lf.labels != IGNORE)
+        vox_parts.append(flat[ok])
+        lab_parts.append(lf.labels[ok])
+        n_points += int(inside.sum())
+        n_labelled += int(ok.sum())
+        if config.raycast:
+            ends = unique_rays(origin, pts, grid) if config.dedupe_rays else pts
+            rays += len(ends)
+            crossed |= traverse(origin[None], ends, grid)
+        if lf.feature_maps is not None and (config.embed_all_frames or f_i == 0):
+            for ci, fmap in enumerate(lf.feature_maps):
+                sel = np.flatnonzero(inside & (lf.cam_idx == ci))
+                if fmap is not None and sel.size:
+                    fmean.add_sums(*feature_sums_per_voxel(flat[sel], lf.uv[sel], fmap, lf.image_sizes[ci]))
+    voxels, labels = vote(np.concatenate(vox_parts), np.concatenate(lab_parts), num_classes)
+    sem = np.full(V, IGNORE, dtype=np.uint8)
+    if config.raycast:
+        sem[crossed & ~hit] = FREE
+        mask_lidar = crossed | hit
+    else:
+        sem[~hit] = FREE
+        mask_lidar = np.ones(V, dtype=bool)
+    sem[voxels] = labels.astype(np.uint8)
+    mask_camera = mask_lidar & frustum_mask(grid, key.rig)
+    shape = grid.shape
+    out = PseudoSample(sem.reshape(shape), mask_lidar.reshape(shape).astype(np.uint8),
+                       mask_camera.reshape(shape).astype(np.uint8))
+    channels = [lf.channels for lf in lifted if lf.channels is not None]
+    if channels:
+        index, mean = fmean.result()
+        c = channels[0]
+        out.embed_index = index.astype(np.int32)
+        out.embeds = (mean if len(index) else np.zeros((0, c), np.float32)).astype(np.float16)
+    out.stats = {"frames": len(lifted), "points": n_points, "labelled_points": n_labelled, "rays": rays,
+                 "occupied_voxels": int(hit.sum()), "labelled_voxels": int(len(voxels)),
+                 "free_voxels": int((sem == FREE).sum())}
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
+# Output folder
+# ------------------------------------------------------------------------------------------------
+def sample_dir(out_dir: str | Path, scene: str, token: str) -> Path:
+    return Path(out_dir) / scene / token
+
+
+def save_sample(out_dir: str | Path, scene: str, token: str, sample: PseudoSample) -> None:
+    """Write embeds.npz (if any) then labels.npz, each atomically; labels.npz last marks the sample done."""
+    d = sample_dir(out_dir, scene, token)
+    if sample.embeds is not None:
+        save_npz(d / "embeds.npz", index=sample.embed_index.astype(np.int32),
+                 embeds=sample.embeds.astype(np.float16))
+    save_npz(d / "labels.npz", semantics=sample.semantics, mask_lidar=sample.mask_lidar,
+             mask_camera=sample.mask_camera)
+
+
+def _load_npz(path: Path, keys: tuple[str, ...]) -> dict:
+    if not path.is_file():
+        raise AgoInputError(path, "pseudo-label file not found")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            missing = [k for k in keys if k not in z.files]
+            if missing:
+                raise AgoInputError(path, f"missing keys {missing} (needs {list(keys)})")
+            return {k: np.asarray(z[k]) for k in keys}
+    except (OSError, ValueError, EOFError) as e:
+        if isinstance(e, AgoInputError):
+            raise
+        raise AgoInputError(path, f"not a readable npz file ({e.__class__.__name__}: {e})") from None
+
+
+def load_pseudo_labels(out_dir: str | Path, scene: str, token: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(semantics, mask_lidar, mask_camera), each (X, Y, Z) uint8 (masks 0/1: use as bool)."""
+    path = sample_dir(out_dir, scene, token) / "labels.npz"
+    z = _load_npz(path, ("semantics", "mask_lidar", "mask_camera"))
+    shapes = {k: v.shape for k, v in z.items()}
+    if len(set(shapes.values())) != 1 or z["semantics"].ndim != 3:
+        raise AgoInputError(path, f"arrays must share one 3-D shape, got {shapes}")
+    return z["semantics"].astype(np.uint8), z["mask_lidar"].astype(np.uint8), z["mask_camera"].astype(np.uint8)
+
+
+def load_voxel_embeds(out_dir: str | Path, scene: str, token: str) -> tuple[np.ndarray, np.ndarray]:
+    """(index (M,) int32 flat C-order voxel indices, embeds (M, C) float16)."""
+    path = sample_dir(out_dir, scene, token) / "embeds.npz"
+    z = _load_npz(path, ("index", "embeds"))
+    if z["index"].ndim != 1 or z["embeds"].ndim != 2 or len(z["index"]) != len(z["embeds"]):
+        raise AgoInputError(path, f"index {z['index'].shape} and embeds {z['embeds'].shape} do not match")
+    return z["index"].astype(np.int32), z["embeds"].astype(np.float16)
+
+
+class PseudoLabelDir:
+    """A pseudo-label output folder: its meta.json and readers.
+
+    meta keys: format_version, label_space {name, classes, sha256, prompt_file}, grid (Grid.to_dict),
+    segmenter {name, config}, embedder {name, config} or null, num_sweeps, interval, raycast, config
+    (PseudoLabelConfig), free_index 17, ignore_index 255, created_by.
+    """
+
+    def __init__(self, out_dir: str | Path):
+        self.root = Path(out_dir)
+        path = self.root / "meta.json"
+        if not path.is_file():
+            raise AgoInputError(path, "not a pseudo-label folder (no meta.json); make one with `ago pseudo-labels`")
+        try:
+            self.meta = json.loads(path.read_text(encoding="utf-8"))
+        except (json.JSONDecodeError, UnicodeDecodeError) as e:
+            raise AgoInputError(path, f"not valid JSON ({e})") from None
+
+    @property
+    def grid(self) -> Grid:
+        return Grid.from_dict(self.meta["grid"])
+
+    @property
+    def class_names(self) -> list[str]:
+        return list(self.meta["label_space"]["classes"])
+
+    @property
+    def label_space_path(self) -> Path:
+        return self.root / "label_space.txt"
+
+    @property
+    def has_embeds(self) -> bool:
+        return self.meta.get("embedder") is not None
+
+    @property
+    def embed_channels(self) -> int | None:
+        e = self.meta.get("embedder")
+        return None if e is None else e.get("channels")
+
+    def samples(self) -> list[tuple[str, str]]:
+        """(scene, token) of every finished sample (labels.npz present), sorted."""
+        return sorted((p.parent.parent.name, p.parent.name) for p in self.root.glob("*/*/labels.npz"))
+
+    def has(self, scene: str, token: str) -> bool:
+        d = sample_dir(self.root, scene, token)
+        return (d / "labels.npz").is_file() and (not self.has_embeds or (d / "embeds.npz").is_file())
+
+    def labels(self, scene: str, token: str):
+        return load_pseudo_labels(self.root, scene, token)
+
+    def embeds(self, scene: str, token: str):
+        return load_voxel_embeds(self.root, scene, token)
+
+
+# ------------------------------------------------------------------------------------------------
+# Driver
+# ------------------------------------------------------------------------------------------------
+_COMPARED = ("format_version", "label_space", "grid", "segmenter", "embedder", "config")
+
+
+def make_meta(label_space, segmenter, embedder, config: PseudoLabelConfig, command: str = "") -> dict:
+    return {
+        "format_version": FORMAT_VERSION,
+        "label_space": {"name": label_space.name, "classes": label_space.class_names,
+                        "sha256": label_space.sha256,
+                        "prompt_file": str(label_space.source) if label_space.source else None},
+        "grid": config.grid.to_dict(),
+        "segmenter": {"name": segmenter.name, "config": segmenter.config_dict()},
+        "embedder": None if embedder is None else {"name": embedder.name, "config": embedder.config_dict(),
+                                                   "channels": getattr(embedder, "channels", None)},
+        "num_sweeps": config.num_sweeps,
+        "interval": config.interval,
+        "raycast": config.raycast,
+        "config": config.to_dict(),
+        "free_index": FREE,
+        "ignore_index": IGNORE,
+        "created_by": command,
+    }
+
+
+def _differences(a: dict, b: dict) -> list[str]:
+    def strip(m: dict) -> dict:
+        m = json.loads(json.dumps({k: m.get(k) for k in _COMPARED}))
+        if m.get("label_space"):
+            m["label_space"].pop("prompt_file", None)
+        if m.get("embedder"):
+            m["embedder"].pop("channels", None)   # files backends learn it from the first file
+            (m["embedder"].get("config") or {}).pop("channels", None)
+        return m
+    sa, sb = strip(a), strip(b)
+    return [k for k in _COMPARED if sa.get(k) != sb.get(k)]
+
+
+class LiftCache:
+    """The last few lifted frames (labels only), so that neighbouring keyframes share the labelling work.
+
+    Camera images are dropped once a frame is lifted; the synthetic extras are kept (the simulated
+    embedder reads them when the frame becomes a keyframe).
+    """
+
+    def __init__(self, ds, segmenter, ego_box, size: int):
+        self.ds, self.segmenter, self.ego_box = ds, segmenter, ego_box
+        self.size = max(1, size)
+        self.items: OrderedDict[int, tuple[Frame, LiftedFrame]] = OrderedDict()
+
+    def get(self, i: int) -> tuple[Frame, LiftedFrame]:
+        if i in self.items:
+            self.items.move_to_end(i)
+            return self.items[i]
+        frame = self.ds[i]
+        lifted = lift_frame(frame, self.segmenter, None, self.ego_box)
+        frame.images = {}
+        self.items[i] = (frame, lifted)
+        while len(self.items) > self.size:
+            self.items.popitem(last=False)
+        return frame, lifted
+
+
+def pseudo_sample(ds, i: int, label_space, segmenter, embedder, config: PseudoLabelConfig,
+                  cache: LiftCache | None = None) -> PseudoSample:
+    """Pseudo-labels (and voxel embeddings) of dataset index i, in memory."""
+    cache = cache or LiftCache(ds, segmenter, config.ego_box, config.num_sweeps * config.interval + 1)
+    ids = frames_to_aggregate(ds, i, config.num_sweeps, config.interval)
+    pairs = [cache.get(j) for j in ids]
+    lifted = [lf for _, lf in pairs]
+    if embedder is not None:
+        for k, (frame, lf) in enumerate(pairs):
+            if k == 0 or config.embed_all_frames:
+                lifted[k] = attach_features(frame, lf, embedder)
+    return build_sample(pairs[0][0], lifted, label_space.num_classes, config)
+
+
+def generate(ds, indices: list[int], out_dir: str | Path, label_space, segmenter, embedder,
+             config: PseudoLabelConfig, command: str = "", progress: bool = True) -> dict:
+    """Write pseudo-labels for dataset `indices` into out_dir; resumable. Gives counts and timing."""
+    out = Path(out_dir)
+    meta = make_meta(label_space, segmenter, embedder, config, command)
+    meta_path = out / "meta.json"
+    if meta_path.is_file():
+        old = PseudoLabelDir(out).meta
+        diff = _differences(old, meta)
+        if diff:
+            raise AgoInputError(meta_path, f"this folder holds pseudo-labels made with other settings "
+                                f"({', '.join(diff)} differ); use another --out or delete it")
+    else:
+        out.mkdir(parents=True, exist_ok=True)
+        if label_space.source is not None and Path(label_space.source).is_file():
+            write_bytes(out / "label_space.txt", Path(label_space.source).read_bytes())
+        else:
+            raise AgoInputError(label_space.source, "prompt file not found (it is copied into the output)")
+        write_json(meta_path, meta)
+    folder = PseudoLabelDir(out)
+
+    # neighbouring keyframes share lifted frames: process in dataset (scene, time) order
+    indices = sorted(set(int(i) for i in indices))
+    todo = [i for i in indices if not folder.has(ds.scene_of(i), ds.sample_tokens[i])]
+    # the window of keyframes one sample uses spans num_sweeps * interval keyframes; cap the memory
+    cache = LiftCache(ds, segmenter, config.ego_box, min(config.num_sweeps * config.interval + config.interval + 1, 64))
+    t0 = time.perf_counter()
+    items = track(todo, "pseudo-labels", total=len(todo)) if progress else todo
+    for i in items:
+        sample = pseudo_sample(ds, i, label_space, segmenter, embedder, config, cache)
+        save_sample(out, ds.scene_of(i), ds.sample_tokens[i], sample)
+    seconds = time.perf_counter() - t0
+    channels = getattr(embedder, "channels", None)
+    if embedder is not None and channels is not None and folder.meta.get("embedder", {}).get("channels") is None:
+        folder.meta["embedder"]["channels"] = int(channels)   # file backends learn it from the first file
+        write_json(meta_path, folder.meta)
+    return {"requested": len(indices), "written": len(todo), "skipped": len(indices) - len(todo),
+            "seconds": round(seconds, 3), "frames_per_s": round(len(todo) / seconds, 3) if todo and seconds > 0 else None}

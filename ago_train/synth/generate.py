@@ -1,0 +1,137 @@
+"""Driver: frames of a synthetic scene in memory, or a whole dataset written in the nuScenes layout.
+
+`generate_scene(config, scene_index)` yields one dict per keyframe (nothing written):
+  scene (name), scene_index, frame_index, timestamp_us (int, 2 Hz), ego2global (4,4),
+  rig (Rig at the configured image size), images {cam: (H,W,3) uint8 RGB},
+  lidar_points (N,5) float32 LiDAR frame [x,y,z,intensity,ring], lidar2ego (4,4),
+  annotations [BoxAnnotation] (global frame), gt (Occ3DLabels on config.grid()),
+  extras {"semantic": {cam: (H,W) uint8 Occ3D id, 255 = sky}, "depth": {cam: (H,W) float32 m, 0 = none}},
+  lidar_classes (N,) uint8 Occ3D class of each LiDAR return (for checks).
+`write_dataset(config, out)` writes every scene through `ago_runtime.nuscenes_writer.NuScenesWriter`
+(the last `val_fraction` of the scenes form the val split) and returns a small summary dict.
+
+Global frame = the world frame shifted by GLOBAL_OFFSET so that every pose is positive (nuScenes maps
+put global (0, 0) at their bottom-left corner).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from ago_runtime.nuscenes_writer import BoxAnnotation, NuScenesWriter
+from ago_runtime.progress import track
+
+from .config import SynthConfig
+from .lidar import lidar_directions, scan_lidar
+from .occupancy import occupancy_gt
+from .raycast import PrimitiveSet
+from .render import CameraRays, render_camera
+from .world import World, build_world
+
+GLOBAL_OFFSET = np.array([400.0, 400.0, 0.0])
+TIMESTAMP_BASE_US = 1_600_000_000_000_000
+ANNOTATION_RADIUS = 55.0  # objects farther than this from the ego (m, xy) are not annotated
+
+
+def _to_global(world2: np.ndarray) -> np.ndarray:
+    m = world2.copy()
+    m[:3, 3] += GLOBAL_OFFSET
+    return m
+
+
+def _visible_subset(prims: PrimitiveSet, ego_xy: np.ndarray, radius: float):
+    lo, hi = prims.aabb()
+    gap = np.maximum(np.maximum(lo[:, :2] - ego_xy, ego_xy - hi[:, :2]), 0)
+    keep = np.hypot(gap[:, 0], gap[:, 1]) < radius
+    return prims.subset(keep), (lo[keep], hi[keep])
+
+
+def _visibility_level(visible: float, total: float) -> int:
+    if total <= 0:
+        return 1
+    f = visible / total
+    return 1 if f < 0.4 else 2 if f < 0.6 else 3 if f < 0.8 else 4
+
+
+def generate_scene(config: SynthConfig, scene_index: int, world: World | None = None) -> Iterator[dict]:
+    world = world if world is not None else build_world(config, scene_index)
+    rig = config.rig()
+    rays = {cam.name: CameraRays(cam) for cam in rig}
+    grid = config.grid()
+    lidar_dirs = lidar_directions(config)
+    lidar2ego = config.lidar2ego()
+    name = config.scene_name(scene_index)
+    scene_rng = np.random.default_rng([config.seed, scene_index, 3])
+    exposure = {cam.name: scene_rng.uniform(0.92, 1.08) for cam in rig}
+    n_obj = len(world.obj_category)
+    for f in range(config.frames_per_scene):
+        time_s = f * config.keyframe_interval_s
+        rng = np.random.default_rng([config.seed, scene_index, f, 11])
+        ego2world = world.ego_pose(time_s)
+        prims, aabb = _visible_subset(world.primitives_at(time_s), ego2world[:2, 3], config.render_distance)
+        images, semantic, depth = {}, {}, {}
+        vis_px = np.zeros(n_obj + 1)
+        any_px = np.zeros(n_obj + 1)
+        for cam in rig:
+            rgb, sem, dep, ids, any_hits = render_camera(world, prims, aabb, cam, rays[cam.name], ego2world, rng,
+                                                         config.image_noise_std, exposure[cam.name])
+            images[cam.name], semantic[cam.name], depth[cam.name] = rgb, sem, dep
+            hit_ids = ids[ids >= 0]
+            # object index -1 (scenery) goes to the last, unused slot
+            vis_px += np.bincount(prims.obj[hit_ids] % (n_obj + 1), minlength=n_obj + 1)
+            any_px += np.bincount(prims.obj % (n_obj + 1), weights=any_hits, minlength=n_obj + 1)
+        scan = scan_lidar(world, prims, aabb, config, ego2world, rng, lidar_dirs)
+        gt = occupancy_gt(world, prims, ego2world, grid, rig, depth, scan.origin_world, scan.points_world,
+                          config.gt_samples_per_axis)
+        # annotations
+        centres = world.object_centres(time_s)
+        near = np.hypot(*(centres[:, :2] - ego2world[:2, 3]).T) < ANNOTATION_RADIUS
+        pts_per_obj = np.bincount(scan.obj[scan.obj >= 0], minlength=n_obj)
+        boxes = []
+        for o in np.nonzero(near)[0]:
+            if pts_per_obj[o] == 0 and vis_px[o] == 0:
+                continue
+            boxes.append(BoxAnnotation(
+                category=world.obj_category[o], instance=f"{name}-obj{o:05d}", center=centres[o] + GLOBAL_OFFSET,
+                size=world.obj_size[o].copy(), yaw=float(world.obj_yaw[o]), velocity=world.obj_vel[o].copy(),
+                num_lidar_pts=int(pts_per_obj[o]), visibility=_visibility_level(vis_px[o], any_px[o])))
+        yield {
+            "scene": name, "scene_index": scene_index, "frame_index": f,
+            "timestamp_us": TIMESTAMP_BASE_US + scene_index * 3_600_000_000 + int(round(time_s * 1e6)),
+            "ego2global": _to_global(ego2world), "rig": rig, "images": images,
+            "lidar_points": scan.points, "lidar2ego": lidar2ego, "annotations": boxes, "gt": gt,
+            "extras": {"semantic": semantic, "depth": depth}, "lidar_classes": scan.classes,
+        }
+
+
+def write_dataset(config: SynthConfig, out: str | Path, progress: bool = True) -> dict:
+    """Write `config.num_scenes` scenes under `out` in the nuScenes layout; returns a summary."""
+    out = Path(out)
+    writer = NuScenesWriter(out, version=config.version)
+    val = set(config.val_scene_indices())
+    splits = {"train": [], "val": []}
+    counts = {"samples": 0, "annotations": 0, "lidar_points": 0}
+
+    def frames():
+        for s in range(config.num_scenes):
+            name = config.scene_name(s)
+            token = writer.add_scene(name, description=f"ago synth seed {config.seed} scene {s}")
+            splits["val" if s in val else "train"].append(name)
+            for frame in generate_scene(config, s):
+                frame["scene_token"] = token
+                yield frame
+
+    total = config.num_scenes * config.frames_per_scene
+    it = track(frames(), "synth", total=total) if progress else frames()
+    for fr in it:
+        writer.add_sample(fr["scene_token"], fr["timestamp_us"], fr["ego2global"], fr["rig"], fr["images"],
+                          fr["lidar_points"], fr["lidar2ego"], annotations=fr["annotations"], gt=fr["gt"],
+                          extras=fr["extras"])
+        counts["samples"] += 1
+        counts["annotations"] += len(fr["annotations"])
+        counts["lidar_points"] += len(fr["lidar_points"])
+    writer.close(splits=splits)
+    return {"out": str(out), "scenes": config.num_scenes, "splits": splits, **counts}

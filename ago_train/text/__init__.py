@@ -1,0 +1,1 @@
+"""Text side of training: the MiniLM sentence encoder in torch (and its ONNX export), noise words."""

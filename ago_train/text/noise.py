@@ -1,0 +1,204 @@
+"""Noise prompts: random dictionary nouns used as negative text embeddings in grounding training.
+
+The AGO paper draws N_noise = 100 random words per training step from an NLTK dictionary and
+encodes them with the prompt encoder. Here the dictionary is built once from WordNet nouns
+(`nltk.corpus.wordnet`, data set up by scripts/setup_nltk_data.sh), filtered, encoded and cached
+as a small .npz (float16 embeddings), so a training step only samples rows:
+
+    bank = NoiseBank.load(ensure_noise_bank())
+    neg = bank.sample(100, rng)        # float32 (100, 384), L2-normalised rows
+
+Filters, in order (counts measured in docs/prompts.md):
+1. single words: letters only, 3..15 characters (drops multiword lemmas, hyphenated and
+   numeric ones);
+2. a lowercase entry of the `words` corpus (Webster's 2nd, /usr/share/dict/web2): a real
+   dictionary word and not only a proper noun (web2 capitalises those: "Aaron", "Aberdeen");
+3. one WordPiece token in MiniLM's vocabulary: the encoder knows the word as a whole (rare words
+   split into pieces get embeddings dominated by sub-word fragments);
+4. not a label word: not a word of any phrase or class name of the shipped prompt files;
+5. not a near-synonym: cosine to every label phrase of the shipped prompt files <= 0.5
+   (NEAR_SYNONYM_COS; chosen by inspecting the words per cosine band, docs/prompts.md);
+6. at most MAX_WORDS words, a deterministic sample (seed 0) when more survive.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ago_runtime.atomic import save_npz
+from ago_runtime.errors import AgoInputError
+from ago_runtime.prompts import PROMPTS_DIR, parse_prompt_file
+from ago_runtime.text_encoder import MINILM_ID, ago_cache_dir
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+NEAR_SYNONYM_COS = 0.5
+MAX_WORDS = 6000
+SEED = 0
+FORMAT_VERSION = 1
+# Bump when the filters change: ensure_noise_bank rebuilds banks made by an older recipe.
+RECIPE_VERSION = 2
+SETUP_HINT = "run scripts/setup_nltk_data.sh (WordNet from Debian packages into <repo>/.nltk_data)"
+
+
+def default_noise_bank_path() -> Path:
+    return ago_cache_dir() / "noise" / f"noise_bank-{MINILM_ID}.npz"
+
+
+def _nltk():
+    """nltk with <repo>/.nltk_data on its search path (after $NLTK_DATA)."""
+    import nltk
+
+    local = str(REPO_ROOT / ".nltk_data")
+    if local not in nltk.data.path:
+        nltk.data.path.append(local)
+    return nltk
+
+
+def label_phrases(prompt_files: list[Path] | None = None) -> list[str]:
+    """Every phrase and class name (underscores as spaces) of the given / all shipped prompt files."""
+    files = prompt_files if prompt_files is not None else sorted(PROMPTS_DIR.glob("*.txt"))
+    out: dict[str, None] = {}
+    for f in files:
+        space = parse_prompt_file(f)
+        for c in space.classes:
+            out[c.name.replace("_", " ").lower()] = None
+            for p in c.phrases:
+                out[p.lower()] = None
+    return list(out)
+
+
+@dataclass
+class NoiseFilterReport:
+    """How many words survive each filter (in order)."""
+
+    counts: dict[str, int] = field(default_factory=dict)
+
+
+def candidate_words(tokenizer, labels: list[str], report: NoiseFilterReport | None = None) -> list[str]:
+    """Filters 1-4 of the module docstring, sorted words. Raises AgoInputError without WordNet data."""
+    nltk = _nltk()
+    try:
+        from nltk.corpus import wordnet, words
+
+        lemmas = set(wordnet.all_lemma_names(pos="n"))     # lowercased by nltk
+        # web2 keeps case: proper nouns are capitalised there ("Aaron", "Aberdeen").
+        dictionary = set(words.words("en"))
+    except LookupError:
+        raise AgoInputError(None, f"NLTK WordNet / words data not found (searched {nltk.data.path}): "
+                            f"{SETUP_HINT}") from None
+    report = report if report is not None else NoiseFilterReport()
+    report.counts["wordnet noun lemmas"] = len(lemmas)
+    kept = [w for w in lemmas if re.fullmatch(r"[a-z]{3,15}", w)]
+    report.counts["single lowercase word, 3-15 letters"] = len(kept)
+    kept = [w for w in kept if w in dictionary]
+    report.counts["lowercase entry of the words corpus (web2)"] = len(kept)
+    kept = [w for w in kept if len(tokenizer.tokenize_ids(w)) == 1]
+    report.counts["one word piece in the MiniLM vocab"] = len(kept)
+    label_words = {w for p in labels for w in [p, *p.split()]}
+    kept = sorted(w for w in kept if w not in label_words)
+    report.counts["not a label word"] = len(kept)
+    return kept
+
+
+@dataclass
+class NoiseBank:
+    words: list[str]
+    embeddings: np.ndarray     # float16 (N, C), L2-normalised rows
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def dim(self) -> int:
+        return int(self.embeddings.shape[1])
+
+    def __len__(self) -> int:
+        return len(self.words)
+
+    def sample_indices(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        """n distinct row indices (with replacement only if n > number of words)."""
+        return rng.choice(len(self.words), size=n, replace=n > len(self.words))
+
+    def sample(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        """float32 (n, C): embeddings of n random noise words (deterministic for a seeded rng)."""
+        return self.embeddings[self.sample_indices(n, rng)].astype(np.float32)
+
+    def save(self, path: str | Path) -> Path:
+        save_npz(path, words=np.array(self.words, dtype=str), embeddings=self.embeddings.astype(np.float16),
+                 meta=np.array([json.dumps({**self.meta, "format_version": FORMAT_VERSION})]))
+        return Path(path)
+
+    @classmethod
+    def load(cls, path: str | Path) -> "NoiseBank":
+        path = Path(path)
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                words = [str(w) for w in z["words"].tolist()]
+                emb = z["embeddings"]
+                meta = json.loads(str(z["meta"].reshape(-1)[0]))
+        except FileNotFoundError:
+            raise AgoInputError(path, "noise bank not found (build it with `ago prompts noise`)") from None
+        except (KeyError, ValueError, OSError, EOFError) as e:
+            raise AgoInputError(path, f"not a noise bank file: {e}") from None
+        if meta.get("format_version") != FORMAT_VERSION or emb.ndim != 2 or emb.shape[0] != len(words):
+            raise AgoInputError(path, "noise bank has the wrong format; rebuild with `ago prompts noise --force`")
+        return cls(words, emb, meta)
+
+
+def build_noise_bank(encoder=None, labels: list[str] | None = None, threshold: float = NEAR_SYNONYM_COS,
+                     max_words: int = MAX_WORDS, seed: int = SEED, candidates: list[str] | None = None,
+                     max_candidates: int | None = None) -> NoiseBank:
+    """Filter the WordNet nouns (module docstring) and encode the survivors with `encoder`
+    (default: the torch MiniLM, fp32).
+
+    `candidates` replaces filters 1-3 (WordNet lookup) by a given word list; `max_candidates`
+    subsamples the candidates (seeded) before encoding - both for quick tests.
+    """
+    if encoder is None:
+        from .minilm import TorchMiniLMEncoder
+
+        encoder = TorchMiniLMEncoder(batch_size=256)
+    labels = labels if labels is not None else label_phrases()
+    report = NoiseFilterReport()
+    if candidates is None:
+        words = candidate_words(encoder.tokenizer, labels, report)
+    else:
+        label_words = {w for p in labels for w in [p, *p.split()]}
+        words = sorted({w for w in candidates if w not in label_words})
+        report.counts["given candidates, not a label word"] = len(words)
+    if max_candidates is not None and len(words) > max_candidates:
+        keep = np.sort(np.random.default_rng(seed).choice(len(words), size=max_candidates, replace=False))
+        words = [words[i] for i in keep]
+        report.counts[f"subsampled to {max_candidates} candidates"] = len(words)
+    label_emb = encoder.encode(labels)
+    emb = encoder.encode(words)
+    near = (emb @ label_emb.T).max(axis=1) > threshold
+    words = [w for w, drop in zip(words, near) if not drop]
+    emb = emb[~near]
+    report.counts[f"cosine to every label phrase <= {threshold}"] = len(words)
+    if len(words) > max_words:
+        keep = np.sort(np.random.default_rng(seed).choice(len(words), size=max_words, replace=False))
+        words = [words[i] for i in keep]
+        emb = emb[keep]
+    report.counts[f"capped at {max_words} (seed {seed})"] = len(words)
+    meta = {"recipe_version": RECIPE_VERSION, "encoder_id": encoder.encoder_id, "encoder_variant": encoder.variant,
+            "encoder_hash": encoder.weights_hash, "threshold": threshold, "max_words": max_words,
+            "seed": seed, "filter_counts": report.counts, "num_label_phrases": len(labels)}
+    return NoiseBank(words, emb.astype(np.float16), meta)
+
+
+def ensure_noise_bank(path: str | Path | None = None, force: bool = False, encoder=None) -> Path:
+    """Path of the noise bank; builds it first if it is missing, made by an older filter recipe,
+    unreadable, or `force`."""
+    path = Path(path) if path is not None else default_noise_bank_path()
+    if path.is_file() and not force:
+        try:
+            if NoiseBank.load(path).meta.get("recipe_version") == RECIPE_VERSION:
+                return path
+        except AgoInputError:
+            pass  # damaged or foreign: rebuilt below
+    build_noise_bank(encoder).save(path)
+    return path

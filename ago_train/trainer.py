@@ -1,0 +1,368 @@
+"""The training loop: single process or DDP (torchrun), resumable exactly from its checkpoints.
+
+`Trainer(config).run()` builds, from the `TrainConfig`:
+- the label space (prompt file) and its text bank, encoded once by the frozen MiniLM (no gradients);
+- the noise-word bank (negatives; `noise_words` rows sampled per step by a generator seeded with
+  (seed, step), so a resumed run draws the same words);
+- the dataset (frames + pseudo-labels + E_3D) with a DistributedSampler (seeded; one rank = the whole
+  set when single-process); the model (`ModelConfig.build()`), AdamW and a LambdaLR schedule
+  (TrainConfig.lr_at: linear warm-up, cosine decay).
+
+Every `ckpt_every` steps and at the end, rank 0 writes `<out>/last.pt` (see checkpoint.py) and a
+line per `log_every` steps goes to `<out>/log.jsonl`. `resume=True` reloads `<out>/last.pt` —
+model, optimiser, scheduler, step and RNG states — and skips the batches of the current epoch that
+were already done, so N straight steps == N/2 steps + resume + N/2 steps.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+from torch.utils.data import DataLoader, DistributedSampler
+
+from ago_runtime.atomic import write_text
+from ago_runtime.errors import AgoInputError
+from ago_runtime.preprocess import Preprocess
+from ago_runtime.prompts import LabelSpace, parse_prompt_file
+
+from . import distributed as D
+from .checkpoint import load_checkpoint, plain, rng_state, save_checkpoint, set_rng_state
+from .dataset import FrameList, OccSampleDataset, PseudoLabelSet, collate
+from .train_config import TrainConfig
+
+
+# ---- pieces shared with evaluation --------------------------------------------------------------
+def open_frames(data: str | Path, gts: str | None, split: str, load_gt: bool):
+    """The NuScenesDataset at `data` and the list of its frame indices in `split`."""
+    from ago_runtime.nuscenes import NuScenesDataset
+
+    root = Path(data)
+    if not root.exists():
+        raise AgoInputError(root, "dataset root not found (make a synthetic one with `ago synth`)")
+    ds = NuScenesDataset(root, gts_root=gts, load_images=True, load_extras=False)
+    indices = ds.split(split)
+    return ds, list(indices)
+
+
+_BANKS: dict[str, dict] = {}  # per process: prompt file sha256 -> bank dict (the encoder is frozen)
+
+
+def build_text_bank(label_space: LabelSpace) -> dict:
+    """Encode the label space's phrases with the frozen torch MiniLM -> plain checkpoint 'bank' dict."""
+    from ago_runtime.bank import build_bank
+
+    from .text.minilm import TorchMiniLMEncoder
+
+    key = label_space.sha256 or "\n".join(label_space.phrases)
+    if key not in _BANKS:
+        _BANKS[key] = bank_to_dict(build_bank(label_space, TorchMiniLMEncoder()))
+    return {k: (v.clone() if isinstance(v, torch.Tensor) else v) for k, v in _BANKS[key].items()}
+
+
+def bank_to_dict(bank) -> dict:
+    return {
+        "encoder_id": str(bank.encoder_id),
+        "encoder_hash": str(bank.encoder_hash),
+        "embeddings": torch.as_tensor(np.asarray(bank.embeddings, dtype=np.float32)),
+        "phrase_class": torch.as_tensor(np.asarray(bank.phrase_class, dtype=np.int64)),
+        "class_names": [str(c) for c in bank.class_names],
+    }
+
+
+def label_space_record(label_space: LabelSpace, prompt_path: Path) -> dict:
+    return {
+        "name": label_space.name,
+        "prompt_file": str(prompt_path),
+        "prompt_text": Path(prompt_path).read_text(encoding="utf-8"),
+        "class_names": list(label_space.class_names),
+        "num_classes": int(label_space.num_classes),
+        "known": sorted(label_space.known),
+    }
+
+
+class TrainStep(nn.Module):
+    """The model plus its losses in one module, so DDP sees every parameter used inside forward."""
+
+    def __init__(self, model: nn.Module, loss_cfg, num_classes: int):
+        super().__init__()
+        self.model = model
+        self.loss_cfg = loss_cfg
+        self.num_classes = int(num_classes)
+
+    def forward(self, batch: dict, text: torch.Tensor, phrase_class: torch.Tensor,
+                noise: torch.Tensor | None) -> dict:
+        from .losses import BankTensors, compute_losses
+
+        outputs = self.model(batch["images"], batch["ego2img"])
+        bank = BankTensors(text, phrase_class, self.num_classes, noise)
+        return compute_losses(outputs, batch, bank, self.loss_cfg)
+
+
+def _to_device(batch: dict, device: torch.device) -> dict:
+    return {k: (v.to(device, non_blocking=True) if isinstance(v, torch.Tensor) else v) for k, v in batch.items()}
+
+
+class _Resumable(torch.utils.data.Sampler):
+    """The indices a DistributedSampler gives for one epoch, minus the first `skip` of them."""
+
+    def __init__(self, indices: list[int]):
+        self.indices = indices
+
+    def __iter__(self):
+        return iter(self.indices)
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+
+# ---- the trainer ------------------------------------------------------------------------------
+class Trainer:
+    def __init__(self, cfg: TrainConfig, resume: bool = False, dist_info: D.DistInfo | None = None,
+                 quiet: bool = False):
+        self.cfg = cfg
+        self.resume = resume
+        self.quiet = quiet
+        self.info = dist_info
+        self.out = Path(cfg.out)
+
+    # -------------------------------------------------------------------------------------------
+    def setup(self) -> None:
+        cfg = self.cfg
+        if self.info is None:
+            self.info = D.setup(cfg.device)
+        info = self.info
+        torch.manual_seed(cfg.seed)
+        np.random.seed(cfg.seed % (2 ** 32))
+        import random
+
+        random.seed(cfg.seed)
+
+        self.prompt_path = cfg.prompt_path()
+        self.label_space = parse_prompt_file(self.prompt_path)
+        K = self.label_space.num_classes
+        self.grid = cfg.model.grid_obj()
+        self.pseudo = PseudoLabelSet.open(cfg.pseudo)
+        self.pseudo.check(self.grid, self.label_space.class_names)
+
+        ds, indices = open_frames(cfg.data, cfg.gts, cfg.train_split, load_gt=False)
+        if cfg.frame_tokens is not None:
+            wanted = set(cfg.frame_tokens)
+            indices = [i for i in indices if ds.sample_tokens[i] in wanted]
+        if cfg.max_frames is not None:
+            indices = indices[: cfg.max_frames]
+        if not indices:
+            raise AgoInputError(cfg.data, f"no frames in split {cfg.train_split!r}")
+        self.preprocess = Preprocess(cfg.model.image_width, cfg.model.image_height)
+        self.dataset = OccSampleDataset(FrameList(ds, indices), self.pseudo, K, self.grid, self.preprocess,
+                                        with_embeds=True, color_jitter=cfg.color_jitter, seed=cfg.seed)
+        self.sampler = DistributedSampler(self.dataset, num_replicas=info.world_size, rank=info.rank,
+                                          shuffle=True, seed=cfg.seed, drop_last=False)
+        self.steps_per_epoch = math.ceil(len(self.sampler) / cfg.batch_size)
+        total = cfg.epochs * self.steps_per_epoch
+        self.total_steps = min(total, cfg.max_steps) if cfg.max_steps is not None else total
+
+        # frozen text side: the label-space bank (encoded once) and the noise-word bank
+        self.bank = build_text_bank(self.label_space)
+        if self.bank["embeddings"].shape[1] != cfg.model.embed_dim:
+            raise AgoInputError(self.prompt_path, f"text embeddings are {self.bank['embeddings'].shape[1]}-d but "
+                                f"the model's embed_dim is {cfg.model.embed_dim}")
+        from .text.noise import NoiseBank, ensure_noise_bank
+
+        self.noise_bank = NoiseBank.load(cfg.noise_bank if cfg.noise_bank else ensure_noise_bank())
+
+        # model, optimiser, schedule; seeded right here so nothing built before (the text encoder
+        # draws random initial weights before loading its own) changes the model's initial weights
+        torch.manual_seed(cfg.seed)
+        self.model = cfg.model.build().to(info.device)
+        if cfg.init_from:
+            init = load_checkpoint(cfg.init_from)
+            self.model.load_state_dict(init["model"])
+        self.step_module = TrainStep(self.model, cfg.loss, K).to(info.device)
+        params = [p for p in self.model.parameters() if p.requires_grad]
+        self.optimizer = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
+        total_steps = self.total_steps
+        self.scheduler = torch.optim.lr_scheduler.LambdaLR(
+            self.optimizer, lambda s: cfg.lr_at(s, total_steps) / cfg.lr)
+        self.step = 0
+        if self.resume:
+            self._load_resume()
+        if info.distributed:
+            self.ddp = torch.nn.parallel.DistributedDataParallel(
+                self.step_module, device_ids=[info.device.index] if info.device.type == "cuda" else None,
+                # only the paper's "ago" variant uses every parameter (the others leave the adapter or
+                # the free embedding out of the loss)
+                find_unused_parameters=getattr(cfg.loss, "variant", "ago") != "ago")
+        else:
+            self.ddp = self.step_module
+        self.text = self.bank["embeddings"].to(info.device)
+        self.phrase_class = self.bank["phrase_class"].to(info.device)
+
+    def _load_resume(self) -> None:
+        path = self.out / "last.pt"
+        ckpt = load_checkpoint(path, map_location=self.info.device)
+        if ckpt.get("optimizer") is None:
+            raise AgoInputError(path, "checkpoint has no optimiser state (an export?); cannot resume from it")
+        saved = ckpt["train_config"]
+        for key in ("epochs", "batch_size", "seed", "max_steps"):
+            if saved.get(key) != getattr(self.cfg, key):
+                raise AgoInputError(path, f"cannot resume: {key} was {saved.get(key)!r}, now {getattr(self.cfg, key)!r}")
+        if int(ckpt.get("world_size", 1)) != self.info.world_size:
+            raise AgoInputError(path, f"cannot resume: the run used {ckpt.get('world_size')} processes, "
+                                f"now {self.info.world_size}")
+        self.model.load_state_dict(ckpt["model"])
+        self.optimizer.load_state_dict(ckpt["optimizer"])
+        self.scheduler.load_state_dict(ckpt["scheduler"])
+        self.step = int(ckpt["step"])
+        rng = ckpt["rng"]
+        if isinstance(rng, list):  # one state per rank
+            rng = rng[self.info.rank]
+        set_rng_state(rng)
+
+    # -------------------------------------------------------------------------------------------
+    def checkpoint_payload(self, epoch: int) -> dict:
+        cfg = self.cfg
+        rng = rng_state()
+        if self.info.distributed:  # every rank's RNG state, so a resumed DDP run continues exactly
+            gathered = [None] * self.info.world_size
+            torch.distributed.all_gather_object(gathered, rng)
+            rng = gathered
+        return {
+            "model": self.model.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "scheduler": plain(self.scheduler.state_dict()),
+            "step": int(self.step),
+            "epoch": int(epoch),
+            "total_steps": int(self.total_steps),
+            "world_size": int(self.info.world_size),
+            "rng": rng,
+            "model_config": plain(cfg.model.to_dict()),
+            "train_config": plain(cfg.to_dict()),
+            "loss_config": plain(cfg.to_dict()["loss"]),
+            "label_space": label_space_record(self.label_space, self.prompt_path),
+            "bank": self.bank,
+            "preprocess": plain(self.preprocess.to_dict()),
+        }
+
+    def save(self, epoch: int) -> Path | None:
+        payload = self.checkpoint_payload(epoch)  # collective in DDP: every rank takes part
+        path = None
+        if self.info.is_main:
+            path = save_checkpoint(self.out / "last.pt", payload)
+        D.barrier(self.info)
+        return path
+
+    def noise_for_step(self, step: int) -> torch.Tensor | None:
+        n = self.cfg.noise_words
+        if n <= 0 or not getattr(self.cfg.loss, "use_noise", True):
+            return None
+        rng = np.random.default_rng([self.cfg.seed, step])
+        return torch.as_tensor(np.asarray(self.noise_bank.sample(n, rng), dtype=np.float32), device=self.info.device)
+
+    # -------------------------------------------------------------------------------------------
+    def run(self, until: int | None = None) -> dict:
+        """Train to `total_steps` (or stop early at step `until`, schedule unchanged, as if interrupted
+        right after a checkpoint); returns {"step", "losses": [per-step total], "last": path, ...}."""
+        if not hasattr(self, "model"):
+            self.setup()
+        stop = self.total_steps if until is None else min(int(until), self.total_steps)
+        cfg, info = self.cfg, self.info
+        if info.is_main:
+            self.out.mkdir(parents=True, exist_ok=True)
+            cfg.save(self.out / "config.json")
+        log_path = self.out / "log.jsonl"
+        log_lines = log_path.read_text().splitlines() if (self.resume and info.is_main and log_path.exists()) else []
+        log_lines = [ln for ln in log_lines if json.loads(ln).get("step", 0) <= self.step]
+        losses: list[float] = []
+        self.ddp.train()
+        progress = _Progress(self.total_steps, self.step, enabled=info.is_main and not self.quiet)
+        epoch = self.step // self.steps_per_epoch
+        t_last = time.perf_counter()
+        try:
+            while self.step < stop:
+                epoch = self.step // self.steps_per_epoch
+                skip = self.step - epoch * self.steps_per_epoch
+                self.sampler.set_epoch(epoch)
+                self.dataset.set_epoch(epoch)
+                order = list(self.sampler)[skip * cfg.batch_size:]
+                loader = DataLoader(self.dataset, batch_size=cfg.batch_size, sampler=_Resumable(order),
+                                    collate_fn=collate, num_workers=cfg.num_workers,
+                                    pin_memory=info.device.type == "cuda",
+                                    # own generator: creating a loader must not draw from the global RNG
+                                    generator=torch.Generator().manual_seed(cfg.seed * 1000 + epoch))
+                for batch in loader:
+                    if self.step >= stop:
+                        break
+                    batch = _to_device(batch, info.device)
+                    noise = self.noise_for_step(self.step)
+                    lr_now = self.scheduler.get_last_lr()[0]  # the rate this step uses
+                    out = self.ddp(batch, self.text, self.phrase_class, noise)
+                    loss = out["total"]
+                    if not torch.isfinite(loss):
+                        raise FloatingPointError(f"loss is {loss.item()} at step {self.step}")
+                    self.optimizer.zero_grad(set_to_none=True)
+                    loss.backward()
+                    if cfg.grad_clip > 0:
+                        torch.nn.utils.clip_grad_norm_(self.model.parameters(), cfg.grad_clip)
+                    self.optimizer.step()
+                    self.scheduler.step()
+                    self.step += 1
+                    value = float(loss.detach())
+                    losses.append(value)
+                    progress.advance(value, lr_now)
+                    if info.is_main and (self.step % cfg.log_every == 0 or self.step == self.total_steps):
+                        now = time.perf_counter()
+                        rec = {"step": self.step, "epoch": epoch, "lr": lr_now,
+                               "sec_per_step": (now - t_last) / max(1, self.step % cfg.log_every or cfg.log_every)}
+                        rec.update({k: float(v.detach()) for k, v in out.items()
+                                    if isinstance(v, torch.Tensor) and v.numel() == 1})
+                        log_lines.append(json.dumps(rec))
+                        write_text(log_path, "\n".join(log_lines) + "\n")
+                        t_last = now
+                    if self.step % cfg.ckpt_every == 0 and self.step < stop:
+                        self.save(epoch)
+        finally:
+            progress.close()
+        last = self.save(self.step // self.steps_per_epoch if self.steps_per_epoch else 0)
+        return {"step": self.step, "losses": losses, "last": str(last) if last else None,
+                "total_steps": self.total_steps, "steps_per_epoch": self.steps_per_epoch}
+
+
+class _Progress:
+    """A rich progress bar showing the loss (rank 0); silent when AGO_NO_PROGRESS=1."""
+
+    def __init__(self, total: int, start: int, enabled: bool):
+        self.enabled = enabled and os.environ.get("AGO_NO_PROGRESS") != "1"
+        self.bar = None
+        if self.enabled:
+            from rich.console import Console
+            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+            self.bar = Progress(TextColumn("train"), BarColumn(), MofNCompleteColumn(),
+                                TextColumn("loss {task.fields[loss]:.4f} lr {task.fields[lr]:.2e}"),
+                                TimeRemainingColumn(), console=Console(stderr=True))
+            self.bar.start()
+            self.task = self.bar.add_task("train", total=total, completed=start, loss=float("nan"), lr=0.0)
+
+    def advance(self, loss: float, lr: float) -> None:
+        if self.bar is not None:
+            self.bar.update(self.task, advance=1, loss=loss, lr=lr)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.stop()
+
+
+def train(cfg: TrainConfig, resume: bool = False, quiet: bool = False) -> dict:
+    """Run one training (joins the torchrun process group when launched under torchrun)."""
+    info = D.setup(cfg.device)
+    try:
+        return Trainer(cfg, resume=resume, dist_info=info, quiet=quiet).run()
+    finally:
+        D.cleanup(info)

@@ -1,0 +1,66 @@
+#!/usr/bin/env bash
+# Draft (the lead finalises it): build the default bundle and demo frame that `ago demo` uses.
+#
+#   synthetic city -> pseudo-labels -> train (cpu preset) -> ago export -> copy into
+#   ago_runtime/assets/default_bundle/ and ago_runtime/assets/demo_frame/
+#
+# Needs the training extra (torch) and a few CPU hours at the cpu preset; set SCENES/FRAMES/EPOCHS
+# smaller for a quick (poor) bundle. Usage: scripts/make_default_bundle.sh [WORK_DIR]
+set -euo pipefail
+
+REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+WORK="${1:-$REPO/work/default_bundle}"
+SCENES="${SCENES:-10}"
+FRAMES="${FRAMES:-40}"
+PROMPTS="${PROMPTS:-cw}"
+PRESET="${PRESET:-cpu}"
+GRID="${GRID:-100x100x8}"
+ASSETS="$REPO/ago_runtime/assets"
+AGO="python -m ago_runtime"
+export AGO_NO_PROGRESS="${AGO_NO_PROGRESS:-0}"
+
+mkdir -p "$WORK"
+echo "== 1/5 synthetic data ($SCENES scenes x $FRAMES frames) -> $WORK/synth"
+[ -d "$WORK/synth" ] || $AGO synth --out "$WORK/synth" --scenes "$SCENES" --frames "$FRAMES" --seed 0
+
+echo "== 2/5 pseudo-labels ($PROMPTS, grid $GRID) -> $WORK/pseudo"
+$AGO pseudo-labels --data "$WORK/synth" --out "$WORK/pseudo" --prompts "$PROMPTS" --grid "$GRID" --split all
+
+echo "== 3/5 train ($PRESET preset) -> $WORK/train"
+$AGO train --config "$PRESET" --data "$WORK/synth" --pseudo "$WORK/pseudo" --prompts "$PROMPTS" --out "$WORK/train" \
+    ${TRAIN_SET:+--set "$TRAIN_SET"}
+
+echo "== 4/5 export (parity-checked on the real nuScenes keyframe when ../shared is present)"
+$AGO export "$WORK/train/last.pt" -o "$WORK/bundle"
+
+echo "== 5/5 copy into $ASSETS"
+mkdir -p "$ASSETS"
+rm -rf "$ASSETS/default_bundle.new" && cp -r "$WORK/bundle" "$ASSETS/default_bundle.new"
+rm -rf "$ASSETS/default_bundle" && mv "$ASSETS/default_bundle.new" "$ASSETS/default_bundle"
+
+# Demo frame: six JPEGs named by camera + calib.json, from the first val frame of the synthetic city
+# (never real nuScenes images: their licence forbids bundling them).
+python - "$WORK/synth" "$ASSETS/demo_frame" <<'PY'
+import sys, shutil
+from pathlib import Path
+import cv2
+from ago_runtime.calibration import save_calibration
+from ago_runtime.nuscenes import NuScenesDataset
+
+ds = NuScenesDataset(sys.argv[1], load_extras=False)
+idx = ds.split("val") or list(range(len(ds)))
+frame = ds[idx[0]]
+out = Path(sys.argv[2])
+tmp = out.with_name(out.name + ".new")
+shutil.rmtree(tmp, ignore_errors=True)
+tmp.mkdir(parents=True)
+for cam in frame.rig:
+    cv2.imwrite(str(tmp / f"{cam.name}.jpg"), cv2.cvtColor(frame.images[cam.name], cv2.COLOR_RGB2BGR),
+                [cv2.IMWRITE_JPEG_QUALITY, 90])
+save_calibration(tmp / "calib.json", frame.rig)
+shutil.rmtree(out, ignore_errors=True)
+tmp.rename(out)
+print(f"demo frame {frame.token} -> {out}")
+PY
+
+echo "done: try  python -m ago_runtime demo"

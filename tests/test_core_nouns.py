@@ -1,0 +1,121 @@
+"""Tests of the shared nouns: Grid, Camera/Rig, Occ3DLabels, atomic writes, Preprocess, CLI errors."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from ago_runtime.atomic import atomic_path, save_npz, write_json
+from ago_runtime.camera import CAMERA_NAMES, Camera, Rig
+from ago_runtime.errors import AgoInputError
+from ago_runtime.grid import Grid
+from ago_runtime.occ3d import Occ3DLabels
+from ago_runtime.preprocess import Preprocess
+
+
+def test_occ3d_grid_matches_the_dataset_definition():
+    g = Grid.occ3d()
+    assert g.shape == (200, 200, 16)
+    xs, ys, zs = g.axis_centres()
+    assert xs[0] == pytest.approx(-39.8) and xs[5] == pytest.approx(-40 + 0.4 * 5 + 0.2)
+    assert zs[0] == pytest.approx(-0.8) and zs[-1] == pytest.approx(5.2)
+    idx, inside = g.points_to_index(np.array([[-39.9, -39.9, -0.9], [0.1, 0.1, 0.1], [40.1, 0, 0]]))
+    assert idx[0].tolist() == [0, 0, 0] and idx[1].tolist() == [100, 100, 2]
+    assert inside.tolist() == [True, True, False]
+    assert g.flat_index(np.array([[1, 2, 3]]))[0] == (1 * 200 + 2) * 16 + 3
+    assert Grid.from_dict(g.to_dict()) == g
+
+
+def test_coarse_grid_keeps_the_range():
+    g = Grid.with_shape((100, 100, 8))
+    assert g.shape == (100, 100, 8) and g.voxel_size == pytest.approx((0.8, 0.8, 0.8))
+    assert g.centres()[0, 0, 0].tolist() == pytest.approx([-39.6, -39.6, -0.6])
+
+
+def test_camera_projection_round_trip_and_scaling():
+    rig = Rig.nuscenes_like(1600, 900)
+    front = rig["CAM_FRONT"]
+    uv, depth, ok = front.project(np.array([[20.0, 0.0, 1.5], [-20.0, 0.0, 1.5]]))
+    assert ok.tolist() == [True, False]
+    assert abs(uv[0, 0] - 800) < 20 and depth[0] == pytest.approx(20.0 - 1.70)
+    # ego2img agrees with project()
+    h = front.ego2img @ np.array([20.0, 0.0, 1.5, 1.0])
+    assert h[:2] / h[2] == pytest.approx(uv[0])
+    small = front.scaled(400, 225)
+    uv2, _, _ = small.project(np.array([[20.0, 3.0, 0.5]]))
+    uv1, _, _ = front.project(np.array([[20.0, 3.0, 0.5]]))
+    assert uv2[0] == pytest.approx(uv1[0] / 4)
+    # every camera sees the point straight along its own axis
+    for cam in rig:
+        d = cam.cam2ego[:3, 2]
+        p = cam.cam2ego[:3, 3] + 10 * d
+        _, _, ok = cam.project(p[None])
+        assert ok[0], cam.name
+
+
+def test_rig_refuses_missing_camera_and_bad_calibration():
+    rig = Rig.nuscenes_like(160, 90)
+    with pytest.raises(AgoInputError, match="CAM_BACK"):
+        Rig([c for c in rig if c.name != "CAM_BACK"])
+    bad = Camera("CAM_FRONT", np.full((3, 3), np.nan), np.eye(4), 10, 10)
+    with pytest.raises(AgoInputError, match="NaN"):
+        bad.validate("calib.json")
+    singular = Camera("CAM_FRONT", np.zeros((3, 3)), np.eye(4), 10, 10)
+    with pytest.raises(AgoInputError, match="singular"):
+        singular.validate("calib.json")
+    assert Rig.from_dict(rig.to_dict()).ego2img() == pytest.approx(rig.ego2img())
+
+
+def test_occ3d_labels_round_trip_and_shape_check(tmp_path):
+    rng = np.random.default_rng(0)
+    lab = Occ3DLabels(rng.integers(0, 18, (4, 5, 2), dtype=np.uint8), np.ones((4, 5, 2), np.uint8),
+                      np.zeros((4, 5, 2), np.uint8))
+    p = tmp_path / "a" / "labels.npz"
+    lab.save(p)
+    back = Occ3DLabels.load(p, shape=(4, 5, 2))
+    assert np.array_equal(back.semantics, lab.semantics)
+    with pytest.raises(AgoInputError, match="does not match the grid"):
+        Occ3DLabels.load(p, shape=(200, 200, 16))
+    p.write_bytes(p.read_bytes()[:50])
+    with pytest.raises(AgoInputError, match="labels.npz"):
+        Occ3DLabels.load(p)
+
+
+def test_real_occ3d_frame_loads(occ3d_sample_labels):
+    lab = Occ3DLabels.load(occ3d_sample_labels, shape=Grid.occ3d().shape)
+    assert lab.semantics.max() == 17 and lab.mask_camera.max() == 1
+
+
+def test_atomic_write_leaves_nothing_on_failure(tmp_path):
+    target = tmp_path / "out.json"
+    with pytest.raises(RuntimeError):
+        with atomic_path(target) as tmp:
+            tmp.write_text("half")
+            raise RuntimeError("boom")
+    assert not target.exists() and list(tmp_path.iterdir()) == []
+    write_json(target, {"a": 1})
+    assert target.read_text().strip().startswith("{")
+    with pytest.raises(TypeError):
+        save_npz(tmp_path / "x.npz", a=np.array([object()], dtype=object))
+
+
+def test_preprocess_shapes_normalisation_and_missing_camera():
+    pre = Preprocess(64, 32)
+    imgs = {c: np.full((90, 160, 3), 128, np.uint8) for c in CAMERA_NAMES}
+    x = pre.images(imgs)
+    assert x.shape == (6, 3, 32, 64) and x.dtype == np.float32
+    assert x[0, 0, 0, 0] == pytest.approx((128 / 255 - 0.485) / 0.229, rel=1e-5)
+    del imgs["CAM_BACK"]
+    with pytest.raises(AgoInputError, match="CAM_BACK"):
+        pre.images(imgs, source="dir/")
+    e = pre.ego2img(Rig.nuscenes_like(160, 90))
+    assert e.shape == (6, 4, 4) and e.dtype == np.float32
+
+
+def test_cli_help_runs():
+    out = subprocess.run([sys.executable, "-m", "ago_runtime", "--help"], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    assert "Usage" in out.stdout

@@ -1,0 +1,138 @@
+"""`ago export`: the real tiny-preset model -> bundle; ONNX checks, parity, atomic failure, int8."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+onnx = pytest.importorskip("onnx")
+
+from ago_export.export import StableSoftplus, export_bundle, load_model, with_stable_softplus  # noqa: E402
+from ago_export.parity import Tolerance, reference_labels  # noqa: E402
+from ago_export.testing import random_checkpoint  # noqa: E402
+from ago_runtime.bundle import Bundle  # noqa: E402
+from ago_runtime.errors import AgoInputError  # noqa: E402
+from ago_runtime.predictor import Predictor  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_SAMPLE = REPO.parent / "shared" / "data" / "nuscenes-sample"
+
+
+@pytest.fixture(scope="module")
+def env(tmp_path_factory):
+    root = tmp_path_factory.mktemp("export")
+    os.environ["AGO_CACHE_DIR"] = str(root / "cache")
+    ckpt = random_checkpoint(root / "tiny.pt", "tiny", prompts="cw", seed=0)
+    bundle = root / "bundle"
+    meta = export_bundle(ckpt, bundle, int8=True, bank_prompts=["ow"], log=lambda s: None)
+    return {"root": root, "ckpt": ckpt, "bundle": bundle, "meta": meta}
+
+
+def test_bundle_is_self_describing(env):
+    meta = json.loads((env["bundle"] / "bundle.json").read_text())
+    assert meta["format_version"] == 1
+    assert meta["grid"]["shape"] == [20, 20, 4]
+    assert [c["name"] for c in meta["label_space"]["classes"]][:3] == ["others", "barrier", "bicycle"]
+    assert meta["label_space"]["classes"][4]["occ3d_ids"] == [4]          # car
+    assert meta["preprocess"]["width"] == 96 and meta["preprocess"]["height"] == 64
+    assert len(meta["rig"]["cameras"]) == 6
+    assert meta["text_encoder"]["dim"] == 384 and meta["text_encoder"]["id"]
+    assert set(meta["banks"]) == {"train", "ow"}
+    for entry in meta["files"].values():
+        assert (env["bundle"] / entry["path"]).stat().st_size == entry["size"]
+    # no temp folders left next to the bundle
+    assert not [p for p in env["root"].iterdir() if p.name.startswith(".bundle")]
+
+
+def test_onnx_file_checks_and_carries_metadata(env):
+    path = env["bundle"] / "encoder.onnx"
+    onnx.checker.check_model(str(path), full_check=True)
+    model = onnx.load(str(path))
+    props = {p.key: p.value for p in model.metadata_props}
+    assert json.loads(props["ago.grid"])["shape"] == [20, 20, 4]
+    assert json.loads(props["ago.class_names"])[4] == "car"
+    assert [i.name for i in model.graph.input] == ["images", "ego2img"]
+    assert [o.name for o in model.graph.output] == ["h", "g"]
+    assert "Softplus" not in {n.op_type for n in model.graph.node}    # rewritten as relu + log1p(exp(-|x|))
+
+
+def test_parity_report_within_tolerance(env):
+    p = env["meta"]["parity"]["fp32"]
+    assert p["ok"] and p["rel_err_feat"] <= 1e-3 and p["rel_err_feat_adapted"] <= 1e-3
+    assert min(p["agreement_main"], p["agreement_adapted"], p["agreement_identifier"]) >= 0.999
+    if SHARED_SAMPLE.exists():
+        assert "ca9a282c9e77460f8360f564131a8af5" in p["frame"]       # checked on the real keyframe
+    q = env["meta"]["parity"]["int8"]
+    assert q["rel_err_feat"] > p["rel_err_feat"]                      # int8 really is a different model
+    assert (env["bundle"] / "encoder.int8.onnx").is_file()
+
+
+def test_runtime_matches_torch_on_another_frame(env):
+    """Independent of the exporter's own check: torch forward vs Predictor on a different frame."""
+    model, ckpt, cfg = load_model(env["ckpt"])
+    b = Bundle.load(env["bundle"])
+    pred = Predictor(b)
+    bank = b.load_bank()
+    rng = np.random.default_rng(7)
+    rig = b.rig.scaled(400, 225)
+    images = {c.name: rng.integers(0, 255, (225, 400, 3), dtype=np.uint8) for c in rig}
+    x, m = pred.prepare(images, rig)
+    with torch.no_grad():
+        out = model(torch.from_numpy(x), torch.from_numpy(m))
+    want = reference_labels(out["feat"][0].numpy(), out["feat_adapted"][0].numpy(), bank,
+                            b.heads.free_embedding)
+    for ident, key in (("none", "main"), ("min-entropy", "identifier")):
+        got = pred.predict(images, rig, bank, ident).semantics.reshape(-1)
+        assert np.mean(got == want[key]) >= 0.999
+
+
+def test_stable_softplus_equals_softplus():
+    x = torch.linspace(-40, 40, 10001)
+    assert torch.allclose(StableSoftplus()(x), torch.nn.functional.softplus(x), atol=1e-6, rtol=1e-6)
+    m = with_stable_softplus(torch.nn.Sequential(torch.nn.Linear(3, 3), torch.nn.Softplus()))
+    assert isinstance(m[1], StableSoftplus)
+
+
+def test_failed_parity_writes_nothing(env):
+    out = env["root"] / "never"
+    with pytest.raises(AgoInputError, match="parity check failed"):
+        export_bundle(env["ckpt"], out, bank_prompts=[], real_frame=False, tolerance=Tolerance(-1.0, 1.0),
+                      log=lambda s: None)
+    assert not out.exists()
+    assert not [p for p in env["root"].iterdir() if p.name.startswith(".never")]
+
+
+def test_failed_parity_keeps_existing_bundle(env, tmp_path):
+    import shutil
+
+    out = tmp_path / "b"
+    shutil.copytree(env["bundle"], out)
+    before = (out / "bundle.json").read_bytes()
+    with pytest.raises(AgoInputError):
+        export_bundle(env["ckpt"], out, bank_prompts=[], real_frame=False, tolerance=Tolerance(-1.0, 1.0),
+                      log=lambda s: None)
+    assert (out / "bundle.json").read_bytes() == before
+
+
+def test_cli_export_synthetic_frame_and_bad_checkpoint(env, tmp_path):
+    out = tmp_path / "synth_bundle"
+    r = subprocess.run([sys.executable, "-m", "ago_runtime", "export", str(env["ckpt"]), "-o", str(out),
+                        "--no-real-frame", "--train-bank-only"], capture_output=True, text=True, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    meta = json.loads((out / "bundle.json").read_text())
+    assert meta["parity"]["fp32"]["frame"].startswith("synthetic")
+    assert set(meta["banks"]) == {"train"}
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a checkpoint")
+    r = subprocess.run([sys.executable, "-m", "ago_runtime", "export", str(bad), "-o", str(tmp_path / "x")],
+                       capture_output=True, text=True, cwd=tmp_path)
+    assert r.returncode == 2
+    assert r.stderr.strip().splitlines()[-1].startswith(f"error: {bad}")
+    assert not (tmp_path / "x").exists()

@@ -1,0 +1,175 @@
+"""Losses: Lovász-softmax, target conversion, grounding / occupancy / align, variants, overfitting."""
+
+from __future__ import annotations
+
+import itertools
+
+import pytest
+import torch
+
+from ago_runtime.camera import Rig
+from ago_runtime.classes import FREE, IGNORE
+from ago_train.losses import BankTensors, LossConfig, compute_losses
+from ago_train.losses.align import align_loss
+from ago_train.losses.grounding import semantics_to_targets
+from ago_train.losses.lovasz import lovasz_softmax
+from ago_train.losses.occupancy import occupancy_loss
+from ago_train.losses.sampling import select_training_voxels
+from ago_train.model.config import ModelConfig
+
+
+def _one_hot(pred: torch.Tensor, k: int) -> torch.Tensor:
+    return torch.nn.functional.one_hot(pred, k).float()
+
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_torch_thread():
+    """Tiny tensors: one thread is faster than two and does not fight parallel test workers."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+# ------------------------------------------------------------------ Lovász
+def test_lovasz_is_zero_for_perfect_predictions():
+    target = torch.tensor([0, 1, 2, 2, 1, 0, 2])
+    assert float(lovasz_softmax(_one_hot(target, 3), target)) == pytest.approx(0.0, abs=1e-7)
+
+
+def test_lovasz_matches_brute_force_jaccard_at_one_hot_predictions():
+    """At one-hot probabilities the Lovász extension equals 1 - IoU; check every labelling of 5 voxels."""
+    target = torch.tensor([0, 0, 1, 2, 1])
+    for pred in itertools.product(range(3), repeat=5):
+        pred = torch.tensor(pred)
+        ious = []
+        for c in range(3):
+            inter = ((pred == c) & (target == c)).sum().item()
+            union = ((pred == c) | (target == c)).sum().item()
+            ious.append(inter / union)
+        expected = 1.0 - sum(ious) / 3
+        got = float(lovasz_softmax(_one_hot(pred, 3), target))
+        assert got == pytest.approx(expected, abs=1e-6), (pred.tolist(), got, expected)
+
+
+def test_lovasz_ignore_and_present_classes():
+    target = torch.tensor([0, 0, 1, IGNORE])
+    prob = torch.tensor([[1.0, 0, 0], [1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]])  # wrong only on the ignored voxel
+    assert float(lovasz_softmax(prob, target)) == pytest.approx(0.0, abs=1e-7)
+    # class 2 absent: counted only when only_present=False (its IoU is 0 -> loss 1 for that class)
+    wrong = torch.tensor([[0.0, 0, 1.0], [1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]])
+    present = float(lovasz_softmax(wrong, target))
+    everyone = float(lovasz_softmax(wrong, target, only_present=False))
+    assert present == pytest.approx(1 - (0.5 + 1.0) / 2)
+    assert everyone == pytest.approx(1 - (0.5 + 1.0 + 0.0) / 3)
+    soft = torch.softmax(torch.randn(6, 3, requires_grad=True), -1)
+    lovasz_softmax(soft, torch.tensor([0, 1, 2, 0, 1, 2])).backward()   # differentiable
+
+
+# ------------------------------------------------------------------ parts
+def test_semantics_to_targets():
+    sem = torch.tensor([0, 3, 4, FREE, IGNORE], dtype=torch.uint8)
+    assert semantics_to_targets(sem, 4).tolist() == [0, 3, IGNORE, 4, IGNORE]
+
+
+def test_occupancy_loss_uses_class_max_and_free():
+    K = 2
+    # columns: class0, class1, free, noise
+    logits = torch.tensor([[10.0, -10.0, -10.0, 50.0], [-10.0, -10.0, 10.0, 50.0], [0.0, 0.0, 0.0, 0.0]])
+    target = torch.tensor([1, K, IGNORE])
+    assert float(occupancy_loss(logits, target, K)) < 1e-6            # noise column plays no part
+    flipped = torch.tensor([K, 0, IGNORE])
+    assert float(occupancy_loss(logits, flipped, K)) > 10
+
+
+def test_align_losses():
+    a = torch.randn(5, 8)
+    assert float(align_loss(a, 3 * a, "cosine")) == pytest.approx(0.0, abs=1e-6)
+    assert float(align_loss(a, -a, "cosine")) == pytest.approx(2.0, abs=1e-6)
+    assert float(align_loss(a, a + 1, "mse")) == pytest.approx(1.0, abs=1e-6)
+    assert float(align_loss(a, a - 2, "l1")) == pytest.approx(2.0, abs=1e-6)
+    with pytest.raises(ValueError):
+        align_loss(a, a, "huber")
+
+
+# ------------------------------------------------------------------ compute_losses
+def _setup(seed=0):
+    torch.manual_seed(seed)
+    cfg = ModelConfig.preset("tiny")
+    model = cfg.build()
+    X, Y, Z = cfg.grid_obj().shape
+    images = torch.randn(1, 6, 3, cfg.image_height, cfg.image_width)
+    ego2img = torch.from_numpy(Rig.nuscenes_like(cfg.image_width, cfg.image_height).ego2img())[None]
+    # a structured scene: ground (class 0) at the bottom, a few boxes of classes 1..3, free above
+    sem = torch.full((1, X, Y, Z), FREE, dtype=torch.uint8)
+    sem[..., 0] = 0
+    sem[0, 2:6, 3:7, 1:3] = 1
+    sem[0, 12:15, 10:18, 1:3] = 2
+    sem[0, 8:10, 1:4, 1] = 3
+    sem[0, :, :2, 3] = IGNORE
+    K, C = 4, cfg.embed_dim
+    text = torch.nn.functional.normalize(torch.randn(7, C), dim=-1)
+    bank = BankTensors(text, torch.tensor([0, 0, 1, 2, 3, 3, 3]), K, torch.nn.functional.normalize(torch.randn(3, C), dim=-1))
+    occupied = torch.nonzero(sem.reshape(-1) < K).reshape(-1)
+    batch = {"semantics": sem, "align_index": occupied, "align_embed": torch.randn(occupied.numel(), C)}
+    return cfg, model, images, ego2img, batch, bank
+
+
+def test_variants_and_gradient_routes():
+    cfg, model, images, ego2img, batch, bank = _setup()
+    expected = {"align": {"align"}, "grounding": {"grounding_ce", "grounding_lovasz", "occ"},
+                "grounding+align": {"grounding_ce", "grounding_lovasz", "occ", "align"},
+                "ago": {"grounding_ce", "grounding_lovasz", "occ", "align"}}
+    for variant, keys in expected.items():
+        model.zero_grad()
+        losses = compute_losses(model(images, ego2img), batch, bank, LossConfig(variant=variant))
+        assert set(losses) == keys | {"total"}
+        assert all(torch.isfinite(v) for v in losses.values())
+        losses["total"].backward()
+        adapter_grad = model.adapter_out.weight.grad
+        # only the paper's variant trains the adapter
+        assert (adapter_grad is not None and adapter_grad.abs().sum() > 0) == (variant == "ago")
+    off = compute_losses(model(images, ego2img), batch, bank, LossConfig(variant="grounding", use_occ=False))
+    assert "occ" not in off
+    no_noise = compute_losses(model(images, ego2img), batch, bank, LossConfig(variant="grounding", use_noise=False))
+    with_noise = compute_losses(model(images, ego2img), batch, bank, LossConfig(variant="grounding"))
+    assert float(no_noise["grounding_ce"].detach()) != float(with_noise["grounding_ce"].detach())
+    with pytest.raises(ValueError):
+        LossConfig(variant="everything")
+
+
+def test_voxel_sample_losses_match_full_grid_when_sample_is_everything():
+    cfg, model, images, ego2img, batch, bank = _setup()
+    model.eval()
+    N = model.num_voxels
+    perm = torch.randperm(N)[None]
+    with torch.no_grad():
+        full = compute_losses(model(images, ego2img), batch, bank, LossConfig())
+        part = compute_losses(model(images, ego2img, voxel_index=perm), batch, bank, LossConfig())
+    for k in full:
+        assert float(part[k]) == pytest.approx(float(full[k]), rel=1e-4, abs=1e-5), k
+    some_align = batch["align_index"][::7]
+    sample = select_training_voxels(batch["semantics"], 300, some_align)
+    assert sample.shape == (1, 300) and sample.unique().numel() == 300
+    assert set(some_align.tolist()) <= set(sample[0].tolist())            # align voxels come first
+    labels = batch["semantics"].reshape(-1)[sample[0]]
+    assert not bool((labels == IGNORE).any())                              # plenty of labelled voxels
+    with torch.no_grad():
+        sub = compute_losses(model(images, ego2img, voxel_index=sample), batch, bank, LossConfig())
+    assert torch.isfinite(sub["total"]) and float(sub["align"]) > 0
+
+
+def test_overfitting_one_batch_reduces_the_grounding_loss():
+    cfg, model, images, ego2img, batch, bank = _setup(seed=1)
+    opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=3e-3)
+    first = last = None
+    for step in range(50):
+        losses = compute_losses(model(images, ego2img), batch, bank, LossConfig())
+        grounding = float((losses["grounding_ce"] + losses["grounding_lovasz"]).detach())
+        first = grounding if first is None else first
+        last = grounding
+        opt.zero_grad()
+        losses["total"].backward()
+        opt.step()
+    assert last < 0.5 * first, (first, last)
+    assert float(losses["align"].detach()) < 0.9

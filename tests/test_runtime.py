@@ -1,0 +1,363 @@
+"""The torch-free runtime: folded heads, Predictor, bank swapping, `ago infer/retrieve/demo`, bad input.
+
+A tiny-preset bundle is exported once per module (that step needs torch; the runtime itself is
+checked torch-free in a subprocess).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import os
+import shutil
+import subprocess
+import sys
+import types
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from ago_runtime.calibration import load_calibration, save_calibration
+from ago_runtime.camera import CAMERA_NAMES, Rig
+from ago_runtime.classes import FREE, OCC3D_CLASSES
+from ago_runtime.errors import AgoInputError
+from ago_runtime.heads import FoldedHeads, HeadWeights
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_SAMPLE = REPO.parent / "shared" / "data" / "nuscenes-sample"
+
+
+# ---------------------------------------------------------------------------- fixtures
+@pytest.fixture(scope="module")
+def bundle_dir(tmp_path_factory):
+    pytest.importorskip("torch")
+    from ago_export.export import export_bundle
+    from ago_export.testing import random_checkpoint
+
+    root = tmp_path_factory.mktemp("runtime")
+    os.environ["AGO_CACHE_DIR"] = str(root / "cache")
+    ckpt = random_checkpoint(root / "tiny.pt", "tiny", prompts="cw", seed=1)
+    out = root / "bundle"
+    export_bundle(ckpt, out, bank_prompts=["ow"], real_frame=False, log=lambda s: None)
+    return out
+
+
+def write_frame(folder: Path, width=400, height=225, seed=0, calib=True) -> Path:
+    """Six smooth random images + calib.json of a nuScenes-like rig at (width, height)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    for name in CAMERA_NAMES:
+        coarse = rng.uniform(0, 255, (height // 8 + 1, width // 8 + 1, 3)).astype(np.float32)
+        img = np.clip(cv2.resize(coarse, (width, height)), 0, 255).astype(np.uint8)
+        cv2.imwrite(str(folder / f"{name}.jpg"), img)
+    if calib:
+        save_calibration(folder / "calib.json", Rig.nuscenes_like(width, height))
+    return folder
+
+
+@pytest.fixture
+def frame_dir(tmp_path):
+    return write_frame(tmp_path / "frame")
+
+
+def run_subprocess(args, cwd=None):
+    """`python -m ago_runtime ARGS` -> CompletedProcess (text)."""
+    env = dict(os.environ, AGO_NO_PROGRESS="1")
+    return subprocess.run([sys.executable, "-m", "ago_runtime", *map(str, args)], capture_output=True,
+                          text=True, cwd=cwd, env=env)
+
+
+def run_cli(args, cwd=None):
+    """`ago ARGS` in this process through ago_runtime.cli.main (its error handling and exit codes)."""
+    from ago_runtime.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    old_cwd, old_argv, code = os.getcwd(), sys.argv, 0
+    try:
+        if cwd:
+            os.chdir(cwd)
+        sys.argv = ["ago", *map(str, args)]
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                main()
+            except SystemExit as e:
+                code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+    finally:
+        os.chdir(old_cwd)
+        sys.argv = old_argv
+    return types.SimpleNamespace(returncode=code, stdout=out.getvalue(), stderr=err.getvalue())
+
+
+def assert_refused(r, path_part: str, out: Path | None = None):
+    assert r.returncode == 2, (r.stdout, r.stderr)
+    lines = [ln for ln in r.stderr.strip().splitlines() if ln.startswith("error:")]
+    assert len(lines) == 1 and path_part in lines[0], r.stderr
+    assert "Traceback" not in r.stderr
+    if out is not None:
+        assert not out.exists() or not any(out.iterdir())
+
+
+# ---------------------------------------------------------------------------- torch-free
+def test_runtime_never_imports_torch():
+    code = ("import ago_runtime.predictor, ago_runtime.cli, ago_runtime.cli_infer, ago_runtime.bundle, "
+            "ago_runtime.calibration, ago_runtime.heads; import sys; assert 'torch' not in sys.modules, 'torch'")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+
+
+# ---------------------------------------------------------------------------- heads
+def _random_heads(rng, C=24, Dh=10, Da=12):
+    f = lambda *s: rng.standard_normal(s).astype(np.float32)  # noqa: E731
+    return HeadWeights(f(C, Dh), f(C), f(C, Da), f(C), f(C))
+
+
+def test_folded_heads_match_unfolded_reference():
+    rng = np.random.default_rng(0)
+    w = _random_heads(rng)
+    K, P = 5, 13
+    pc = np.array([3, 0, 1, 2, 4, 0, 0, 3, 1, 4, 4, 2, 0])     # unsorted, several phrases per class
+    emb = rng.standard_normal((P, 24)).astype(np.float32)
+    h = rng.standard_normal((1000, 10)).astype(np.float32)
+    g = rng.standard_normal((1000, 12)).astype(np.float32)
+    fh = FoldedHeads(w, emb, pc, K)
+    ref = {}
+    for name, x, W, b in (("main", h, w.W_dec, w.b_dec), ("adapted", g, w.W_ad, w.b_ad)):
+        s = (x.astype(np.float64) @ W.T.astype(np.float64) + b) @ np.concatenate([emb, w.free_embedding[None]]).T
+        z = np.stack([s[:, :P][:, pc == k].max(1) for k in range(K)] + [s[:, P]], axis=1)
+        p = np.exp(z - z.max(1, keepdims=True))
+        p /= p.sum(1, keepdims=True)
+        ref[name] = (z.argmax(1), -(p * np.log(p)).sum(1), p.max(1))
+    out = fh.run(h, g, "none", chunk=37)
+    assert np.array_equal(out["label"], ref["main"][0])
+    np.testing.assert_allclose(out["entropy"], ref["main"][1], rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(out["confidence"], ref["main"][2], rtol=1e-4, atol=1e-5)
+    assert not out["branch"].any()
+    both = fh.run(h, g, "min-entropy", chunk=1000)
+    use_ad = ref["adapted"][1] < ref["main"][1]
+    decided = np.abs(ref["adapted"][1] - ref["main"][1]) > 1e-4
+    assert np.array_equal(both["branch"][decided].astype(bool), use_ad[decided])
+    assert np.array_equal(both["label"][decided], np.where(use_ad, ref["adapted"][0], ref["main"][0])[decided])
+    conf = fh.run(h, g, "max-conf")
+    assert np.all(conf["confidence"] >= out["confidence"] - 1e-6)
+    # chunking changes nothing but float rounding (BLAS blocks differ with the chunk width)
+    a, b = fh.run(h, g, chunk=7), fh.run(h, g, chunk=100000)
+    assert np.array_equal(a["label"], b["label"]) and np.array_equal(a["branch"], b["branch"])
+    np.testing.assert_allclose(a["entropy"], b["entropy"], rtol=1e-5, atol=1e-6)
+
+
+# ---------------------------------------------------------------------------- calibration
+def test_calibration_roundtrip_and_list_layout(tmp_path):
+    rig = Rig.nuscenes_like(800, 450)
+    save_calibration(tmp_path / "c.json", rig)
+    back = load_calibration(tmp_path / "c.json")
+    assert np.allclose(back.ego2img(), rig.ego2img())
+    (tmp_path / "l.json").write_text(json.dumps(rig.to_dict()))          # Rig.to_dict layout
+    assert np.allclose(load_calibration(tmp_path / "l.json").ego2img(), rig.ego2img())
+
+
+# ---------------------------------------------------------------------------- predictor
+def test_predictor_outputs_and_identifier(bundle_dir, frame_dir):
+    from ago_runtime.calibration import load_images_folder
+    from ago_runtime.predictor import Predictor
+
+    p = Predictor(bundle_dir)
+    images, rig, _ = load_images_folder(frame_dir)
+    bank = p.bundle.load_bank()
+    K = bank.num_classes
+    main = p.predict(images, rig, bank, "none")
+    best = p.predict(images, rig, bank, "min-entropy")
+    assert main.semantics.shape == (20, 20, 4) and main.semantics.dtype == np.uint8
+    assert main.semantics.max() <= K and main.free_index == K
+    assert np.all((best.entropy >= 0) & (best.entropy <= np.log(K + 1) + 1e-5))
+    assert np.all((best.confidence >= 1 / (K + 1) - 1e-6) & (best.confidence <= 1 + 1e-6))
+    assert not main.branch.any()
+    assert np.all(best.entropy <= main.entropy + 1e-6)                  # picks the lower-entropy branch
+    sel = best.branch == 0
+    assert np.array_equal(best.semantics[sel], main.semantics[sel])
+    # cw classes are each one Occ3D class -> an Occ3D-id volume, free = 17
+    assert best.occ3d is not None and set(np.unique(best.occ3d)) <= set(range(18))
+    assert np.array_equal(best.occ3d == FREE, best.semantics == K)
+
+
+def test_bank_swap_to_unseen_classes(bundle_dir, frame_dir, tmp_path):
+    """Classes the model never saw ("fire hydrant", "mailbox") with no retraining and no re-export."""
+    from ago_runtime.bank import bank_for_prompts
+    from ago_runtime.calibration import load_images_folder
+    from ago_runtime.predictor import Predictor
+
+    prompt = tmp_path / "street.txt"
+    prompt.write_text("fire hydrant: fire hydrant, hydrant\nmailbox: mailbox, letter box\nroad [driveable_surface]: road\n")
+    bank = bank_for_prompts(prompt, cache_dir=tmp_path / "banks")
+    assert bank.class_names == ["fire hydrant", "mailbox", "road"]
+    p = Predictor(bundle_dir)
+    images, rig, _ = load_images_folder(frame_dir)
+    pred = p.predict(images, rig, bank)
+    assert pred.class_names == ["fire hydrant", "mailbox", "road"] and pred.free_index == 3
+    assert set(np.unique(pred.semantics)) <= {0, 1, 2, 3}
+    assert len(set(np.unique(pred.semantics)) - {3}) >= 1                # some voxel gets an unseen class
+    assert pred.occ3d is None                                           # not all classes are Occ3D classes
+    # the bank is cached by hash: building it again reads the cache file
+    assert bank_for_prompts(prompt, cache_dir=tmp_path / "banks").embeddings.tobytes() == bank.embeddings.tobytes()
+    arrays = pred.output_arrays()
+    assert list(arrays["class_names"]) == ["fire hydrant", "mailbox", "road", "free"]
+
+
+@pytest.mark.skipif(not SHARED_SAMPLE.exists(), reason="real reference data not present")
+def test_infer_real_keyframe_from_info(bundle_dir, tmp_path):
+    out = tmp_path / "out"
+    r = run_subprocess(["infer", "--info", SHARED_SAMPLE / "mmdet3d_info.pkl", "--images", SHARED_SAMPLE,
+                 "--bundle", bundle_dir, "--out", out, "--prompts", "prompts/ow.txt"], cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    with np.load(out / "ca9a282c9e77460f8360f564131a8af5.npz") as z:
+        assert z["semantics"].shape == (20, 20, 4)
+        assert list(z["class_names"]) == list(OCC3D_CLASSES)          # ow classes are Occ3D classes
+        assert set(np.unique(z["semantics"])) <= set(range(1, 18)) - {12}   # no "others", "other_flat"
+    assert (out / "ca9a282c9e77460f8360f564131a8af5.png").stat().st_size > 1000
+
+
+# ---------------------------------------------------------------------------- CLI
+def test_cli_infer_images_folder(bundle_dir, frame_dir, tmp_path):
+    out = tmp_path / "out"
+    r = run_cli(["infer", "--images", frame_dir, "--bundle", bundle_dir, "--out", out, "--save-volumes",
+                 "--prompts", "prompts/ow.txt", "--identifier", "max-conf"], cwd=tmp_path)   # not the repo cwd
+    assert r.returncode == 0, r.stderr
+    with np.load(out / "frame.npz") as z:
+        assert z["semantics"].dtype == np.uint8 and z["semantics"].shape == (20, 20, 4)
+        assert z["entropy"].dtype == np.float32 and z["branch"].shape == (20, 20, 4)
+        assert int(z["free_index"]) == FREE
+    img = cv2.imread(str(out / "frame.png"))
+    assert img is not None and img.shape[0] > 200
+
+
+def test_cli_infer_without_calib_warns_and_uses_bundle_rig(bundle_dir, tmp_path):
+    frame = write_frame(tmp_path / "f", 800, 450, calib=False)
+    r = run_subprocess(["infer", "--images", frame, "--bundle", bundle_dir, "--out", tmp_path / "o"])
+    assert r.returncode == 0, r.stderr
+    assert "no calib.json" in r.stderr and "scaling the intrinsics" in r.stderr   # 800x450 vs 1600x900
+    assert (tmp_path / "o" / "f.npz").is_file()
+
+
+def test_cli_retrieve(bundle_dir, frame_dir, tmp_path):
+    r = run_cli(["retrieve", "--images", frame_dir, "--phrase", "traffic cone", "--bundle", bundle_dir,
+                 "--out", tmp_path / "r"])
+    assert r.returncode == 0, r.stderr
+    with np.load(tmp_path / "r" / "frame_traffic_cone.npz") as z:
+        sim = z["similarity"]
+        assert sim.shape == (20, 20, 4) and np.all(np.abs(sim) <= 1 + 1e-5) and sim.std() > 0
+    assert (tmp_path / "r" / "frame_traffic_cone.png").is_file()
+
+
+def test_cli_demo_explains_missing_assets(tmp_path):
+    from ago_runtime.bundle import DEFAULT_BUNDLE_DIR, DEMO_FRAME_DIR
+
+    if DEMO_FRAME_DIR.is_dir() and DEFAULT_BUNDLE_DIR.is_dir():
+        r = run_cli(["demo", "--out", tmp_path / "d"], cwd=tmp_path)
+        assert r.returncode == 0, r.stderr
+        assert list((tmp_path / "d").glob("*.png"))
+    else:
+        env = {k: v for k, v in os.environ.items() if k != "AGO_BUNDLE"}
+        r = subprocess.run([sys.executable, "-m", "ago_runtime", "demo", "--out", str(tmp_path / "d")],
+                           capture_output=True, text=True, env=env)
+        assert r.returncode == 2 and "make_default_bundle.sh" in r.stderr
+        assert not (tmp_path / "d").exists()
+
+
+# ---------------------------------------------------------------------------- bad input
+def _infer(bundle, frame, out, *extra):
+    return run_cli(["infer", "--images", frame, "--bundle", bundle, "--out", out, *extra])
+
+
+def test_refuses_missing_and_extra_camera(bundle_dir, frame_dir, tmp_path):
+    out = tmp_path / "out"
+    shutil.copy(frame_dir / "CAM_BACK.jpg", frame_dir / "CAM_ROOF.jpg")
+    assert_refused(_infer(bundle_dir, frame_dir, out), "CAM_ROOF", out)
+    (frame_dir / "CAM_ROOF.jpg").unlink()
+    (frame_dir / "CAM_BACK.jpg").unlink()
+    assert_refused(_infer(bundle_dir, frame_dir, out), "CAM_BACK", out)
+
+
+def test_refuses_wrong_aspect_ratio(bundle_dir, frame_dir, tmp_path):
+    out = tmp_path / "out"
+    img = cv2.imread(str(frame_dir / "CAM_FRONT.jpg"))
+    cv2.imwrite(str(frame_dir / "CAM_FRONT.jpg"), cv2.resize(img, (300, 300)))
+    assert_refused(_infer(bundle_dir, frame_dir, out), "CAM_FRONT.jpg", out)
+
+
+def test_refuses_corrupt_jpeg(bundle_dir, frame_dir, tmp_path):
+    out = tmp_path / "out"
+    data = (frame_dir / "CAM_BACK_LEFT.jpg").read_bytes()
+    (frame_dir / "CAM_BACK_LEFT.jpg").write_bytes(data[: len(data) // 2])       # truncated
+    assert_refused(_infer(bundle_dir, frame_dir, out), "CAM_BACK_LEFT.jpg", out)
+    (frame_dir / "CAM_BACK_LEFT.jpg").write_bytes(b"\xff\xd8garbage\xff\xd9")   # markers, no image
+    assert_refused(_infer(bundle_dir, frame_dir, out), "CAM_BACK_LEFT.jpg", out)
+
+
+@pytest.mark.parametrize("damage", ["nan", "singular", "missing_camera"])
+def test_refuses_bad_calibration(bundle_dir, frame_dir, tmp_path, damage):
+    out = tmp_path / "out"
+    calib = json.loads((frame_dir / "calib.json").read_text())
+    if damage == "nan":
+        calib["cameras"]["CAM_FRONT"]["intrinsics"][0][0] = float("nan")
+    elif damage == "singular":
+        calib["cameras"]["CAM_BACK"]["cam2ego"][0][:3] = [0.0, 0.0, 0.0]
+    else:
+        del calib["cameras"]["CAM_FRONT_LEFT"]
+    (frame_dir / "calib.json").write_text(json.dumps(calib))
+    assert_refused(_infer(bundle_dir, frame_dir, out), "calib.json", out)
+
+
+def test_refuses_newer_bundle_and_truncated_onnx(bundle_dir, frame_dir, tmp_path):
+    out = tmp_path / "out"
+    newer = tmp_path / "newer"
+    shutil.copytree(bundle_dir, newer)
+    meta = json.loads((newer / "bundle.json").read_text())
+    meta["format_version"] = 99
+    (newer / "bundle.json").write_text(json.dumps(meta))
+    assert_refused(_infer(newer, frame_dir, out), "bundle.json", out)
+
+    cut = tmp_path / "cut"
+    shutil.copytree(bundle_dir, cut)
+    data = (cut / "encoder.onnx").read_bytes()
+    (cut / "encoder.onnx").write_bytes(data[: len(data) // 3])
+    assert_refused(_infer(cut, frame_dir, out), "encoder.onnx", out)
+    # Even with the recorded size/hash removed, onnxruntime's refusal becomes a one-line error.
+    meta = json.loads((cut / "bundle.json").read_text())
+    for k in ("size", "sha256"):
+        meta["files"]["encoder"].pop(k)
+    (cut / "bundle.json").write_text(json.dumps(meta))
+    assert_refused(_infer(cut, frame_dir, out), "encoder.onnx", out)
+
+
+def test_refuses_bank_of_other_encoder_or_width(bundle_dir, frame_dir, tmp_path):
+    from ago_runtime.bank import PromptBank
+
+    out = tmp_path / "out"
+    bank = PromptBank.load(bundle_dir / "banks" / "ow.npz")
+    other = PromptBank(**{**{k: getattr(bank, k) for k in (
+        "embeddings", "phrases", "class_names", "phrase_class", "encoder_variant", "encoder_hash", "dim",
+        "known", "occ3d_ids")}, "encoder_id": "clip-vit-b32"})
+    other.save(tmp_path / "other.npz")
+    assert_refused(_infer(bundle_dir, frame_dir, out, "--bank", tmp_path / "other.npz"), str(bundle_dir), out)
+    narrow = PromptBank(**{**{k: getattr(bank, k) for k in (
+        "phrases", "class_names", "phrase_class", "encoder_id", "encoder_variant", "encoder_hash", "known",
+        "occ3d_ids")}, "embeddings": bank.embeddings[:, :128], "dim": 128})
+    narrow.save(tmp_path / "narrow.npz")
+    r = _infer(bundle_dir, frame_dir, out, "--bank", tmp_path / "narrow.npz")
+    assert_refused(r, str(bundle_dir), out)
+    assert "dim 128" in r.stderr
+
+
+def test_bundle_load_errors_name_the_file(bundle_dir, tmp_path):
+    from ago_runtime.bundle import Bundle
+
+    with pytest.raises(AgoInputError, match="bundle folder not found"):
+        Bundle.load(tmp_path / "nope")
+    b = tmp_path / "b"
+    shutil.copytree(bundle_dir, b)
+    (b / "heads.npz").unlink()
+    with pytest.raises(AgoInputError) as e:
+        Bundle.load(b)
+    assert "heads.npz" in str(e.value)

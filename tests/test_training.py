@@ -1,0 +1,263 @@
+"""Training, checkpoints, resume, DDP, evaluation and the CLI on a tiny synthetic dataset.
+
+The dataset (2 scenes x 3 frames, 20 x 20 x 4 grid = the tiny model's) and its pseudo-labels are
+made once per session with `ago synth` and `ago pseudo-labels`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from ago_runtime.errors import AgoInputError
+
+REPO = Path(__file__).resolve().parents[1]
+GRID = "20x20x4"
+
+
+def _ago(*args: str, check: bool = True) -> subprocess.CompletedProcess:
+    env = dict(os.environ, AGO_NO_PROGRESS="1", OMP_NUM_THREADS="1")
+    r = subprocess.run([sys.executable, "-m", "ago_runtime.cli", *args], cwd=REPO, env=env,
+                       capture_output=True, text=True)
+    if check and r.returncode != 0:
+        raise AssertionError(f"ago {' '.join(args)} failed ({r.returncode}):\n{r.stdout}\n{r.stderr}")
+    return r
+
+
+@pytest.fixture(scope="session")
+def tiny_data(tmp_path_factory) -> dict:
+    """A tiny synthetic dataset with Occ3D GT and cw pseudo-labels on the tiny model's grid."""
+    root = tmp_path_factory.mktemp("ago_train_data")
+    data, pseudo = root / "synth", root / "pseudo"
+    _ago("synth", "--out", str(data), "--scenes", "2", "--frames", "3", "--image-size", "192x128",
+         "--grid", GRID, "--seed", "3")
+    _ago("pseudo-labels", "--data", str(data), "--out", str(pseudo), "--prompts", "cw", "--grid", GRID,
+         "--split", "all", "--embedder", "sim", "--sweeps", "2")
+    return {"data": data, "pseudo": pseudo, "root": root}
+
+
+def tiny_config(tiny_data, out: Path, **changes):
+    from ago_train.train_config import TrainConfig
+
+    cfg = TrainConfig.preset("tiny")
+    d = cfg.to_dict()
+    d.update(data=str(tiny_data["data"]), pseudo=str(tiny_data["pseudo"]), out=str(out), train_split="all",
+             device="cpu")
+    d.update(changes)
+    return TrainConfig.from_dict(d)
+
+
+# ---- config ---------------------------------------------------------------------------------
+def test_config_presets_roundtrip_and_overrides(tmp_path):
+    from ago_train.train_config import TrainConfig
+
+    for name in ("tiny", "cpu", "full"):
+        cfg = TrainConfig.preset(name)
+        cfg.save(tmp_path / f"{name}.json")
+        back = TrainConfig.load(tmp_path / f"{name}.json")
+        assert back.to_dict() == cfg.to_dict()
+    full = TrainConfig.preset("full")
+    assert (full.lr, full.weight_decay, full.warmup_lr, full.warmup_steps, full.min_lr, full.epochs,
+            full.noise_words) == (1e-3, 0.01, 1e-5, 500, 1e-6, 24, 100)
+    cfg = TrainConfig.preset("tiny").with_overrides(["epochs=3", "model.hidden_dim=16", "out=runs/x",
+                                                     "loss.use_noise=false"])
+    assert cfg.epochs == 3 and cfg.model.hidden_dim == 16 and cfg.out == "runs/x" and cfg.loss.use_noise is False
+    with pytest.raises(AgoInputError):
+        TrainConfig.preset("tiny").with_overrides(["no_such_key=1"])
+    with pytest.raises(AgoInputError):
+        TrainConfig.preset("huge")
+
+
+def test_lr_schedule_warmup_and_cosine():
+    from ago_train.train_config import TrainConfig
+
+    cfg = TrainConfig.preset("full")
+    total = 84000
+    assert cfg.effective_warmup(total) == 500
+    assert cfg.lr_at(0, total) == pytest.approx(1e-5)
+    assert cfg.lr_at(250, total) == pytest.approx(1e-5 + (1e-3 - 1e-5) / 2)
+    assert cfg.lr_at(500, total) == pytest.approx(1e-3)
+    assert cfg.lr_at(total - 1, total) == pytest.approx(1e-6)
+    lrs = [cfg.lr_at(s, total) for s in range(500, total, 997)]
+    assert all(a >= b for a, b in zip(lrs, lrs[1:]))  # monotone cosine decay
+    assert cfg.effective_warmup(200) == 10  # short runs: capped at 5 % of the steps
+
+
+# ---- dataset pieces -------------------------------------------------------------------------
+def test_target_mapping_and_collate():
+    from ago_train.dataset import IGNORE_INDEX, collate, pseudo_to_target
+
+    sem = np.array([0, 3, 17, 255, 4], dtype=np.uint8)
+    assert pseudo_to_target(sem, 5).tolist() == [0, 3, 5, IGNORE_INDEX, 4]
+    items = [{"images": torch.zeros(6, 3, 4, 4), "ego2img": torch.eye(4).repeat(6, 1, 1), "token": t, "scene": "s",
+              "semantics": torch.zeros(8, dtype=torch.long), "e3d_index": torch.arange(n) + 1,
+              "e3d_embeds": torch.full((n, 3), float(n))} for t, n in (("a", 2), ("b", 5))]
+    b = collate(items)
+    assert b["semantics"].shape == (2, 8) and b["images"].shape == (2, 6, 3, 4, 4)
+    assert b["align_index"].tolist() == [1, 2] + [8 + i for i in range(1, 6)]  # b * N + voxel
+    assert b["align_embed"].shape == (7, 3) and b["align_embed"][:2].eq(2).all() and b["align_embed"][2:].eq(5).all()
+
+
+def test_checkpoint_refuses_objects_and_rng_roundtrip(tmp_path):
+    from ago_train.checkpoint import rng_state, save_checkpoint, set_rng_state
+
+    with pytest.raises(TypeError):
+        save_checkpoint(tmp_path / "x.pt", {"bad": object()})
+    assert not (tmp_path / "x.pt").exists()
+    state = rng_state()
+    a = (torch.rand(3), np.random.rand(3), __import__("random").random())
+    save_checkpoint(tmp_path / "r.pt", {"rng": state})
+    loaded = torch.load(tmp_path / "r.pt", weights_only=True)
+    set_rng_state(loaded["rng"])
+    b = (torch.rand(3), np.random.rand(3), __import__("random").random())
+    assert torch.equal(a[0], b[0]) and np.array_equal(a[1], b[1]) and a[2] == b[2]
+
+
+# ---- training --------------------------------------------------------------------------------
+def _params(model) -> dict:
+    return {k: v.detach().clone() for k, v in model.state_dict().items()}
+
+
+def test_resume_is_exact(tiny_data, tmp_path):
+    """4 steps straight == 2 steps, stop, resume from the checkpoint, 2 more (over an epoch boundary)."""
+    from ago_train.trainer import Trainer
+
+    kw = dict(max_steps=4, epochs=2, max_frames=3, batch_size=2, noise_words=8)  # 2 steps per epoch
+    straight = Trainer(tiny_config(tiny_data, tmp_path / "a", **kw), quiet=True)
+    straight.run()
+    first = Trainer(tiny_config(tiny_data, tmp_path / "b", **kw), quiet=True)
+    first.run(until=3)  # stops mid-epoch 1 and writes last.pt at step 3
+    assert torch.load(tmp_path / "b" / "last.pt", weights_only=True)["step"] == 3
+    resumed = Trainer(tiny_config(tiny_data, tmp_path / "b", **kw), resume=True, quiet=True)
+    resumed.run()
+    assert resumed.step == 4
+    a, b = _params(straight.model), _params(resumed.model)
+    assert a.keys() == b.keys()
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], rtol=1e-5, atol=1e-6, msg=f"{k} differs after resume")
+    # training changed the weights (else the comparison proves nothing)
+    init = Trainer(tiny_config(tiny_data, tmp_path / "c", **kw), quiet=True)
+    init.setup()
+    start = _params(init.model)
+    assert any(not torch.allclose(v, start[k]) for k, v in a.items() if v.is_floating_point())
+
+
+def test_checkpoint_loads_weights_only_and_holds_the_bank(tiny_data, tmp_path):
+    from ago_train.trainer import Trainer
+
+    t = Trainer(tiny_config(tiny_data, tmp_path / "run", max_steps=2), quiet=True)
+    r = t.run()
+    ckpt = torch.load(r["last"], weights_only=True)
+    assert ckpt["format"] == "ago-checkpoint" and ckpt["step"] == 2
+    assert ckpt["label_space"]["class_names"][:2] == ["others", "barrier"]
+    assert ckpt["bank"]["embeddings"].shape == (len(ckpt["bank"]["phrase_class"]), 384)
+    assert isinstance(ckpt["bank"]["encoder_hash"], str) and ckpt["bank"]["encoder_hash"]
+    assert set(ckpt["rng"]) >= {"torch", "numpy", "python"}
+    assert ckpt["model_config"]["grid"]["shape"] == [20, 20, 4]
+    assert json.loads((tmp_path / "run" / "log.jsonl").read_text().splitlines()[-1])["step"] == 2
+
+
+def test_bad_inputs_raise_ago_input_error(tiny_data, tmp_path):
+    from ago_train.trainer import Trainer
+
+    with pytest.raises(AgoInputError, match="pseudo-label"):
+        Trainer(tiny_config(tiny_data, tmp_path / "x", pseudo=str(tmp_path / "missing")), quiet=True).setup()
+    cfg = tiny_config(tiny_data, tmp_path / "y")
+    cfg.model.grid = __import__("ago_runtime.grid", fromlist=["Grid"]).Grid.with_shape((10, 10, 2)).to_dict()
+    with pytest.raises(AgoInputError, match="grid"):
+        Trainer(cfg, quiet=True).setup()
+    r = _ago("train", "--config", "tiny", "--data", str(tiny_data["data"]), "--pseudo", str(tmp_path / "nope"),
+             "--out", str(tmp_path / "z"), check=False)
+    assert r.returncode == 2 and r.stderr.startswith("error: ") and "nope" in r.stderr
+
+
+@pytest.mark.slow
+def test_overfit_one_frame_then_eval(tiny_data, tmp_path):
+    """A short run lowers the loss; a few hundred steps on one frame fit its pseudo-labels; eval writes files."""
+    from ago_runtime.metric import OccupancyMetric
+    from ago_train.dataset import IGNORE_INDEX, PseudoLabelSet, pseudo_to_target
+    from ago_train.evaluate import evaluate, load_model, predict_labels
+    from ago_train.checkpoint import load_checkpoint
+    from ago_train.trainer import Trainer
+
+    steps = 100
+    cfg = tiny_config(tiny_data, tmp_path / "fit", max_frames=1, epochs=steps, max_steps=steps, lr=1e-2,
+                      warmup_steps=5, log_every=10)
+    t = Trainer(cfg, quiet=True)
+    r = t.run()
+    losses = r["losses"]
+    assert np.mean(losses[-10:]) < 0.5 * np.mean(losses[:5]), losses[::10]
+
+    # fit: predictions vs the frame's own pseudo-labels on the model grid
+    ckpt = load_checkpoint(r["last"])
+    mcfg, model = load_model(ckpt, torch.device("cpu"))
+    item = t.dataset[0]
+    K = t.label_space.num_classes
+    pred = predict_labels(model, item["images"][None], item["ego2img"][None], ckpt["bank"]["embeddings"],
+                          ckpt["bank"]["phrase_class"], K, "none")[0].numpy()
+    target = pseudo_to_target(item["semantics"].numpy(), K)
+    keep = target != IGNORE_INDEX
+    m = OccupancyMetric(list(t.label_space.class_names) + ["free"], free_index=K)
+    m.update(pred[keep], target[keep])
+    assert m.miou() > 0.7, m.to_markdown()
+
+    res = evaluate(r["last"], tiny_data["data"], split="all", out=tmp_path / "eval", quiet=True, device="cpu")
+    js = json.loads((tmp_path / "eval" / "metrics.json").read_text())
+    md = (tmp_path / "eval" / "metrics.md").read_text()
+    assert js["identifier"] == "none" and js["frames"] == 6 and js["metric"]["frames"] == 6
+    assert "| car |" in md and "mIoU" in md
+    assert res["mIoU"] is not None
+
+
+def _ddp_worker(rank: int, world: int, port: int, cfg_dict: dict, out: str) -> None:
+    os.environ.update(RANK=str(rank), WORLD_SIZE=str(world), LOCAL_RANK=str(rank), MASTER_ADDR="127.0.0.1",
+                      MASTER_PORT=str(port), AGO_NO_PROGRESS="1")
+    torch.set_num_threads(1)
+    from ago_train import distributed as D
+    from ago_train.train_config import TrainConfig
+    from ago_train.trainer import Trainer
+
+    info = D.setup("cpu")
+    try:
+        t = Trainer(TrainConfig.from_dict(cfg_dict), dist_info=info, quiet=True)
+        r = t.run()
+        params = {k: v.detach() for k, v in t.model.named_parameters()}
+        torch.save({"step": r["step"], "model": params}, Path(out) / f"rank{rank}.pt")
+    finally:
+        D.cleanup(info)
+
+
+def test_ddp_two_processes_agree(tiny_data, tmp_path):
+    """A 2-process gloo run: both ranks end with the same parameters, and they moved from the start.
+
+    (BatchNorm running statistics are buffers: DDP broadcasts rank 0's at each forward, so after the
+    last step each rank holds its own; checkpoints store rank 0's.)"""
+    import socket
+
+    import torch.multiprocessing as mp
+
+    from ago_train.trainer import Trainer
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    cfg = tiny_config(tiny_data, tmp_path / "ddp", max_steps=2, max_frames=4, ckpt_every=1)
+    mp.spawn(_ddp_worker, args=(2, port, cfg.to_dict(), str(tmp_path)), nprocs=2, join=True)
+    ckpt = torch.load(tmp_path / "ddp" / "last.pt", weights_only=True)
+    assert ckpt["world_size"] == 2 and ckpt["step"] == 2 and isinstance(ckpt["rng"], list)
+    r0 = torch.load(tmp_path / "rank0.pt", weights_only=True)
+    r1 = torch.load(tmp_path / "rank1.pt", weights_only=True)
+    assert r0["step"] == r1["step"] == 2
+    for k in r0["model"]:
+        torch.testing.assert_close(r0["model"][k], r1["model"][k], msg=f"ranks disagree on {k}")
+    init = Trainer(cfg, quiet=True)
+    init.setup()
+    start = init.model.state_dict()
+    assert any(not torch.allclose(v, start[k]) for k, v in r0["model"].items() if v.is_floating_point())
