@@ -7,7 +7,8 @@ docs/runtime.md):
 1. the camera-to-voxel encoder plus the modality adapter's hidden layers, as ONNX
    (`encoder.onnx`: images (1,6,3,H,W) + ego2img (1,6,4,4) -> h (N,Dh), g (N,Da)); the model's
    nn.Softplus layers are exported as relu(x) + log1p(exp(-|x|)) (same values; onnxruntime's
-   Softplus kernel was measured ~6x slower than torch's); key metadata also in metadata_props;
+   Softplus kernel was measured ~2x slower than this form), and decoder_out is folded into the
+   adapter's first linear layer (with_fused_adapter); key metadata also in metadata_props;
 2. the linear heads (`heads.npz`) and the learnt free embedding, for bank folding at run time;
 3. banks: "train" (the label-space embeddings saved in the checkpoint) and one per shipped prompt
    file the installed text encoder could build;
@@ -85,6 +86,32 @@ def with_stable_softplus(model: nn.Module) -> nn.Module:
     return model
 
 
+def with_fused_adapter(model: nn.Module) -> nn.Module:
+    """Fold decoder_out into the adapter's first linear layer, in place on an export copy.
+
+    g = adapter(decoder_out(h)) and both decoder_out and the adapter's first layer are linear, so
+    their composition is one (Dh -> A) linear: W = W1 W_dec, b = W1 b_dec + b1. The exported graph
+    then never builds the (N, C) embedding volume (at 200x200x16 that is 640 000 x 384 floats) and
+    does a Dh x A product instead of Dh x C + C x A. Models whose adapter has no first linear
+    (adapter_depth 1) are left as they are.
+    """
+    net = getattr(getattr(model, "adapter", None), "net", None)
+    dec = getattr(model, "decoder_out", None)
+    if not isinstance(net, nn.Sequential) or len(net) == 0 or not isinstance(net[0], nn.Linear) \
+            or not isinstance(dec, nn.Linear):
+        return model
+    first = net[0]
+    with torch.no_grad():
+        w = first.weight.double() @ dec.weight.double()
+        b = first.weight.double() @ dec.bias.double() + first.bias.double()
+        fused = nn.Linear(dec.in_features, first.out_features)
+        fused.weight.copy_(w.float())
+        fused.bias.copy_(b.float())
+    net[0] = fused
+    model.decoder_out = nn.Identity()
+    return model
+
+
 class EncoderForExport(nn.Module):
     """forward_hidden for one frame: images (1,6,3,H,W), ego2img (1,6,4,4) -> h (N,Dh), g (N,Da)."""
 
@@ -108,7 +135,7 @@ def head_weights(model) -> HeadWeights:
 def export_onnx(model: nn.Module, path: Path, cfg, metadata: dict[str, str]) -> None:
     import onnx
 
-    wrapped = EncoderForExport(with_stable_softplus(model)).eval()
+    wrapped = EncoderForExport(with_fused_adapter(with_stable_softplus(model))).eval()
     images = torch.zeros(1, cfg.num_cameras, 3, cfg.image_height, cfg.image_width)
     ego2img = torch.eye(4).expand(1, cfg.num_cameras, 4, 4).contiguous()
     with warnings.catch_warnings(), torch.no_grad():

@@ -29,7 +29,7 @@ from .camera import Rig
 from .classes import FREE, OCC3D_CLASSES
 from .errors import AgoInputError
 from .grid import Grid
-from .heads import DEFAULT_CHUNK, IDENTIFIERS, FoldedHeads
+from .heads import IDENTIFIERS, FoldedHeads
 
 
 @dataclass
@@ -93,7 +93,7 @@ def session_options(threads: int | None = None) -> ort.SessionOptions:
 
 class Predictor:
     def __init__(self, bundle: Bundle | str | Path, int8: bool = False, threads: int | None = None,
-                 chunk: int = DEFAULT_CHUNK):
+                 chunk: int | None = None):
         self.bundle = bundle if isinstance(bundle, Bundle) else Bundle.load(bundle)
         path = self.bundle.int8_encoder_path if int8 else self.bundle.encoder_path
         if path is None:
@@ -109,7 +109,7 @@ class Predictor:
         if names_in != ["images", "ego2img"] or names_out != ["h", "g"]:
             raise AgoInputError(path, f"encoder has inputs {names_in} and outputs {names_out}; "
                                 "expected ['images', 'ego2img'] -> ['h', 'g']")
-        self.chunk = int(chunk)
+        self.chunk = chunk   # voxels per head chunk; None = FoldedHeads.default_chunk
         self._folded: dict[str, FoldedHeads] = {}
 
     @property

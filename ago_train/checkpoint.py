@@ -9,7 +9,8 @@ A checkpoint holds ONLY tensors and plain python values (dict, list, str, int, f
 - "model_config", "train_config", "loss_config": dicts
 - "label_space": {"name", "prompt_text", "class_names", "num_classes"}
 - "bank": {"encoder_id", "encoder_hash", "embeddings" (P, C) float32, "phrase_class" (P,) int64,
-  "class_names"}: the label-space text embeddings, so export/eval need no text encoder.
+  "class_names", "encoder_variant"}: the label-space text embeddings, so export/eval need no text encoder
+- "preprocess": Preprocess.to_dict(); "rig": the first training frame's Rig.to_dict() (native size).
 
 Files are written through `ago_runtime.atomic.atomic_path` (temp file + rename).
 """

@@ -116,7 +116,7 @@ def evaluate(ckpt_path: str | Path, data: str | Path, split: str = "val", prompt
     text, phrase_class = bank_for(ckpt, label_space)
     text, phrase_class = text.to(dev), phrase_class.to(dev)
 
-    ds, indices = open_frames(data, gts, split, load_gt=True)
+    ds, indices = open_frames(data, gts, split)
     if max_frames is not None:
         indices = indices[:max_frames]
     if not indices:

@@ -141,7 +141,7 @@ def run_open_world(ow: OpenWorldConfig, stage: str = "all", quiet: bool = False)
             raise AgoInputError(pre_ckpt, "no pretrained checkpoint; run --stage pretrain first")
         space = parse_prompt_file(ow.eval_prompts)
         pseudo = PseudoLabelSet.open(ow.pseudo_full)
-        ds, indices = open_frames(ow.base.data, ow.base.gts, ow.base.train_split, load_gt=False)
+        ds, indices = open_frames(ow.base.data, ow.base.gts, ow.base.train_split)
         if ow.base.max_frames is not None:
             indices = indices[: ow.base.max_frames]
         frames = [(ds.scene_of(i), ds.sample_tokens[i]) for i in indices]

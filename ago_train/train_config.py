@@ -57,6 +57,8 @@ class TrainConfig:
     model: ModelConfig = field(default_factory=lambda: ModelConfig.preset("cpu"))
     loss: LossConfig = field(default_factory=LossConfig)
     init_from: str | None = None      # checkpoint whose model weights start this run (fine-tuning)
+    train_voxels: int = 0             # voxel heads + losses on a sample of this many voxels per frame
+                                      # (ago_train.losses.sampling; 0 = the whole grid)
     # ---- optimisation ----
     epochs: int = 24
     max_steps: int | None = None      # stop after this many optimiser steps (None = epochs * steps/epoch)
@@ -86,9 +88,11 @@ class TrainConfig:
                        warmup_steps=2, log_every=1, ckpt_every=1000, noise_words=8, prompts="cw",
                        data="runs/synth-tiny", pseudo="runs/synth-tiny-pseudo", out="runs/train-tiny")
         if name == "cpu":
-            return cls(name="cpu", model=ModelConfig.preset("cpu"), epochs=6, batch_size=1, max_frames=None,
-                       warmup_steps=500, log_every=10, ckpt_every=200, noise_words=100, prompts="cw",
-                       data="runs/synth-cpu", pseudo="runs/synth-cpu-pseudo", out="runs/train-cpu")
+            # ~80 training frames (`ago synth --scenes 5 --frames 20`: 4 train scenes) x 5 epochs = 400
+            # steps; at the measured 4-8 s per step on 2 cores (docs/training.md) 30-55 min.
+            return cls(name="cpu", model=ModelConfig.preset("cpu"), epochs=5, batch_size=1, max_frames=None,
+                       train_voxels=8000, warmup_steps=500, log_every=10, ckpt_every=100, noise_words=100,
+                       prompts="cw", data="runs/synth-cpu", pseudo="runs/synth-cpu-pseudo", out="runs/train-cpu")
         if name == "full":
             return cls(name="full", model=ModelConfig.preset("full"), epochs=24, batch_size=1, warmup_steps=500,
                        log_every=50, ckpt_every=2000, noise_words=100, prompts="cw", num_workers=4,
@@ -118,7 +122,10 @@ class TrainConfig:
             bad = sorted(set(kw["loss"]) - loss_fields)
             if bad:
                 raise AgoInputError(source, f"unknown loss config keys {bad}")
-            kw["loss"] = LossConfig(**kw["loss"])
+            try:
+                kw["loss"] = LossConfig(**kw["loss"])
+            except ValueError as e:
+                raise AgoInputError(source, str(e)) from None
         return cls(**kw)
 
     def save(self, path: str | Path) -> None:

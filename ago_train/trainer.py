@@ -39,8 +39,8 @@ from .train_config import TrainConfig
 
 
 # ---- pieces shared with evaluation --------------------------------------------------------------
-def open_frames(data: str | Path, gts: str | None, split: str, load_gt: bool):
-    """The NuScenesDataset at `data` and the list of its frame indices in `split`."""
+def open_frames(data: str | Path, gts: str | None, split: str):
+    """The NuScenesDataset at `data` (GT from `gts` or <data>/gts when present) and its indices in `split`."""
     from ago_runtime.nuscenes import NuScenesDataset
 
     root = Path(data)
@@ -70,6 +70,7 @@ def bank_to_dict(bank) -> dict:
     return {
         "encoder_id": str(bank.encoder_id),
         "encoder_hash": str(bank.encoder_hash),
+        "encoder_variant": str(getattr(bank, "encoder_variant", "")),
         "embeddings": torch.as_tensor(np.asarray(bank.embeddings, dtype=np.float32)),
         "phrase_class": torch.as_tensor(np.asarray(bank.phrase_class, dtype=np.int64)),
         "class_names": [str(c) for c in bank.class_names],
@@ -97,10 +98,10 @@ class TrainStep(nn.Module):
         self.num_classes = int(num_classes)
 
     def forward(self, batch: dict, text: torch.Tensor, phrase_class: torch.Tensor,
-                noise: torch.Tensor | None) -> dict:
+                noise: torch.Tensor | None, voxel_index: torch.Tensor | None = None) -> dict:
         from .losses import BankTensors, compute_losses
 
-        outputs = self.model(batch["images"], batch["ego2img"])
+        outputs = self.model(batch["images"], batch["ego2img"], voxel_index)
         bank = BankTensors(text, phrase_class, self.num_classes, noise)
         return compute_losses(outputs, batch, bank, self.loss_cfg)
 
@@ -151,7 +152,7 @@ class Trainer:
         self.pseudo = PseudoLabelSet.open(cfg.pseudo)
         self.pseudo.check(self.grid, self.label_space.class_names)
 
-        ds, indices = open_frames(cfg.data, cfg.gts, cfg.train_split, load_gt=False)
+        ds, indices = open_frames(cfg.data, cfg.gts, cfg.train_split)
         if cfg.frame_tokens is not None:
             wanted = set(cfg.frame_tokens)
             indices = [i for i in indices if ds.sample_tokens[i] in wanted]
@@ -162,6 +163,8 @@ class Trainer:
         self.preprocess = Preprocess(cfg.model.image_width, cfg.model.image_height)
         self.dataset = OccSampleDataset(FrameList(ds, indices), self.pseudo, K, self.grid, self.preprocess,
                                         with_embeds=True, color_jitter=cfg.color_jitter, seed=cfg.seed)
+        # the camera rig of the training data (native image size), for export (a typical rig to trace with)
+        self.rig_record = plain(ds[indices[0]].rig.to_dict())
         self.sampler = DistributedSampler(self.dataset, num_replicas=info.world_size, rank=info.rank,
                                           shuffle=True, seed=cfg.seed, drop_last=False)
         self.steps_per_epoch = math.ceil(len(self.sampler) / cfg.batch_size)
@@ -248,6 +251,7 @@ class Trainer:
             "label_space": label_space_record(self.label_space, self.prompt_path),
             "bank": self.bank,
             "preprocess": plain(self.preprocess.to_dict()),
+            "rig": self.rig_record,
         }
 
     def save(self, epoch: int) -> Path | None:
@@ -264,6 +268,17 @@ class Trainer:
             return None
         rng = np.random.default_rng([self.cfg.seed, step])
         return torch.as_tensor(np.asarray(self.noise_bank.sample(n, rng), dtype=np.float32), device=self.info.device)
+
+    def voxels_for_step(self, batch: dict, step: int) -> torch.Tensor | None:
+        """(B, M) voxel sample for the heads and losses (None = whole grid); seeded by (seed, step, rank)."""
+        if self.cfg.train_voxels <= 0:
+            return None
+        from .losses.sampling import select_training_voxels
+
+        gen = torch.Generator().manual_seed(int(np.random.SeedSequence([self.cfg.seed, step, self.info.rank])
+                                                .generate_state(1)[0]))
+        return select_training_voxels(batch["semantics"], self.cfg.train_voxels, batch.get("align_index"),
+                                      generator=gen)
 
     # -------------------------------------------------------------------------------------------
     def run(self, until: int | None = None) -> dict:
@@ -283,7 +298,7 @@ class Trainer:
         self.ddp.train()
         progress = _Progress(self.total_steps, self.step, enabled=info.is_main and not self.quiet)
         epoch = self.step // self.steps_per_epoch
-        t_last = time.perf_counter()
+        t_last, cpu_last, last_logged = time.perf_counter(), time.process_time(), self.step
         try:
             while self.step < stop:
                 epoch = self.step // self.steps_per_epoch
@@ -302,7 +317,7 @@ class Trainer:
                     batch = _to_device(batch, info.device)
                     noise = self.noise_for_step(self.step)
                     lr_now = self.scheduler.get_last_lr()[0]  # the rate this step uses
-                    out = self.ddp(batch, self.text, self.phrase_class, noise)
+                    out = self.ddp(batch, self.text, self.phrase_class, noise, self.voxels_for_step(batch, self.step))
                     loss = out["total"]
                     if not torch.isfinite(loss):
                         raise FloatingPointError(f"loss is {loss.item()} at step {self.step}")
@@ -316,15 +331,20 @@ class Trainer:
                     value = float(loss.detach())
                     losses.append(value)
                     progress.advance(value, lr_now)
-                    if info.is_main and (self.step % cfg.log_every == 0 or self.step == self.total_steps):
-                        now = time.perf_counter()
-                        rec = {"step": self.step, "epoch": epoch, "lr": lr_now,
-                               "sec_per_step": (now - t_last) / max(1, self.step % cfg.log_every or cfg.log_every)}
-                        rec.update({k: float(v.detach()) for k, v in out.items()
-                                    if isinstance(v, torch.Tensor) and v.numel() == 1})
-                        log_lines.append(json.dumps(rec))
-                        write_text(log_path, "\n".join(log_lines) + "\n")
-                        t_last = now
+                    if self.step % cfg.log_every == 0 or self.step == stop:
+                        # loss parts averaged over the ranks (a collective: every rank takes part)
+                        parts = {k: D.mean_over_ranks(float(v.detach()), info) for k, v in out.items()
+                                 if isinstance(v, torch.Tensor) and v.numel() == 1}
+                        now, cpu_now = time.perf_counter(), time.process_time()
+                        if info.is_main:
+                            n_steps = max(1, self.step - last_logged)
+                            rec = {"step": self.step, "epoch": epoch, "lr": lr_now,
+                                   "sec_per_step": (now - t_last) / n_steps,        # wall clock
+                                   "cpu_sec_per_step": (cpu_now - cpu_last) / n_steps,  # this process, all threads
+                                   **parts}
+                            log_lines.append(json.dumps(rec))
+                            write_text(log_path, "\n".join(log_lines) + "\n")
+                        t_last, cpu_last, last_logged = now, cpu_now, self.step
                     if self.step % cfg.ckpt_every == 0 and self.step < stop:
                         self.save(epoch)
         finally:

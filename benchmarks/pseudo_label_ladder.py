@@ -16,7 +16,6 @@ Two scoring protocols (the metric always counts GT voxels inside the GT camera m
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import subprocess
 import sys
@@ -179,6 +178,7 @@ def main():
     args = ap.parse_args()
 
     root = dataset(args)
+    load_start = os.getloadavg()[0]
     ds = NuScenesDataset(root, load_images=False, grid=Grid())
     indices = [i for i in range(len(ds)) if i % args.every == args.every // 2]
     ds_indices_sample = indices
@@ -216,12 +216,30 @@ def main():
     emb2d = similarity_stats(emb_maps, emb_sems, class_text)
     emb3d = voxel_embedding_accuracy(last[0], gts, class_text)
     pic = pictures(ds, len(indices) // 2, ladder, gts[len(indices) // 2], emb, class_text)
-    write_report(args, root, indices, rows, seg2d, emb2d, emb3d, last[1], pic)
+    speed = generation_speed(ds, space, emb)
+    args.load = (load_start, os.getloadavg()[0])
+    write_report(args, root, indices, rows, seg2d, emb2d, emb3d, last[1], pic, speed)
 
 
-def write_report(args, root, indices, rows, seg2d, emb2d, emb3d, final_observed, pic):
+def generation_speed(ds, space, emb) -> list[tuple]:
+    """frames/s of `generate` (what `ago pseudo-labels` runs) over the train scene's consecutive keyframes."""
+    import tempfile
+    from ago_train.pseudo.generate import generate
+    out = []
+    for shape, sweeps, interval in (((200, 200, 16), 10, 1), ((200, 200, 16), 30, 2), ((100, 100, 8), 10, 1)):
+        cfg = PseudoLabelConfig(grid=Grid.with_shape(shape), num_sweeps=sweeps, interval=interval, raycast=True)
+        load = os.getloadavg()[0]
+        with tempfile.TemporaryDirectory() as tmp:
+            r = generate(ds, ds.split("train"), Path(tmp) / "pl", space, SimulatedSegmenter(space), emb, cfg,
+                         progress=False)
+        out.append((shape, sweeps, interval, r["written"], r["frames_per_s"], load, os.getloadavg()[0]))
+        print("speed", out[-1], flush=True)
+    return out
+
+
+def write_report(args, root, indices, rows, seg2d, emb2d, emb3d, final_observed, pic, speed):
     cmd = "python benchmarks/pseudo_label_ladder.py" + "".join(
-        f" --{k.replace('_', '-')} {v}" for k, v in vars(args).items() if k not in ("out", "data") and v is not None)
+        f" --{k.replace('_', '-')} {v}" for k, v in vars(args).items() if k not in ("out", "data", "load") and v is not None)
     L = ["# Pseudo-labels on synthetic data: the ladder", "",
          f"Command: `{cmd}` (dataset `ago synth --scenes {args.scenes} --frames {args.frames} --image-size "
          f"{args.image_size} --grid 200x200x16`, seed 0; {len(indices)} keyframes scored: every "
@@ -249,9 +267,18 @@ def write_report(args, root, indices, rows, seg2d, emb2d, emb3d, final_observed,
                  f"{pct(obs.miou())} | {pct(obs.miou_star())} | {pct(cov)} | {sps:.3f} |")
     L += ["", "samples/s: wall time of `pseudo_sample` per keyframe scored (lifting with a frame cache, "
           "aggregation, voting, ray casting, and for the marked row the image embeddings), on this 2-core "
-          "machine shared with other jobs (load average ~8 during the run): an upper bound on the cost. "
+          f"machine shared with other jobs (1-minute load average {args.load[0]:.1f} at the start, "
+          f"{args.load[1]:.1f} at the end): an upper bound on the cost. "
           "Keyframes scored here are 4 apart, so neighbouring samples share few lifted frames; `ago "
           "pseudo-labels` runs consecutive keyframes and reuses more.", "",
+          "## Generation speed (what `ago pseudo-labels` does)", "",
+          "`generate()` over the train scene's consecutive keyframes, simulated segmenter + simulated embedder "
+          "(C = 384), ray casting on, 400 x 225 images, ~30k LiDAR points per sweep, one process "
+          "(OMP_NUM_THREADS=1), 2 cores shared with other jobs (1-minute load average before/after shown):", "",
+          "| grid | N_sweep | N_interval | keyframes | frames/s | load before / after |", "|---|---:|---:|---:|---:|---|"]
+    for shape, sweeps, interval, n, fps, l0, l1 in speed:
+        L.append(f"| {'x'.join(map(str, shape))} | {sweeps} | {interval} | {n} | {fps:.2f} | {l0:.1f} / {l1:.1f} |")
+    L += ["",
           "## Final rung, per class (simulated segmenter, observed voxels)", "",
           final_observed.to_markdown(), "",
           "## The simulated segmenter in 2-D", "",

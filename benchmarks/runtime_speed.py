@@ -128,7 +128,7 @@ def ort_head_graph(K1: int, G: int, D: int) -> bytes:
     return model.SerializeToString()
 
 
-def numpy_vs_ort_heads(N: int, D: int, K: int, G: int, reps: int, chunk: int = 16384) -> dict:
+def numpy_vs_ort_heads(N: int, D: int, K: int, G: int, reps: int, chunk: int = 65536) -> dict:
     """One branch, K classes x G phrases each (+ free padded to G): numpy FoldedHeads vs the ORT graph."""
     import onnxruntime as ort
 
@@ -299,7 +299,7 @@ def heads_scaling(reps: int, D_h: int, D_a: int, ceiling: float) -> tuple[list, 
         h = rng.standard_normal((N, D_h)).astype(np.float32)
         g = rng.standard_normal((N, D_a)).astype(np.float32)
         t, _ = median_time(lambda: fh.run(h, g), reps)
-        grid_rows.append({"shape": shape, "N": N, "s": t, "ms_per_Mvox": t / N * 1e9 / 1e3,
+        grid_rows.append({"shape": shape, "N": N, "s": t, "ms_per_Mvox": t / N * 1e9,
                           "gflops": fh.flops_per_voxel() * N / t / 1e9})
     N = 100 * 100 * 8
     h = rng.standard_normal((N, D_h)).astype(np.float32)

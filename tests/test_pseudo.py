@@ -224,7 +224,10 @@ def test_single_frame_labels_free_space_and_occlusion():
     assert sem[i_wall + 3, j0, k1] == IGNORE  # behind the wall: unknown, never free
     assert sample.mask_lidar[i_wall - 3, j0, k1] and not sample.mask_lidar[i_wall + 3, j0, k1]
     assert sample.mask_camera[i_wall - 3, j0, k1]           # in front of CAM_FRONT
-    assert not sample.mask_camera[20, 20, 5]                # far above every camera's view? (z 3..4 m at ego)
+    from ago_train.pseudo.generate import frustum_mask
+    frustum = frustum_mask(grid, frame.rig).reshape(grid.shape)
+    assert frustum[i_wall, j0, k1] and not frustum[20, 20, 5]   # ahead of CAM_FRONT / straight above the car
+    assert np.array_equal(sample.mask_camera.astype(bool), sample.mask_lidar.astype(bool) & frustum)
     # without ray casting every voxel without a hit is called free
     flat = build_sample(frame, [lifted], 5, PseudoLabelConfig(grid=grid, raycast=False)).semantics
     assert flat[i_wall + 3, j0, k1] == FREE and flat[i_wall, j0, k1] == 3

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import random
 import subprocess
 import sys
 from pathlib import Path
@@ -17,6 +18,7 @@ import pytest
 import torch
 
 from ago_runtime.errors import AgoInputError
+from ago_runtime.grid import Grid
 
 REPO = Path(__file__).resolve().parents[1]
 GRID = "20x20x4"
@@ -112,11 +114,11 @@ def test_checkpoint_refuses_objects_and_rng_roundtrip(tmp_path):
         save_checkpoint(tmp_path / "x.pt", {"bad": object()})
     assert not (tmp_path / "x.pt").exists()
     state = rng_state()
-    a = (torch.rand(3), np.random.rand(3), __import__("random").random())
+    a = (torch.rand(3), np.random.rand(3), random.random())
     save_checkpoint(tmp_path / "r.pt", {"rng": state})
     loaded = torch.load(tmp_path / "r.pt", weights_only=True)
     set_rng_state(loaded["rng"])
-    b = (torch.rand(3), np.random.rand(3), __import__("random").random())
+    b = (torch.rand(3), np.random.rand(3), random.random())
     assert torch.equal(a[0], b[0]) and np.array_equal(a[1], b[1]) and a[2] == b[2]
 
 
@@ -129,7 +131,8 @@ def test_resume_is_exact(tiny_data, tmp_path):
     """4 steps straight == 2 steps, stop, resume from the checkpoint, 2 more (over an epoch boundary)."""
     from ago_train.trainer import Trainer
 
-    kw = dict(max_steps=4, epochs=2, max_frames=3, batch_size=2, noise_words=8)  # 2 steps per epoch
+    # 2 steps per epoch; heads on a seeded 800-voxel sample per frame (as the cpu preset does)
+    kw = dict(max_steps=4, epochs=2, max_frames=3, batch_size=2, noise_words=8, train_voxels=800)
     straight = Trainer(tiny_config(tiny_data, tmp_path / "a", **kw), quiet=True)
     straight.run()
     first = Trainer(tiny_config(tiny_data, tmp_path / "b", **kw), quiet=True)
@@ -170,9 +173,13 @@ def test_bad_inputs_raise_ago_input_error(tiny_data, tmp_path):
     with pytest.raises(AgoInputError, match="pseudo-label"):
         Trainer(tiny_config(tiny_data, tmp_path / "x", pseudo=str(tmp_path / "missing")), quiet=True).setup()
     cfg = tiny_config(tiny_data, tmp_path / "y")
-    cfg.model.grid = __import__("ago_runtime.grid", fromlist=["Grid"]).Grid.with_shape((10, 10, 2)).to_dict()
+    cfg.model.grid = Grid.with_shape((10, 10, 2)).to_dict()
     with pytest.raises(AgoInputError, match="grid"):
         Trainer(cfg, quiet=True).setup()
+    with pytest.raises(AgoInputError, match="classes"):  # cw pseudo-labels, another label space
+        Trainer(tiny_config(tiny_data, tmp_path / "w", prompts="ow"), quiet=True).setup()
+    with pytest.raises(AgoInputError, match="variant"):
+        tiny_config(tiny_data, tmp_path / "v").with_overrides(['loss.variant="nope"'])
     r = _ago("train", "--config", "tiny", "--data", str(tiny_data["data"]), "--pseudo", str(tmp_path / "nope"),
              "--out", str(tmp_path / "z"), check=False)
     assert r.returncode == 2 and r.stderr.startswith("error: ") and "nope" in r.stderr
@@ -182,9 +189,9 @@ def test_bad_inputs_raise_ago_input_error(tiny_data, tmp_path):
 def test_overfit_one_frame_then_eval(tiny_data, tmp_path):
     """A short run lowers the loss; a few hundred steps on one frame fit its pseudo-labels; eval writes files."""
     from ago_runtime.metric import OccupancyMetric
-    from ago_train.dataset import IGNORE_INDEX, PseudoLabelSet, pseudo_to_target
-    from ago_train.evaluate import evaluate, load_model, predict_labels
     from ago_train.checkpoint import load_checkpoint
+    from ago_train.dataset import IGNORE_INDEX, pseudo_to_target
+    from ago_train.evaluate import evaluate, load_model, predict_labels
     from ago_train.trainer import Trainer
 
     steps = 100
@@ -209,11 +216,15 @@ def test_overfit_one_frame_then_eval(tiny_data, tmp_path):
     assert m.miou() > 0.7, m.to_markdown()
 
     res = evaluate(r["last"], tiny_data["data"], split="all", out=tmp_path / "eval", quiet=True, device="cpu")
+    assert res["mIoU"] is not None
+    cli = _ago("eval", "--ckpt", r["last"], "--data", str(tiny_data["data"]), "--split", "all",
+               "--out", str(tmp_path / "eval"), "--device", "cpu")
+    assert "mIoU" in cli.stdout
     js = json.loads((tmp_path / "eval" / "metrics.json").read_text())
     md = (tmp_path / "eval" / "metrics.md").read_text()
     assert js["identifier"] == "none" and js["frames"] == 6 and js["metric"]["frames"] == 6
     assert "| car |" in md and "mIoU" in md
-    assert res["mIoU"] is not None
+    assert js["mIoU"] == res["mIoU"]
 
 
 def _ddp_worker(rank: int, world: int, port: int, cfg_dict: dict, out: str) -> None:
@@ -261,3 +272,60 @@ def test_ddp_two_processes_agree(tiny_data, tmp_path):
     init.setup()
     start = init.model.state_dict()
     assert any(not torch.allclose(v, start[k]) for k, v in r0["model"].items() if v.is_floating_point())
+
+
+# ---- open-world protocol ---------------------------------------------------------------------
+def test_select_kshot_covers_every_class_k_times(tmp_path):
+    from ago_runtime.atomic import save_npz, write_json
+    from ago_train.dataset import PseudoLabelSet
+    from ago_train.open_world import select_kshot
+
+    grid = Grid.with_shape((4, 4, 2))
+    write_json(tmp_path / "meta.json", {"grid": grid.to_dict(), "label_space": {"classes": ["a", "b", "c"]}})
+    rng = np.random.default_rng(0)
+    frames = []
+    for i in range(30):
+        sem = np.full(grid.shape, 17, np.uint8)
+        present = [c for c in range(3) if rng.random() < (0.8, 0.4, 0.1)[c]]
+        for j, c in enumerate(present):
+            sem[j, 0, 0] = c
+        d = tmp_path / "s" / f"t{i}"
+        save_npz(d / "labels.npz", semantics=sem, mask_lidar=sem * 0, mask_camera=sem * 0)
+        frames.append(("s", f"t{i}"))
+    pseudo = PseudoLabelSet.open(tmp_path)
+    tokens, counts = select_kshot(pseudo, frames, 3, k=2, seed=1)
+    occurring = {c for s, t in frames for c in np.unique(pseudo.labels(s, t)) if c < 3}
+    assert all(counts[c] >= 2 for c in occurring)
+    assert len(tokens) < len(frames) and len(set(tokens)) == len(tokens)
+    # the counts are the true counts over the chosen frames
+    for c in range(3):
+        assert counts[c] == sum(c in np.unique(pseudo.labels("s", t)) for t in tokens)
+    assert select_kshot(pseudo, frames, 3, k=2, seed=1)[0] == tokens          # seeded
+    assert select_kshot(pseudo, frames, 3, k=2, seed=2)[0] != tokens          # another seed, another subset
+
+
+@pytest.mark.slow
+def test_open_world_protocol_end_to_end(tiny_data, tmp_path):
+    """Stages pretrain -> zeroshot -> fewshot on the tiny set through the CLI; results JSON + markdown."""
+    pre, full = tmp_path / "pseudo_pre", tmp_path / "pseudo_ow"
+    for prompts, out in (("ow_pretrain", pre), ("ow", full)):
+        _ago("pseudo-labels", "--data", str(tiny_data["data"]), "--out", str(out), "--prompts", prompts,
+             "--grid", GRID, "--split", "all", "--embedder", "sim", "--sweeps", "1")
+    out = tmp_path / "ow"
+    _ago("open-world", "--stage", "all", "--config", "tiny", "--data", str(tiny_data["data"]),
+         "--set", "train_split=\"all\"", "--set", "max_steps=2", "--set", "device=\"cpu\"",
+         "--pseudo-pretrain", str(pre), "--pseudo-full", str(full), "--k", "1", "--seeds", "0",
+         "--eval-split", "all", "--out", str(out))
+    res = json.loads((out / "results.json").read_text())
+    assert res["pretrain"]["steps"] == 2
+    z = res["zeroshot"]
+    assert set(z) >= {"mIoU", "mIoU_known", "mIoU_unknown", "iou"} and "car" in z["iou"]
+    f = res["fewshot"]
+    assert f["k"] == 1 and len(f["runs"]) == 1 and f["runs"][0]["frames"] >= 1
+    assert all(n >= 1 for n in f["runs"][0]["class_frames"].values() if n)
+    ck = torch.load(out / "fewshot" / "seed0" / "last.pt", weights_only=True)
+    assert ck["label_space"]["num_classes"] == 15
+    md = (out / "results.md").read_text()
+    assert "zero-shot" in md and "1-shot" in md
+    zs = json.loads((out / "zeroshot" / "metrics.json").read_text())
+    assert zs["identifier"] == "min-entropy" and set(zs["subsets"]) == {"known", "unknown"}

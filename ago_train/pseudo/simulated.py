@@ -25,7 +25,7 @@ so a given image always gets the same result, whichever order frames are process
 from __future__ import annotations
 
 import hashlib
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import cv2
@@ -236,8 +236,8 @@ class SimEmbedderConfig:
     seed: int = 0                          # fixes the modality gap; per-image noise is seeded per image
     rotation_deg: float = 45.0             # every vector is rotated by exactly this angle (in random planes)
     offset_text: float = 1.1               # offset part with the same cosine to every class text (raises all)
-    offset_other: float = 1.5              # offset part orthogonal to every class text (shrinks the spread)
-    noise: float = 4.5                     # length of the per-patch Gaussian noise vector
+    offset_other: float = 2.5              # offset part orthogonal to every class text (shrinks the spread)
+    noise: float = 3.0                     # length of the per-patch Gaussian noise vector
     patch_grid: tuple[int, int] = (27, 48)  # (rows, cols) of ViT patches over the image
     upsample: int = 2                      # bilinear upsampling of the patch features (FeatUp's role)
 

@@ -42,7 +42,7 @@ class SynthConfig:
     lidar_range_noise: float = 0.02     # metres, Gaussian
     lidar_position: tuple[float, float, float] = (0.943, 0.0, 1.84)
     # world
-    world_size: float = 440.0           # side of the square city (m), centred on the start of the ego route
+    world_size: float = 440.0           # side of the square city (m) around the start of the ego route (grown for long routes)
     block_min: float = 40.0             # spacing of parallel roads (m)
     block_max: float = 75.0
     ego_speed_min: float = 3.0          # m/s

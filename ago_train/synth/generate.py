@@ -103,7 +103,10 @@ def generate_scene(config: SynthConfig, scene_index: int, world: World | None = 
             "timestamp_us": TIMESTAMP_BASE_US + scene_index * 3_600_000_000 + int(round(time_s * 1e6)),
             "ego2global": _to_global(ego2world), "rig": rig, "images": images,
             "lidar_points": scan.points, "lidar2ego": lidar2ego, "annotations": boxes, "gt": gt,
-            "extras": {"semantic": semantic, "depth": depth}, "lidar_classes": scan.classes,
+            # sky has no depth: 0 in the extras, as the dataset format says (the renderer uses a far value)
+            "extras": {"semantic": semantic,
+                       "depth": {c: np.where(semantic[c] == 255, 0.0, d).astype(np.float32) for c, d in depth.items()}},
+            "lidar_classes": scan.classes,
         }
 
 

@@ -170,7 +170,7 @@ CLOTH_COLORS = np.array([[0.1, 0.1, 0.12], [0.2, 0.25, 0.45], [0.6, 0.1, 0.1], [
 
 
 class _Builder:
-    def __init__(self, config: SynthConfig, rng: np.random.Generator):
+    def __init__(self, config: SynthConfig, rng: np.random.Generator, half_size: float):
         self.cfg = config
         self.rng = rng
         self.static_rows: list[tuple] = []
@@ -180,12 +180,12 @@ class _Builder:
         self.obj_yaw: list = []
         self.obj_size: list = []
         self.obj_cat: list = []
-        half = config.world_size / 2 + 20.0
+        half = half_size + 20.0
         self.origin = (-half, -half)
         n = int(np.ceil(2 * half / RASTER_RES))
         self.surface = np.full((n, n), S_GRASS, np.uint8)
         self.marking = np.zeros((n, n), np.uint8)
-        self.half = config.world_size / 2
+        self.half = half_size
 
     # ---- raster painting ---------------------------------------------------------------------
     def _cells(self, x0, x1, y0, y1):
@@ -438,17 +438,17 @@ def _make_road(rng, axis, pos, ego=False) -> Road:
     strip = int(rng.choice([0, 1, 2], p=[0.5, 0.35, 0.15]))
     if ego and strip == 0:
         strip = 1 if rng.random() < 0.7 else 2
-    strip_w = {0: 0.3, 1: rng.uniform(1.5, 3.0), 2: 2.8}[strip]
+    strip_w = {0: 0.3, 1: rng.uniform(1.2, 2.4), 2: 2.8}[strip]
     return Road(axis, pos, lanes, lane_w, park_w, strip, strip_w)
 
 
 def build_world(config: SynthConfig, scene_index: int) -> World:
     rng = np.random.default_rng([config.seed, scene_index, 7])
-    b = _Builder(config, rng)
-    half = config.world_size / 2
     duration = (config.frames_per_scene - 1) * config.keyframe_interval_s
     speed = rng.uniform(config.ego_speed_min, config.ego_speed_max)
     travel = speed * duration
+    half = max(config.world_size / 2, travel + 80.0)  # long scenes get a bigger city
+    b = _Builder(config, rng, half)
     x_start = -min(travel / 2, 60.0)
 
     # ---- roads ----------------------------------------------------------------------------------
@@ -703,8 +703,8 @@ def _block(b: _Builder, x0, x1, y0, y1, kind):
         while t < a1 - 4:
             add_street_light(b, *at(t), facing)
             t += rng.uniform(22, 32)
-        t = a0 + rng.uniform(5, 10)
-        tree_p = 0.7 if kind != "parking" else 0.4
+        t = a0 + rng.uniform(4, 9)
+        tree_p = 0.75 if kind != "parking" else 0.4
         while t < a1 - 5:
             r = rng.random()
             if r < tree_p:
@@ -718,7 +718,7 @@ def _block(b: _Builder, x0, x1, y0, y1, kind):
                 add_bush(b, *at(t))
             elif r < tree_p + 0.19:
                 b.static(CYL, (*at(t), SLAB_HEIGHT + 0.35), (0.15, 0.15, 0.35), 0, C["others"], M_PLASTIC, (0.8, 0.1, 0.1))
-            t += rng.uniform(6, 14)
+            t += rng.uniform(5, 11)
     _sidewalk_walkers(b, x0, x1, y0, y1, sw, verge)
 
     if ix1 - ix0 < 6 or iy1 - iy0 < 6:
