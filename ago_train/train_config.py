@@ -88,8 +88,8 @@ class TrainConfig:
                        warmup_steps=2, log_every=1, ckpt_every=1000, noise_words=8, prompts="cw",
                        data="runs/synth-tiny", pseudo="runs/synth-tiny-pseudo", out="runs/train-tiny")
         if name == "cpu":
-            # ~80 training frames (`ago synth --scenes 5 --frames 20`: 4 train scenes) x 5 epochs = 400
-            # steps; at the measured 4-8 s per step on 2 cores (docs/training.md) 30-55 min.
+            # 60 training frames (`ago synth --scenes 4 --frames 20`: 3 train scenes) x 5 epochs = 300
+            # steps; at the measured 2.5-9 s per step on the shared 2 cores (docs/training.md): 13-45 min.
             return cls(name="cpu", model=ModelConfig.preset("cpu"), epochs=5, batch_size=1, max_frames=None,
                        train_voxels=8000, warmup_steps=500, log_every=10, ckpt_every=100, noise_words=100,
                        prompts="cw", data="runs/synth-cpu", pseudo="runs/synth-cpu-pseudo", out="runs/train-cpu")
