@@ -24,9 +24,6 @@ Pseudo-label directory layout (written by `ago pseudo-labels`): meta.json (label
 
 from __future__ import annotations
 
-import json
-import zipfile
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
@@ -38,44 +35,38 @@ from ago_runtime.errors import AgoInputError
 from ago_runtime.grid import Grid
 from ago_runtime.preprocess import Preprocess
 
+from .pseudo.generate import PseudoLabelDir
+
 IGNORE_INDEX = -100  # torch's cross-entropy default
 
 
 # ---- the pseudo-label directory ---------------------------------------------------------------
-@dataclass
-class PseudoLabelSet:
-    """A checked pseudo-label directory: its meta, grid and label-space class names."""
+class PseudoLabelSet(PseudoLabelDir):
+    """The pseudo-label folder as training reads it: `PseudoLabelDir` plus checks against the model.
 
-    root: Path
-    meta: dict
-    grid: Grid
-    class_names: list[str]
+    `labels` returns only the semantics (checked against the grid); `embeds` returns int64 indices
+    and float32 embeddings, or empty arrays when the folder has no embeddings.
+    """
 
     @classmethod
     def open(cls, root: str | Path) -> "PseudoLabelSet":
         root = Path(root)
         if not root.is_dir():
             raise AgoInputError(root, "pseudo-label directory not found (make it with `ago pseudo-labels`)")
-        meta_path = root / "meta.json"
-        if not meta_path.is_file():
-            raise AgoInputError(meta_path, "pseudo-label meta.json not found (make the directory with `ago pseudo-labels`)")
+        pseudo = cls(root)
         try:
-            meta = json.loads(meta_path.read_text())
-        except json.JSONDecodeError as e:
-            raise AgoInputError(meta_path, f"not valid JSON ({e})") from None
-        try:
-            grid = Grid.from_dict(meta["grid"])
-            names = _class_names_from_meta(meta)
+            pseudo.grid, pseudo.class_names
         except (KeyError, TypeError, ValueError) as e:
-            raise AgoInputError(meta_path, f"meta.json lacks the grid or the label space ({e})") from None
-        return cls(root, meta, grid, names)
+            raise AgoInputError(root / "meta.json", f"meta.json lacks the grid or the label space ({e})") from None
+        return pseudo
 
     def check(self, grid: Grid, class_names: Sequence[str]) -> None:
         """Refuse a pseudo-label set made for another grid or another label space."""
-        if tuple(self.grid.shape) != tuple(grid.shape) or not np.allclose(self.grid.range_min, grid.range_min) \
-                or not np.allclose(self.grid.range_max, grid.range_max):
+        mine = self.grid
+        if tuple(mine.shape) != tuple(grid.shape) or not np.allclose(mine.range_min, grid.range_min) \
+                or not np.allclose(mine.range_max, grid.range_max):
             raise AgoInputError(self.root / "meta.json",
-                                f"pseudo-labels are on grid {self.grid.shape} {self.grid.range_min}..{self.grid.range_max} "
+                                f"pseudo-labels are on grid {mine.shape} {mine.range_min}..{mine.range_max} "
                                 f"but the model grid is {grid.shape} {grid.range_min}..{grid.range_max}; "
                                 "regenerate them with the model's grid")
         if list(self.class_names) != list(class_names):
@@ -92,50 +83,23 @@ class PseudoLabelSet:
     def labels(self, scene: str, token: str) -> np.ndarray:
         """(X, Y, Z) uint8 pseudo semantics (0..K-1, 17 = free, 255 = unknown)."""
         path = self.sample_dir(scene, token) / "labels.npz"
-        z = _read_npz(path, ("semantics",))
-        sem = z["semantics"]
+        if not path.is_file():
+            raise AgoInputError(path, "pseudo-label file not found (was `ago pseudo-labels` run on this frame?)")
+        sem = super().labels(scene, token)[0]
         if tuple(sem.shape) != tuple(self.grid.shape):
             raise AgoInputError(path, f"semantics shape {sem.shape} does not match the grid {self.grid.shape}")
-        return sem.astype(np.uint8)
+        return sem
 
     def embeds(self, scene: str, token: str) -> tuple[np.ndarray, np.ndarray]:
         """(M,) int64 flat voxel indices and (M, C) float32 VLM embeddings; empty when the file is absent."""
         path = self.sample_dir(scene, token) / "embeds.npz"
         if not path.is_file():
             return np.zeros(0, np.int64), np.zeros((0, 0), np.float32)
-        z = _read_npz(path, ("index", "embeds"))
-        idx = z["index"].astype(np.int64).reshape(-1)
-        emb = z["embeds"].astype(np.float32)
-        if emb.ndim != 2 or emb.shape[0] != idx.shape[0]:
-            raise AgoInputError(path, f"index {idx.shape} and embeds {emb.shape} do not match")
+        idx, emb = super().embeds(scene, token)
+        idx = idx.astype(np.int64)
         if idx.size and (idx.min() < 0 or idx.max() >= self.grid.num_voxels):
             raise AgoInputError(path, f"voxel indices outside 0..{self.grid.num_voxels - 1}")
-        return idx, emb
-
-
-def _class_names_from_meta(meta: dict) -> list[str]:
-    ls = meta.get("label_space", meta)
-    names = ls.get("class_names", ls.get("classes"))
-    if names is None:
-        raise KeyError("class_names")
-    if names and isinstance(names[0], dict):
-        names = [c["name"] for c in names]
-    return [str(n) for n in names]
-
-
-def _read_npz(path: Path, keys: Sequence[str]) -> dict[str, np.ndarray]:
-    if not path.is_file():
-        raise AgoInputError(path, "pseudo-label file not found (was `ago pseudo-labels` run on this frame?)")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            missing = [k for k in keys if k not in z.files]
-            if missing:
-                raise AgoInputError(path, f"missing keys {missing}")
-            return {k: np.asarray(z[k]) for k in keys}
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as e:
-        if isinstance(e, AgoInputError):
-            raise
-        raise AgoInputError(path, f"not a readable npz file ({e.__class__.__name__}: {e})") from None
+        return idx, emb.astype(np.float32)
 
 
 # ---- label mapping ----------------------------------------------------------------------------

@@ -22,7 +22,7 @@ import pytest
 
 from ago_runtime.calibration import load_calibration, save_calibration
 from ago_runtime.camera import CAMERA_NAMES, Rig
-from ago_runtime.classes import FREE, OCC3D_CLASSES
+from ago_runtime.classes import FREE, OCC3D_CLASSES, OCC3D_ID
 from ago_runtime.errors import AgoInputError
 from ago_runtime.heads import FoldedHeads, HeadWeights
 
@@ -250,19 +250,37 @@ def test_cli_retrieve(bundle_dir, frame_dir, tmp_path):
     assert (tmp_path / "r" / "frame_traffic_cone.png").is_file()
 
 
-def test_cli_demo_explains_missing_assets(tmp_path):
+def test_shipped_demo_runs_out_of_the_box(tmp_path):
+    """The default bundle and demo frame ship in the package: `ago demo` works after install."""
+    import json
+
     from ago_runtime.bundle import DEFAULT_BUNDLE_DIR, DEMO_FRAME_DIR
 
-    if DEMO_FRAME_DIR.is_dir() and DEFAULT_BUNDLE_DIR.is_dir():
-        r = run_cli(["demo", "--out", tmp_path / "d"], cwd=tmp_path)
-        assert r.returncode == 0, r.stderr
-        assert list((tmp_path / "d").glob("*.png"))
-    else:
-        env = {k: v for k, v in os.environ.items() if k != "AGO_BUNDLE"}
-        r = subprocess.run([sys.executable, "-m", "ago_runtime", "demo", "--out", str(tmp_path / "d")],
-                           capture_output=True, text=True, env=env)
-        assert r.returncode == 2 and "make_default_bundle.sh" in r.stderr
-        assert not (tmp_path / "d").exists()
+    assert (DEFAULT_BUNDLE_DIR / "bundle.json").is_file() and (DEFAULT_BUNDLE_DIR / "encoder.onnx").is_file()
+    assert sorted(p.stem for p in DEMO_FRAME_DIR.glob("CAM_*.jpg")) == sorted(CAMERA_NAMES)
+    meta = json.loads((DEFAULT_BUNDLE_DIR / "bundle.json").read_text())
+    assert meta["text_encoder"]["id"] == "all-MiniLM-L6-v2"
+    env = {k: v for k, v in os.environ.items() if k != "AGO_BUNDLE"}
+    r = subprocess.run([sys.executable, "-m", "ago_runtime", "demo", "--out", str(tmp_path / "d")],
+                       capture_output=True, text=True, env=env, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    with np.load(tmp_path / "d" / "demo_frame.npz", allow_pickle=False) as z:
+        sem = z["semantics"]
+    assert sem.shape == tuple(meta["grid"]["shape"])
+    # a trained model, not noise: the road under the ego is predicted as driveable surface
+    x0, y0 = sem.shape[0] // 2, sem.shape[1] // 2
+    column = sem[x0 - 2:x0 + 3, y0 - 1:y0 + 2, :]
+    assert (column == OCC3D_ID["driveable_surface"]).any()
+    assert 0.01 < (sem != FREE).mean() < 0.9
+    assert (tmp_path / "d" / "demo_frame.png").is_file()
+
+
+def test_cli_demo_explains_missing_assets(tmp_path):
+    env = {k: v for k, v in os.environ.items() if k != "AGO_BUNDLE"}
+    r = subprocess.run([sys.executable, "-m", "ago_runtime", "demo", "--out", str(tmp_path / "d"),
+                        "--bundle", str(tmp_path / "no_such_bundle")], capture_output=True, text=True, env=env)
+    assert r.returncode == 2 and "no_such_bundle" in r.stderr
+    assert not (tmp_path / "d").exists()
 
 
 # ---------------------------------------------------------------------------- bad input
