@@ -67,11 +67,11 @@ class MissingExtra(RuntimeError):
 
 def require_torch(verb: str) -> None:
     """Call at the top of a verb that needs torch: a clear message instead of an ImportError trace."""
-    try:
-        import torch  # noqa: F401
-    except ImportError:
+    import importlib.util
+
+    if importlib.util.find_spec("torch") is None:  # look, don't import: the runtime never loads torch
         raise MissingExtra(f"`ago {verb}` needs the training extra: pip install -e '.[train]' "
-                           "(and scripts/setup.sh for the bundled weights)") from None
+                           "(and scripts/setup.sh for the bundled weights)")
 
 
 if __name__ == "__main__":

@@ -53,20 +53,11 @@ def sample_bilinear(feature_map: np.ndarray, uv: np.ndarray, image_size: tuple[i
     and its value sits at the cell centre. Positions beyond the outermost centres take the edge value.
     """
     c, h, w = feature_map.shape
-    width, height = image_size
-    x = np.clip(uv[:, 0] * (w / width) - 0.5, 0.0, w - 1)
-    y = np.clip(uv[:, 1] * (h / height) - 0.5, 0.0, h - 1)
-    x0 = np.minimum(np.floor(x).astype(np.int64), max(w - 2, 0))
-    y0 = np.minimum(np.floor(y).astype(np.int64), max(h - 2, 0))
-    x1 = np.minimum(x0 + 1, w - 1)
-    y1 = np.minimum(y0 + 1, h - 1)
-    fx = (x - x0)[:, None].astype(np.float32)
-    fy = (y - y0)[:, None].astype(np.float32)
+    cells, weights = _bilinear_taps(uv, (h, w), image_size)
     rows = np.ascontiguousarray(np.moveaxis(feature_map, 0, -1)).reshape(h * w, c)   # (h*w, C): row gathers
-    out = rows[y0 * w + x0].astype(np.float32) * ((1 - fx) * (1 - fy))
-    out += rows[y0 * w + x1].astype(np.float32) * (fx * (1 - fy))
-    out += rows[y1 * w + x0].astype(np.float32) * ((1 - fx) * fy)
-    out += rows[y1 * w + x1].astype(np.float32) * (fx * fy)
+    out = rows[cells[0]].astype(np.float32) * weights[0, :, None].astype(np.float32)
+    for k in range(1, 4):
+        out += rows[cells[k]].astype(np.float32) * weights[k, :, None].astype(np.float32)
     return out
 
 
