@@ -7,13 +7,13 @@ The masks are stored as uint8 0/1 and must be used as bool.
 
 from __future__ import annotations
 
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from .atomic import save_npz
+from .npz import read_npz
 from .errors import AgoInputError
 
 KEYS = ("semantics", "mask_lidar", "mask_camera")
@@ -33,18 +33,7 @@ class Occ3DLabels:
     def load(cls, path: str | Path, shape: tuple[int, int, int] | None = None) -> "Occ3DLabels":
         """Read and check a labels.npz. `shape`, when given, must match (e.g. Grid.shape)."""
         path = Path(path)
-        if not path.is_file():
-            raise AgoInputError(path, "Occ3D labels file not found")
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                missing = [k for k in KEYS if k not in z.files]
-                if missing:
-                    raise AgoInputError(path, f"missing keys {missing} (needs {list(KEYS)})")
-                arrays = {k: np.asarray(z[k]) for k in KEYS}
-        except (zipfile.BadZipFile, OSError, ValueError, EOFError) as e:
-            if isinstance(e, AgoInputError):
-                raise
-            raise AgoInputError(path, f"not a readable npz file ({e.__class__.__name__}: {e})") from None
+        arrays = read_npz(path, KEYS, what="Occ3D labels file")
         shapes = {k: a.shape for k, a in arrays.items()}
         if len(set(shapes.values())) != 1 or arrays["semantics"].ndim != 3:
             raise AgoInputError(path, f"arrays must share one 3-D shape, got {shapes}")

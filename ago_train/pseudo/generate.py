@@ -37,6 +37,7 @@ from ago_runtime.classes import FREE, IGNORE
 from ago_runtime.errors import AgoInputError
 from ago_runtime.frame import Frame
 from ago_runtime.grid import Grid
+from ago_runtime.npz import read_npz
 from ago_runtime.progress import track
 
 from .aggregate import EGO_BOX, LiftedFrame, attach_features, frames_to_aggregate, lift_frame, warp_to
@@ -167,25 +168,10 @@ def save_sample(out_dir: str | Path, scene: str, token: str, sample: PseudoSampl
              mask_camera=sample.mask_camera)
 
 
-def _load_npz(path: Path, keys: tuple[str, ...]) -> dict:
-    if not path.is_file():
-        raise AgoInputError(path, "pseudo-label file not found")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            missing = [k for k in keys if k not in z.files]
-            if missing:
-                raise AgoInputError(path, f"missing keys {missing} (needs {list(keys)})")
-            return {k: np.asarray(z[k]) for k in keys}
-    except (OSError, ValueError, EOFError) as e:
-        if isinstance(e, AgoInputError):
-            raise
-        raise AgoInputError(path, f"not a readable npz file ({e.__class__.__name__}: {e})") from None
-
-
 def load_pseudo_labels(out_dir: str | Path, scene: str, token: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(semantics, mask_lidar, mask_camera), each (X, Y, Z) uint8 (masks 0/1: use as bool)."""
     path = sample_dir(out_dir, scene, token) / "labels.npz"
-    z = _load_npz(path, ("semantics", "mask_lidar", "mask_camera"))
+    z = read_npz(path, ("semantics", "mask_lidar", "mask_camera"), what="pseudo-label file")
     shapes = {k: v.shape for k, v in z.items()}
     if len(set(shapes.values())) != 1 or z["semantics"].ndim != 3:
         raise AgoInputError(path, f"arrays must share one 3-D shape, got {shapes}")
@@ -195,7 +181,7 @@ def load_pseudo_labels(out_dir: str | Path, scene: str, token: str) -> tuple[np.
 def load_voxel_embeds(out_dir: str | Path, scene: str, token: str) -> tuple[np.ndarray, np.ndarray]:
     """(index (M,) int32 flat C-order voxel indices, embeds (M, C) float16)."""
     path = sample_dir(out_dir, scene, token) / "embeds.npz"
-    z = _load_npz(path, ("index", "embeds"))
+    z = read_npz(path, ("index", "embeds"), what="pseudo-label file")
     if z["index"].ndim != 1 or z["embeds"].ndim != 2 or len(z["index"]) != len(z["embeds"]):
         raise AgoInputError(path, f"index {z['index'].shape} and embeds {z['embeds'].shape} do not match")
     return z["index"].astype(np.int32), z["embeds"].astype(np.float16)
