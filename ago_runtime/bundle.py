@@ -20,7 +20,6 @@ the wrong shapes.
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 import zipfile
 from dataclasses import dataclass, field
@@ -30,6 +29,7 @@ import numpy as np
 
 from .camera import Rig
 from .errors import AgoInputError
+from .readers import read_json
 from .grid import Grid
 from .heads import HeadWeights
 from .preprocess import Preprocess
@@ -104,12 +104,7 @@ class Bundle:
         if not root.is_dir():
             raise AgoInputError(root, "bundle folder not found")
         meta_path = root / BUNDLE_JSON
-        try:
-            meta = json.loads(meta_path.read_text())
-        except FileNotFoundError:
-            raise AgoInputError(meta_path, "not an ago bundle (no bundle.json)") from None
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-            raise AgoInputError(meta_path, f"unreadable bundle metadata ({e})") from None
+        meta = read_json(meta_path, missing="not an ago bundle (no bundle.json)")
         if not isinstance(meta, dict) or meta.get("format") != BUNDLE_FORMAT:
             raise AgoInputError(meta_path, f"not an ago bundle (format tag is not {BUNDLE_FORMAT!r})")
         version = meta.get("format_version")

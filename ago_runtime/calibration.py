@@ -28,7 +28,6 @@ mismatched aspect ratio) raises AgoInputError naming the file.
 
 from __future__ import annotations
 
-import json
 import warnings
 from pathlib import Path
 
@@ -38,6 +37,7 @@ import numpy as np
 from .atomic import write_json
 from .camera import CAMERA_NAMES, Camera, Rig
 from .errors import AgoInputError
+from .readers import read_json
 
 CALIB_FILE = "calib.json"
 CALIB_FORMAT = "ago-calibration"
@@ -60,12 +60,7 @@ def save_calibration(path: str | Path, rig: Rig) -> None:
 def load_calibration(path: str | Path) -> Rig:
     """Read and check a calib.json -> Rig (cameras in CAMERA_NAMES order)."""
     path = Path(path)
-    try:
-        d = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise AgoInputError(path, "calibration file not found") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise AgoInputError(path, f"not a readable JSON calibration file ({e})") from None
+    d = read_json(path, missing="calibration file not found")
     if not isinstance(d, dict) or "cameras" not in d:
         raise AgoInputError(path, "calibration needs a 'cameras' entry")
     version = d.get("version", CALIB_VERSION)

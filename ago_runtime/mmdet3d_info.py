@@ -23,7 +23,6 @@ same frames: scene = info's `scene_token` when present, else "" (format 1.1 has 
 from __future__ import annotations
 
 import io
-import json
 import pickle
 from pathlib import Path
 
@@ -32,6 +31,7 @@ import numpy as np
 from .atomic import write_json
 from .camera import CAMERA_NAMES, Camera, Rig
 from .errors import AgoInputError
+from .readers import read_json
 from .frame import Frame, LidarSweep
 from .nuscenes import read_jpeg_rgb, read_lidar_bin
 from .nuscenes_schema import check_rigid
@@ -137,12 +137,7 @@ def load_info_json(json_path: str | Path, data_root: str | Path | None = None,
                    compensate_ego_motion: bool = True) -> list[Frame]:
     """Frames from a JSON written by `convert_mmdet3d_info_to_json` (data_root default: the JSON's folder)."""
     json_path = Path(json_path)
-    if not json_path.is_file():
-        raise AgoInputError(json_path, "info JSON not found")
-    try:
-        info = json.loads(json_path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise AgoInputError(json_path, f"not valid JSON ({e})") from None
+    info = read_json(json_path, missing="info JSON not found")
     _check_info(info, json_path)
     return frames_from_info(info, data_root if data_root is not None else json_path.parent, json_path,
                             compensate_ego_motion=compensate_ego_motion)

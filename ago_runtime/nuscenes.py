@@ -43,6 +43,7 @@ import numpy as np
 
 from .camera import CAMERA_NAMES, Camera, Rig
 from .errors import AgoInputError
+from .readers import read_json
 from .frame import Frame, LidarSweep
 from .grid import Grid
 from .nuscenes_schema import LIDAR_CHANNEL, TABLE_NAMES, record_to_matrix
@@ -240,12 +241,7 @@ class NuScenesDataset:
         if name == "all":
             return list(range(len(self)))
         path = self.root / "splits.json"
-        if not path.is_file():
-            raise AgoInputError(path, f"no splits.json, so no split {name!r} (only 'all')")
-        try:
-            splits = json.loads(path.read_text(encoding="utf-8"))
-        except (json.JSONDecodeError, UnicodeDecodeError) as e:
-            raise AgoInputError(path, f"not valid JSON ({e})") from None
+        splits = read_json(path, missing=f"no splits.json, so no split {name!r} (only 'all')")
         if not isinstance(splits, dict) or name not in splits:
             names = sorted(splits) if isinstance(splits, dict) else []
             raise AgoInputError(path, f"no split {name!r}; it has {names} (and 'all')")

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from .atomic import save_npz
-from .npz import read_npz
+from .readers import read_npz
 from .errors import AgoInputError
 
 KEYS = ("semantics", "mask_lidar", "mask_camera")

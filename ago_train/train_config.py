@@ -30,6 +30,7 @@ from typing import Any
 
 from ago_runtime.atomic import write_json
 from ago_runtime.errors import AgoInputError
+from ago_runtime.readers import read_json
 from ago_runtime.prompts import resolve_prompt_file
 
 from .losses import LossConfig
@@ -134,12 +135,7 @@ class TrainConfig:
     @classmethod
     def load(cls, path: str | Path) -> "TrainConfig":
         path = Path(path)
-        if not path.is_file():
-            raise AgoInputError(path, "training config file not found")
-        try:
-            d = json.loads(path.read_text())
-        except json.JSONDecodeError as e:
-            raise AgoInputError(path, f"not valid JSON ({e})") from None
+        d = read_json(path, missing="training config file not found")
         if not isinstance(d, dict):
             raise AgoInputError(path, "a training config must be a JSON object")
         return cls.from_dict(d, source=str(path))

@@ -14,7 +14,6 @@ planes_to_voxels -> decoder MLP -> decoder_out -> adapter.
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from .aggregate import planes_at_voxels, planes_to_voxels

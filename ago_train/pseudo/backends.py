@@ -22,7 +22,6 @@ data live in `simulated.py`.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Protocol, runtime_checkable
 
@@ -30,6 +29,7 @@ import cv2
 import numpy as np
 
 from ago_runtime.errors import AgoInputError
+from ago_runtime.readers import read_json
 from ago_runtime.frame import Frame
 from ago_runtime.prompts import LabelSpace, name_key
 
@@ -83,12 +83,7 @@ class FileSegmenter:
         if not self.root.is_dir():
             raise AgoInputError(self.root, "masks folder not found")
         classes_path = self.root / "classes.json"
-        if not classes_path.is_file():
-            raise AgoInputError(classes_path, "missing: it maps the ids in the label maps to prompt phrases")
-        try:
-            table = json.loads(classes_path.read_text(encoding="utf-8"))
-        except (json.JSONDecodeError, UnicodeDecodeError) as e:
-            raise AgoInputError(classes_path, f"not valid JSON ({e})") from None
+        table = read_json(classes_path, missing="missing: it maps the ids in the label maps to prompt phrases")
         if not isinstance(table, dict):
             raise AgoInputError(classes_path, 'expected an object {"1": "car", ...}')
         lookup = phrase_lookup(label_space)
@@ -157,10 +152,7 @@ class FileImageEmbedder:
         meta_path = self.root / "meta.json"
         self.meta = {}
         if meta_path.is_file():
-            try:
-                self.meta = json.loads(meta_path.read_text(encoding="utf-8"))
-            except (json.JSONDecodeError, UnicodeDecodeError) as e:
-                raise AgoInputError(meta_path, f"not valid JSON ({e})") from None
+            self.meta = read_json(meta_path)
             if channels is None and isinstance(self.meta.get("channels"), int):
                 channels = self.meta["channels"]
         self.channels = channels  # None: taken from the first file read; later files must match

@@ -35,9 +35,10 @@ from ago_runtime.atomic import save_npz, write_bytes, write_json
 from ago_runtime.camera import Rig
 from ago_runtime.classes import FREE, IGNORE
 from ago_runtime.errors import AgoInputError
+from ago_runtime.readers import read_json
 from ago_runtime.frame import Frame
 from ago_runtime.grid import Grid
-from ago_runtime.npz import read_npz
+from ago_runtime.readers import read_npz
 from ago_runtime.progress import track
 
 from .aggregate import EGO_BOX, LiftedFrame, attach_features, frames_to_aggregate, lift_frame, warp_to
@@ -198,12 +199,7 @@ class PseudoLabelDir:
     def __init__(self, out_dir: str | Path):
         self.root = Path(out_dir)
         path = self.root / "meta.json"
-        if not path.is_file():
-            raise AgoInputError(path, "not a pseudo-label folder (no meta.json); make one with `ago pseudo-labels`")
-        try:
-            self.meta = json.loads(path.read_text(encoding="utf-8"))
-        except (json.JSONDecodeError, UnicodeDecodeError) as e:
-            raise AgoInputError(path, f"not valid JSON ({e})") from None
+        self.meta = read_json(path, missing="not a pseudo-label folder (no meta.json); make one with `ago pseudo-labels`")
 
     @property
     def grid(self) -> Grid:

@@ -1,10 +1,13 @@
-"""Reading .npz files safely: never unpickles, checks the keys, one clear error naming the file.
+"""Reading user files safely, with one clear AgoInputError naming the file.
 
-(Writing goes through `ago_runtime.atomic.save_npz`.)
+- `read_npz`: never unpickles, checks the keys;
+- `read_json`: UTF-8 JSON, optionally of a given top-level type.
+(Writing goes through `ago_runtime.atomic`.)
 """
 
 from __future__ import annotations
 
+import json
 import zipfile
 from pathlib import Path
 
@@ -28,3 +31,17 @@ def read_npz(path: str | Path, keys: tuple[str, ...] | list[str], what: str = "n
         raise
     except (zipfile.BadZipFile, OSError, ValueError, EOFError) as e:
         raise AgoInputError(path, f"not a readable npz file ({e.__class__.__name__}: {e})") from None
+
+
+def read_json(path: str | Path, missing: str = "file not found", expect: type | None = None):
+    """The parsed JSON of `path`; AgoInputError `missing` when absent, or when unreadable / not of type `expect`."""
+    path = Path(path)
+    if not path.is_file():
+        raise AgoInputError(path, missing)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise AgoInputError(path, f"not valid JSON ({e})") from None
+    if expect is not None and not isinstance(data, expect):
+        raise AgoInputError(path, f"expected a JSON {expect.__name__}, got {type(data).__name__}")
+    return data
