@@ -4,11 +4,14 @@ Takes a checkpoint written by ago_train (torch.load(weights_only=True); keys "mo
 "model_config", "label_space", "bank", ...). Gives a bundle folder (layout: ago_runtime/bundle.py,
 docs/runtime.md):
 
-1. the camera-to-voxel encoder plus the modality adapter's hidden layers, as ONNX
-   (`encoder.onnx`: images (1,6,3,H,W) + ego2img (1,6,4,4) -> h (N,Dh), g (N,Da)); the model's
-   nn.Softplus layers are exported as relu(x) + log1p(exp(-|x|)) (same values; onnxruntime's
-   Softplus kernel was measured ~2x slower than this form), and decoder_out is folded into the
-   adapter's first linear layer (with_fused_adapter); key metadata also in metadata_props;
+1. the camera-to-voxel encoder plus the modality adapter's hidden layers, as two ONNX graphs
+   (bundle format 2, ago_runtime/encoder.py): `planes.onnx` (images (1,6,3,H,W) + ego2img
+   (1,6,4,4) -> the three TPV planes at the grid's resolution) and `voxels.onnx` (a slab of x rows
+   of the planes -> h (n,Dh), g (n,Da)), so the runtime streams slabs and never holds the grid's
+   features at once; the model's nn.Softplus layers are exported as relu(x) + log1p(exp(-|x|))
+   (same values; onnxruntime's Softplus kernel was measured ~2x slower than this form), and
+   decoder_out is folded into the adapter's first linear layer (with_fused_adapter); key metadata
+   also in metadata_props;
 2. the linear heads (`heads.npz`) and the learnt free embedding, for bank folding at run time;
 3. banks: "train" (the label-space embeddings saved in the checkpoint) and one per shipped prompt
    file the installed text encoder could build;
@@ -39,6 +42,7 @@ from ago_runtime.bank import PromptBank, bank_for_prompts
 from ago_runtime.bundle import BUNDLE_FORMAT, BUNDLE_FORMAT_VERSION, BUNDLE_JSON, file_sha256
 from ago_runtime.calibration import find_camera_images, load_images_folder
 from ago_runtime.camera import Rig
+from ago_runtime.encoder import VOXEL_INPUTS, VOXEL_OUTPUTS, SplitEncoder
 from ago_runtime.errors import AgoInputError
 from ago_runtime.heads import HeadWeights
 from ago_runtime.preprocess import Preprocess
@@ -112,16 +116,45 @@ def with_fused_adapter(model: nn.Module) -> nn.Module:
     return model
 
 
-class EncoderForExport(nn.Module):
-    """forward_hidden for one frame: images (1,6,3,H,W), ego2img (1,6,4,4) -> h (N,Dh), g (N,Da)."""
+class PlanesForExport(nn.Module):
+    """planes.onnx: images (1,6,3,H,W), ego2img (1,6,4,4) -> plane_xy (D,X,Y), plane_xz (D,X,Z), plane_yz (D,Y,Z),
+    the TPV planes already upsampled to the grid (ago_train.model.aggregate.upsample_planes)."""
 
     def __init__(self, model: nn.Module):
         super().__init__()
         self.model = model
 
     def forward(self, images: torch.Tensor, ego2img: torch.Tensor):
-        h, g = self.model.forward_hidden(images, ego2img)
-        return h[0], g[0]
+        from ago_train.model.aggregate import upsample_planes
+
+        planes = upsample_planes(self.model.planes(images, ego2img), self.model.grid_shape)
+        return planes["xy"][0], planes["xz"][0], planes["yz"][0]
+
+
+class VoxelsForExport(nn.Module):
+    """voxels.onnx: a slab of x rows of the planes -> h (n,Dh), g (n,Da) of its n = x*Y*Z voxels, C order,
+    and the bank-folded phrase scores of both branches.
+
+    The voxel feature is xy[x, y] + xz[x, z] + yz[y, z] (ago_train.model.aggregate.planes_to_voxels),
+    then the decoder MLP (h) and the adapter's hidden layers on decoder_out(h) (g; decoder_out is
+    folded into the adapter's first linear by with_fused_adapter). The folded bank comes in as two
+    INPUTS, bank_main (P', Dh) and bank_adapted (P', Da) (ago_runtime.heads.FoldedHeads.A_main_T /
+    A_ad_T: any bank, any P', no re-export), and s_main = bank_main h^T, s_adapted = bank_adapted g^T
+    (P', n) come out class-major: the scores are the heads' big matrix product, done here by
+    onnxruntime's GEMM (measured ~3x faster than numpy's OpenBLAS for this skinny shape), and the
+    (n, Da) features need not leave onnxruntime at all."""
+
+    def __init__(self, model: nn.Module):
+        super().__init__()
+        self.decoder, self.decoder_out, self.adapter = model.decoder, model.decoder_out, model.adapter
+
+    def forward(self, plane_xy: torch.Tensor, plane_xz: torch.Tensor, plane_yz: torch.Tensor,
+                bank_main: torch.Tensor, bank_adapted: torch.Tensor):
+        vox = plane_xy.unsqueeze(-1) + plane_xz.unsqueeze(-2) + plane_yz.unsqueeze(-3)   # (D, x, Y, Z)
+        f = vox.reshape(vox.shape[0], -1).transpose(0, 1)                                 # (n, D)
+        h = self.decoder(f)
+        g = self.adapter(self.decoder_out(h))
+        return h, g, torch.matmul(bank_main, h.transpose(0, 1)), torch.matmul(bank_adapted, g.transpose(0, 1))
 
 
 def head_weights(model) -> HeadWeights:
@@ -132,28 +165,55 @@ def head_weights(model) -> HeadWeights:
                        f(model.adapter_out.bias), f(model.free_embedding))
 
 
-def export_onnx(model: nn.Module, path: Path, cfg, metadata: dict[str, str]) -> None:
+def _finish_onnx(path: Path, metadata: dict[str, str], doc: str) -> None:
     import onnx
 
-    wrapped = EncoderForExport(with_fused_adapter(with_stable_softplus(model))).eval()
-    images = torch.zeros(1, cfg.num_cameras, 3, cfg.image_height, cfg.image_width)
-    ego2img = torch.eye(4).expand(1, cfg.num_cameras, 4, 4).contiguous()
-    with warnings.catch_warnings(), torch.no_grad():
-        warnings.simplefilter("ignore")
-        torch.onnx.export(wrapped, (images, ego2img), str(path), dynamo=False, opset_version=OPSET,
-                          input_names=["images", "ego2img"], output_names=["h", "g"], do_constant_folding=True)
     proto = onnx.load(str(path))
     del proto.metadata_props[:]
     for k, v in metadata.items():
         entry = proto.metadata_props.add()
         entry.key, entry.value = k, v
     proto.producer_name = "ago export"
-    proto.doc_string = "ago camera-to-voxel encoder: images (1,6,3,H,W) + ego2img (1,6,4,4) -> h (N,Dh), g (N,Da)"
+    proto.doc_string = doc
     onnx.save(proto, str(path))
     try:
         onnx.checker.check_model(str(path), full_check=True)
     except onnx.checker.ValidationError as e:
-        raise AgoInputError(path, f"onnx.checker refused the exported encoder: {str(e).splitlines()[0]}") from None
+        raise AgoInputError(path, f"onnx.checker refused the exported graph: {str(e).splitlines()[0]}") from None
+
+
+def export_onnx(model: nn.Module, out_dir: Path, cfg, metadata: dict[str, str]) -> dict[str, str]:
+    """Write planes.onnx and voxels.onnx into out_dir; returns {"planes": file, "voxels": file}."""
+    fast = with_fused_adapter(with_stable_softplus(model)).eval()
+    images = torch.zeros(1, cfg.num_cameras, 3, cfg.image_height, cfg.image_width)
+    ego2img = torch.eye(4).expand(1, cfg.num_cameras, 4, 4).contiguous()
+    X, Y, Z = cfg.grid_obj().shape
+    D = cfg.tpv_dim
+    slab = min(X, 2)
+    with warnings.catch_warnings(), torch.no_grad():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(PlanesForExport(fast).eval(), (images, ego2img), str(out_dir / "planes.onnx"), dynamo=False,
+                          opset_version=OPSET, input_names=["images", "ego2img"],
+                          output_names=["plane_xy", "plane_xz", "plane_yz"], do_constant_folding=True)
+        heads = head_weights(model)
+        torch.onnx.export(VoxelsForExport(fast).eval(),
+                          (torch.zeros(D, slab, Y), torch.zeros(D, slab, Z), torch.zeros(D, Y, Z),
+                           torch.zeros(3, heads.hidden_dim), torch.zeros(3, heads.adapter_dim)),
+                          str(out_dir / "voxels.onnx"), dynamo=False, opset_version=OPSET,
+                          input_names=VOXEL_INPUTS, output_names=VOXEL_OUTPUTS,
+                          dynamic_axes={"plane_xy": {1: "slab"}, "plane_xz": {1: "slab"}, "bank_main": {0: "phrases"},
+                                        "bank_adapted": {0: "phrases"}, "h": {0: "voxels"}, "g": {0: "voxels"},
+                                        "s_main": {0: "phrases", 1: "voxels"},
+                                        "s_adapted": {0: "phrases", 1: "voxels"}},
+                          do_constant_folding=True)
+    _finish_onnx(out_dir / "planes.onnx", {**metadata, "ago.graph": "planes"},
+                 "ago camera-to-TPV encoder: images (1,6,3,H,W) + ego2img (1,6,4,4) -> plane_xy (D,X,Y), "
+                 "plane_xz (D,X,Z), plane_yz (D,Y,Z) at the grid resolution")
+    _finish_onnx(out_dir / "voxels.onnx", {**metadata, "ago.graph": "voxels"},
+                 "ago per-voxel MLPs: plane_xy (D,x,Y), plane_xz (D,x,Z), plane_yz (D,Y,Z) of a slab of x rows, "
+                 "bank_main (P',Dh), bank_adapted (P',Da) -> h (n,Dh), g (n,Da), s_main (P',n), s_adapted (P',n); "
+                 "n = x*Y*Z voxels in C order over [x, y, z]")
+    return {"planes": "planes.onnx", "voxels": "voxels.onnx"}
 
 
 # ---- label space and banks -----------------------------------------------------------------
@@ -282,7 +342,7 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
             "ago.outputs": "h (N, Dh) decoder hidden, g (N, Da) adapter hidden; N = X*Y*Z C order over [x, y, z]",
         }
         log(f"exporting the encoder to ONNX (opset {OPSET}) ...")
-        export_onnx(model, tmp / "encoder.onnx", cfg, metadata)
+        files = export_onnx(model, tmp, cfg, metadata)
         np.savez(tmp / "heads.npz", **heads.to_arrays())
         (tmp / "banks").mkdir()
         bank.save(tmp / "banks" / "train.npz")
@@ -306,26 +366,28 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
         report: dict = {}
         if parity:
             log("checking parity onnxruntime vs torch ...")
-            report["fp32"] = check_parity(model, tmp / "encoder.onnx", heads, bank, x, m, tolerance, frame_name)
+            report["fp32"] = check_parity(model, SplitEncoder(tmp / files["planes"], tmp / files["voxels"], grid),
+                                          heads, bank, x, m, tolerance, frame_name)
             log(f"parity fp32: {describe(report['fp32'])}")
             if not report["fp32"]["ok"]:
                 raise AgoInputError(checkpoint, f"export parity check failed on {frame_name}: {describe(report['fp32'])}")
         else:
             report["skipped"] = True
-        files = {"encoder": "encoder.onnx", "heads": "heads.npz"}
+        files["heads"] = "heads.npz"
         if int8:
             from .quantize import quantize_encoder
 
             log("quantising the encoder to int8 ...")
-            quantize_encoder(tmp / "encoder.onnx", tmp / "encoder.int8.onnx")
+            for key in ("planes", "voxels"):
+                quantize_encoder(tmp / files[key], tmp / f"{key}.int8.onnx")
+                files[f"{key}_int8"] = f"{key}.int8.onnx"
             if parity:
-                report["int8"] = check_parity(model, tmp / "encoder.int8.onnx", heads, bank, x, m, int8_tolerance,
-                                              frame_name)
+                report["int8"] = check_parity(model, SplitEncoder(tmp / "planes.int8.onnx", tmp / "voxels.int8.onnx",
+                                                                  grid), heads, bank, x, m, int8_tolerance, frame_name)
                 log(f"parity int8: {describe(report['int8'])}")
                 if not report["int8"]["ok"]:
                     raise AgoInputError(checkpoint, f"int8 parity check failed on {frame_name}: "
                                         f"{describe(report['int8'])}")
-            files["encoder_int8"] = "encoder.int8.onnx"
         file_entries = {k: _file_entry(tmp, v) for k, v in files.items()}
         file_entries.update({f"bank/{k}": _file_entry(tmp, v) for k, v in banks.items()})
         meta = {

@@ -1,6 +1,6 @@
 """Parity of an exported encoder (onnxruntime) against the torch model, on one frame.
 
-Takes the torch model, an ONNX encoder file, the bundle's heads and a prompt bank, and one
+Takes the torch model, an onnxruntime encoder (ago_runtime.encoder: SplitEncoder or MonolithicEncoder), the bundle's heads and a prompt bank, and one
 preprocessed frame (images (1, 6, 3, H, W), ego2img (1, 6, 4, 4)). Gives a JSON-able report:
 
 - `rel_err_feat`, `rel_err_feat_adapted`: max |F_ort - F_torch| / max |F_torch| for the per-voxel
@@ -8,7 +8,8 @@ preprocessed frame (images (1, 6, 3, H, W), ego2img (1, 6, 4, 4)). Gives a JSON-
   encoder's h, g through the heads in numpy);
 - `agreement_main`, `agreement_adapted`, `agreement_identifier`: share of voxels whose argmax class
   (K bank classes + free) agrees between the torch reference (float64 scores from the torch
-  embeddings, computed directly, unfolded) and the runtime (folded numpy heads on ORT features),
+  embeddings, computed directly, unfolded) and the runtime's own path (`runtime_labels`: the bank
+  folded into the heads, scores from the encoder slab by slab, numpy class max and softmax),
   for the original branch, the adapted branch and the min-entropy identifier;
 - `ok` and the tolerances used.
 
@@ -21,10 +22,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import onnxruntime as ort
 
 from ago_runtime.heads import FoldedHeads, HeadWeights, embeddings
-from ago_runtime.predictor import session_options
 
 
 @dataclass(frozen=True)
@@ -54,7 +53,18 @@ def reference_labels(feat: np.ndarray, feat_ad: np.ndarray, bank, free: np.ndarr
     return out
 
 
-def check_parity(model, onnx_path, heads: HeadWeights, bank, images: np.ndarray, ego2img: np.ndarray,
+def runtime_labels(encoder, folded: FoldedHeads, images: np.ndarray, ego2img: np.ndarray) -> dict[str, np.ndarray]:
+    """Labels the way `ago infer` gets them: the encoder's per-slab phrase scores (for a split bundle
+    computed inside voxels.onnx) through the numpy class max / softmax / identifier."""
+    out: dict[str, list] = {"main": [], "adapted": [], "identifier": []}
+    for _start, _stop, s_main, s_ad in encoder.score_chunks(images, ego2img, folded):
+        out["identifier"].append(folded.classify_scores(s_main.copy(), s_ad.copy(), "min-entropy")[0])
+        out["main"].append(folded.softmax_stats(folded.class_scores(s_main, "main")).label)
+        out["adapted"].append(folded.softmax_stats(folded.class_scores(s_ad, "adapted")).label)
+    return {k: np.concatenate(v) for k, v in out.items()}
+
+
+def check_parity(model, encoder, heads: HeadWeights, bank, images: np.ndarray, ego2img: np.ndarray,
                  tolerance: Tolerance = FP32_TOLERANCE, frame: str = "") -> dict:
     import torch
 
@@ -62,8 +72,7 @@ def check_parity(model, onnx_path, heads: HeadWeights, bank, images: np.ndarray,
         ref = model(torch.from_numpy(images), torch.from_numpy(ego2img))
     feat_t = ref["feat"][0].numpy()
     feat_ad_t = ref["feat_adapted"][0].numpy()
-    sess = ort.InferenceSession(str(onnx_path), session_options(), providers=["CPUExecutionProvider"])
-    h, g = sess.run(["h", "g"], {"images": images, "ego2img": ego2img})
+    h, g = encoder.hidden(images, ego2img)
     feat_o = embeddings(h, heads.W_dec, heads.b_dec)
     feat_ad_o = embeddings(g, heads.W_ad, heads.b_ad)
 
@@ -72,9 +81,7 @@ def check_parity(model, onnx_path, heads: HeadWeights, bank, images: np.ndarray,
 
     want = reference_labels(feat_t, feat_ad_t, bank, heads.free_embedding)
     folded = FoldedHeads(heads, bank.embeddings, bank.phrase_class, bank.num_classes)
-    got = {"main": folded.run(h, g, "none")["label"],
-           "adapted": folded.branch(g, "adapted").label,
-           "identifier": folded.run(h, g, "min-entropy")["label"]}
+    got = runtime_labels(encoder, folded, images, ego2img)
     report = {
         "frame": frame,
         "num_voxels": int(h.shape[0]),

@@ -6,8 +6,11 @@ camera rig it was trained with. Layout (see docs/runtime.md):
 
     bundle_dir/
       bundle.json        metadata (below); format_version, sha256 of every file
-      encoder.onnx       images (1,6,3,H,W) f32 + ego2img (1,6,4,4) f32 -> h (N,Dh), g (N,Da)
-      encoder.int8.onnx  optional: the same, dynamically quantised (`ago export --int8`)
+      planes.onnx        images (1,6,3,H,W) f32 + ego2img (1,6,4,4) f32 -> plane_xy (D,X,Y),
+                         plane_xz (D,X,Z), plane_yz (D,Y,Z): the TPV planes at the grid's resolution
+      voxels.onnx        plane_xy (D,x,Y), plane_xz (D,x,Z), plane_yz (D,Y,Z) of a slab of x rows
+                         -> h (n,Dh), g (n,Da) of that slab's n = x*Y*Z voxels (ago_runtime/encoder.py)
+      planes.int8.onnx, voxels.int8.onnx   optional: dynamically quantised (`ago export --int8`)
       heads.npz          W_dec (C,Dh), b_dec (C,), W_ad (C,Da), b_ad (C,), free_embedding (C,)
       banks/<name>.npz   prompt banks (ago_runtime.bank.PromptBank files); "train" = the
                          training label space's embeddings stored in the checkpoint
@@ -15,6 +18,9 @@ camera rig it was trained with. Layout (see docs/runtime.md):
 `Bundle.load(dir)` refuses (AgoInputError naming the file) a missing folder or file, a newer
 format_version, a file whose sha256 differs from bundle.json (e.g. a truncated ONNX), heads of
 the wrong shapes.
+
+Format versions: 2 = the split encoder above (files "planes", "voxels"); 1 = one monolithic
+`encoder.onnx` (images + ego2img -> h (N,Dh), g (N,Da); files "encoder", "encoder_int8"), still read.
 """
 
 from __future__ import annotations
@@ -35,7 +41,8 @@ from .heads import HeadWeights
 from .preprocess import Preprocess
 
 BUNDLE_FORMAT = "ago-bundle"
-BUNDLE_FORMAT_VERSION = 1
+BUNDLE_FORMAT_VERSION = 2
+ENCODER_FILES = {1: ("encoder",), 2: ("planes", "voxels")}
 BUNDLE_JSON = "bundle.json"
 ENV_BUNDLE = "AGO_BUNDLE"
 DEFAULT_BUNDLE_DIR = Path(__file__).resolve().parent / "assets" / "default_bundle"
@@ -66,13 +73,23 @@ class Bundle:
 
     # ---- paths -----------------------------------------------------------------------------
     @property
-    def encoder_path(self) -> Path:
-        return self.root / self.meta["files"]["encoder"]["path"]
+    def format_version(self) -> int:
+        return int(self.meta["format_version"])
+
+    def encoder_paths(self, int8: bool = False) -> dict[str, Path]:
+        """{"planes", "voxels"} (format 2) or {"encoder"} (format 1) -> file paths; int8: the quantised ones."""
+        files = self.meta["files"]
+        out = {}
+        for key in ENCODER_FILES[self.format_version]:
+            entry = files.get(f"{key}_int8" if int8 else key)
+            if entry is None:
+                raise AgoInputError(self.root, "bundle has no int8 encoder (export with `ago export --int8`)")
+            out[key] = self.root / entry["path"]
+        return out
 
     @property
-    def int8_encoder_path(self) -> Path | None:
-        entry = self.meta["files"].get("encoder_int8")
-        return self.root / entry["path"] if entry else None
+    def has_int8(self) -> bool:
+        return all(f"{k}_int8" in self.meta["files"] for k in ENCODER_FILES[self.format_version])
 
     @property
     def default_bank(self) -> str:
@@ -120,7 +137,8 @@ class Bundle:
             label_space = meta["label_space"]
             text_encoder = meta["text_encoder"]
             files = meta["files"]
-            files["encoder"]["path"], files["heads"]["path"]
+            for key in ENCODER_FILES[version] + ("heads",):
+                files[key]["path"]
         except (KeyError, TypeError, ValueError, AgoInputError) as e:
             raise AgoInputError(meta_path, f"bundle metadata incomplete or malformed ({e.__class__.__name__}: {e})") from None
         rig.validate(str(meta_path))

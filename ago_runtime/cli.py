@@ -26,6 +26,7 @@ COMMAND_MODULES = (
     "ago_train.cli_synth",       # ago synth
     "ago_train.cli_pseudo",      # ago pseudo-labels
     "ago_train.cli_train",       # ago train, ago eval, ago open-world
+    "ago_train.cli_experiments", # ago experiments run|report|list
     "ago_export.cli_export",     # ago export
 )
 

@@ -163,10 +163,18 @@ class FoldedHeads:
         """One chunk: (n, Dh), (n, Da) -> (label (n,), entropy, confidence, branch (n,) uint8 0=main 1=adapted)."""
         if identifier not in IDENTIFIERS:
             raise ValueError(f"identifier must be one of {IDENTIFIERS}, got {identifier!r}")
-        main = self.branch(h, "main")
+        s_ad = None if identifier == "none" else self.phrase_scores(g, "adapted")
+        return self.classify_scores(self.phrase_scores(h, "main"), s_ad, identifier)
+
+    def classify_scores(self, s_main: np.ndarray, s_ad: np.ndarray | None, identifier: str = "min-entropy"):
+        """Like `classify`, from bias-free class-major phrase scores (P', n) of each branch (overwritten),
+        e.g. computed inside the voxel graph (ago_runtime/encoder.py); s_ad may be None for "none"."""
+        if identifier not in IDENTIFIERS:
+            raise ValueError(f"identifier must be one of {IDENTIFIERS}, got {identifier!r}")
+        main = self.softmax_stats(self.class_scores(s_main, "main"))
         if identifier == "none":
             return main.label, main.entropy, main.confidence, np.zeros(len(main.label), np.uint8)
-        ad = self.branch(g, "adapted")
+        ad = self.softmax_stats(self.class_scores(s_ad, "adapted"))
         if identifier == "min-entropy":
             use_ad = ad.entropy < main.entropy
         else:

@@ -5,9 +5,11 @@
     pred.semantics                                    # (X, Y, Z) uint8 bank class index, free = K
 
 Steps: Preprocess (resize to the model's input size, ImageNet normalisation; intrinsics scaled to
-match) -> the ONNX encoder (onnxruntime) -> hidden features h (N, Dh), g (N, Da) -> the bank folded
-into the linear heads (ago_runtime.heads.FoldedHeads): phrase scores, max over each class's phrases,
-softmax over [K classes + free], entropy, identifier, argmax; chunked over voxels.
+match) -> the ONNX encoder (onnxruntime; ago_runtime/encoder.py: the TPV planes once, then the
+per-voxel MLPs slab by slab) -> for each slab, hidden features h (n, Dh), g (n, Da) -> the bank
+folded into the linear heads (ago_runtime.heads.FoldedHeads): phrase scores, max over each class's
+phrases, softmax over [K classes + free], entropy, identifier, argmax. The whole grid's (N, Dh) and
+(N, Da) features never exist at once, so memory follows the slab, not the grid.
 
 Swapping the bank (a new prompt file) changes the classes with no retraining and no re-export:
 folding a bank costs one (P+1, C) x (C, Dh) product, cached per bank.
@@ -21,12 +23,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import onnxruntime as ort
 
 from .bundle import Bundle
 from .calibration import fit_rig_to_images
 from .camera import Rig
 from .classes import FREE, OCC3D_CLASSES
+from .encoder import open_encoder, session_options  # noqa: F401 (session_options: re-exported)
 from .errors import AgoInputError
 from .grid import Grid
 from .heads import IDENTIFIERS, FoldedHeads
@@ -82,34 +84,12 @@ def bank_key(bank) -> str:
     return h.hexdigest()
 
 
-def session_options(threads: int | None = None) -> ort.SessionOptions:
-    so = ort.SessionOptions()
-    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    if threads:
-        so.intra_op_num_threads = int(threads)
-    so.log_severity_level = 3
-    return so
-
-
 class Predictor:
     def __init__(self, bundle: Bundle | str | Path, int8: bool = False, threads: int | None = None,
                  chunk: int | None = None):
         self.bundle = bundle if isinstance(bundle, Bundle) else Bundle.load(bundle)
-        path = self.bundle.int8_encoder_path if int8 else self.bundle.encoder_path
-        if path is None:
-            raise AgoInputError(self.bundle.root, "bundle has no int8 encoder (export with `ago export --int8`)")
-        self.encoder_path = path
-        try:
-            self.session = ort.InferenceSession(str(path), session_options(threads),
-                                                providers=["CPUExecutionProvider"])
-        except Exception as e:  # onnxruntime raises its own Fail/InvalidProtobuf types
-            raise AgoInputError(path, f"onnxruntime cannot load the encoder ({str(e).splitlines()[0][:200]})") from None
-        names_in = [i.name for i in self.session.get_inputs()]
-        names_out = [o.name for o in self.session.get_outputs()]
-        if names_in != ["images", "ego2img"] or names_out != ["h", "g"]:
-            raise AgoInputError(path, f"encoder has inputs {names_in} and outputs {names_out}; "
-                                "expected ['images', 'ego2img'] -> ['h', 'g']")
-        self.chunk = chunk   # voxels per head chunk; None = FoldedHeads.default_chunk
+        self.encoder = open_encoder(self.bundle, int8, threads)
+        self.chunk = chunk   # voxels per head chunk in predict_hidden; None = FoldedHeads.default_chunk
         self._folded: dict[str, FoldedHeads] = {}
 
     @property
@@ -148,11 +128,8 @@ class Predictor:
         return self.encode_arrays(x, m)
 
     def encode_arrays(self, x: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        h, g = self.session.run(["h", "g"], {"images": x, "ego2img": m})
-        n = self.grid.num_voxels
-        if h.shape[0] != n or g.shape[0] != n:
-            raise AgoInputError(self.encoder_path, f"encoder gives {h.shape[0]} voxels, the bundle grid has {n}")
-        return h, g
+        """The whole grid's h (N, Dh), g (N, Da) (retrieval, parity; `predict` streams slabs instead)."""
+        return self.encoder.hidden(x, m)
 
     # ---- prediction ------------------------------------------------------------------------
     def predict(self, images: dict[str, np.ndarray], rig: Rig, bank=None, identifier: str | None = None,
@@ -166,20 +143,51 @@ class Predictor:
         t0 = time.perf_counter()
         x, m = self.prepare(images, rig, source)
         t1 = time.perf_counter()
-        h, g = self.encode_arrays(x, m)
-        t2 = time.perf_counter()
-        pred = self.predict_hidden(h, g, bank, identifier, folded)
-        pred.timings = {"preprocess": t1 - t0, "encoder": t2 - t1, "heads": time.perf_counter() - t2}
+        pred = self.predict_arrays(x, m, bank, identifier, folded)
+        pred.timings = {"preprocess": t1 - t0, **pred.timings}
         return pred
+
+    def predict_arrays(self, x: np.ndarray, m: np.ndarray, bank, identifier: str = "min-entropy",
+                       folded: FoldedHeads | None = None) -> Prediction:
+        """Preprocessed inputs -> Prediction, streaming the encoder's slabs through the heads.
+
+        timings: "encoder" = the graphs (for format 2 including the heads' matrix product, which runs
+        inside voxels.onnx), "heads" = the numpy part (class max, softmax, entropy, identifier)."""
+        folded = folded or self.fold(bank)
+        self._check_classes(bank)
+        n = self.grid.num_voxels
+        label_dtype = np.uint8 if bank.num_classes + 1 <= 255 else np.uint16
+        out = {"label": np.empty(n, label_dtype), "entropy": np.empty(n, np.float32),
+               "confidence": np.empty(n, np.float32), "branch": np.empty(n, np.uint8)}
+        t_enc = t_heads = 0.0
+        t = time.perf_counter()
+        for start, stop, s_main, s_ad in self.encoder.score_chunks(x, m, folded, adapted=identifier != "none"):
+            t2 = time.perf_counter()
+            t_enc += t2 - t
+            label, ent, conf, br = folded.classify_scores(s_main, s_ad, identifier)
+            out["label"][start:stop], out["entropy"][start:stop] = label, ent
+            out["confidence"][start:stop], out["branch"][start:stop] = conf, br
+            t = time.perf_counter()
+            t_heads += t - t2
+        pred = self._prediction(out, bank, identifier)
+        pred.timings = {"encoder": t_enc, "heads": t_heads}
+        return pred
+
+    def _check_classes(self, bank) -> None:
+        if bank.num_classes + 1 > 255:
+            raise AgoInputError(None, f"a bank with {bank.num_classes} classes does not fit uint8 semantics "
+                                "(max 254 classes)")
 
     def predict_hidden(self, h: np.ndarray, g: np.ndarray, bank, identifier: str = "min-entropy",
                        folded: FoldedHeads | None = None) -> Prediction:
+        """Whole-grid hidden features -> Prediction (heads only; benchmarks and tests)."""
         folded = folded or self.fold(bank)
-        out = folded.run(h, g, identifier, self.chunk)
+        self._check_classes(bank)
+        return self._prediction(folded.run(h, g, identifier, self.chunk), bank, identifier)
+
+    def _prediction(self, out: dict, bank, identifier: str) -> Prediction:
         shape = self.grid.shape
         K = bank.num_classes
-        if K + 1 > 255:
-            raise AgoInputError(None, f"a bank with {K} classes does not fit uint8 semantics (max 254 classes)")
         sem = out["label"].astype(np.uint8).reshape(shape)
         lut = occ3d_lookup(bank)
         return Prediction(

@@ -37,7 +37,8 @@ def env(tmp_path_factory):
 
 def test_bundle_is_self_describing(env):
     meta = json.loads((env["bundle"] / "bundle.json").read_text())
-    assert meta["format_version"] == 1
+    assert meta["format_version"] == 2
+    assert {"planes", "voxels", "heads"} <= set(meta["files"]) and "encoder" not in meta["files"]
     assert meta["grid"]["shape"] == [20, 20, 4]
     assert [c["name"] for c in meta["label_space"]["classes"]][:3] == ["others", "barrier", "bicycle"]
     assert meta["label_space"]["classes"][4]["occ3d_ids"] == [4]          # car
@@ -51,16 +52,45 @@ def test_bundle_is_self_describing(env):
     assert not [p for p in env["root"].iterdir() if p.name.startswith(".bundle")]
 
 
-def test_onnx_file_checks_and_carries_metadata(env):
-    path = env["bundle"] / "encoder.onnx"
-    onnx.checker.check_model(str(path), full_check=True)
-    model = onnx.load(str(path))
-    props = {p.key: p.value for p in model.metadata_props}
-    assert json.loads(props["ago.grid"])["shape"] == [20, 20, 4]
-    assert json.loads(props["ago.class_names"])[4] == "car"
-    assert [i.name for i in model.graph.input] == ["images", "ego2img"]
-    assert [o.name for o in model.graph.output] == ["h", "g"]
-    assert "Softplus" not in {n.op_type for n in model.graph.node}    # rewritten as relu + log1p(exp(-|x|))
+def test_onnx_files_check_and_carry_metadata(env):
+    ios = {"planes": (["images", "ego2img"], ["plane_xy", "plane_xz", "plane_yz"]),
+           "voxels": (["plane_xy", "plane_xz", "plane_yz", "bank_main", "bank_adapted"],
+                      ["h", "g", "s_main", "s_adapted"])}
+    for name, (inputs, outputs) in ios.items():
+        path = env["bundle"] / f"{name}.onnx"
+        onnx.checker.check_model(str(path), full_check=True)
+        model = onnx.load(str(path))
+        props = {p.key: p.value for p in model.metadata_props}
+        assert json.loads(props["ago.grid"])["shape"] == [20, 20, 4] and props["ago.graph"] == name
+        assert json.loads(props["ago.class_names"])[4] == "car"
+        assert [i.name for i in model.graph.input] == inputs
+        assert [o.name for o in model.graph.output] == outputs
+        assert "Softplus" not in {n.op_type for n in model.graph.node}  # rewritten as relu + log1p(exp(-|x|))
+
+
+def test_split_encoder_slabs_equal_the_torch_model_voxel_by_voxel(env):
+    """Any slab size gives the same h, g as the torch model's forward_hidden on the whole grid."""
+    import torch
+
+    from ago_export.export import load_model
+    from ago_runtime.bundle import Bundle
+    from ago_runtime.encoder import SplitEncoder
+
+    model, _ckpt, cfg = load_model(env["ckpt"])
+    b = Bundle.load(env["bundle"])
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(1, 6, 3, cfg.image_height, cfg.image_width)).astype(np.float32)
+    m = np.asarray(b.preprocess.ego2img(b.rig))[None].astype(np.float32)
+    with torch.no_grad():
+        h_t, g_t = model.forward_hidden(torch.from_numpy(x), torch.from_numpy(m))
+    for slab_voxels in (1, 3 * 20 * 4, 10 ** 6):       # 1 x-row, 3 rows (uneven last slab), everything
+        enc = SplitEncoder(b.root / "planes.onnx", b.root / "voxels.onnx", b.grid, slab_voxels=slab_voxels)
+        chunks = list(enc.chunks(x, m))
+        assert chunks[0][0] == 0 and chunks[-1][1] == b.grid.num_voxels
+        assert all(a[1] == c[0] for a, c in zip(chunks, chunks[1:]))         # contiguous, in order
+        h, g = enc.hidden(x, m)
+        np.testing.assert_allclose(h, h_t[0].numpy(), rtol=1e-4, atol=1e-4)
+        np.testing.assert_allclose(g, g_t[0].numpy(), rtol=1e-4, atol=1e-4)
 
 
 def test_parity_report_within_tolerance(env):
@@ -71,7 +101,7 @@ def test_parity_report_within_tolerance(env):
         assert "ca9a282c9e77460f8360f564131a8af5" in p["frame"]       # checked on the real keyframe
     q = env["meta"]["parity"]["int8"]
     assert q["rel_err_feat"] > p["rel_err_feat"]                      # int8 really is a different model
-    assert (env["bundle"] / "encoder.int8.onnx").is_file()
+    assert (env["bundle"] / "planes.int8.onnx").is_file() and (env["bundle"] / "voxels.int8.onnx").is_file()
 
 
 def test_runtime_matches_torch_on_another_frame(env):

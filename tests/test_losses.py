@@ -117,7 +117,7 @@ def _setup(seed=0):
 
 def test_variants_and_gradient_routes():
     cfg, model, images, ego2img, batch, bank = _setup()
-    expected = {"align": {"align"}, "grounding": {"grounding_ce", "grounding_lovasz", "occ"},
+    expected = {"align": {"align", "occ"}, "grounding": {"grounding_ce", "grounding_lovasz", "occ"},
                 "grounding+align": {"grounding_ce", "grounding_lovasz", "occ", "align"},
                 "ago": {"grounding_ce", "grounding_lovasz", "occ", "align"}}
     for variant, keys in expected.items():
@@ -131,6 +131,8 @@ def test_variants_and_gradient_routes():
         assert (adapter_grad is not None and adapter_grad.abs().sum() > 0) == (variant == "ago")
     off = compute_losses(model(images, ego2img), batch, bank, LossConfig(variant="grounding", use_occ=False))
     assert "occ" not in off
+    align_only = compute_losses(model(images, ego2img), batch, bank, LossConfig(variant="align", use_occ=False))
+    assert set(align_only) == {"align", "total"}
     no_noise = compute_losses(model(images, ego2img), batch, bank, LossConfig(variant="grounding", use_noise=False))
     with_noise = compute_losses(model(images, ego2img), batch, bank, LossConfig(variant="grounding"))
     assert float(no_noise["grounding_ce"].detach()) != float(with_noise["grounding_ce"].detach())

@@ -182,6 +182,33 @@ def test_predictor_outputs_and_identifier(bundle_dir, frame_dir):
     assert np.array_equal(best.occ3d == FREE, best.semantics == K)
 
 
+def test_streamed_slabs_match_whole_grid_heads(bundle_dir, frame_dir, monkeypatch):
+    """`predict` (voxels.onnx slab by slab, the bank's scores from the graph's GEMM) gives what the
+    numpy heads give on the whole grid's h, g; a large bank is cut into thinner slabs."""
+    import ago_runtime.encoder as enc
+    from ago_runtime.calibration import load_images_folder
+    from ago_runtime.heads import SCORE_BUDGET_BYTES
+    from ago_runtime.predictor import Predictor
+
+    p = Predictor(bundle_dir)
+    assert isinstance(p.encoder, enc.SplitEncoder)
+    images, rig, _ = load_images_folder(frame_dir)
+    x, m = p.prepare(images, rig)
+    bank = p.bundle.load_bank()
+    h, g = p.encode_arrays(x, m)
+    whole = p.predict_hidden(h, g, bank, "min-entropy")
+    for slab_voxels in (20 * 4, 7 * 20 * 4):            # one x-row per slab; 7 rows (uneven last slab)
+        p.encoder = enc.SplitEncoder(p.bundle.root / "planes.onnx", p.bundle.root / "voxels.onnx", p.grid,
+                                     slab_voxels=slab_voxels)
+        got = p.predict_arrays(x, m, bank, "min-entropy")
+        assert np.mean(got.semantics == whole.semantics) > 0.999
+        np.testing.assert_allclose(got.entropy, whole.entropy, atol=1e-4)
+    # the score block of a slab stays within the budget: with a tiny budget every slab is one row
+    monkeypatch.setattr(enc, "SCORE_BUDGET_BYTES", 1)
+    seen = [stop - start for start, stop, _s, _a in p.encoder.score_chunks(x, m, p.fold(bank))]
+    assert seen == [20 * 4] * 20 and SCORE_BUDGET_BYTES > 1
+
+
 def test_bank_swap_to_unseen_classes(bundle_dir, frame_dir, tmp_path):
     """Classes the model never saw ("fire hydrant", "mailbox") with no retraining and no re-export."""
     from ago_runtime.bank import bank_for_prompts
@@ -338,15 +365,15 @@ def test_refuses_newer_bundle_and_truncated_onnx(bundle_dir, frame_dir, tmp_path
 
     cut = tmp_path / "cut"
     shutil.copytree(bundle_dir, cut)
-    data = (cut / "encoder.onnx").read_bytes()
-    (cut / "encoder.onnx").write_bytes(data[: len(data) // 3])
-    assert_refused(_infer(cut, frame_dir, out), "encoder.onnx", out)
+    data = (cut / "voxels.onnx").read_bytes()
+    (cut / "voxels.onnx").write_bytes(data[: len(data) // 3])
+    assert_refused(_infer(cut, frame_dir, out), "voxels.onnx", out)
     # Even with the recorded size/hash removed, onnxruntime's refusal becomes a one-line error.
     meta = json.loads((cut / "bundle.json").read_text())
     for k in ("size", "sha256"):
-        meta["files"]["encoder"].pop(k)
+        meta["files"]["voxels"].pop(k)
     (cut / "bundle.json").write_text(json.dumps(meta))
-    assert_refused(_infer(cut, frame_dir, out), "encoder.onnx", out)
+    assert_refused(_infer(cut, frame_dir, out), "voxels.onnx", out)
 
 
 def test_refuses_bank_of_other_encoder_or_width(bundle_dir, frame_dir, tmp_path):

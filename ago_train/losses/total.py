@@ -11,7 +11,11 @@ Returns a dict of scalar tensors: "total" plus the parts that were computed
 ("grounding_ce", "grounding_lovasz", "occ", "align").
 
 Variants (`LossConfig.variant`):
-- "align":            align(F_3D, E_3D) only (no adapter, no grounding);
+- "align":            align(F_3D, E_3D) (+ occ) (no adapter, no grounding): the POP-3D-like baseline.
+                      POP-3D learns occupancy with its own head; here the 2-way occupancy CE on
+                      [max over class texts ; free] stands in for it (it says only occupied vs free,
+                      never which class), so the baseline predicts geometry and takes its classes
+                      purely from the alignment. `use_occ=False` gives alignment alone;
 - "grounding":        grounding (+ occ) on F_3D only;
 - "grounding+align":  grounding (+ occ) on F_3D and align(F_3D, E_3D);
 - "ago":              grounding (+ occ) on F_3D and align(F~_3D, E_3D)  (the paper).
@@ -137,6 +141,11 @@ def compute_losses(outputs: dict, batch: dict, bank: BankTensors, cfg: LossConfi
         if cfg.use_occ:
             losses["occ"] = occupancy_loss(logits, target, K)
             total = total + cfg.w_occ * losses["occ"]
+    if not cfg.uses_grounding and cfg.use_occ:
+        target = _flat_targets(batch, outputs, K)
+        logits = class_logits(feat, bank.text, bank.phrase_class, K, free, None)
+        losses["occ"] = occupancy_loss(logits, target, K)
+        total = total + cfg.w_occ * losses["occ"]
     if cfg.uses_align:
         src = outputs["feat_adapted"] if cfg.variant == "ago" else feat
         if num_voxels is None:

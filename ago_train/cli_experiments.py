@@ -1,0 +1,60 @@
+"""CLI verb `ago experiments`: the paper's tables on the synthetic benchmark (ago_train/experiments/).
+
+    ago experiments run [tab1 tab2 tab3 tab4 tab5 supp figures | all] [--profile cpu] [--out runs/experiments]
+    ago experiments report [--profile cpu] [--out runs/experiments]
+    ago experiments list [--profile cpu]
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+
+
+def register(app: typer.Typer) -> None:
+    exp = typer.Typer(help="Run the paper's experiments (tables + figures) on the synthetic benchmark.",
+                      no_args_is_help=True)
+    app.add_typer(exp, name="experiments")
+
+    def _profile(name: str):
+        from .experiments.plan import ExperimentProfile
+
+        return ExperimentProfile.preset(name)
+
+    @exp.command("run")
+    def run_cmd(
+        names: Optional[List[str]] = typer.Argument(None, help="experiments to run (default: all)"),
+        profile: str = typer.Option("cpu", "--profile", help="tiny | cpu | full (docs/experiments.md)"),
+        out: Path = typer.Option(Path("runs/experiments"), "--out", help="experiments folder (cache; resumable)"),
+    ):
+        """Make or reuse the data, train or reuse the runs, score them, write results.md + figures."""
+        from ago_runtime.cli import require_torch
+
+        require_torch("experiments run")
+        from .experiments.driver import EXPERIMENTS, ExperimentRunner
+
+        chosen = list(EXPERIMENTS) if not names or names == ["all"] else list(names)
+        ExperimentRunner(_profile(profile), out).run(chosen)
+        typer.echo(f"written {out}/results.md, {out}/results.json, {out}/figures/")
+
+    @exp.command("report")
+    def report_cmd(
+        profile: str = typer.Option("cpu", "--profile"),
+        out: Path = typer.Option(Path("runs/experiments"), "--out"),
+    ):
+        """Rewrite results.md / results.json / figures from the runs that exist (trains nothing)."""
+        from .experiments.report import write_report
+
+        write_report(out, _profile(profile))
+        typer.echo(f"written {out}/results.md, {out}/results.json, {out}/figures/")
+
+    @exp.command("list")
+    def list_cmd(profile: str = typer.Option("cpu", "--profile")):
+        """Each experiment and the training runs it needs."""
+        from .experiments.driver import EXPERIMENTS, runs_for
+
+        p = _profile(profile)
+        for e in EXPERIMENTS:
+            typer.echo(f"{e}: " + ", ".join(s.name for s in runs_for(e, p)))

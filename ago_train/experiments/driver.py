@@ -1,0 +1,345 @@
+"""Run the named experiments: make (or reuse) the data, train (or reuse / resume) the runs, score them.
+
+    ago experiments run [tab1 tab2 ...] --profile cpu --out runs/experiments
+    ago experiments report --out runs/experiments        (tables + figures from what is there)
+
+Folder `<out>` (everything is cached there; rerunning a command skips what is done):
+    profile.json                 the profile the folder was made with (a different one is refused)
+    synth/, pseudo_*/            data (profiles that generate it)
+    runs/<run name>/             one training run each (config.json, log.jsonl, last.pt)
+    runs/<run name>/views.json   its scores under the views the experiments asked for (+ stats)
+    runs/<run name>/kept/*.npz   predicted volumes of the first val frames (for the renders)
+    results.json, results.md, figures/*.png    written by `report` (and at the end of `run`)
+
+Experiments (EXPERIMENTS): tab1 (closed world), tab2 (open world, 3 stages), tab3 (paradigms),
+tab4 (identifier), tab5 (noise prompts, L_occ), supp (adapter depth, align loss), figures.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from ago_runtime.atomic import write_json
+from ago_runtime.errors import AgoInputError
+from ago_runtime.readers import read_json
+
+from .plan import FEWSHOT_VARIANTS, PARADIGMS, ExperimentProfile, RunSpec, cw_run, fewshot_run, ow_run
+from .scoring import View
+
+EXPERIMENTS = ("tab1", "tab2", "tab3", "tab4", "tab5", "supp", "figures")
+
+
+# ---------------------------------------------------------------------------------------------
+# which runs and which views each experiment needs
+def runs_for(experiment: str, profile: ExperimentProfile) -> list[RunSpec]:
+    if experiment == "tab1":
+        return [cw_run("ago")]
+    if experiment == "tab2":
+        return [ow_run(v) for v in FEWSHOT_VARIANTS] + [fewshot_run(v, s) for v in FEWSHOT_VARIANTS
+                                                        for s in profile.seeds]
+    if experiment == "tab3":
+        return [cw_run(v) for v in PARADIGMS] + [ow_run(v) for v in PARADIGMS]
+    if experiment == "tab4":
+        return [ow_run("ago")] + [fewshot_run("ago", s) for s in profile.seeds]
+    if experiment == "tab5":
+        return [cw_run("ago"), cw_run("ago", use_noise=False), cw_run("ago", use_occ=False),
+                cw_run("ago", use_noise=False, use_occ=False)]
+    if experiment == "supp":
+        return ([ow_run("ago", adapter_depth=d) for d in (1, 2, 3, 4)]
+                + [ow_run("ago", align_loss=a) for a in ("mse", "l1")])
+    if experiment == "figures":
+        return [cw_run("ago"), ow_run("ago")]
+    raise AgoInputError(None, f"unknown experiment {experiment!r}; choose from {list(EXPERIMENTS)}")
+
+
+def views_for(spec: RunSpec, ow_prompts: str) -> list[View]:
+    """Every way a run is scored by any experiment (one forward pass per frame covers all)."""
+    variant = dict(spec.loss).get("variant", "ago")
+    if spec.setting == "cw":
+        views = [View("cw", "cw", "none")]
+        if variant == "ago":
+            views += [View("cw-min-entropy", "cw", "min-entropy")]
+        return views
+    views = [View("ow-none", ow_prompts, "none")]
+    if variant == "grounding" and spec.setting == "ow":
+        views.append(View("ow-closed", ow_prompts, "none", closed_set=True))
+    if variant in ("ago", "grounding+align"):
+        views += [View("ow-max-conf", ow_prompts, "max-conf"), View("ow-min-entropy", ow_prompts, "min-entropy"),
+                  View("ow-adapted", ow_prompts, "adapted")]
+    return views
+
+
+def main_view(spec: RunSpec) -> str:
+    """The view a run is reported under in the main tables (the method's own inference rule)."""
+    variant = dict(spec.loss).get("variant", "ago")
+    if spec.setting == "cw":
+        return "cw"
+    return "ow-min-entropy" if variant == "ago" else "ow-none"
+
+
+# ---------------------------------------------------------------------------------------------
+class ExperimentRunner:
+    def __init__(self, profile: ExperimentProfile, out: str | Path, quiet: bool = False):
+        self.profile = profile
+        self.out = Path(out)
+        self.quiet = quiet
+        self.log_path = self.out / "driver.log"
+
+    # ---- bookkeeping -------------------------------------------------------------------
+    def log(self, msg: str) -> None:
+        line = f"{time.strftime('%Y-%m-%d %H:%M:%S')} {msg}"
+        if not self.quiet:
+            print(line, flush=True)
+        self.out.mkdir(parents=True, exist_ok=True)
+        with open(self.log_path, "a", encoding="utf-8") as f:
+            f.write(line + "\n")
+
+    def check_profile(self) -> None:
+        path = self.out / "profile.json"
+        mine = self.profile.to_dict()
+        if path.is_file():
+            saved = read_json(path)
+            if saved != mine:
+                diff = sorted(k for k in set(saved) | set(mine) if saved.get(k) != mine.get(k))
+                raise AgoInputError(path, f"this folder was made with another profile (differs in {diff}); "
+                                    "use another --out")
+        else:
+            write_json(path, mine)
+
+    def path(self, p: str) -> Path:
+        q = Path(p)
+        return q if q.is_absolute() or self.profile.external_data else self.out / q
+
+    @property
+    def data(self) -> Path:
+        return self.path(self.profile.data)
+
+    def pseudo(self, space: str) -> Path:
+        return self.path(self.profile.pseudo[space])
+
+    def run_dir(self, name: str) -> Path:
+        return self.out / "runs" / name
+
+    # ---- data ------------------------------------------------------------------------------
+    def _ago(self, *args: str) -> None:
+        cmd = [sys.executable, "-m", "ago_runtime.cli", *args]
+        self.log("$ ago " + " ".join(args))
+        r = subprocess.run(cmd, capture_output=True, text=True)
+        if r.returncode != 0:
+            raise AgoInputError(None, f"`ago {' '.join(args)}` failed: {(r.stderr or r.stdout).strip()[-400:]}")
+
+    def ensure_data(self, spaces: set[str]) -> None:
+        p = self.profile
+        if p.external_data:
+            for need in [self.data] + [self.pseudo(s) for s in sorted(spaces)]:
+                if not need.exists():
+                    raise AgoInputError(need, f"profile {p.name!r} uses external data: make this folder first "
+                                        "(docs/experiments.md)")
+            return
+        if not (self.data / "synth.done").is_file():
+            args = ["synth", "--out", str(self.data)]
+            for k, v in p.synth.items():
+                args += [f"--{k}", str(v)]
+            self._ago(*args)
+        (self.data / "synth.done").write_text("done\n")
+        for space in sorted(spaces):
+            done = self.pseudo(space) / "complete.json"
+            if done.is_file():
+                continue
+            split = "all" if space == "cw" else p.train_split   # cw pseudo-labels on val too: their own mIoU
+            self._ago("pseudo-labels", "--data", str(self.data), "--out", str(self.pseudo(space)), "--prompts", space,
+                      "--segmenter", "sim", "--embedder", "sim", "--grid", p.pseudo_grid, "--sweeps", str(p.sweeps),
+                      "--interval", str(p.interval), "--split", split)
+            write_json(done, {"split": split})
+
+    def ensure_data_scores(self) -> dict:
+        """The cw pseudo-labels' own scores on the val frames (Tab. 1) and the simulated VLM embeddings'
+        cosine to each class text per GT class (the E_3D panel of the modality-gap figure)."""
+        path = self.out / "data_scores.json"
+        if path.is_file():
+            return read_json(path)
+        from ago_runtime.metric import OccupancyMetric, upsample_nearest
+        from ago_runtime.nuscenes import NuScenesDataset
+        from ago_runtime.prompts import parse_prompt_file
+
+        from ..pseudo.generate import load_pseudo_labels, load_voxel_embeds
+        from ..trainer import build_text_bank
+
+        pdir = self.pseudo("cw")
+        ds = NuScenesDataset(self.data, load_images=False)
+        metric = OccupancyMetric()
+        space = parse_prompt_file("cw")
+        bank = build_text_bank(space)
+        emb, pc = np.asarray(bank["embeddings"], np.float32), np.asarray(bank["phrase_class"])
+        text = np.stack([emb[pc == k].mean(0) for k in range(space.num_classes)])
+        text /= np.linalg.norm(text, axis=1, keepdims=True)
+        K = space.num_classes
+        cos, count = np.zeros((K, K)), np.zeros(K)
+        frames = 0
+        for i in ds.split(self.profile.eval_split):
+            scene, token = ds.scene_of(i), ds.sample_tokens[i]
+            if not (pdir / scene / token / "labels.npz").is_file():
+                continue
+            gt = ds[i].gt
+            sem, _ml, _mc = load_pseudo_labels(pdir, scene, token)
+            fac = tuple(g // p for g, p in zip(gt.semantics.shape, sem.shape))
+            sem = np.where(sem == 255, 17, sem).astype(np.uint8)   # unlabelled counts as free (as in the ladder)
+            metric.update(upsample_nearest(sem, fac), gt.semantics, gt.mask_camera.astype(bool))
+            index, e = load_voxel_embeds(pdir, scene, token)
+            g = gt.semantics[:: fac[0], :: fac[1], :: fac[2]].reshape(-1)[index]
+            keep = g < K
+            e = e[keep].astype(np.float32)
+            e /= np.maximum(np.linalg.norm(e, axis=1, keepdims=True), 1e-8)
+            s = e @ text.T
+            for k in range(K):
+                cos[:, k] += np.bincount(g[keep], weights=s[:, k], minlength=K)[:K]
+            count += np.bincount(g[keep], minlength=K)[:K]
+            frames += 1
+        summ = metric.summary()
+        r = {"pseudo_cw_val": {"mIoU": summ["mIoU"], "mIoU_star": summ["mIoU_star"],
+                               "geometry_IoU": summ["geometry_IoU"], "iou": summ["iou"], "frames": frames},
+             "gap_e3d": {"classes": list(space.class_names), "voxels": count.tolist(),
+                         "cos": np.round(cos / np.maximum(count, 1)[:, None], 4).tolist()}}
+        write_json(path, r)
+        return r
+
+    # ---- training ----------------------------------------------------------------------
+    def train_config(self, spec: RunSpec):
+        from ..losses import LossConfig
+        from ..model import ModelConfig
+        from ..train_config import TrainConfig
+
+        p = self.profile
+        cfg = TrainConfig.preset(p.train_preset)
+        if p.train_set:
+            cfg = TrainConfig.from_dict({**cfg.to_dict(), **p.train_set})
+        loss = LossConfig(**{**cfg.loss.to_dict(), **dict(spec.loss)})
+        model = ModelConfig.from_dict({**cfg.model.to_dict(), **dict(spec.model)})
+        space = {"cw": "cw", "ow": "ow_pretrain", "fewshot": "ow"}[spec.setting]
+        changes = dict(data=str(self.data), pseudo=str(self.pseudo(space)), prompts=spec.prompts,
+                       out=str(self.run_dir(spec.name)), train_split=p.train_split, loss=loss, model=model,
+                       seed=spec.seed, frame_tokens=None, init_from=None)
+        if spec.setting == "fewshot":
+            changes.update(init_from=str(self.run_dir(spec.init_from) / "last.pt"),
+                           frame_tokens=self.kshot_tokens(spec.seed), epochs=p.fewshot_epochs,
+                           max_steps=p.fewshot_steps)
+        elif p.steps is not None:
+            changes.update(max_steps=p.steps, epochs=max(cfg.epochs, 1000))
+        if p.steps is not None:
+            changes.update(ckpt_every=max(10, (p.steps or 100) // 4))
+        return replace(cfg, **changes)
+
+    def kshot_tokens(self, seed: int) -> list[str]:
+        from ago_runtime.prompts import parse_prompt_file
+
+        from ..dataset import PseudoLabelSet
+        from ..open_world import select_kshot
+        from ..trainer import open_frames
+
+        path = self.out / "kshot" / f"seed{seed}.json"
+        if path.is_file():
+            return read_json(path)["tokens"]
+        space = parse_prompt_file("ow")
+        pseudo = PseudoLabelSet.open(self.pseudo("ow"))
+        ds, indices = open_frames(str(self.data), None, self.profile.train_split)
+        frames = [(ds.scene_of(i), ds.sample_tokens[i]) for i in indices]
+        tokens, counts = select_kshot(pseudo, frames, space.num_classes, self.profile.k, seed)
+        write_json(path, {"seed": seed, "k": self.profile.k, "tokens": tokens,
+                          "class_frames": {space.class_names[c]: n for c, n in counts.items()}})
+        return tokens
+
+    def is_trained(self, spec: RunSpec) -> bool:
+        ckpt = self.run_dir(spec.name) / "last.pt"
+        status = self.run_dir(spec.name) / "done.json"
+        return ckpt.is_file() and status.is_file()
+
+    def ensure_trained(self, spec: RunSpec) -> None:
+        from ..trainer import train
+
+        if self.is_trained(spec):
+            return
+        if spec.init_from:
+            self.ensure_trained(RunSpec(spec.init_from, "ow", spec.loss, spec.model))
+        cfg = self.train_config(spec)
+        resume = (self.run_dir(spec.name) / "last.pt").is_file()
+        self.log(f"train {spec.name}{' (resume)' if resume else ''}")
+        t0 = time.time()
+        r = train(cfg, resume=resume, quiet=self.quiet)
+        write_json(self.run_dir(spec.name) / "done.json",
+                   {"steps": r["step"], "final_loss": r["losses"][-1] if r["losses"] else None,
+                    "wall_s_last_session": round(time.time() - t0, 1)})
+        self.log(f"trained {spec.name}: {r['step']} steps in {time.time() - t0:.0f} s")
+
+    # ---- scoring -----------------------------------------------------------------------
+    def ensure_scored(self, spec: RunSpec) -> dict:
+        from ago_runtime.prompts import resolve_prompt_file
+
+        from ..open_world import OpenWorldConfig, _known_prompt_file
+        from .scoring import evaluate_views
+
+        path = self.run_dir(spec.name) / "views.json"
+        ow_prompts = str(self.out / "ow_known.txt")
+        if not Path(ow_prompts).is_file():   # ow.txt with `@known:` = the classes ow_pretrain covers
+            _known_prompt_file(OpenWorldConfig(base=None, pseudo_pretrain="", pseudo_full=""), self.out)
+        views = [v if v.prompts != "cw" else replace(v, prompts=str(resolve_prompt_file("cw")))
+                 for v in views_for(spec, ow_prompts)]
+        if path.is_file():
+            saved = read_json(path)
+            if sorted(saved["views"]) == sorted(v.name for v in views):
+                return saved
+        self.ensure_trained(spec)
+        stats_view = {"cw": "cw", "ow": None, "fewshot": None}[spec.setting]
+        if spec.setting == "ow" and any(v.name == "ow-min-entropy" for v in views):
+            stats_view = "ow-min-entropy"
+        self.log(f"score {spec.name}: {[v.name for v in views]}")
+        t0 = time.time()
+        r = evaluate_views(self.run_dir(spec.name) / "last.pt", str(self.data), views, split=self.profile.eval_split,
+                           max_frames=self.profile.eval_max_frames, stats_view=stats_view,
+                           keep_frames=self.profile.render_frames, quiet=self.quiet)
+        kept_dir = self.run_dir(spec.name) / "kept"
+        kept_dir.mkdir(parents=True, exist_ok=True)
+        for view, frames in r.pop("kept").items():
+            for scene, token, labels in frames:
+                tmp = kept_dir / f".{view}__{token}.npz"
+                with open(tmp, "wb") as f:
+                    np.savez_compressed(f, labels=labels, scene=scene, token=token)
+                tmp.replace(kept_dir / f"{view}__{token}.npz")
+        r["eval_s"] = round(time.time() - t0, 1)
+        write_json(path, r)
+        return r
+
+    # ---- experiments -------------------------------------------------------------------
+    def run(self, experiments: list[str]) -> None:
+        for e in experiments:
+            if e not in EXPERIMENTS:
+                raise AgoInputError(None, f"unknown experiment {e!r}; choose from {list(EXPERIMENTS)}")
+        self.check_profile()
+        specs: dict[str, RunSpec] = {}
+        for e in experiments:
+            for s in runs_for(e, self.profile):
+                specs.setdefault(s.name, s)
+        spaces = {"cw" if s.setting == "cw" else "ow_pretrain" for s in specs.values()}
+        if any(s.setting == "fewshot" for s in specs.values()):
+            spaces.add("ow")
+        if "tab1" in experiments or "figures" in experiments:
+            spaces.add("cw")
+        self.ensure_data(spaces)
+        if "cw" in spaces and not self.profile.external_data:
+            self.ensure_data_scores()
+        # in the order the experiments were named (a few-shot run trains its pretraining run first)
+        order = list(specs.values())
+        from ago_runtime.progress import track
+
+        for spec in (order if self.quiet else track(order, description="experiment runs", total=len(order))):
+            self.ensure_scored(spec)
+        from .report import write_report
+
+        write_report(self.out, self.profile)
+        self.log(f"done: {experiments}; written {self.out}/results.md")

@@ -1,0 +1,419 @@
+"""Tables (markdown + JSON) and figures from an experiments folder (see driver.py for its layout).
+
+`write_report(out, profile)` reads every `runs/<name>/views.json` that exists, builds the tables whose
+runs are there (a table with missing runs says which), draws the figures, and writes
+`<out>/results.json`, `<out>/results.md` and `<out>/figures/*.png`. It trains nothing.
+
+The paper's numbers come from `paper_tables.json` beside this file; see its `note` and
+`source_quality` fields for where they come from and how far to trust them.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ago_runtime.atomic import write_json, write_text
+from ago_runtime.classes import OCC3D_CLASSES
+from ago_runtime.readers import read_json
+
+from .plan import FEWSHOT_VARIANTS, PARADIGMS, ExperimentProfile, cw_run, fewshot_run, ow_run
+
+PAPER_TABLES = Path(__file__).with_name("paper_tables.json")
+PAPER_NAMES = {"align": "POP-3D-like align", "grounding": "grounding only", "grounding+align": "grounding + align",
+               "ago": "AGO (adaptive grounding)", "closed": "closed-world classifier (SelfOcc-like)"}
+
+
+def _views(out: Path, name: str) -> dict | None:
+    p = out / "runs" / name / "views.json"
+    return read_json(p) if p.is_file() else None
+
+
+def _fmt(v) -> str:
+    return "–" if v is None else f"{v:.2f}"
+
+
+def _row(view: dict | None) -> dict:
+    if view is None:
+        return {"known": None, "unknown": None, "all": None}
+    sub = view.get("subsets") or {}
+    return {"known": sub.get("known"), "unknown": sub.get("unknown"), "all": view["mIoU"]}
+
+
+def _mean(rows: list[dict]) -> dict:
+    out = {}
+    for k in rows[0] if rows else []:
+        vals = [r[k] for r in rows if r.get(k) is not None]
+        out[k] = round(float(np.mean(vals)), 2) if vals else None
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+def table1(out: Path, pseudo_score: dict | None) -> dict:
+    v = _views(out, cw_run("ago").name)
+    t = {"title": "Tab. 1 — closed world, self-supervised (cw label space, val split)", "rows": []}
+    if v is None:
+        t["missing"] = [cw_run("ago").name]
+        return t
+    view = v["views"]["cw"]
+    t["rows"].append({"method": "ago (F_3D, no identifier)", "mIoU": view["mIoU"], "mIoU_star": view["mIoU_star"],
+                      "geometry_IoU": view["geometry_IoU"], "iou": view["metric"]["iou"]})
+    if "cw-min-entropy" in v["views"]:
+        w = v["views"]["cw-min-entropy"]
+        t["rows"].append({"method": "ago + min-entropy identifier", "mIoU": w["mIoU"], "mIoU_star": w["mIoU_star"],
+                          "geometry_IoU": w["geometry_IoU"], "iou": w["metric"]["iou"]})
+    if pseudo_score:
+        t["rows"].append({"method": "pseudo-labels themselves (val frames)", **pseudo_score})
+    return t
+
+
+def table2(out: Path, profile: ExperimentProfile) -> dict:
+    t = {"title": "Tab. 2 — open world: pretrain on 5 classes, zero-shot and few-shot on 15 "
+                  f"(known / unknown / all mIoU; few-shot k={profile.k}, mean of seeds {list(profile.seeds)})",
+         "rows": [], "missing": []}
+    cl = _views(out, ow_run("grounding").name)
+    if cl and "ow-closed" in cl["views"]:
+        t["rows"].append({"method": PAPER_NAMES["closed"], "stage": "zero-shot", **_row(cl["views"]["ow-closed"])})
+    for variant in FEWSHOT_VARIANTS:
+        spec = ow_run(variant)
+        view = "ow-min-entropy" if variant == "ago" else "ow-none"
+        v = _views(out, spec.name)
+        if v is None:
+            t["missing"].append(spec.name)
+        else:
+            t["rows"].append({"method": PAPER_NAMES[variant], "stage": "zero-shot", **_row(v["views"][view])})
+        seeds = []
+        for s in profile.seeds:
+            f = _views(out, fewshot_run(variant, s).name)
+            if f is None:
+                t["missing"].append(fewshot_run(variant, s).name)
+            else:
+                seeds.append(_row(f["views"][view]))
+        if seeds:
+            t["rows"].append({"method": PAPER_NAMES[variant], "stage": f"{profile.k}-shot ({len(seeds)} seeds)",
+                              **_mean(seeds), "per_seed": seeds})
+    return t
+
+
+def table3(out: Path) -> dict:
+    t = {"title": "Tab. 3 — training paradigm: self-supervised (cw mIoU) and open world (zero-shot, known / "
+                  "unknown / all)", "rows": [], "missing": []}
+    for variant in PARADIGMS:
+        cw, ow = _views(out, cw_run(variant).name), _views(out, ow_run(variant).name)
+        if cw is None:
+            t["missing"].append(cw_run(variant).name)
+        if ow is None:
+            t["missing"].append(ow_run(variant).name)
+        ow_view = "ow-min-entropy" if variant == "ago" else "ow-none"
+        t["rows"].append({"paradigm": PAPER_NAMES[variant],
+                          "cw_mIoU": cw["views"]["cw"]["mIoU"] if cw else None,
+                          "cw_geometry_IoU": cw["views"]["cw"]["geometry_IoU"] if cw else None,
+                          **{f"ow_{k}": x for k, x in _row(ow["views"][ow_view] if ow else None).items()}})
+    return t
+
+
+def table4(out: Path, profile: ExperimentProfile) -> dict:
+    t = {"title": "Tab. 4 — open-world identifier (ago; known / unknown / all mIoU)", "rows": [], "missing": []}
+    zs = _views(out, ow_run("ago").name)
+    fs = [_views(out, fewshot_run("ago", s).name) for s in profile.seeds]
+    names = {"ow-none": "none (F_3D only)", "ow-max-conf": "max confidence", "ow-min-entropy": "min entropy (AGO)",
+             "ow-adapted": "adapted F~_3D only"}
+    if zs is None:
+        t["missing"].append(ow_run("ago").name)
+    for key, label in names.items():
+        row = {"identifier": label}
+        if zs:
+            row.update({f"zs_{k}": x for k, x in _row(zs["views"].get(key)).items()})
+        got = [f for f in fs if f is not None]
+        if got:
+            row.update({f"fs_{k}": x for k, x in _mean([_row(f["views"].get(key)) for f in got]).items()})
+        t["rows"].append(row)
+    return t
+
+
+def table5(out: Path) -> dict:
+    t = {"title": "Tab. 5 — components (closed world): noise prompts and L_occ", "rows": [], "missing": []}
+    for noise, occ in ((False, False), (True, False), (False, True), (True, True)):
+        loss = {}
+        if not noise:
+            loss["use_noise"] = False
+        if not occ:
+            loss["use_occ"] = False
+        spec = cw_run("ago", **loss)
+        v = _views(out, spec.name)
+        if v is None:
+            t["missing"].append(spec.name)
+        view = v["views"]["cw"] if v else None
+        t["rows"].append({"noise_prompts": noise, "L_occ": occ, "geometry_IoU": view["geometry_IoU"] if view else None,
+                          "mIoU": view["mIoU"] if view else None})
+    return t
+
+
+def table_supp(out: Path) -> dict:
+    t = {"title": "Supplementary — adapter depth and alignment loss (ago, open world zero-shot, min-entropy)",
+         "depth": [], "loss": [], "missing": []}
+    for d in (1, 2, 3, 4):
+        spec = ow_run("ago", adapter_depth=d)
+        v = _views(out, spec.name)
+        if v is None:
+            t["missing"].append(spec.name)
+        t["depth"].append({"adapter_layers": d, **_row(v["views"]["ow-min-entropy"] if v else None),
+                           "unknown_adapted_only": (v["views"]["ow-adapted"]["subsets"] or {}).get("unknown") if v else None})
+    for a in ("cosine", "mse", "l1"):
+        spec = ow_run("ago", align_loss=a)
+        v = _views(out, spec.name)
+        if v is None:
+            t["missing"].append(spec.name)
+        t["loss"].append({"align_loss": a, **_row(v["views"]["ow-min-entropy"] if v else None),
+                          "unknown_adapted_only": (v["views"]["ow-adapted"]["subsets"] or {}).get("unknown") if v else None})
+    return t
+
+
+# ---------------------------------------------------------------------------------------------
+def _md_table(header: list[str], rows: list[list]) -> list[str]:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for r in rows:
+        lines.append("| " + " | ".join(x if isinstance(x, str) else _fmt(x) for x in r) + " |")
+    return lines
+
+
+def markdown(tables: dict, profile: ExperimentProfile, steps: dict) -> str:
+    L = [f"# Experiments (profile `{profile.name}`)", "",
+         "Synthetic world, simulated VLM backends (see docs/synth.md, docs/vlm_files.md); numbers in % over "
+         "the val split's camera-visible voxels at the GT resolution. Made by `ago experiments run --profile "
+         f"{profile.name}`; see docs/results.md for the reading beside the paper.", ""]
+    t1 = tables["tab1"]
+    L += [f"## {t1['title']}", ""]
+    if t1["rows"]:
+        classes = [c for c in OCC3D_CLASSES]
+        L += _md_table(["method", "mIoU", "mIoU*", "geo IoU"] + classes,
+                       [[r["method"], r["mIoU"], r["mIoU_star"], r["geometry_IoU"]] + [r["iou"].get(c) for c in classes]
+                        for r in t1["rows"]])
+    L += _missing(t1)
+    t2 = tables["tab2"]
+    L += ["", f"## {t2['title']}", ""]
+    L += _md_table(["method", "stage", "known", "unknown", "all"],
+                   [[r["method"], r["stage"], r["known"], r["unknown"], r["all"]] for r in t2["rows"]])
+    L += _missing(t2)
+    t3 = tables["tab3"]
+    L += ["", f"## {t3['title']}", ""]
+    L += _md_table(["paradigm", "cw mIoU", "cw geo IoU", "ow known", "ow unknown", "ow all"],
+                   [[r["paradigm"], r["cw_mIoU"], r["cw_geometry_IoU"], r["ow_known"], r["ow_unknown"], r["ow_all"]]
+                    for r in t3["rows"]])
+    L += _missing(t3)
+    t4 = tables["tab4"]
+    L += ["", f"## {t4['title']}", ""]
+    L += _md_table(["identifier", "zero-shot known", "zero-shot unknown", "zero-shot all", "few-shot known",
+                    "few-shot unknown", "few-shot all"],
+                   [[r["identifier"], r.get("zs_known"), r.get("zs_unknown"), r.get("zs_all"), r.get("fs_known"),
+                     r.get("fs_unknown"), r.get("fs_all")] for r in t4["rows"]])
+    L += _missing(t4)
+    t5 = tables["tab5"]
+    L += ["", f"## {t5['title']}", ""]
+    L += _md_table(["noise prompts", "L_occ", "geometry IoU", "mIoU"],
+                   [["yes" if r["noise_prompts"] else "no", "yes" if r["L_occ"] else "no", r["geometry_IoU"], r["mIoU"]]
+                    for r in t5["rows"]])
+    L += _missing(t5)
+    ts = tables["supp"]
+    L += ["", f"## {ts['title']}", ""]
+    L += _md_table(["adapter layers", "known", "unknown", "all", "unknown (F~ only)"],
+                   [[str(r["adapter_layers"]), r["known"], r["unknown"], r["all"], r["unknown_adapted_only"]]
+                    for r in ts["depth"]])
+    L += [""]
+    L += _md_table(["align loss", "known", "unknown", "all", "unknown (F~ only)"],
+                   [[r["align_loss"], r["known"], r["unknown"], r["all"], r["unknown_adapted_only"]] for r in ts["loss"]])
+    L += _missing(ts)
+    L += ["", "## Runs", "", "| run | optimiser steps |", "|---|---|"]
+    L += [f"| {k} | {v} |" for k, v in sorted(steps.items())]
+    L += ["", "Figures: " + ", ".join(f"`figures/{p}`" for p in tables.get("figures", [])), ""]
+    return "\n".join(L) + "\n"
+
+
+def _missing(t: dict) -> list[str]:
+    return [f"", f"Not run yet: {', '.join(t['missing'])}."] if t.get("missing") else []
+
+
+# ---------------------------------------------------------------------------------------------
+# figures (opencv only)
+WHITE, BLACK, GREY = (255, 255, 255), (30, 30, 30), (150, 150, 150)
+FONT = cv2.FONT_HERSHEY_SIMPLEX
+
+
+def bar_chart(title: str, labels: list[str], series: list[tuple[str, list[float], tuple]], marks: list[bool],
+              ylabel: str) -> np.ndarray:
+    """Grouped vertical bars, one group per label; `marks` underlines the labels that are unknown."""
+    n, m = len(labels), len(series)
+    bw, gap, left, top, H = 14, 14, 60, 50, 260
+    W = left + n * (m * bw + gap) + 20
+    img = np.full((top + H + 170, W, 3), 255, np.uint8)
+    vmax = max([max(s[1]) for s in series if s[1]] + [1e-6])
+    cv2.putText(img, title, (10, 24), FONT, 0.6, BLACK, 1, cv2.LINE_AA)
+    cv2.line(img, (left, top + H), (W - 10, top + H), BLACK, 1)
+    for t in np.linspace(0, vmax, 5):
+        y = int(top + H - H * t / vmax)
+        cv2.line(img, (left - 4, y), (W - 10, y), (225, 225, 225), 1)
+        cv2.putText(img, f"{t:.2f}", (4, y + 4), FONT, 0.38, BLACK, 1, cv2.LINE_AA)
+    cv2.putText(img, ylabel, (4, top - 10), FONT, 0.4, BLACK, 1, cv2.LINE_AA)
+    for i, lab in enumerate(labels):
+        x0 = left + i * (m * bw + gap) + gap // 2
+        for j, (_name, vals, col) in enumerate(series):
+            h = int(H * vals[i] / vmax)
+            cv2.rectangle(img, (x0 + j * bw, top + H - h), (x0 + (j + 1) * bw - 2, top + H), col, -1)
+        txt = np.full((18, 140, 3), 255, np.uint8)   # right-aligned, so after rotation it hangs from the axis
+        tw = cv2.getTextSize(lab[:20], FONT, 0.4, 1)[0][0]
+        cv2.putText(txt, lab[:20], (138 - tw, 13), FONT, 0.4, (200, 0, 0) if marks[i] else BLACK, 1, cv2.LINE_AA)
+        rot = cv2.rotate(txt, cv2.ROTATE_90_COUNTERCLOCKWISE)
+        ys, xs = top + H + 4, x0 + (m * bw) // 2 - 9
+        img[ys:ys + rot.shape[0], xs:xs + rot.shape[1]] = np.minimum(img[ys:ys + rot.shape[0], xs:xs + rot.shape[1]], rot)
+    x = W - 10 - 170 * m
+    for j, (name, _vals, col) in enumerate(series):
+        cv2.rectangle(img, (x + 170 * j, 34), (x + 170 * j + 12, 46), col, -1)
+        cv2.putText(img, name, (x + 170 * j + 16, 45), FONT, 0.42, BLACK, 1, cv2.LINE_AA)
+    cv2.putText(img, "red labels: unknown classes", (left, img.shape[0] - 8), FONT, 0.4, (200, 0, 0), 1, cv2.LINE_AA)
+    return img
+
+
+def heatmap(title: str, rows: list[str], cols: list[str], values: np.ndarray, cell: int = 26) -> np.ndarray:
+    """A matrix as coloured cells (viridis over its own range) with row / column names and values."""
+    v = np.asarray(values, dtype=np.float64)
+    lo, hi = float(np.nanmin(v)), float(np.nanmax(v))
+    norm = np.clip((v - lo) / max(hi - lo, 1e-9), 0, 1)
+    col = cv2.applyColorMap((norm * 255).astype(np.uint8), cv2.COLORMAP_VIRIDIS)[:, :, ::-1]
+    left, top = 150, 150
+    img = np.full((top + cell * len(rows) + 40, left + cell * len(cols) + 20, 3), 255, np.uint8)
+    cv2.putText(img, title, (6, 20), FONT, 0.5, BLACK, 1, cv2.LINE_AA)
+    cv2.putText(img, f"rows: GT class; columns: class text; range {lo:.2f}..{hi:.2f}", (6, 40), FONT, 0.38,
+                BLACK, 1, cv2.LINE_AA)
+    for i in range(len(rows)):
+        cv2.putText(img, rows[i][:20], (4, top + cell * i + cell - 8), FONT, 0.38, BLACK, 1, cv2.LINE_AA)
+        for j in range(len(cols)):
+            y, x = top + cell * i, left + cell * j
+            img[y:y + cell - 1, x:x + cell - 1] = col[i, j]
+            if i == j:
+                cv2.rectangle(img, (x, y), (x + cell - 2, y + cell - 2), (255, 60, 60), 1)
+    for j in range(len(cols)):
+        txt = np.full((16, top - 50, 3), 255, np.uint8)
+        tw = cv2.getTextSize(cols[j][:16], FONT, 0.38, 1)[0][0]
+        cv2.putText(txt, cols[j][:16], (top - 52 - tw, 12), FONT, 0.38, BLACK, 1, cv2.LINE_AA)
+        rot = cv2.rotate(txt, cv2.ROTATE_90_COUNTERCLOCKWISE)
+        x = left + cell * j + (cell - 16) // 2
+        img[top - rot.shape[0] - 2:top - 2, x:x + 16] = rot
+    return img
+
+
+def figures(out: Path, profile: ExperimentProfile, gap_e3d: dict | None) -> list[str]:
+    from ago_runtime.render import save_png, side_by_side, stack_vertical
+
+    fig_dir = out / "figures"
+    made = []
+    ow = _views(out, ow_run("ago").name)
+    if ow and ow.get("stats"):
+        s = ow["stats"]
+        known = set(s["known"])
+        img = bar_chart("Mean entropy per GT class: P (F_3D) vs P~ (adapted F~_3D), ago zero-shot on ow",
+                        s["classes"], [("P (F_3D)", s["entropy_main"], (70, 110, 200)),
+                                       ("P~ (adapted)", s["entropy_adapted"], (230, 150, 40))],
+                        [c not in known for c in s["classes"]], "entropy (nats)")
+        save_png(fig_dir / "entropy_per_class.png", img)
+        made.append("entropy_per_class.png")
+        panels = [("F_3D vs text", heatmap("cosine(F_3D, class text)", s["classes"], s["classes"], np.array(s["cos_main"]))),
+                  ("F~_3D vs text", heatmap("cosine(F~_3D, class text)", s["classes"], s["classes"],
+                                            np.array(s["cos_adapted"])))]
+        if gap_e3d:
+            panels.insert(0, ("E_3D (simulated VLM) vs text",
+                              heatmap("cosine(E_3D, class text)", gap_e3d["classes"], gap_e3d["classes"],
+                                      np.array(gap_e3d["cos"]))))
+        save_png(fig_dir / "modality_gap.png", side_by_side(panels))
+        made.append("modality_gap.png")
+    renders = render_frames(out, profile)
+    if renders:
+        save_png(fig_dir / "voxel_renders.png", stack_vertical(renders))
+        made.append("voxel_renders.png")
+    return made
+
+
+def _to_occ3d(labels: np.ndarray, class_names: list[str]) -> np.ndarray:
+    """Label-space ids (K = free) -> Occ3D ids by class name (17 = free; names not in Occ3D -> 255)."""
+    lut = np.full(256, 255, np.uint8)
+    for k, c in enumerate(class_names):
+        if c in OCC3D_CLASSES:
+            lut[k] = OCC3D_CLASSES.index(c)
+    lut[len(class_names)] = 17
+    return lut[labels]
+
+
+def _caption(text: str, width: int) -> np.ndarray:
+    img = np.full((28, max(width, 10), 3), 255, np.uint8)
+    cv2.putText(img, text, (4, 19), FONT, 0.45, BLACK, 1, cv2.LINE_AA)
+    return img
+
+
+def render_frames(out: Path, profile: ExperimentProfile) -> list[np.ndarray]:
+    from ago_runtime.metric import upsample_nearest
+    from ago_runtime.nuscenes import NuScenesDataset
+    from ago_runtime.prompts import parse_prompt_file
+    from ago_runtime.render import legend, side_by_side, voxel_view
+
+    from ..pseudo.generate import load_pseudo_labels
+
+    cw_dir, ow_dir = out / "runs" / cw_run("ago").name / "kept", out / "runs" / ow_run("ago").name / "kept"
+    if not cw_dir.is_dir():
+        return []
+    data = Path(profile.data) if profile.external_data else out / profile.data
+    ds = NuScenesDataset(data, load_images=False)
+    ow_names = list(parse_prompt_file("ow").class_names)
+    cw_names = list(parse_prompt_file("cw").class_names)
+    pseudo_dir = Path(profile.pseudo["cw"]) if profile.external_data else out / profile.pseudo["cw"]
+    rows = []
+    for f in sorted(cw_dir.glob("cw__*.npz")):
+        with np.load(f, allow_pickle=False) as z:
+            cw_pred, scene, token = z["labels"], str(z["scene"]), str(z["token"])
+        gt = ds[ds.index_of(token)].gt
+        shape = gt.semantics.shape
+        fac = tuple(g // p for g, p in zip(shape, cw_pred.shape))
+        mask = gt.mask_camera.astype(bool)
+        scale = 1 if shape[0] > 100 else 3
+
+        def view(labels):
+            return voxel_view(np.where(mask, labels, 17).astype(np.uint8), scale=scale, crop=False)
+
+        panels = [("GT", view(gt.semantics))]
+        try:
+            sem, _ml, _mc = load_pseudo_labels(pseudo_dir, scene, token)
+            sem = np.where(sem == 255, 17, sem).astype(np.uint8)
+            panels.append(("pseudo-labels", view(upsample_nearest(sem, fac))))
+        except Exception:  # noqa: BLE001 - a frame without pseudo-labels is drawn without that panel
+            pass
+        cw_occ = _to_occ3d(cw_pred, cw_names)
+        panels.append(("ago (cw)", view(upsample_nearest(cw_occ, fac))))
+        g = ow_dir / f"ow-min-entropy__{token}.npz"
+        if g.is_file():
+            with np.load(g, allow_pickle=False) as z:
+                ow_occ = _to_occ3d(z["labels"], ow_names)
+            panels.append(("ago zero-shot (ow)", view(upsample_nearest(ow_occ, fac))))
+        rows.append(side_by_side(panels))
+    if rows:
+        rows.insert(0, _caption("Val frames, camera-visible voxels: GT | cw pseudo-labels | ago closed world | "
+                                "ago zero-shot on the 15 ow classes (min-entropy)",
+                                rows[0].shape[1]))
+        rows.append(legend(list(OCC3D_CLASSES), width=rows[0].shape[1]))
+    return rows
+
+
+# ---------------------------------------------------------------------------------------------
+def write_report(out: str | Path, profile: ExperimentProfile) -> dict:
+    out = Path(out)
+    extra = read_json(out / "data_scores.json") if (out / "data_scores.json").is_file() else {}
+    tables = {"tab1": table1(out, extra.get("pseudo_cw_val")), "tab2": table2(out, profile), "tab3": table3(out),
+              "tab4": table4(out, profile), "tab5": table5(out), "supp": table_supp(out)}
+    tables["figures"] = figures(out, profile, extra.get("gap_e3d"))
+    steps = {p.parent.relative_to(out / "runs").as_posix(): read_json(p).get("steps")
+             for p in sorted((out / "runs").glob("**/done.json"))} if (out / "runs").is_dir() else {}
+    paper = json.loads(PAPER_TABLES.read_text()) if PAPER_TABLES.is_file() else None
+    result = {"profile": profile.to_dict(), "tables": tables, "steps": steps, "paper": paper}
+    write_json(out / "results.json", result)
+    write_text(out / "results.md", markdown(tables, profile, steps))
+    return result

@@ -1,0 +1,98 @@
+"""`ago experiments`: the driver end to end on the tiny profile (data -> runs -> views -> tables -> figures),
+its cache (a second call trains and scores nothing), resuming a half-finished run, and refusing a folder
+made with another profile."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("torch")
+
+from ago_runtime.errors import AgoInputError  # noqa: E402
+from ago_train.experiments.driver import EXPERIMENTS, ExperimentRunner, runs_for, views_for  # noqa: E402
+from ago_train.experiments.plan import ExperimentProfile, cw_run, fewshot_run, ow_run  # noqa: E402
+
+ENV = {**os.environ, "AGO_NO_PROGRESS": "1"}
+
+
+@pytest.fixture(scope="module")
+def tiny_experiments(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("experiments") / "exp"
+    r = subprocess.run([sys.executable, "-m", "ago_runtime.cli", "experiments", "run", "--profile", "tiny",
+                        "--out", str(out)], capture_output=True, text=True, env=ENV, timeout=900)
+    assert r.returncode == 0, r.stderr[-2000:]
+    return out
+
+
+def test_plan_names_every_run_once_and_views_match_the_method():
+    p = ExperimentProfile.preset("cpu")
+    names = [s.name for e in EXPERIMENTS for s in runs_for(e, p)]
+    assert "cw/ago" in names and "ow/ago-adapter3" in names and "fewshot/grounding/seed1" in names
+    assert cw_run("ago", use_noise=False, use_occ=False).name == "cw/ago-no-noise-no-occ"
+    assert ow_run("ago", adapter_depth=2).name == "ow/ago" and ow_run("ago", align_loss="l1").name == "ow/ago-l1"
+    assert fewshot_run("align", 1).init_from == "ow/align"
+    # the closed-world classifier is the grounding run scored without the unknown classes' phrases
+    assert any(v.closed_set for v in views_for(ow_run("grounding"), "ow.txt"))
+    assert {v.identifier for v in views_for(ow_run("ago"), "ow.txt")} == {"none", "max-conf", "min-entropy", "adapted"}
+    with pytest.raises(AgoInputError):
+        runs_for("tab9", p)
+
+
+def test_tiny_profile_end_to_end(tiny_experiments):
+    out = tiny_experiments
+    res = json.loads((out / "results.json").read_text())
+    t = res["tables"]
+    # every table is complete (nothing missing) and holds numbers
+    for key in ("tab2", "tab3", "tab4", "tab5", "supp"):
+        assert not t[key].get("missing"), (key, t[key].get("missing"))
+    assert t["tab1"]["rows"][0]["mIoU"] is not None
+    pseudo_row = [r for r in t["tab1"]["rows"] if r["method"].startswith("pseudo-labels")][0]
+    assert 0 < pseudo_row["mIoU"] <= 100          # the pseudo-labels' own score on the val frames
+    assert len(t["tab3"]["rows"]) == 4 and len(t["tab5"]["rows"]) == 4
+    assert [r["adapter_layers"] for r in t["supp"]["depth"]] == [1, 2, 3, 4]
+    closed = [r for r in t["tab2"]["rows"] if r["method"].startswith("closed-world")][0]
+    assert closed["unknown"] in (0.0, None)       # it cannot predict unknown classes
+    # views.json of the ago open-world run: 4 identifiers + figure statistics
+    v = json.loads((out / "runs" / "ow" / "ago" / "views.json").read_text())
+    assert set(v["views"]) == {"ow-none", "ow-max-conf", "ow-min-entropy", "ow-adapted"}
+    s = v["stats"]
+    assert len(s["entropy_main"]) == len(s["classes"]) == 15 and np.array(s["cos_main"]).shape == (15, 15)
+    # the few-shot subset was recorded and used
+    kshot = json.loads((out / "kshot" / "seed0.json").read_text())
+    cfg = json.loads((out / "runs" / "fewshot" / "ago" / "seed0" / "config.json").read_text())
+    assert cfg["frame_tokens"] == kshot["tokens"] and cfg["init_from"].endswith("ow/ago/last.pt")
+    for png in ("entropy_per_class.png", "modality_gap.png", "voxel_renders.png"):
+        assert (out / "figures" / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    md = (out / "results.md").read_text()
+    assert "Tab. 4" in md and "min entropy" in md
+
+
+def test_second_run_reuses_everything_and_a_half_run_resumes(tiny_experiments):
+    out = tiny_experiments
+    runner = ExperimentRunner(ExperimentProfile.preset("tiny"), out, quiet=True)
+    before = (out / "driver.log").read_text().count("\n")
+    runner.run(["tab1", "tab5"])
+    new = (out / "driver.log").read_text().splitlines()[before:]
+    assert not any(" train " in ln or " score " in ln or "$ ago" in ln for ln in new), new
+    # a run whose folder has a checkpoint but no done.json resumes (and is then marked done)
+    spec = cw_run("ago", use_occ=False)
+    (out / "runs" / spec.name / "done.json").unlink()
+    (out / "runs" / spec.name / "views.json").unlink()
+    runner.run(["tab5"])
+    log = (out / "driver.log").read_text()
+    assert f"train {spec.name} (resume)" in log
+    assert (out / "runs" / spec.name / "done.json").is_file()
+
+
+def test_another_profile_in_the_same_folder_is_refused(tiny_experiments):
+    p = ExperimentProfile.preset("tiny")
+    p.steps = 3
+    with pytest.raises(AgoInputError, match="another profile"):
+        ExperimentRunner(p, tiny_experiments, quiet=True).run(["tab1"])
