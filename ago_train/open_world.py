@@ -59,7 +59,7 @@ def open_world_label_space(eval_prompts: str, pretrain_prompts: str):
     return space
 
 
-def _known_prompt_file(ow: OpenWorldConfig, out: Path) -> Path:
+def known_prompt_file(ow: OpenWorldConfig, out: Path) -> Path:
     """A copy of the evaluation prompt file with an `@known:` line (unless it has one)."""
     src = resolve_prompt_file(ow.eval_prompts)
     space = open_world_label_space(str(src), ow.pretrain_prompts)
@@ -126,7 +126,7 @@ def run_open_world(ow: OpenWorldConfig, stage: str = "all", quiet: bool = False)
                                "final_loss": r["losses"][-1] if r["losses"] else None}
         write_json(results_path, results)
 
-    eval_prompt = _known_prompt_file(ow, out)
+    eval_prompt = known_prompt_file(ow, out)
     if stage in ("zeroshot", "all"):
         if not pre_ckpt.is_file():
             raise AgoInputError(pre_ckpt, "no pretrained checkpoint; run --stage pretrain first")

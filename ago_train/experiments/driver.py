@@ -33,6 +33,8 @@ from ago_runtime.readers import read_json
 from .plan import FEWSHOT_VARIANTS, PARADIGMS, ExperimentProfile, RunSpec, cw_run, fewshot_run, ow_run
 from .scoring import View
 
+# diagnostic temperatures for the adapted branch's logits (Tab. 4 extra rows; chosen on val: optimistic)
+ADAPTED_SCALES = (3.0, 10.0, 30.0)
 EXPERIMENTS = ("tab1", "tab2", "tab3", "tab4", "tab5", "supp", "figures")
 
 
@@ -73,6 +75,8 @@ def views_for(spec: RunSpec, ow_prompts: str) -> list[View]:
     if variant in ("ago", "grounding+align"):
         views += [View("ow-max-conf", ow_prompts, "max-conf"), View("ow-min-entropy", ow_prompts, "min-entropy"),
                   View("ow-adapted", ow_prompts, "adapted")]
+    if variant == "ago" and not dict(spec.model) and len(spec.loss) == 1:   # the main ago runs (Tab. 2 / 4)
+        views += [View(f"ow-min-entropy-x{s:g}", ow_prompts, "min-entropy", adapted_scale=s) for s in ADAPTED_SCALES]
     return views
 
 
@@ -281,13 +285,13 @@ class ExperimentRunner:
     def ensure_scored(self, spec: RunSpec) -> dict:
         from ago_runtime.prompts import resolve_prompt_file
 
-        from ..open_world import OpenWorldConfig, _known_prompt_file
+        from ..open_world import OpenWorldConfig, known_prompt_file
         from .scoring import evaluate_views
 
         path = self.run_dir(spec.name) / "views.json"
         ow_prompts = str(self.out / "ow_known.txt")
         if not Path(ow_prompts).is_file():   # ow.txt with `@known:` = the classes ow_pretrain covers
-            _known_prompt_file(OpenWorldConfig(base=None, pseudo_pretrain="", pseudo_full=""), self.out)
+            known_prompt_file(OpenWorldConfig(base=None, pseudo_pretrain="", pseudo_full=""), self.out)
         views = [v if v.prompts != "cw" else replace(v, prompts=str(resolve_prompt_file("cw")))
                  for v in views_for(spec, ow_prompts)]
         if path.is_file():

@@ -123,7 +123,13 @@ def table4(out: Path, profile: ExperimentProfile) -> dict:
              "ow-adapted": "adapted F~_3D only"}
     if zs is None:
         t["missing"].append(ow_run("ago").name)
+    from .driver import ADAPTED_SCALES
+
+    names.update({f"ow-min-entropy-x{s:g}": f"min entropy, adapted logits x{s:g} (diagnostic, chosen on val)"
+                  for s in ADAPTED_SCALES})
     for key, label in names.items():
+        if zs and key not in zs["views"]:
+            continue
         row = {"identifier": label}
         if zs:
             row.update({f"zs_{k}": x for k, x in _row(zs["views"].get(key)).items()})

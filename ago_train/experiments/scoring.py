@@ -9,7 +9,10 @@ A `View` is (prompt file, identifier, closed_set):
 - identifier "none" (F_3D only), "max-conf" / "min-entropy" (the open-world identifier between
   F_3D and the adapted F~_3D, ago_train.model.scoring.open_world_identify) or "adapted" (F~_3D only);
 - closed_set=True drops the phrases of the label space's unknown classes, so they can never be
-  predicted: a closed-world classifier over the known classes (the SelfOcc-like baseline).
+  predicted: a closed-world classifier over the known classes (the SelfOcc-like baseline);
+- adapted_scale multiplies the adapted branch's logits before its softmax (a diagnostic: the adapted
+  embeddings are trained with a cosine loss, so their length, and with it the sharpness of P~, is not
+  learnt; see docs/results.md, Tab. 4).
 
 Scoring is evaluate.py's: labels on the model grid -> nearest-upsampled to the GT grid -> Occ3D
 metric over mask_camera with the GT mapped into the view's label space.
@@ -46,6 +49,7 @@ class View:
     prompts: str                 # prompt file path
     identifier: str = "none"
     closed_set: bool = False
+    adapted_scale: float = 1.0   # multiplies the adapted branch's logits (a temperature; 1 = the model's own)
 
 
 @dataclass
@@ -158,7 +162,7 @@ def evaluate_views(ckpt_path: str | Path, data: str | Path, views: list[View], s
             b = banks[v.name]
             K = b.space.num_classes
             main = class_logits(out["feat"], b.text, b.phrase_class, K, free, None)[0]
-            adapted = (class_logits(out["feat_adapted"], b.text, b.phrase_class, K, free, None)[0]
+            adapted = (class_logits(out["feat_adapted"], b.text, b.phrase_class, K, free, None)[0] * v.adapted_scale
                        if v.identifier != "none" or v.name == stats_view else None)
             labels = _labels(main, adapted, v.identifier, K).numpy().reshape(grid.shape).astype(np.uint8)
             gt = luts[v.name][gt_occ]
