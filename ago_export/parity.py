@@ -1,6 +1,6 @@
 """Parity of an exported encoder (onnxruntime) against the torch model, on one frame.
 
-Takes the torch model, an onnxruntime encoder (ago_runtime.encoder: SplitEncoder or MonolithicEncoder), the bundle's heads and a prompt bank, and one
+Takes the torch model, an onnxruntime encoder (ago_runtime.encoder.SplitEncoder), the bundle's heads and a prompt bank, and one
 preprocessed frame (images (1, 6, 3, H, W), ego2img (1, 6, 4, 4)). Gives a JSON-able report:
 
 - `rel_err_feat`, `rel_err_feat_adapted`: max |F_ort - F_torch| / max |F_torch| for the per-voxel

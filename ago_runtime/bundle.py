@@ -19,8 +19,8 @@ camera rig it was trained with. Layout (see docs/runtime.md):
 format_version, a file whose sha256 differs from bundle.json (e.g. a truncated ONNX), heads of
 the wrong shapes.
 
-Format versions: 2 = the split encoder above (files "planes", "voxels"); 1 = one monolithic
-`encoder.onnx` (images + ego2img -> h (N,Dh), g (N,Da); files "encoder", "encoder_int8"), still read.
+Format versions: 2 = the split encoder above (files "planes", "voxels"). Format 1 (one monolithic
+`encoder.onnx`, before 2026-12) is refused with a message to re-export the checkpoint.
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ from .preprocess import Preprocess
 
 BUNDLE_FORMAT = "ago-bundle"
 BUNDLE_FORMAT_VERSION = 2
-ENCODER_FILES = {1: ("encoder",), 2: ("planes", "voxels")}
+ENCODER_FILES = ("planes", "voxels")
 BUNDLE_JSON = "bundle.json"
 ENV_BUNDLE = "AGO_BUNDLE"
 DEFAULT_BUNDLE_DIR = Path(__file__).resolve().parent / "assets" / "default_bundle"
@@ -72,15 +72,11 @@ class Bundle:
     banks: dict[str, Path] = field(default_factory=dict)
 
     # ---- paths -----------------------------------------------------------------------------
-    @property
-    def format_version(self) -> int:
-        return int(self.meta["format_version"])
-
     def encoder_paths(self, int8: bool = False) -> dict[str, Path]:
-        """{"planes", "voxels"} (format 2) or {"encoder"} (format 1) -> file paths; int8: the quantised ones."""
+        """{"planes", "voxels"} -> file paths; int8: the quantised ones."""
         files = self.meta["files"]
         out = {}
-        for key in ENCODER_FILES[self.format_version]:
+        for key in ENCODER_FILES:
             entry = files.get(f"{key}_int8" if int8 else key)
             if entry is None:
                 raise AgoInputError(self.root, "bundle has no int8 encoder (export with `ago export --int8`)")
@@ -89,7 +85,7 @@ class Bundle:
 
     @property
     def has_int8(self) -> bool:
-        return all(f"{k}_int8" in self.meta["files"] for k in ENCODER_FILES[self.format_version])
+        return all(f"{k}_int8" in self.meta["files"] for k in ENCODER_FILES)
 
     @property
     def default_bank(self) -> str:
@@ -127,6 +123,9 @@ class Bundle:
         version = meta.get("format_version")
         if not isinstance(version, int) or version < 1:
             raise AgoInputError(meta_path, f"bad format_version {version!r}")
+        if version < BUNDLE_FORMAT_VERSION:
+            raise AgoInputError(meta_path, f"bundle format version {version} (one encoder.onnx) is no longer read; "
+                                "re-export the checkpoint with `ago export`")
         if version > BUNDLE_FORMAT_VERSION:
             raise AgoInputError(meta_path, f"bundle format version {version} is newer than this ago reads "
                                 f"({BUNDLE_FORMAT_VERSION}); upgrade ago or re-export the model")
@@ -137,7 +136,7 @@ class Bundle:
             label_space = meta["label_space"]
             text_encoder = meta["text_encoder"]
             files = meta["files"]
-            for key in ENCODER_FILES[version] + ("heads",):
+            for key in ENCODER_FILES + ("heads",):
                 files[key]["path"]
         except (KeyError, TypeError, ValueError, AgoInputError) as e:
             raise AgoInputError(meta_path, f"bundle metadata incomplete or malformed ({e.__class__.__name__}: {e})") from None

@@ -1,8 +1,8 @@
 """The bundle's camera-to-voxel encoder in onnxruntime, delivered in chunks of voxels. No torch.
 
-Two bundle layouts (ago_runtime/bundle.py):
+The bundle's encoder is split in two graphs (bundle format 2, ago_runtime/bundle.py):
 
-- format 2, split (what `ago export` writes): `planes.onnx` runs once per frame,
+- `planes.onnx` runs once per frame,
       images (1,6,3,H,W) + ego2img (1,6,4,4) -> plane_xy (D,X,Y), plane_xz (D,X,Z), plane_yz (D,Y,Z)
   (the three TPV planes already at the grid's resolution), and `voxels.onnx` runs per slab of x,
       plane_xy[:, x0:x1], plane_xz[:, x0:x1], plane_yz, bank_main (P',Dh), bank_adapted (P',Da)
@@ -12,11 +12,9 @@ Two bundle layouts (ago_runtime/bundle.py):
   so the heads' matrix product runs in onnxruntime's GEMM and any bank works without re-export.
   Memory then scales with the slab, not the grid: at 200x200x16 the monolithic graph held
   640 000 x (64 + 128 + 384 + ...) float32 intermediates at once (peak RSS ~4.4 GB); a slab of
-  ~32 000 voxels holds a few tens of MB and stays in cache between the encoder and the heads.
-- format 1, monolithic: `encoder.onnx`, images + ego2img -> h (N,Dh), g (N,Da) in one run; its
-  output is cut into the same chunks, so everything downstream is identical.
+  ~65 000 voxels holds a few hundred MB at most and stays in cache between the MLPs and the heads.
 
-`open_encoder(bundle, int8=False, threads=None)` -> an encoder with
+`open_encoder(bundle, int8=False, threads=None)` -> a SplitEncoder with
 - `score_chunks(images, ego2img, folded, adapted=True)`: yields (start, stop, s_main, s_adapted), the
   bias-free class-major phrase scores (P', n) of each slab (s_adapted None when not asked for);
 - `chunks(images, ego2img)`: yields (start, stop, h, g) over the flat voxel index, in order;
@@ -65,32 +63,6 @@ def load_session(path: Path, threads: int | None, inputs: list[str], outputs: li
     if names_in != inputs or names_out != outputs:
         raise AgoInputError(path, f"graph has inputs {names_in} and outputs {names_out}; expected {inputs} -> {outputs}")
     return sess
-
-
-class MonolithicEncoder:
-    """Format-1 bundles: one graph for the whole grid."""
-
-    def __init__(self, path: Path, grid: Grid, threads: int | None = None, chunk: int = SLAB_VOXELS):
-        self.path, self.grid, self.chunk = path, grid, chunk
-        self.session = load_session(path, threads, ["images", "ego2img"], ["h", "g"])
-
-    def hidden(self, images: np.ndarray, ego2img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        h, g = self.session.run(["h", "g"], {"images": images, "ego2img": ego2img})
-        n = self.grid.num_voxels
-        if h.shape[0] != n or g.shape[0] != n:
-            raise AgoInputError(self.path, f"encoder gives {h.shape[0]} voxels, the bundle grid has {n}")
-        return h, g
-
-    def chunks(self, images: np.ndarray, ego2img: np.ndarray) -> Iterator[tuple[int, int, np.ndarray, np.ndarray]]:
-        h, g = self.hidden(images, ego2img)
-        for start in range(0, h.shape[0], self.chunk):
-            stop = min(h.shape[0], start + self.chunk)
-            yield start, stop, h[start:stop], g[start:stop]
-
-    def score_chunks(self, images, ego2img, folded, adapted: bool = True):
-        """Scores with numpy's GEMM (this layout has no bank inputs)."""
-        for start, stop, h, g in self.chunks(images, ego2img):
-            yield start, stop, folded.phrase_scores(h, "main"), folded.phrase_scores(g, "adapted") if adapted else None
 
 
 class SplitEncoder:
@@ -155,9 +127,7 @@ class SplitEncoder:
         return np.concatenate([p[2] for p in parts]), np.concatenate([p[3] for p in parts])
 
 
-def open_encoder(bundle, int8: bool = False, threads: int | None = None):
-    """The encoder of a loaded `Bundle` (either layout); int8 picks the quantised graphs."""
+def open_encoder(bundle, int8: bool = False, threads: int | None = None) -> "SplitEncoder":
+    """The encoder of a loaded `Bundle`; int8 picks the quantised graphs."""
     paths = bundle.encoder_paths(int8)
-    if "planes" in paths:
-        return SplitEncoder(paths["planes"], paths["voxels"], bundle.grid, threads)
-    return MonolithicEncoder(paths["encoder"], bundle.grid, threads)
+    return SplitEncoder(paths["planes"], paths["voxels"], bundle.grid, threads)

@@ -9,7 +9,7 @@ Measures: end-to-end per-frame time of both (from preprocessed tensors; preproce
 reported once), the voxel head's GFLOP/s against this machine's float32 matmul ceiling (numpy sgemm,
 measured here), bank swap time (a new prompt file -> bank encoded -> folded -> first prediction),
 peak RSS of one prediction in a fresh subprocess (resource.getrusage), head cost vs grid size and vs
-number of prompts (the runtime heads and the numpy-only heads of format-1 bundles).
+number of prompts (the runtime heads, and for reference the numpy-only heads: FoldedHeads.run).
 
     python benchmarks/runtime_speed.py                  # writes benchmarks/results/runtime_speed.md
     python benchmarks/runtime_speed.py --configs cpu --reps 2
@@ -220,7 +220,7 @@ def bench_config(name: str, work: Path, reps: int, ceiling: float) -> dict:
     t_rt, p = median_time(lambda: pred.predict_arrays(x, m, bank, "min-entropy", folded), reps)
     t_enc, t_head_streamed = p.timings["encoder"], p.timings["heads"]
     # the heads alone on the whole grid's features (their GFLOP/s): the runtime's (ORT GEMM + numpy)
-    # and the numpy-only one (format-1 bundles)
+    # and the numpy-only one (FoldedHeads.run, its GEMM in OpenBLAS) for reference
     h, g = pred.encode_arrays(x, m)
     rh = RuntimeHeads()
     rh.run(folded, h, g)
@@ -351,7 +351,7 @@ def write_report(res: dict, path: Path) -> str:
              "Warm: the text encoder is already loaded (a long-lived process). Peak RSS: VmHWM of a "
              "fresh subprocess doing one prediction (load bundle/model, read the frame, predict).\n")
     L.append(f"## Head cost vs grid size (both branches + identifier; Dh={res['Dh']}, Da={res['Da']}, 34 phrases)\n")
-    L.append("Runtime heads = bank GEMM in onnxruntime + numpy reductions; numpy-only = format-1 bundles.\n")
+    L.append("Runtime heads = bank GEMM in onnxruntime + numpy reductions; numpy-only = the same heads with numpy's GEMM (FoldedHeads.run), for reference.\n")
     L.append("| grid | voxels | runtime s | ms per million voxels | GFLOP/s (share of ceiling) | numpy-only s | numpy-only GFLOP/s |")
     L.append("|---|---|---|---|---|---|---|")
     for r in res["grid_rows"]:

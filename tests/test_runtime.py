@@ -283,7 +283,7 @@ def test_shipped_demo_runs_out_of_the_box(tmp_path):
 
     from ago_runtime.bundle import DEFAULT_BUNDLE_DIR, DEMO_FRAME_DIR
 
-    assert (DEFAULT_BUNDLE_DIR / "bundle.json").is_file() and (DEFAULT_BUNDLE_DIR / "encoder.onnx").is_file()
+    assert (DEFAULT_BUNDLE_DIR / "bundle.json").is_file() and (DEFAULT_BUNDLE_DIR / "planes.onnx").is_file()
     assert sorted(p.stem for p in DEMO_FRAME_DIR.glob("CAM_*.jpg")) == sorted(CAMERA_NAMES)
     meta = json.loads((DEFAULT_BUNDLE_DIR / "bundle.json").read_text())
     assert meta["text_encoder"]["id"] == "all-MiniLM-L6-v2"
@@ -362,6 +362,11 @@ def test_refuses_newer_bundle_and_truncated_onnx(bundle_dir, frame_dir, tmp_path
     meta["format_version"] = 99
     (newer / "bundle.json").write_text(json.dumps(meta))
     assert_refused(_infer(newer, frame_dir, out), "bundle.json", out)
+    meta["format_version"] = 1                      # the one-graph encoder.onnx layout: re-export
+    (newer / "bundle.json").write_text(json.dumps(meta))
+    r = _infer(newer, frame_dir, out)
+    assert_refused(r, "bundle.json", out)
+    assert "re-export" in r.stderr
 
     cut = tmp_path / "cut"
     shutil.copytree(bundle_dir, cut)
