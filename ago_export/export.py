@@ -195,10 +195,9 @@ def export_onnx(model: nn.Module, out_dir: Path, cfg, metadata: dict[str, str]) 
         torch.onnx.export(PlanesForExport(fast).eval(), (images, ego2img), str(out_dir / "planes.onnx"), dynamo=False,
                           opset_version=OPSET, input_names=["images", "ego2img"],
                           output_names=["plane_xy", "plane_xz", "plane_yz"], do_constant_folding=True)
-        heads = head_weights(model)
         torch.onnx.export(VoxelsForExport(fast).eval(),
                           (torch.zeros(D, slab, Y), torch.zeros(D, slab, Z), torch.zeros(D, Y, Z),
-                           torch.zeros(3, heads.hidden_dim), torch.zeros(3, heads.adapter_dim)),
+                           torch.zeros(3, cfg.hidden_dim), torch.zeros(3, fast.adapter.out_dim)),
                           str(out_dir / "voxels.onnx"), dynamo=False, opset_version=OPSET,
                           input_names=VOXEL_INPUTS, output_names=VOXEL_OUTPUTS,
                           dynamic_axes={"plane_xy": {1: "slab"}, "plane_xz": {1: "slab"}, "bank_main": {0: "phrases"},
@@ -339,7 +338,8 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
             "ago.version": ago_runtime.__version__, "ago.grid": json.dumps(grid.to_dict()),
             "ago.preprocess": json.dumps(pre.to_dict()), "ago.text_encoder": json.dumps(text_encoder),
             "ago.class_names": json.dumps(list(space.class_names)), "ago.label_space": space.name,
-            "ago.outputs": "h (N, Dh) decoder hidden, g (N, Da) adapter hidden; N = X*Y*Z C order over [x, y, z]",
+            "ago.outputs": "planes: the TPV planes at the grid; voxels: h (n, Dh) decoder hidden, g (n, Da) adapter "
+                           "hidden, s_main / s_adapted (P', n) bank scores, for a slab of n voxels in C order over [x, y, z]",
         }
         log(f"exporting the encoder to ONNX (opset {OPSET}) ...")
         files = export_onnx(model, tmp, cfg, metadata)

@@ -84,10 +84,6 @@ class Bundle:
         return out
 
     @property
-    def has_int8(self) -> bool:
-        return all(f"{k}_int8" in self.meta["files"] for k in ENCODER_FILES)
-
-    @property
     def default_bank(self) -> str:
         return self.meta.get("default_bank", "train")
 

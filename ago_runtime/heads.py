@@ -155,9 +155,6 @@ class FoldedHeads:
         return BranchResult(label, entropy.astype(np.float32, copy=False),
                             (1.0 / total).astype(np.float32, copy=False))
 
-    def branch(self, x: np.ndarray, branch: str) -> BranchResult:
-        return self.softmax_stats(self.class_scores(self.phrase_scores(x, branch), branch))
-
     # --- both branches + identifier --------------------------------------------------------
     def classify(self, h: np.ndarray, g: np.ndarray, identifier: str = "min-entropy"):
         """One chunk: (n, Dh), (n, Da) -> (label (n,), entropy, confidence, branch (n,) uint8 0=main 1=adapted)."""

@@ -28,7 +28,7 @@ from .bundle import Bundle
 from .calibration import fit_rig_to_images
 from .camera import Rig
 from .classes import FREE, OCC3D_CLASSES
-from .encoder import open_encoder, session_options  # noqa: F401 (session_options: re-exported)
+from .encoder import open_encoder
 from .errors import AgoInputError
 from .grid import Grid
 from .heads import IDENTIFIERS, FoldedHeads

@@ -161,20 +161,17 @@ def table5(out: Path) -> dict:
 def table_supp(out: Path) -> dict:
     t = {"title": "Supplementary — adapter depth and alignment loss (ago, open world zero-shot, min-entropy)",
          "depth": [], "loss": [], "missing": []}
-    for d in (1, 2, 3, 4):
-        spec = ow_run("ago", adapter_depth=d)
+
+    def row(spec) -> dict:
         v = _views(out, spec.name)
         if v is None:
             t["missing"].append(spec.name)
-        t["depth"].append({"adapter_layers": d, **_row(v["views"]["ow-min-entropy"] if v else None),
-                           "unknown_adapted_only": (v["views"]["ow-adapted"]["subsets"] or {}).get("unknown") if v else None})
-    for a in ("cosine", "mse", "l1"):
-        spec = ow_run("ago", align_loss=a)
-        v = _views(out, spec.name)
-        if v is None:
-            t["missing"].append(spec.name)
-        t["loss"].append({"align_loss": a, **_row(v["views"]["ow-min-entropy"] if v else None),
-                          "unknown_adapted_only": (v["views"]["ow-adapted"]["subsets"] or {}).get("unknown") if v else None})
+            return {**_row(None), "unknown_adapted_only": None}
+        return {**_row(v["views"]["ow-min-entropy"]),
+                "unknown_adapted_only": (v["views"]["ow-adapted"]["subsets"] or {}).get("unknown")}
+
+    t["depth"] = [{"adapter_layers": d, **row(ow_run("ago", adapter_depth=d))} for d in (1, 2, 3, 4)]
+    t["loss"] = [{"align_loss": a, **row(ow_run("ago", align_loss=a))} for a in ("cosine", "mse", "l1")]
     return t
 
 
