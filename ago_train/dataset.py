@@ -3,6 +3,8 @@
 `OccSampleDataset(frames, pseudo, label_space, grid, preprocess, ...)` is a torch Dataset; item i:
 
 - "images": (6, 3, H, W) float32, `ago_runtime.preprocess.Preprocess` (identical to the runtime);
+  or, with a `feature_cache` (ago_train/feature_cache.py), instead of the images "prefix": the frozen
+  backbone stages' maps, a list of (6, C_l, H_l, W_l) float16 tensors (the JPEGs are not decoded);
 - "ego2img": (6, 4, 4) float32, ego -> resized-image projections (CAMERA_NAMES order);
 - "semantics": (N,) int64 pseudo-label per voxel of the model grid (N = X*Y*Z, C order over [x,y,z]),
   as stored: 0..K-1 class, 17 = free, 255 = unknown (the losses map it: `pseudo_to_target` here does
@@ -12,7 +14,8 @@
   "gt_mask": (Xg, Yg, Zg) bool camera-visibility mask — only when `with_gt` and the frame has GT;
 - "token", "scene": strings.
 
-`collate(items)` stacks the fixed-size tensors ("images" (B, 6, 3, H, W), "ego2img", "semantics" (B, N))
+`collate(items)` stacks the fixed-size tensors ("images" (B, 6, 3, H, W) or "prefix" [(B, 6, C_l, H_l, W_l)],
+"ego2img", "semantics" (B, N))
 and concatenates E_3D as the losses want it: "align_index" (sum M,) int64 indices into the batch's
 B*N voxels (b * N + voxel) and "align_embed" (sum M, C) float32. GT stays a list of numpy arrays
 (evaluation only).
@@ -130,7 +133,8 @@ class OccSampleDataset(torch.utils.data.Dataset):
 
     def __init__(self, frames, pseudo: PseudoLabelSet | None, num_classes: int, grid: Grid,
                  preprocess: Preprocess, gt_lut: np.ndarray | None = None, with_gt: bool = False,
-                 with_embeds: bool = True, color_jitter: float = 0.0, seed: int = 0):
+                 with_embeds: bool = True, color_jitter: float = 0.0, seed: int = 0, feature_cache=None,
+                 memory_bytes: int = 0):
         self.frames = frames
         self.pseudo = pseudo
         self.num_classes = int(num_classes)
@@ -142,6 +146,14 @@ class OccSampleDataset(torch.utils.data.Dataset):
         self.color_jitter = float(color_jitter)
         self.seed = int(seed)
         self.epoch = 0
+        self.feature_cache = feature_cache
+        if feature_cache is not None and self.color_jitter > 0:
+            raise ValueError("colour jitter changes the images, so their frozen features cannot be cached")
+        # items are the same every epoch unless colour jitter changes them: keep up to `memory_bytes`
+        # of them in memory, so later epochs read no file (pseudo-labels, E_3D, LiDAR, GT)
+        self.memory_bytes = int(memory_bytes)
+        self._memory: dict[int, dict] = {}
+        self._memory_used = 0
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -151,20 +163,34 @@ class OccSampleDataset(torch.utils.data.Dataset):
         self.epoch = int(epoch)
 
     def __getitem__(self, i: int) -> dict:
+        if i in self._memory:
+            return self._memory[i]
+        item = self._load(i)
+        if self.memory_bytes > 0 and self.color_jitter == 0:
+            size = sum(t.numel() * t.element_size() for t in _tensors(item))
+            if self._memory_used + size <= self.memory_bytes:
+                self._memory[i] = item
+                self._memory_used += size
+        return item
+
+    def _load(self, i: int) -> dict:
         frame = self.frames[i]
         source = f"{frame.scene}/{frame.token}"
-        images = self.preprocess.images(frame.images, source=source)
-        if self.color_jitter > 0:
-            rng = np.random.default_rng([self.seed, self.epoch, int(i)])
-            a = 1.0 + rng.uniform(-self.color_jitter, self.color_jitter, size=(6, 1, 1, 1)).astype(np.float32)
-            b = rng.uniform(-self.color_jitter, self.color_jitter, size=(6, 1, 1, 1)).astype(np.float32)
-            images = images * a + b
         item = {
-            "images": torch.from_numpy(np.ascontiguousarray(images)),
             "ego2img": torch.from_numpy(self.preprocess.ego2img(frame.rig)),
             "token": frame.token,
             "scene": frame.scene,
         }
+        if self.feature_cache is not None:
+            item["prefix"] = [torch.from_numpy(m) for m in self.feature_cache.frame_prefix(frame.image_paths, source)]
+        else:
+            images = self.preprocess.images(frame.images, source=source)
+            if self.color_jitter > 0:
+                rng = np.random.default_rng([self.seed, self.epoch, int(i)])
+                a = 1.0 + rng.uniform(-self.color_jitter, self.color_jitter, size=(6, 1, 1, 1)).astype(np.float32)
+                b = rng.uniform(-self.color_jitter, self.color_jitter, size=(6, 1, 1, 1)).astype(np.float32)
+                images = images * a + b
+            item["images"] = torch.from_numpy(np.ascontiguousarray(images))
         if self.pseudo is not None:
             sem = self.pseudo.labels(frame.scene, frame.token)
             item["semantics"] = torch.from_numpy(sem.reshape(-1).astype(np.int64))
@@ -182,14 +208,25 @@ class OccSampleDataset(torch.utils.data.Dataset):
         return item
 
 
+def _tensors(item: dict):
+    for v in item.values():
+        if isinstance(v, torch.Tensor):
+            yield v
+        elif isinstance(v, list):
+            yield from (t for t in v if isinstance(t, torch.Tensor))
+
+
 def collate(items: list[dict]) -> dict:
     """Batch a list of items (see module docstring); E_3D padded with a validity mask."""
     out: dict = {
-        "images": torch.stack([it["images"] for it in items]),
         "ego2img": torch.stack([it["ego2img"] for it in items]),
         "token": [it["token"] for it in items],
         "scene": [it["scene"] for it in items],
     }
+    if all("images" in it for it in items):
+        out["images"] = torch.stack([it["images"] for it in items])
+    if all("prefix" in it for it in items):
+        out["prefix"] = [torch.stack([it["prefix"][j] for it in items]) for j in range(len(items[0]["prefix"]))]
     if all("semantics" in it for it in items):
         out["semantics"] = torch.stack([it["semantics"] for it in items])
     if all("e3d_index" in it for it in items):

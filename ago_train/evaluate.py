@@ -80,7 +80,7 @@ def predict_labels(model, images: torch.Tensor, ego2img: torch.Tensor, text: tor
     """(B, N) int64 labels on the model grid: 0..K-1 class, K free."""
     from .model.scoring import class_logits, open_world_identify
 
-    out = model(images, ego2img)
+    out = model(images, ego2img, adapted=identifier != "none")   # F~_3D only when the identifier reads it
     free = out.get("free_embedding", model.free_embedding)
     main = class_logits(out["feat"], text, phrase_class, num_classes, free, None)
     if identifier == "none":

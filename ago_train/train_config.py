@@ -60,6 +60,12 @@ class TrainConfig:
     init_from: str | None = None      # checkpoint whose model weights start this run (fine-tuning)
     train_voxels: int = 0             # voxel heads + losses on a sample of this many voxels per frame
                                       # (ago_train.losses.sampling; 0 = the whole grid)
+    voxel_sampling: str = "stratified"  # "stratified" (occupied/free strata + importance weights) | "priority"
+    occupied_share: float = 0.5       # share of the sample drawn from occupied voxels ("stratified"; the
+                                      # weights restore the pseudo-labels' own proportions)
+    item_memory_mb: int = 0           # keep up to this many MiB of training items in memory (files read once)
+    feature_cache: str = "off"        # cache of the frozen backbone stages' maps (ago_train/feature_cache.py):
+                                      # "off", "auto" (~/.cache/ago/features) or a folder
     # ---- optimisation ----
     epochs: int = 24
     max_steps: int | None = None      # stop after this many optimiser steps (None = epochs * steps/epoch)
@@ -78,6 +84,8 @@ class TrainConfig:
     out: str = "runs/train"
     log_every: int = 10               # steps between log lines (log.jsonl, rank 0)
     ckpt_every: int = 500             # steps between checkpoints (plus one at the end)
+    snapshot_steps: list[int] | None = None  # also keep a model-only checkpoint <out>/snapshots/step_NNNNNN.pt
+                                      # at these steps (learning curves: benchmarks/learning_curve.py)
     num_workers: int = 0
     device: str = "auto"              # auto | cpu | cuda
 
@@ -92,7 +100,9 @@ class TrainConfig:
             # 60 training frames (`ago synth --scenes 4 --frames 20`: 3 train scenes) x 5 epochs = 300
             # steps; at the measured 2.5-9 s per step on the shared 2 cores (docs/training.md): 13-45 min.
             return cls(name="cpu", model=ModelConfig.preset("cpu"), epochs=5, batch_size=1, max_frames=None,
-                       train_voxels=8000, warmup_steps=500, log_every=10, ckpt_every=100, noise_words=100,
+                       train_voxels=8000, voxel_sampling="stratified", occupied_share=0.5, feature_cache="auto",
+                       item_memory_mb=3072,
+                       warmup_steps=500, log_every=10, ckpt_every=100, noise_words=100,
                        prompts="cw", data="runs/synth-cpu", pseudo="runs/synth-cpu-pseudo", out="runs/train-cpu")
         if name == "full":
             return cls(name="full", model=ModelConfig.preset("full"), epochs=24, batch_size=1, warmup_steps=500,
@@ -107,6 +117,8 @@ class TrainConfig:
         d["loss"] = dataclasses.asdict(self.loss) if dataclasses.is_dataclass(self.loss) else dict(self.loss)
         if d["frame_tokens"] is not None:
             d["frame_tokens"] = list(d["frame_tokens"])
+        if d["snapshot_steps"] is not None:
+            d["snapshot_steps"] = [int(s) for s in d["snapshot_steps"]]
         return d
 
     @classmethod
@@ -170,6 +182,12 @@ class TrainConfig:
         return TrainConfig.from_dict(d)
 
     # ---------------------------------------------------------------------------------------
+    def uses_feature_cache(self) -> bool:
+        """True when training reads the frozen backbone maps from the cache instead of the images:
+        `feature_cache` is not "off", the backbone has frozen stages and no colour jitter changes the images."""
+        return (self.feature_cache not in ("off", "", None) and self.model.frozen_stages > 0
+                and self.model.backbone != "tiny_cnn" and self.color_jitter == 0)
+
     def prompt_path(self) -> Path:
         return resolve_prompt_file(self.prompts)
 

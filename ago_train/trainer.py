@@ -39,14 +39,14 @@ from .train_config import TrainConfig
 
 
 # ---- pieces shared with evaluation --------------------------------------------------------------
-def open_frames(data: str | Path, gts: str | None, split: str):
+def open_frames(data: str | Path, gts: str | None, split: str, load_images: bool = True):
     """The NuScenesDataset at `data` (GT from `gts` or <data>/gts when present) and its indices in `split`."""
     from ago_runtime.nuscenes import NuScenesDataset
 
     root = Path(data)
     if not root.exists():
         raise AgoInputError(root, "dataset root not found (make a synthetic one with `ago synth`)")
-    ds = NuScenesDataset(root, gts_root=gts, load_images=True, load_extras=False)
+    ds = NuScenesDataset(root, gts_root=gts, load_images=load_images, load_extras=False)
     indices = ds.split(split)
     return ds, list(indices)
 
@@ -98,12 +98,18 @@ class TrainStep(nn.Module):
         self.num_classes = int(num_classes)
 
     def forward(self, batch: dict, text: torch.Tensor, phrase_class: torch.Tensor,
-                noise: torch.Tensor | None, voxel_index: torch.Tensor | None = None) -> dict:
+                noise: torch.Tensor | None, voxel_index: torch.Tensor | None = None,
+                voxel_weight: torch.Tensor | None = None) -> dict:
         from .losses import BankTensors, compute_losses
 
-        outputs = self.model(batch["images"], batch["ego2img"], voxel_index)
+        prefix = None
+        if "prefix" in batch:  # cached frozen backbone maps (B, 6, C, H, W) float16 -> (B*6, C, H, W) float32
+            prefix = [p.reshape(-1, *p.shape[2:]).float() for p in batch["prefix"]]
+        # F~_3D only where the alignment loss reads it (compute_losses runs the adapter on those rows)
+        outputs = self.model(batch.get("images"), batch["ego2img"], voxel_index, prefix, adapted=False)
         bank = BankTensors(text, phrase_class, self.num_classes, noise)
-        return compute_losses(outputs, batch, bank, self.loss_cfg)
+        return compute_losses(outputs, batch, bank, self.loss_cfg, sample_weight=voxel_weight,
+                              adapter=self.model.adapt)
 
 
 def _to_device(batch: dict, device: torch.device) -> dict:
@@ -152,7 +158,8 @@ class Trainer:
         self.pseudo = PseudoLabelSet.open(cfg.pseudo)
         self.pseudo.check(self.grid, self.label_space.class_names)
 
-        ds, indices = open_frames(cfg.data, cfg.gts, cfg.train_split)
+        use_cache = cfg.uses_feature_cache()
+        ds, indices = open_frames(cfg.data, cfg.gts, cfg.train_split, load_images=not use_cache)
         if cfg.frame_tokens is not None:
             wanted = set(cfg.frame_tokens)
             indices = [i for i in indices if ds.sample_tokens[i] in wanted]
@@ -162,7 +169,8 @@ class Trainer:
             raise AgoInputError(cfg.data, f"no frames in split {cfg.train_split!r}")
         self.preprocess = Preprocess(cfg.model.image_width, cfg.model.image_height)
         self.dataset = OccSampleDataset(FrameList(ds, indices), self.pseudo, K, self.grid, self.preprocess,
-                                        with_embeds=True, color_jitter=cfg.color_jitter, seed=cfg.seed)
+                                        with_embeds=True, color_jitter=cfg.color_jitter, seed=cfg.seed,
+                                        memory_bytes=cfg.item_memory_mb << 20)
         # the camera rig of the training data (native image size), for export (a typical rig to trace with)
         self.rig_record = plain(ds[indices[0]].rig.to_dict())
         self.sampler = DistributedSampler(self.dataset, num_replicas=info.world_size, rank=info.rank,
@@ -184,9 +192,12 @@ class Trainer:
         # draws random initial weights before loading its own) changes the model's initial weights
         torch.manual_seed(cfg.seed)
         self.model = cfg.model.build().to(info.device)
+        self.model.train()  # the backbone's BatchNorm layers stay in eval mode (backbone._FrozenBNMixin)
         if cfg.init_from:
             init = load_checkpoint(cfg.init_from)
             self.model.load_state_dict(init["model"])
+        if use_cache:  # after init_from: the cache is keyed by the frozen weights the run really uses
+            self.dataset.feature_cache = self._feature_cache()
         self.step_module = TrainStep(self.model, cfg.loss, K).to(info.device)
         params = [p for p in self.model.parameters() if p.requires_grad]
         self.optimizer = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay)
@@ -206,6 +217,17 @@ class Trainer:
             self.ddp = self.step_module
         self.text = self.bank["embeddings"].to(info.device)
         self.phrase_class = self.bank["phrase_class"].to(info.device)
+
+    def _feature_cache(self):
+        """The frozen-prefix cache (feature_cache.py), filled for every training frame by rank 0."""
+        from .feature_cache import FeatureCache
+
+        root = None if self.cfg.feature_cache == "auto" else self.cfg.feature_cache
+        cache = FeatureCache(self.model, self.preprocess, root)
+        if self.info.is_main:
+            cache.fill(self.dataset.frames, progress=not self.quiet)
+        D.barrier(self.info)
+        return cache
 
     def _load_resume(self) -> None:
         path = self.out / "last.pt"
@@ -254,6 +276,18 @@ class Trainer:
             "rig": self.rig_record,
         }
 
+    def snapshot_path(self, step: int) -> Path:
+        return self.out / "snapshots" / f"step_{step:06d}.pt"
+
+    def save_snapshot(self, epoch: int) -> None:
+        """A model-only checkpoint of this step (no optimiser, scheduler or RNG): evaluable and exportable."""
+        payload = self.checkpoint_payload(epoch)
+        if self.info.is_main:
+            for key in ("optimizer", "scheduler", "rng"):
+                payload[key] = None
+            save_checkpoint(self.snapshot_path(self.step), payload)
+        D.barrier(self.info)
+
     def save(self, epoch: int) -> Path | None:
         payload = self.checkpoint_payload(epoch)  # collective in DDP: every rank takes part
         path = None
@@ -269,16 +303,38 @@ class Trainer:
         rng = np.random.default_rng([self.cfg.seed, step])
         return torch.as_tensor(np.asarray(self.noise_bank.sample(n, rng), dtype=np.float32), device=self.info.device)
 
-    def voxels_for_step(self, batch: dict, step: int) -> torch.Tensor | None:
-        """(B, M) voxel sample for the heads and losses (None = whole grid); seeded by (seed, step, rank)."""
+    def voxels_for_step(self, batch: dict, step: int) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+        """(B, M) voxel sample for the heads and losses and its (B, M) importance weights (None = whole grid,
+        or no weights for the "priority" rule); seeded by (seed, step, rank)."""
         if self.cfg.train_voxels <= 0:
-            return None
-        from .losses.sampling import select_training_voxels
+            return None, None
+        from .losses.sampling import select_stratified, select_training_voxels
 
         gen = torch.Generator().manual_seed(int(np.random.SeedSequence([self.cfg.seed, step, self.info.rank])
                                                 .generate_state(1)[0]))
-        return select_training_voxels(batch["semantics"], self.cfg.train_voxels, batch.get("align_index"),
-                                      generator=gen)
+        if self.cfg.voxel_sampling == "priority":
+            return select_training_voxels(batch["semantics"], self.cfg.train_voxels, batch.get("align_index"),
+                                          generator=gen), None
+        return select_stratified(batch["semantics"], self.cfg.train_voxels, self.cfg.occupied_share, generator=gen)
+
+    def train_step(self, batch: dict) -> dict:
+        """One optimiser step on `batch` (the DataLoader's collated dict); returns the loss parts."""
+        cfg = self.cfg
+        batch = _to_device(batch, self.info.device)
+        noise = self.noise_for_step(self.step)
+        index, weight = self.voxels_for_step(batch, self.step)
+        out = self.ddp(batch, self.text, self.phrase_class, noise, index, weight)
+        loss = out["total"]
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"loss is {loss.item()} at step {self.step}")
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        if cfg.grad_clip > 0:
+            torch.nn.utils.clip_grad_norm_(self.model.parameters(), cfg.grad_clip)
+        self.optimizer.step()
+        self.scheduler.step()
+        self.step += 1
+        return out
 
     # -------------------------------------------------------------------------------------------
     def run(self, until: int | None = None) -> dict:
@@ -314,21 +370,9 @@ class Trainer:
                 for batch in loader:
                     if self.step >= stop:
                         break
-                    batch = _to_device(batch, info.device)
-                    noise = self.noise_for_step(self.step)
                     lr_now = self.scheduler.get_last_lr()[0]  # the rate this step uses
-                    out = self.ddp(batch, self.text, self.phrase_class, noise, self.voxels_for_step(batch, self.step))
-                    loss = out["total"]
-                    if not torch.isfinite(loss):
-                        raise FloatingPointError(f"loss is {loss.item()} at step {self.step}")
-                    self.optimizer.zero_grad(set_to_none=True)
-                    loss.backward()
-                    if cfg.grad_clip > 0:
-                        torch.nn.utils.clip_grad_norm_(self.model.parameters(), cfg.grad_clip)
-                    self.optimizer.step()
-                    self.scheduler.step()
-                    self.step += 1
-                    value = float(loss.detach())
+                    out = self.train_step(batch)
+                    value = float(out["total"].detach())
                     losses.append(value)
                     progress.advance(value, lr_now)
                     if self.step % cfg.log_every == 0 or self.step == stop:
@@ -345,6 +389,8 @@ class Trainer:
                             log_lines.append(json.dumps(rec))
                             write_text(log_path, "\n".join(log_lines) + "\n")
                         t_last, cpu_last, last_logged = now, cpu_now, self.step
+                    if cfg.snapshot_steps and self.step in cfg.snapshot_steps:
+                        self.save_snapshot(epoch)
                     if self.step % cfg.ckpt_every == 0 and self.step < stop:
                         self.save(epoch)
         finally:

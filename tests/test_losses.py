@@ -14,7 +14,7 @@ from ago_train.losses.align import align_loss
 from ago_train.losses.grounding import semantics_to_targets
 from ago_train.losses.lovasz import lovasz_softmax
 from ago_train.losses.occupancy import occupancy_loss
-from ago_train.losses.sampling import select_training_voxels
+from ago_train.losses.sampling import select_stratified, select_training_voxels
 from ago_train.model.config import ModelConfig
 
 
@@ -50,6 +50,63 @@ def test_lovasz_matches_brute_force_jaccard_at_one_hot_predictions():
         expected = 1.0 - sum(ious) / 3
         got = float(lovasz_softmax(_one_hot(pred, 3), target))
         assert got == pytest.approx(expected, abs=1e-6), (pred.tolist(), got, expected)
+
+
+def test_weighted_lovasz_is_one_minus_weighted_iou_at_one_hot_predictions():
+    """With voxel weights every Jaccard count becomes a sum of weights; all-ones weights change nothing."""
+    target = torch.tensor([0, 0, 1, 2, 1, 2])
+    weight = torch.tensor([0.5, 2.0, 1.0, 3.0, 0.25, 1.5])
+    for pred in itertools.product(range(3), repeat=6):
+        pred = torch.tensor(pred)
+        ious = []
+        for c in range(3):
+            inter = float(weight[(pred == c) & (target == c)].sum())
+            union = float(weight[(pred == c) | (target == c)].sum())
+            ious.append(inter / union)
+        got = float(lovasz_softmax(_one_hot(pred, 3), target, weight=weight))
+        assert got == pytest.approx(1.0 - sum(ious) / 3, abs=1e-6), pred.tolist()
+    soft = torch.softmax(torch.randn(6, 3), -1)
+    assert float(lovasz_softmax(soft, target, weight=torch.ones(6))) == pytest.approx(float(lovasz_softmax(soft, target)))
+
+
+def test_stratified_sample_draws_labelled_voxels_and_weights_restore_the_proportions():
+    """The sample follows `occupied_share`; its weights give back the labelled grid's occupied share."""
+    N = 20000
+    sem = torch.full((1, N), IGNORE, dtype=torch.long)
+    sem[0, :1000] = 3            # 1000 occupied
+    sem[0, 1000:10000] = FREE    # 9000 free: the labelled grid is 10 % occupied
+    gen = torch.Generator().manual_seed(0)
+    for share in (0.25, 0.5, 0.75):
+        idx, w = select_stratified(sem, 1000, share, generator=gen)
+        assert idx.shape == w.shape == (1, 1000) and idx.unique().numel() == 1000
+        labels = sem[0, idx[0]]
+        assert not bool((labels == IGNORE).any())                          # unknown voxels are never drawn
+        occ = labels != FREE
+        assert int(occ.sum()) == round(1000 * share)                        # the drawn proportion
+        assert float(w[0, occ].sum() / w.sum()) == pytest.approx(0.10, abs=1e-6)  # the weighted proportion
+        assert float(w.mean()) == pytest.approx(1.0, abs=1e-6)
+    # a frame with fewer occupied voxels than its share: the free stratum takes the rest of the slots
+    idx, w = select_stratified(sem, 3000, 0.5, generator=gen)
+    labels = sem[0, idx[0]]
+    assert int((labels != FREE).sum()) == 1000 and float(w[0, labels != FREE].sum() / w.sum()) == pytest.approx(0.1)
+
+
+def test_weighted_sample_losses_estimate_the_whole_labelled_grid():
+    """Averaged over stratified samples, the weighted CE equals the CE over every labelled voxel."""
+    cfg, model, images, ego2img, batch, bank = _setup(seed=3)
+    model.eval()
+    with torch.no_grad():
+        full = compute_losses(model(images, ego2img), batch, bank, LossConfig(variant="grounding", use_noise=False))
+        gen = torch.Generator().manual_seed(1)
+        ce, occ = [], []
+        for _ in range(40):
+            idx, w = select_stratified(batch["semantics"], 200, 0.5, generator=gen)
+            part = compute_losses(model(images, ego2img, voxel_index=idx), batch, bank,
+                                  LossConfig(variant="grounding", use_noise=False), sample_weight=w)
+            ce.append(float(part["grounding_ce"]))
+            occ.append(float(part["occ"]))
+    assert sum(ce) / len(ce) == pytest.approx(float(full["grounding_ce"]), rel=0.03)
+    assert sum(occ) / len(occ) == pytest.approx(float(full["occ"]), rel=0.05)
 
 
 def test_lovasz_ignore_and_present_classes():

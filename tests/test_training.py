@@ -329,3 +329,64 @@ def test_open_world_protocol_end_to_end(tiny_data, tmp_path):
     assert "zero-shot" in md and "1-shot" in md
     zs = json.loads((out / "zeroshot" / "metrics.json").read_text())
     assert zs["identifier"] == "min-entropy" and set(zs["subsets"]) == {"known", "unknown"}
+
+
+# ---- the frozen-backbone feature cache ---------------------------------------------------------
+def _cached_config(tiny_data, out: Path, cache: Path, **changes):
+    from ago_train.model.config import ModelConfig
+
+    mc = ModelConfig.preset("tiny")
+    mc.backbone, mc.pretrained, mc.frozen_stages = "efficientnet_lite0", True, 1
+    kw = dict(model=mc.to_dict(), feature_cache=str(cache), max_steps=2, train_voxels=400)
+    kw.update(changes)
+    return tiny_config(tiny_data, out, **kw)
+
+
+def test_feature_cache_matches_images(tiny_data, tmp_path):
+    """Training from cached frozen-stage maps equals training from the images (to float16 precision);
+    the cache is reused from disk, keyed by image content and weights, and corrupt entries are remade."""
+    from ago_train.dataset import collate
+    from ago_train.feature_cache import FeatureCache
+    from ago_train.trainer import Trainer
+
+    cache = tmp_path / "cache"
+    with_cache = Trainer(_cached_config(tiny_data, tmp_path / "a", cache), quiet=True)
+    with_cache.setup()
+    fc = with_cache.dataset.feature_cache
+    assert fc is not None and fc.stats["computed"] == 6 * len(with_cache.dataset)   # filled once, per image
+    item = with_cache.dataset[0]
+    assert "prefix" in item and "images" not in item                                   # no JPEG decoded
+    assert item["prefix"][0].dtype == torch.float16 and item["prefix"][0].shape[:2] == (6, 40)
+
+    plain = Trainer(_cached_config(tiny_data, tmp_path / "b", cache, feature_cache="off"), quiet=True)
+    plain.setup()
+    assert plain.dataset.feature_cache is None
+    # same frame through both paths: the frozen prefix from the cache equals the one from the images
+    img_item = plain.dataset[0]
+    with torch.no_grad():
+        ref = plain.model.frozen_prefix(img_item["images"][None])[0]
+    got = item["prefix"][0].float()
+    assert float((got - ref).abs().max()) <= 2e-3 * float(ref.abs().max()) + 1e-3
+    # one optimiser step from each gives the same losses
+    a = with_cache.train_step(collate([item]))
+    b = plain.train_step(collate([img_item]))
+    for k in ("grounding_ce", "occ", "align"):
+        assert float(a[k].detach()) == pytest.approx(float(b[k].detach()), rel=2e-3, abs=1e-4), k
+
+    # a new process finds everything on disk; a corrupt entry is rejected and recomputed
+    frame = with_cache.dataset.frames[0]
+    again = FeatureCache(with_cache.model, with_cache.preprocess, cache)
+    again.frame_prefix(frame.image_paths)
+    assert again.stats["computed"] == 0 and again.stats["read"] == 6
+    from ago_train.feature_cache import image_key
+
+    victim = again._path(image_key(frame.image_paths["CAM_FRONT"]))
+    victim.write_bytes(victim.read_bytes()[:100])
+    fresh = FeatureCache(with_cache.model, with_cache.preprocess, cache)
+    fresh.frame_prefix(frame.image_paths)
+    assert fresh.stats["rejected"] == 1 and fresh.stats["computed"] == 1
+    # other frozen weights -> another folder (nothing stale is read)
+    with torch.no_grad():
+        with_cache.model.backbone.stem[0].weight.add_(0.01)
+    other = FeatureCache(with_cache.model, with_cache.preprocess, cache)
+    assert other.dir != fresh.dir

@@ -12,14 +12,21 @@ import torch.nn.functional as F
 ALIGN_LOSSES = ("cosine", "mse", "l1")
 
 
-def align_loss(feat: torch.Tensor, target: torch.Tensor, kind: str = "cosine") -> torch.Tensor:
+def align_loss(feat: torch.Tensor, target: torch.Tensor, kind: str = "cosine",
+               weight: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean over the M voxels (a weighted mean with per-voxel `weight` (M,), e.g. a stratified sample's)."""
     if kind not in ALIGN_LOSSES:
         raise ValueError(f"unknown align loss {kind!r}; expected one of {ALIGN_LOSSES}")
     if feat.shape[0] == 0:
         return feat.sum() * 0.0
     target = target.to(feat.dtype)
     if kind == "cosine":
-        return (1.0 - F.cosine_similarity(feat, target, dim=-1, eps=1e-6)).mean()
-    if kind == "mse":
-        return F.mse_loss(feat, target)
-    return F.l1_loss(feat, target)
+        per = 1.0 - F.cosine_similarity(feat, target, dim=-1, eps=1e-6)
+    elif kind == "mse":
+        per = (feat - target).square().mean(-1)
+    else:
+        per = (feat - target).abs().mean(-1)
+    if weight is None:
+        return per.mean()
+    w = weight.to(per.dtype)
+    return (per * w).sum() / w.sum().clamp_min(1e-12)

@@ -21,17 +21,31 @@ def semantics_to_targets(semantics: torch.Tensor, num_classes: int) -> torch.Ten
                        torch.where(t < num_classes, t, torch.full_like(t, IGNORE)))
 
 
+def weighted_cross_entropy(logits: torch.Tensor, target: torch.Tensor, weight: torch.Tensor | None) -> torch.Tensor:
+    """Mean CE over the voxels whose target is not IGNORE; with per-voxel `weight`, the weighted mean
+    sum(w_i ce_i) / sum(w_i). logits (M, C'), target (M,), weight (M,) or None -> scalar (0 if none)."""
+    valid = target != IGNORE
+    if weight is not None:
+        valid = valid & (weight > 0)
+    if not bool(valid.any()):
+        return logits.sum() * 0.0
+    if weight is None:
+        return F.cross_entropy(logits, target, ignore_index=IGNORE)
+    ce = F.cross_entropy(logits, torch.where(valid, target, torch.zeros_like(target)), reduction="none")
+    w = torch.where(valid, weight.to(ce.dtype), torch.zeros_like(ce))
+    return (ce * w).sum() / w.sum()
+
+
 def grounding_loss(logits: torch.Tensor, target: torch.Tensor, num_classes: int, lovasz_only_present: bool = True,
-                   ) -> tuple[torch.Tensor, torch.Tensor]:
-    """logits (B, N, K + 1 + Nn), target (B, N) from semantics_to_targets -> (ce, lovasz) scalars.
+                   weight: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """logits (B, N, K + 1 + Nn), target (B, N) from semantics_to_targets, weight (B, N) optional per-voxel
+    importance weights (a stratified sample's) -> (ce, lovasz) scalars.
 
     Lovász is computed over the K classes + free (noise columns still share the softmax)."""
     flat = logits.reshape(-1, logits.shape[-1])
     tgt = target.reshape(-1)
-    if (tgt != IGNORE).any():
-        ce = F.cross_entropy(flat, tgt, ignore_index=IGNORE)
-    else:
-        ce = flat.sum() * 0.0
+    w = None if weight is None else weight.reshape(-1)
+    ce = weighted_cross_entropy(flat, tgt, w)
     lov = lovasz_softmax(torch.softmax(flat, -1), tgt, ignore_index=IGNORE, only_present=lovasz_only_present,
-                         classes=num_classes + 1)
+                         classes=num_classes + 1, weight=w)
     return ce, lov

@@ -7,6 +7,8 @@
   for the align variants "align_index" (Ma,) int64 flat indices into the batch's B*N voxels
   (b * N + voxel) and "align_embed" (Ma, C) their E_3D embeddings (visible occupied voxels).
 - bank: `BankTensors` (text (P, C), phrase_class (P,), num_classes K, noise (Nn, C) or None).
+- sample_weight: (B, M) importance weights of a stratified voxel sample (losses/sampling.py), or None:
+  every loss is then the weighted mean over the sampled voxels (an estimate of its whole-grid value).
 Returns a dict of scalar tensors: "total" plus the parts that were computed
 ("grounding_ce", "grounding_lovasz", "occ", "align").
 
@@ -123,36 +125,48 @@ def _align_rows(batch: dict, outputs: dict, num_voxels: int) -> tuple[torch.Tens
 
 
 def compute_losses(outputs: dict, batch: dict, bank: BankTensors, cfg: LossConfig,
-                   free_embedding: torch.Tensor | None = None, num_voxels: int | None = None) -> dict:
+                   free_embedding: torch.Tensor | None = None, num_voxels: int | None = None,
+                   sample_weight: torch.Tensor | None = None, adapter=None) -> dict:
     """See the module docstring. `num_voxels` (N of the grid) is needed only with a voxel sample
-    ("voxel_index" in outputs) and align; by default it is read from batch["semantics"]."""
+    ("voxel_index" in outputs) and align; by default it is read from batch["semantics"].
+    `adapter` (F_3D rows -> F~_3D rows, e.g. AGOModel.adapt): when outputs hold no "feat_adapted", the
+    "ago" variant runs it on the align voxels only (the same values, fewer rows)."""
     feat = outputs["feat"]
     free = free_embedding if free_embedding is not None else outputs["free_embedding"]
     K = bank.num_classes
+    w = None if sample_weight is None else sample_weight.to(feat.device).reshape(feat.shape[0], -1)
     losses: dict[str, torch.Tensor] = {}
     total = feat.sum() * 0.0
     if cfg.uses_grounding:
         target = _flat_targets(batch, outputs, K)
         noise = bank.noise if cfg.use_noise else None
         logits = class_logits(feat, bank.text, bank.phrase_class, K, free, noise)
-        ce, lov = grounding_loss(logits, target, K, cfg.lovasz_only_present)
+        ce, lov = grounding_loss(logits, target, K, cfg.lovasz_only_present, weight=w)
         losses["grounding_ce"], losses["grounding_lovasz"] = ce, lov
         total = total + cfg.w_ce * ce + cfg.w_lovasz * lov
         if cfg.use_occ:
-            losses["occ"] = occupancy_loss(logits, target, K)
+            losses["occ"] = occupancy_loss(logits, target, K, weight=w)
             total = total + cfg.w_occ * losses["occ"]
     if not cfg.uses_grounding and cfg.use_occ:
         target = _flat_targets(batch, outputs, K)
         logits = class_logits(feat, bank.text, bank.phrase_class, K, free, None)
-        losses["occ"] = occupancy_loss(logits, target, K)
+        losses["occ"] = occupancy_loss(logits, target, K, weight=w)
         total = total + cfg.w_occ * losses["occ"]
     if cfg.uses_align:
-        src = outputs["feat_adapted"] if cfg.variant == "ago" else feat
         if num_voxels is None:
             sem = batch["semantics"]
             num_voxels = sem.reshape(sem.shape[0], -1).shape[1]
         rows, emb = _align_rows(batch, outputs, num_voxels)
-        losses["align"] = align_loss(src.reshape(-1, src.shape[-1])[rows], emb, cfg.align_loss)
+        if cfg.variant != "ago":
+            src = feat.reshape(-1, feat.shape[-1])[rows]
+        elif "feat_adapted" in outputs:
+            src = outputs["feat_adapted"].reshape(-1, feat.shape[-1])[rows]
+        elif adapter is not None:
+            src = adapter(feat.reshape(-1, feat.shape[-1])[rows])
+        else:
+            raise ValueError("the 'ago' variant needs outputs['feat_adapted'] or an adapter")
+        losses["align"] = align_loss(src, emb, cfg.align_loss,
+                                     weight=None if w is None else w.reshape(-1)[rows])
         total = total + cfg.w_align * losses["align"]
     losses["total"] = total
     return losses

@@ -3,9 +3,11 @@
 forward_hidden(images (B, 6, 3, H, W) float32 normalised by ago_runtime.preprocess.Preprocess,
                ego2img (B, 6, 4, 4) float32 for the resized images)
   -> h (B, N, Dh) decoder hidden, g (B, N, Da) adapter hidden; N = X*Y*Z, C order over [x, y, z].
-forward(images, ego2img, voxel_index=None) -> {"feat": F_3D = decoder_out(h) (B, N, C),
+forward(images, ego2img, voxel_index=None, prefix=None) -> {"feat": F_3D = decoder_out(h) (B, N, C),
                  "feat_adapted": F~_3D = adapter_out(g) (B, N, C),
                  "free_embedding": (C,)}
+  `prefix` (training with ago_train/feature_cache.py): the frozen backbone stages' maps, a list of
+  (B*6, C_l, H_l, W_l) tensors = backbone.frozen_prefix(images); `images` is then not used (may be None).
 
 Pipeline: backbone (strides 8/16/32) -> FPN (tpv_dim) -> TPV encoder (three planes) ->
 planes_to_voxels -> decoder MLP -> decoder_out -> adapter.
@@ -46,16 +48,24 @@ class AGOModel(nn.Module):
         X, Y, Z = self.grid_shape
         return X * Y * Z
 
-    def planes(self, images: torch.Tensor, ego2img: torch.Tensor) -> dict[str, torch.Tensor]:
-        """images (B, V, 3, H, W), ego2img (B, V, 4, 4) -> TPV plane maps {"xy", "xz", "yz"}: (B, D, rows, cols)."""
+    def frozen_prefix(self, images: torch.Tensor) -> list[torch.Tensor]:
+        """images (B, V, 3, H, W) -> the frozen backbone stages' maps, each (B*V, C_l, H_l, W_l)."""
         B, V, C, H, W = images.shape
-        feats = self.backbone(images.reshape(B * V, C, H, W))
-        feats = self.fpn(feats)
+        return self.backbone.frozen_prefix(images.reshape(B * V, C, H, W))
+
+    def planes(self, images: torch.Tensor | None, ego2img: torch.Tensor,
+               prefix: list[torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
+        """images (B, V, 3, H, W) (or their frozen `prefix`), ego2img (B, V, 4, 4) -> TPV plane maps
+        {"xy", "xz", "yz"}: (B, D, rows, cols)."""
+        if prefix is None:
+            prefix = self.frozen_prefix(images)
+        feats = self.fpn(self.backbone.from_prefix(prefix))
         return self.encoder(feats, ego2img)
 
-    def voxel_features(self, images, ego2img, voxel_index: torch.Tensor | None = None) -> torch.Tensor:
+    def voxel_features(self, images, ego2img, voxel_index: torch.Tensor | None = None,
+                       prefix: list[torch.Tensor] | None = None) -> torch.Tensor:
         """(B, N, D) TPV features of every voxel, or (B, M, D) of the voxels `voxel_index` (B, M) only."""
-        planes = self.planes(images, ego2img)
+        planes = self.planes(images, ego2img, prefix)
         if voxel_index is None:
             return planes_to_voxels(planes, self.grid_shape)
         return planes_at_voxels(planes, self.grid_shape, voxel_index)
@@ -66,16 +76,23 @@ class AGOModel(nn.Module):
         g = self.adapter(self.decoder_out(h))
         return h, g
 
-    def forward(self, images: torch.Tensor, ego2img: torch.Tensor,
-                voxel_index: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    def adapt(self, feat: torch.Tensor) -> torch.Tensor:
+        """The modality adapter: F_3D (..., C) -> F~_3D (..., C)."""
+        return self.adapter_out(self.adapter(feat))
+
+    def forward(self, images: torch.Tensor | None, ego2img: torch.Tensor,
+                voxel_index: torch.Tensor | None = None,
+                prefix: list[torch.Tensor] | None = None, adapted: bool = True) -> dict[str, torch.Tensor]:
         """-> {"feat" (B, N, C), "feat_adapted" (B, N, C), "free_embedding" (C,)}.
 
         With `voxel_index` (B, M) int64 flat voxel indices (training on a voxel sample), the features
-        are (B, M, C) for those voxels and the dict also holds "voxel_index"."""
-        h = self.decoder(self.voxel_features(images, ego2img, voxel_index))
+        are (B, M, C) for those voxels and the dict also holds "voxel_index". `adapted=False` leaves
+        "feat_adapted" out (training computes F~_3D only where the alignment loss needs it)."""
+        h = self.decoder(self.voxel_features(images, ego2img, voxel_index, prefix))
         feat = self.decoder_out(h)
-        feat_adapted = self.adapter_out(self.adapter(feat))
-        out = {"feat": feat, "feat_adapted": feat_adapted, "free_embedding": self.free_embedding}
+        out = {"feat": feat, "free_embedding": self.free_embedding}
+        if adapted:
+            out["feat_adapted"] = self.adapt(feat)
         if voxel_index is not None:
             out["voxel_index"] = voxel_index
         return out

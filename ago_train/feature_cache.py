@@ -1,0 +1,181 @@
+"""Content-addressed cache of the frozen backbone stages' outputs (training only).
+
+With `ModelConfig.frozen_stages >= 1` the first backbone stages never change during training, so
+their output for one camera image is a pure function of (the image file's bytes, the frozen weights,
+the preprocessing). `FeatureCache` computes it once per image, stores it as float16, and training
+reads it instead of decoding six JPEGs and running those stages at every step.
+
+- Key of an image: sha256 of its file's bytes (`image_key`), so a changed or renamed file can never
+  be served a stale entry.
+- Folder: `<root>/<fingerprint>/`, where the fingerprint hashes the frozen stages' parameters and
+  buffers, the backbone name, `frozen_stages`, the preprocessing (`Preprocess.to_dict()`) and
+  FORMAT_VERSION: new weights or a new image size go to a fresh folder.
+- Entry: `<fingerprint>/<key[:2]>/<key>.npz` holding arrays `l0`, `l1`, ... ((C_l, H_l, W_l) float16,
+  the maps of `backbone.frozen_prefix`), written atomically; on read the shapes and dtype are checked
+  against the backbone's and the values must be finite, else the entry is recomputed.
+- A frame's prefix (`frame_prefix`) = per level (6, C_l, H_l, W_l) float16 in CAMERA_NAMES order.
+  Recently used frames are also kept in memory (up to `memory_bytes`).
+
+The cache is a training-time shortcut only: the exported model and the runtime always run the whole
+backbone on the images (`AGOModel.forward(images, ...)`); `test_feature_cache_matches_images` checks
+that a step from cached maps equals a step from the images to float16 precision.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from collections import OrderedDict
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ago_runtime.atomic import save_npz, write_json
+from ago_runtime.camera import CAMERA_NAMES
+from ago_runtime.errors import AgoInputError
+from ago_runtime.nuscenes import read_jpeg_rgb
+from ago_runtime.preprocess import Preprocess
+
+FORMAT_VERSION = 1
+
+
+def default_cache_root() -> Path:
+    """$AGO_CACHE_DIR/features, else ~/.cache/ago/features."""
+    base = os.environ.get("AGO_CACHE_DIR")
+    return (Path(base) if base else Path.home() / ".cache" / "ago") / "features"
+
+
+def image_key(path: str | Path) -> str:
+    """sha256 (hex) of an image file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def backbone_fingerprint(model, preprocess: Preprocess) -> str:
+    """sha256 (hex) of everything the frozen prefix depends on (weights, stages, preprocessing)."""
+    backbone = model.backbone
+    h = hashlib.sha256()
+    h.update(json.dumps({"format": FORMAT_VERSION, "backbone": model.cfg.backbone,
+                         "frozen_stages": int(backbone.frozen_stages),
+                         "preprocess": preprocess.to_dict()}, sort_keys=True).encode())
+    for name, t in sorted(backbone.frozen_state().items()):
+        h.update(name.encode())
+        h.update(t.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
+class FeatureCache:
+    """The frozen prefix of a model's backbone, per camera image, on disk (+ an in-memory LRU)."""
+
+    def __init__(self, model, preprocess: Preprocess, root: str | Path | None = None,
+                 memory_bytes: int = 2 << 30):
+        if int(getattr(model.backbone, "frozen_stages", 0)) <= 0:
+            raise ValueError("the backbone has no frozen stages: nothing to cache")
+        self.model = model
+        self.preprocess = preprocess
+        self.fingerprint = backbone_fingerprint(model, preprocess)
+        self.dir = Path(root or default_cache_root()) / self.fingerprint[:24]
+        self.memory_bytes = int(memory_bytes)
+        self._memory: OrderedDict[tuple, list[np.ndarray]] = OrderedDict()
+        self._memory_used = 0
+        self.shapes = self._expected_shapes()
+        self.stats = {"computed": 0, "read": 0, "memory": 0, "rejected": 0}
+        self.dir.mkdir(parents=True, exist_ok=True)
+        meta = self.dir / "meta.json"
+        if not meta.is_file():
+            write_json(meta, {"format": FORMAT_VERSION, "fingerprint": self.fingerprint,
+                              "backbone": model.cfg.backbone, "frozen_stages": int(model.backbone.frozen_stages),
+                              "preprocess": preprocess.to_dict(),
+                              "levels": [list(s) for s in self.shapes]})
+
+    def _expected_shapes(self) -> list[tuple[int, int, int]]:
+        x = torch.zeros(1, 3, self.preprocess.height, self.preprocess.width)
+        with torch.no_grad():
+            was = self.model.backbone.training
+            self.model.backbone.eval()
+            maps = self.model.backbone.frozen_prefix(x)
+            self.model.backbone.train(was)
+        return [tuple(int(v) for v in m.shape[1:]) for m in maps]
+
+    # ------------------------------------------------------------------ one image
+    def _path(self, key: str) -> Path:
+        return self.dir / key[:2] / f"{key}.npz"
+
+    def _read(self, key: str) -> list[np.ndarray] | None:
+        path = self._path(key)
+        if not path.is_file():
+            return None
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                maps = [np.asarray(z[f"l{i}"]) for i in range(len(self.shapes))]
+        except (OSError, ValueError, KeyError, EOFError, Exception):  # noqa: BLE001 - any unreadable entry
+            maps = None
+        if maps is None or any(m.dtype != np.float16 or tuple(m.shape) != s for m, s in zip(maps, self.shapes)) \
+                or not all(np.isfinite(m).all() for m in maps):
+            self.stats["rejected"] += 1
+            return None
+        return maps
+
+    @torch.no_grad()
+    def _compute(self, images: dict[str, np.ndarray], source: str) -> list[np.ndarray]:
+        """(6 cameras) -> per level (6, C, H, W) float16."""
+        x = torch.from_numpy(self.preprocess.images(images, source=source))
+        backbone = self.model.backbone
+        was = backbone.training
+        backbone.eval()
+        device = next(self.model.parameters()).device
+        maps = backbone.frozen_prefix(x.to(device))
+        backbone.train(was)
+        return [m.cpu().numpy().astype(np.float16) for m in maps]
+
+    # ------------------------------------------------------------------ one frame
+    def frame_prefix(self, image_paths: dict[str, str], source: str = "") -> list[np.ndarray]:
+        """The frozen prefix of a frame's six images: per level (6, C_l, H_l, W_l) float16."""
+        missing = [c for c in CAMERA_NAMES if c not in image_paths]
+        if missing:
+            raise AgoInputError(source or None, f"cameras {missing} have no image file")
+        keys = tuple(image_key(image_paths[c]) for c in CAMERA_NAMES)
+        if keys in self._memory:
+            self._memory.move_to_end(keys)
+            self.stats["memory"] += 1
+            return self._memory[keys]
+        per_cam = [self._read(k) for k in keys]
+        todo = [i for i, m in enumerate(per_cam) if m is None]
+        if todo:
+            images = {c: read_jpeg_rgb(image_paths[c]) for c in CAMERA_NAMES}
+            computed = self._compute(images, source)
+            for i in todo:
+                per_cam[i] = [m[i] for m in computed]
+                save_npz(self._path(keys[i]), compressed=False,
+                         **{f"l{j}": np.ascontiguousarray(m[i]) for j, m in enumerate(computed)})
+            self.stats["computed"] += len(todo)
+        self.stats["read"] += 6 - len(todo)
+        maps = [np.stack([per_cam[i][j] for i in range(6)]) for j in range(len(self.shapes))]
+        self._remember(keys, maps)
+        return maps
+
+    def _remember(self, keys: tuple, maps: list[np.ndarray]) -> None:
+        size = sum(m.nbytes for m in maps)
+        if size > self.memory_bytes:
+            return
+        self._memory[keys] = maps
+        self._memory_used += size
+        while self._memory_used > self.memory_bytes:
+            _, old = self._memory.popitem(last=False)
+            self._memory_used -= sum(m.nbytes for m in old)
+
+    def fill(self, frames, progress: bool = True) -> dict:
+        """Make sure every frame (objects with `.image_paths`, `.scene`, `.token`) is cached; returns stats."""
+        from ago_runtime.progress import track
+
+        items = range(len(frames))
+        it = track(items, "caching frozen backbone features", total=len(frames)) if progress else items
+        for i in it:
+            f = frames[i]
+            self.frame_prefix(f.image_paths, f"{f.scene}/{f.token}")
+        return dict(self.stats)
