@@ -43,6 +43,7 @@ import numpy as np
 
 from .camera import CAMERA_NAMES, Camera, Rig
 from .errors import AgoInputError
+from .image_files import decode_image
 from .readers import read_json
 from .frame import Frame, LidarSweep
 from .grid import Grid
@@ -66,8 +67,8 @@ def read_jpeg_rgb(path: str | Path) -> np.ndarray:
         raise AgoInputError(path, "not a JPEG file (no start-of-image marker)")
     if not data.rstrip(b"\x00").endswith(b"\xff\xd9"):
         raise AgoInputError(path, "truncated JPEG (no end-of-image marker FFD9)")
-    bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
-    if bgr is None or bgr.ndim != 3 or bgr.shape[2] != 3:
+    bgr = decode_image(data, path, cv2.IMREAD_COLOR)
+    if bgr.ndim != 3 or bgr.shape[2] != 3:
         raise AgoInputError(path, "corrupt JPEG (cv2 cannot decode it)")
     return np.ascontiguousarray(bgr[..., ::-1])
 
@@ -94,9 +95,7 @@ def read_png(path: str | Path, dtype: type, hw: tuple[int, int] | None = None) -
         data = path.read_bytes()
     except OSError as e:
         raise AgoInputError(path, f"cannot read the PNG ({e})") from None
-    array = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
-    if array is None:
-        raise AgoInputError(path, "corrupt PNG (cv2 cannot decode it)")
+    array = decode_image(data, path, cv2.IMREAD_UNCHANGED)
     if array.ndim != 2 or array.dtype != dtype:
         raise AgoInputError(path, f"expected a single-channel {np.dtype(dtype).name} PNG, "
                                   f"got shape {array.shape} {array.dtype}")
