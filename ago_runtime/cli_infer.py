@@ -153,10 +153,14 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
     from .bundle import card_line
     from .outputs import check_output_dir
 
+    from .heads import IDENTIFIERS
+
     _print_warnings()
+    if identifier is not None and identifier not in IDENTIFIERS:
+        raise AgoInputError("--identifier", f"must be one of {', '.join(IDENTIFIERS)}, got {identifier!r}")
     check_output_dir(out, "--out")   # before any work
     b = Bundle.load(resolve_bundle(bundle))
-    typer.echo(card_line(b), err=True)
+    typer.echo(card_line(b))   # stdout: information; stderr keeps only warnings and the one error line
     chosen = choose_bank(b, prompts, bank)
     predictor = Predictor(b, int8=int8)
     predictor.fold(chosen)   # checks the bank's encoder and width before any work

@@ -81,7 +81,11 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
             warnings.simplefilter("ignore")
             ckpt = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as e:  # a corrupt file, a pickle with objects, not a torch file ...
-        first = (str(e).strip().splitlines() or [""])[0]
+        text = str(e).strip()
+        if "Weights only load failed" in text:
+            raise AgoInputError(path, "not a loadable ago checkpoint: a pickle holding more than tensors and plain "
+                                "values (torch.load(weights_only=True) refuses it; ago never unpickles such files)") from None
+        first = (text.splitlines() or [""])[0]
         raise AgoInputError(path, f"not a loadable ago checkpoint ({e.__class__.__name__}: {first[:200]})") from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
         raise AgoInputError(path, "not an ago checkpoint (no format tag)")
@@ -157,9 +161,19 @@ def load_model_weights(model: torch.nn.Module, ckpt: dict, path: str | Path, mod
     try:
         model.load_state_dict(state, strict=True)
     except (RuntimeError, KeyError, ValueError, TypeError) as e:
-        first = (str(e).strip().splitlines() or [""])[0]
         detail = f"; model settings that differ: {', '.join(diff[:8])}" if diff else ""
-        raise AgoInputError(path, f"its weights do not fit {what} ({first[:160]}){detail}") from None
+        raise AgoInputError(path, f"its weights do not fit {what} ({state_dict_problem(e)}){detail}") from None
+
+
+def state_dict_problem(e: BaseException) -> str:
+    """The telling line of torch's load_state_dict error ("size mismatch for decoder.0.weight: ... [32, 64]
+    ... [24, 64]", "Missing key(s) ..."), shortened, instead of its generic first line."""
+    lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
+    for ln in lines:
+        if ln.startswith(("size mismatch", "Missing key", "Unexpected key")):
+            ln = ln.replace("copying a param with shape ", "").replace("torch.Size", "")
+            return ln[:200]
+    return (lines[0] if lines else e.__class__.__name__)[:200]
 
 
 def plain_dict(d: Any) -> Any:

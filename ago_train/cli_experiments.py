@@ -19,9 +19,14 @@ def register(app: typer.Typer) -> None:
     app.add_typer(exp, name="experiments")
 
     def _profile(name: str):
+        from ago_runtime.errors import AgoInputError
+
         from .experiments.plan import ExperimentProfile
 
-        return ExperimentProfile.preset(name)
+        try:
+            return ExperimentProfile.preset(name)
+        except AgoInputError as e:
+            raise AgoInputError("--profile", e.problem) from None
 
     @exp.command("run")
     def run_cmd(

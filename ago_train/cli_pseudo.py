@@ -187,7 +187,7 @@ def register(app: typer.Typer) -> None:
         if limit > 0:
             indices = indices[:limit]
         for n in notes:
-            typer.echo(f"note: using {n}", err=True)
+            typer.echo(f"note: using {n}")
         config = PseudoLabelConfig(grid=pgrid, num_keyframes=keyframes, interval=interval, nonkey_sweeps=nonkey,
                                    raycast=raycast)
         command = "ago " + " ".join(shlex.quote(a) for a in sys.argv[1:])

@@ -126,7 +126,7 @@ def register(app: typer.Typer) -> None:
         check_output_dir(out, "--out")
         base = _config(config, sets, None, data)
         if stage in ("fewshot", "all") and pseudo_full is None:
-            raise AgoInputError(None, "--pseudo-full is needed for the few-shot stage")
+            raise AgoInputError("--pseudo-full", "is needed for the few-shot stage (--stage fewshot or all)")
         try:
             seed_list = tuple(int(s) for s in seeds.split(",") if s.strip())
         except ValueError:
