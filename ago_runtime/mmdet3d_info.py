@@ -57,7 +57,7 @@ _BUILTINS = {"list", "dict", "tuple", "set", "frozenset", "int", "float", "compl
 # Bounds on what a small file may make the reader allocate (module docstring).
 MAX_INFO_BYTES = 2 << 30          # an info .pkl larger than 2 GiB is refused ($AGO_MAX_INFO_BYTES)
 MAX_SIZED_ALLOC = 1 << 20         # bytes(n) / bytearray(n) from an integer n: at most 1 MiB
-PLAIN_NODES_PER_BYTE = 8          # to_plain may make at most this many values per byte of the file (+ 1e6)
+PLAIN_NODES_PER_BYTE = 8          # to_plain may make at most this many values per byte of the file (+ 200 000)
 
 
 def _np_core(submodule: str):
@@ -175,7 +175,7 @@ def to_plain(obj, budget: list[int] | None = None, source=None):
 
 def read_mmdet3d_info(pkl_path: str | Path) -> dict:
     """An info .pkl -> plain dict {"metainfo": ..., "data_list": [...]} (checked shape of the top level)."""
-    budget = [1_000_000 + PLAIN_NODES_PER_BYTE * Path(pkl_path).stat().st_size] if Path(pkl_path).is_file() else None
+    budget = [200_000 + PLAIN_NODES_PER_BYTE * Path(pkl_path).stat().st_size] if Path(pkl_path).is_file() else None
     info = to_plain(safe_load_pickle(pkl_path), budget, pkl_path)
     _check_info(info, pkl_path)
     return info
