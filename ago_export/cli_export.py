@@ -1,4 +1,5 @@
-"""`ago export model.ckpt -o BUNDLE [--int8] [--parity-frame DIR | --no-real-frame]` (needs torch)."""
+"""`ago export model.ckpt -o BUNDLE [--int8] [--parity-frame DIR | --no-real-frame] [--card-note TEXT]
+[--card-json FILE]` (needs torch)."""
 
 from __future__ import annotations
 
@@ -24,14 +25,28 @@ def register(app: typer.Typer) -> None:
             help="prompt file(s) to pre-build banks for (repeatable); default: every shipped prompt file"),
         train_bank_only: bool = typer.Option(False, "--train-bank-only",
                                              help="ship only the training label space's bank"),
+        card_note: Optional[str] = typer.Option(None, "--card-note",
+                                                help="one line added to the bundle card (card.json)"),
+        card_json: Optional[Path] = typer.Option(
+            None, "--card-json", help='JSON object merged into the bundle card, e.g. {"val_scores": {"mIoU": 7.8}} '
+                                      "(default: filled from the checkpoint, its log and <ckpt dir>/eval-val)"),
     ) -> None:
         """Export a checkpoint to a self-describing ONNX bundle, parity-checked against torch."""
         from ago_runtime.cli import require_torch
 
         require_torch("export")
+        from ago_runtime.errors import AgoInputError
+        from ago_runtime.outputs import check_output_dir
+
+        from .card import read_card_options
         from .export import export_bundle
 
+        card = read_card_options(card_note, card_json)
+        if not checkpoint.is_file():
+            raise AgoInputError(checkpoint, "checkpoint not found")
+        check_output_dir(out, "-o")
+        check_output_dir(out.parent, "-o (the bundle is built beside it)")
         prompts = [] if train_bank_only else bank
         export_bundle(checkpoint, out, int8=int8, parity_frame_dir=parity_frame,
                       real_frame=not no_real_frame, bank_prompts=prompts,
-                      log=lambda s: typer.echo(s, err=True))
+                      log=lambda s: typer.echo(s, err=True), card=card)

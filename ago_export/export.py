@@ -28,7 +28,6 @@ import copy
 import datetime as _dt
 import json
 import shutil
-import tempfile
 import warnings
 from pathlib import Path
 
@@ -37,7 +36,7 @@ import torch
 from torch import nn
 
 import ago_runtime
-from ago_runtime.atomic import write_json
+from ago_runtime.atomic import replace_dir, temp_dir_beside, write_json
 from ago_runtime.bank import PromptBank, bank_for_prompts
 from ago_runtime.bundle import BUNDLE_FORMAT, BUNDLE_FORMAT_VERSION, BUNDLE_JSON, file_sha256
 from ago_runtime.calibration import find_camera_images, load_images_folder
@@ -48,6 +47,7 @@ from ago_runtime.heads import HeadWeights
 from ago_runtime.preprocess import Preprocess
 from ago_runtime.prompts import LabelSpace, parse_prompt_text, shipped_label_spaces
 
+from .card import write_card
 from .parity import FP32_TOLERANCE, INT8_TOLERANCE, Tolerance, check_parity, describe
 
 OPSET = 17
@@ -289,24 +289,17 @@ def _file_entry(root: Path, rel: str) -> dict:
 
 
 def _replace_dir(tmp: Path, out: Path) -> None:
-    """Move the finished temp folder onto `out` (an existing bundle there is replaced)."""
-    if out.exists():
-        if not out.is_dir() or (any(out.iterdir()) and not (out / BUNDLE_JSON).is_file()):
-            raise AgoInputError(out, "exists and is not an ago bundle; choose another -o")
-        old = out.with_name(f".{out.name}.old")
-        if old.exists():
-            shutil.rmtree(old)
-        out.rename(old)
-        tmp.rename(out)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        tmp.rename(out)
+    """Move the finished temp folder onto `out` (an existing bundle there is replaced; never missing)."""
+    if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not (out / BUNDLE_JSON).is_file())):
+        raise AgoInputError(out, "exists and is not an ago bundle; choose another -o")
+    replace_dir(tmp, out)
 
 
 def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
                   parity_frame_dir: str | Path | None = None, real_frame: bool = True,
                   bank_prompts: list[str] | None = None, tolerance: Tolerance = FP32_TOLERANCE,
-                  int8_tolerance: Tolerance = INT8_TOLERANCE, log=print, parity: bool = True) -> dict:
+                  int8_tolerance: Tolerance = INT8_TOLERANCE, log=print, parity: bool = True,
+                  card: dict | None = None) -> dict:
     """Write a bundle for `checkpoint` at `out`; returns bundle.json's content.
 
     parity=False skips the ORT-vs-torch check (benchmarks only; not offered by the CLI);
@@ -314,6 +307,8 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
 
     bank_prompts: prompt files (paths or shipped names) to pre-build banks for; None = every
     shipped prompt file (skipped with a note when no text encoder is installed).
+
+    card: {"note": str, "extra": dict} for the bundle card (ago_export/card.py).
     """
     checkpoint, out = Path(checkpoint), Path(out)
     model, ckpt, cfg = load_model(checkpoint)
@@ -330,8 +325,7 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
         rig, rig_source = Rig.nuscenes_like(1600, 900), "Rig.nuscenes_like(1600, 900) (checkpoint has no rig)"
     text_encoder = {"id": bank.encoder_id, "hash": bank.encoder_hash, "dim": int(bank.dim),
                     "variant": bank.encoder_variant}
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    tmp = temp_dir_beside(out)   # removes the temp folders of killed exports first
     try:
         metadata = {
             "ago.format": BUNDLE_FORMAT, "ago.format_version": str(BUNDLE_FORMAT_VERSION),
@@ -412,6 +406,7 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
             "files": file_entries,
             "parity": report,
         }
+        write_card(tmp, ckpt, checkpoint, **(card or {}))   # card.json: what it was trained on (ago_export/card.py)
         write_json(tmp / BUNDLE_JSON, meta)
         for p in [tmp, *tmp.rglob("*")]:
             p.chmod(0o755 if p.is_dir() else 0o644)

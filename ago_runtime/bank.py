@@ -192,6 +192,28 @@ class PromptBank:
         return bank
 
 
+MAX_INFER_CLASSES = 254   # `ago infer` writes uint8 semantics with free = K, so K + 1 <= 255
+
+
+def check_class_count(num_classes: int, source) -> None:
+    """Refuse (naming `source`, a prompt file or bank) more classes than `ago infer` can write."""
+    if num_classes > MAX_INFER_CLASSES:
+        raise AgoInputError(source, f"{num_classes} classes: `ago infer` predicts at most {MAX_INFER_CLASSES} "
+                            "(uint8 semantics with free = K); split the prompt file")
+
+
+def check_bank_for_bundle(bank: PromptBank, bank_path, bundle) -> PromptBank:
+    """`bank` when it can be used with `bundle` (same text encoder id and width, a class count `ago infer`
+    can write); else AgoInputError naming the BANK file (it is the bank that has to be rebuilt)."""
+    te = bundle.text_encoder
+    if bank.encoder_id != te["id"] or int(bank.dim) != int(te["dim"]):
+        raise AgoInputError(bank_path, f"prompt bank made by text encoder {bank.encoder_id!r} (dim {bank.dim}), "
+                            f"the bundle {bundle.root} needs {te['id']!r} (dim {te['dim']}); rebuild it with "
+                            "`ago prompts build <prompt file> -o BANK`")
+    check_class_count(bank.num_classes, bank_path)
+    return bank
+
+
 def build_bank(label_space: LabelSpace, encoder, template: str = DEFAULT_TEMPLATE) -> PromptBank:
     """Encode every phrase of `label_space` (after `template`) with `encoder`.
 

@@ -15,6 +15,8 @@ camera rig it was trained with. Layout (see docs/runtime.md):
       banks/<name>.npz   prompt banks (ago_runtime.bank.PromptBank files); "train" = the
                          training label space's embeddings stored in the checkpoint
 
+`card.json` (optional, ago_export/card.py): what the model was trained on; `Bundle.card`, `card_line`.
+
 `Bundle.load(dir)` refuses (AgoInputError naming the file) a missing folder or file, a newer
 format_version, a file whose sha256 differs from bundle.json (e.g. a truncated ONNX), heads of
 the wrong shapes.
@@ -44,6 +46,7 @@ BUNDLE_FORMAT = "ago-bundle"
 BUNDLE_FORMAT_VERSION = 2
 ENCODER_FILES = ("planes", "voxels")
 BUNDLE_JSON = "bundle.json"
+CARD_FILE = "card.json"          # written by ago_export/card.py
 ENV_BUNDLE = "AGO_BUNDLE"
 DEFAULT_BUNDLE_DIR = Path(__file__).resolve().parent / "assets" / "default_bundle"
 DEMO_FRAME_DIR = Path(__file__).resolve().parent / "assets" / "demo_frame"
@@ -70,6 +73,7 @@ class Bundle:
     label_space: dict              # {"name", "classes": [{"name", "occ3d_ids", "known"}], ...}
     text_encoder: dict             # {"id", "hash", "dim"}
     banks: dict[str, Path] = field(default_factory=dict)
+    card: dict | None = None       # card.json (what the model was trained on), None when the bundle has none
 
     # ---- paths -----------------------------------------------------------------------------
     def encoder_paths(self, int8: bool = False) -> dict[str, Path]:
@@ -151,7 +155,8 @@ class Bundle:
         for name, p in banks.items():
             if not p.is_file():
                 raise AgoInputError(p, f"bundle bank {name!r} is missing")
-        return cls(root, meta, grid, pre, rig, heads, label_space, text_encoder, banks)
+        card = read_json(root / CARD_FILE, expect=dict) if (root / CARD_FILE).is_file() else None
+        return cls(root, meta, grid, pre, rig, heads, label_space, text_encoder, banks, card)
 
 
 def _load_heads(path: Path, dim: int) -> HeadWeights:
@@ -183,3 +188,30 @@ def resolve_bundle(path: str | Path | None = None) -> Path:
     if (DEFAULT_BUNDLE_DIR / BUNDLE_JSON).is_file():
         return DEFAULT_BUNDLE_DIR
     raise AgoInputError(DEFAULT_BUNDLE_DIR, f"no default bundle installed; {HOW_TO_MAKE_DEFAULT}")
+
+
+def card_line(bundle: Bundle) -> str:
+    """One line saying what the bundle's model was trained on (its card's summary), for `ago infer` / `ago demo`."""
+    if bundle.card and bundle.card.get("summary"):
+        return f"bundle: {' '.join(str(bundle.card['summary']).split())}"
+    step = (bundle.meta.get("checkpoint") or {}).get("step")
+    known = f" (checkpoint step {step}, label space {bundle.label_space.get('name')})" if step is not None else ""
+    if bundle.root.resolve() == DEFAULT_BUNDLE_DIR:
+        return ("bundle: the shipped default bundle has no bundle card" + known + "; it is the small demo model "
+                "scripts/make_default_bundle.sh trains on the SYNTHETIC world - not a nuScenes model")
+    return f"bundle: {bundle.root} has no bundle card (card.json){known}: what it was trained on is not recorded"
+
+
+def check_heads_fit_encoder(bundle: Bundle, encoder) -> None:
+    """Refuse, naming heads.npz, heads whose hidden widths differ from the voxel graph's (h: Dh, g: Da)."""
+    try:   # the widths the voxel graph's bank inputs take: bank_main (P', Dh), bank_adapted (P', Da)
+        shapes = {i.name: i.shape for i in encoder.voxels.get_inputs()}
+        dh, da = int(shapes["bank_main"][1]), int(shapes["bank_adapted"][1])
+    except (AttributeError, KeyError, IndexError, TypeError, ValueError):
+        return   # an encoder without such a graph: nothing to compare
+    h = bundle.heads
+    if (h.W_dec.shape[1], h.W_ad.shape[1]) != (dh, da):
+        path = bundle.root / bundle.meta["files"]["heads"]["path"]
+        raise AgoInputError(path, f"heads take hidden widths Dh {h.W_dec.shape[1]}, Da {h.W_ad.shape[1]} but the "
+                            f"voxel graph {Path(encoder.voxels_path).name} gives Dh {dh}, Da {da} (mixed files "
+                            "from two exports? re-export the bundle)")

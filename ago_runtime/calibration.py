@@ -37,6 +37,7 @@ import numpy as np
 from .atomic import write_json
 from .camera import CAMERA_NAMES, Camera, Rig
 from .errors import AgoInputError
+from .image_files import decode_image
 from .readers import read_json
 
 CALIB_FILE = "calib.json"
@@ -96,7 +97,8 @@ def load_calibration(path: str | Path) -> Rig:
 
 
 def read_image(path: str | Path) -> np.ndarray:
-    """An image file -> (H, W, 3) uint8 RGB. Refuses unreadable or truncated files."""
+    """An image file -> (H, W, 3) uint8 RGB. Refuses unreadable, truncated, corrupt or oversized files
+    (header size limit and corrupt-data check: ago_runtime.image_files)."""
     path = Path(path)
     try:
         data = path.read_bytes()
@@ -107,8 +109,8 @@ def read_image(path: str | Path) -> np.ndarray:
             raise AgoInputError(path, "not a JPEG file (no start-of-image marker)")
         if b"\xff\xd9" not in data[-1024:]:
             raise AgoInputError(path, "truncated or corrupt JPEG (no end-of-image marker)")
-    img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_COLOR)
-    if img is None or img.ndim != 3 or img.size == 0:
+    img = decode_image(data, path, cv2.IMREAD_COLOR)
+    if img.ndim != 3:
         raise AgoInputError(path, "corrupt or unsupported image file")
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 

@@ -18,6 +18,9 @@ import numpy as np
 
 from .errors import AgoInputError
 
+# cam2ego rotations may come rounded (calib.json files with 4 decimals): tolerance on R R^T = I.
+ROTATION_TOLERANCE = 1e-2
+
 CAMERA_NAMES: tuple[str, ...] = (
     "CAM_FRONT",
     "CAM_FRONT_RIGHT",
@@ -41,12 +44,24 @@ class Camera:
         self.cam2ego = np.asarray(self.cam2ego, dtype=np.float64).reshape(4, 4)
 
     def validate(self, source: str | None = None) -> None:
-        """Refuse NaN/inf or singular calibration with a message naming `source`."""
+        """Refuse NaN/inf or singular calibration, non-positive focal lengths, a cam2ego that is not a rigid
+        transform (rotation within ROTATION_TOLERANCE), with a message naming `source`."""
         for what, m in (("intrinsics", self.intrinsics), ("cam2ego", self.cam2ego)):
             if not np.all(np.isfinite(m)):
                 raise AgoInputError(source, f"{self.name} {what} contains NaN or inf")
         if abs(np.linalg.det(self.intrinsics)) < 1e-9 or abs(np.linalg.det(self.cam2ego[:3, :3])) < 1e-6:
             raise AgoInputError(source, f"{self.name} calibration is singular")
+        fx, fy = float(self.intrinsics[0, 0]), float(self.intrinsics[1, 1])
+        if fx <= 0 or fy <= 0:
+            raise AgoInputError(source, f"{self.name} intrinsics: focal lengths must be positive, got fx {fx:g}, fy {fy:g}")
+        if not np.allclose(self.intrinsics[2], [0.0, 0.0, 1.0], atol=1e-6):
+            raise AgoInputError(source, f"{self.name} intrinsics: last row must be [0, 0, 1], got {self.intrinsics[2].tolist()}")
+        r = self.cam2ego[:3, :3]
+        if not np.allclose(r @ r.T, np.eye(3), atol=ROTATION_TOLERANCE) or np.linalg.det(r) < 0:
+            raise AgoInputError(source, f"{self.name} cam2ego: its 3x3 part is not a rotation "
+                                        f"(R R^T differs from I by more than {ROTATION_TOLERANCE}, or det < 0)")
+        if not np.allclose(self.cam2ego[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
+            raise AgoInputError(source, f"{self.name} cam2ego: last row must be [0, 0, 0, 1]")
         if self.width <= 0 or self.height <= 0:
             raise AgoInputError(source, f"{self.name} has a non-positive image size")
 

@@ -1,15 +1,28 @@
-"""The `ago` command line (typer).
+"""The `ago` command line (typer), and its one error path.
 
 Each verb lives in a small command module that imports nothing heavy at import time
 (torch is imported inside the command), so `ago infer` works on a runtime-only install and
-`ago train` says which extra to install when torch is missing. Bad input raises
-AgoInputError, which becomes a one-line `error: <file>: <problem>` and exit code 2.
+`ago train` says which extra to install when torch is missing.
+
+Every failure caused by the user's input leaves through `exit_code_for` (used by `main`):
+- AgoInputError (a file, a config, an option value) and MissingExtra: `error: <file or option>: <problem>`;
+- click's usage errors (an unknown option, a value of the wrong type, a missing option, a value
+  outside an option's range): `error: <option>: <problem> (see 'ago VERB --help')`;
+- an OSError that names a file (PermissionError on an output folder, a full disk ...):
+  `error: <file>: <strerror>`;
+each as ONE line on stderr and exit code 2. Anything else is a bug and keeps its traceback.
+Warnings print as one line each (`warning: <message>`).
+
+Usage errors are recognised by class name through typer's own exception classes, because typer
+>= 0.26 carries its own copy of click (`typer._click`) while older typer uses the standalone click:
+`click_exception_classes()` finds both.
 """
 
 from __future__ import annotations
 
 import importlib
 import sys
+import warnings
 
 import typer
 
@@ -40,28 +53,6 @@ for _name in COMMAND_MODULES:
     _mod.register(app)
 
 
-def main() -> None:
-    try:
-        app(standalone_mode=False)
-    except AgoInputError as e:
-        print(f"error: {e}", file=sys.stderr)
-        sys.exit(2)
-    except MissingExtra as e:
-        print(f"error: {e}", file=sys.stderr)
-        sys.exit(2)
-    except SystemExit:
-        raise
-    except Exception as e:  # click's usage errors
-        import click
-
-        if isinstance(e, click.exceptions.ClickException):
-            e.show()
-            sys.exit(2)
-        if isinstance(e, click.exceptions.Abort):
-            sys.exit(1)
-        raise
-
-
 class MissingExtra(RuntimeError):
     pass
 
@@ -73,6 +64,119 @@ def require_torch(verb: str) -> None:
     if importlib.util.find_spec("torch") is None:  # look, don't import: the runtime never loads torch
         raise MissingExtra(f"`ago {verb}` needs the training extra: pip install -e '.[train]' "
                            "(and scripts/setup.sh for the bundled weights)")
+
+
+# ------------------------------------------------------------------------------------ errors
+def _classes_named(name: str) -> tuple[type, ...]:
+    """The exception classes called `name` in the MRO of typer's BadParameter / Exit / Abort, and in the
+    standalone click when it is installed (older typer raises click's own classes)."""
+    found = []
+    roots = [typer.BadParameter, getattr(typer, "Exit", None), getattr(typer, "Abort", None)]
+    try:
+        import click.exceptions as ce
+
+        roots += [ce.BadParameter, ce.Exit, ce.Abort]
+    except ImportError:
+        pass
+    for root in roots:
+        for cls in getattr(root, "__mro__", ()):
+            if cls.__name__ == name and cls not in found:
+                found.append(cls)
+    return tuple(found)
+
+
+def click_exception_classes() -> dict[str, tuple[type, ...]]:
+    """{"ClickException", "Abort", "Exit"} -> the classes of that name typer (and click) raise."""
+    return {name: _classes_named(name) for name in ("ClickException", "Abort", "Exit")}
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _param_name(param) -> str | None:
+    """'--scenes' for an option (its first long name), 'PROMPT_FILE' for an argument."""
+    if param is None:
+        return None
+    opts = list(getattr(param, "opts", None) or [])
+    if getattr(param, "param_type_name", "") == "argument" or not opts:
+        return str(getattr(param, "human_readable_name", None) or getattr(param, "name", "") or "").upper() or None
+    longs = [o for o in opts if o.startswith("--")]
+    return (longs or opts)[0]
+
+
+def usage_error_line(e: BaseException) -> str:
+    """One line `<option or command>: <problem> (see '<command> --help')` for a click usage error."""
+    ctx = getattr(e, "ctx", None)
+    command = getattr(ctx, "command_path", None) or "ago"
+    name = _param_name(getattr(e, "param", None))
+    kind = type(e).__name__
+    message = str(getattr(e, "message", "") or "")
+    if kind == "NoSuchOption":
+        name = getattr(e, "option_name", None) or name
+        message = "no such option"
+        possible = list(getattr(e, "possibilities", None) or [])
+        if possible:
+            message += f" (did you mean {', '.join(sorted(possible))}?)"
+    elif kind == "MissingParameter":
+        what = "argument" if getattr(getattr(e, "param", None), "param_type_name", "") == "argument" else "option"
+        message = f"missing {what}" + (f" ({message})" if message else "")
+    elif kind in ("BadOptionUsage",):
+        name = getattr(e, "option_name", None) or name
+    elif not message:
+        message = e.format_message() if hasattr(e, "format_message") else str(e)
+    return _one_line(f"{name or command}: {message} (see '{command} --help')")
+
+
+def exit_code_for(e: BaseException) -> int:
+    """Print the one error line for `e` on stderr and give the exit code; re-raise what is not bad input."""
+    classes = click_exception_classes()
+    if isinstance(e, (AgoInputError, MissingExtra)):
+        print(f"error: {_one_line(e)}", file=sys.stderr)
+        return 2
+    if isinstance(e, classes["ClickException"]):
+        if type(e).__name__ == "NoArgsIsHelpError":   # `ago` / `ago prompts` alone: the help text
+            print(e.format_message(), file=sys.stdout)
+            return 2
+        if type(e).__name__ == "FileError":
+            print(f"error: {_one_line(e.format_message())}", file=sys.stderr)
+            return 2
+        print(f"error: {usage_error_line(e)}", file=sys.stderr)
+        return 2
+    if isinstance(e, classes["Abort"]) or isinstance(e, KeyboardInterrupt):
+        print("error: interrupted", file=sys.stderr)
+        return 130
+    if isinstance(e, OSError) and getattr(e, "filename", None):
+        print(f"error: {e.filename}: {_one_line(e.strerror or e)}", file=sys.stderr)
+        return 2
+    raise e
+
+
+def _one_line_warnings() -> None:
+    """Show warnings as `warning: <message>`, one line each, on stderr."""
+    def show(message, category, filename, lineno, file=None, line=None):
+        print(f"warning: {_one_line(message)}", file=sys.stderr)
+
+    warnings.showwarning = show
+
+
+def run(argv: list[str] | None = None) -> int:
+    """Run `ago` with `argv` (default sys.argv[1:]); gives the exit code (errors already printed)."""
+    _one_line_warnings()
+    args = list(sys.argv[1:] if argv is None else argv)
+    try:
+        rc = app(args=args, prog_name="ago", standalone_mode=False)
+    except SystemExit:
+        raise
+    except BaseException as e:  # noqa: BLE001 - every exit goes through exit_code_for
+        return exit_code_for(e)
+    return rc if isinstance(rc, int) else 0   # click returns Exit's code (e.g. 0 after --help)
+
+
+def main() -> None:
+    rc = run()
+    if rc:
+        sys.exit(rc)
 
 
 if __name__ == "__main__":

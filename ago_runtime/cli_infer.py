@@ -3,7 +3,8 @@
 Inputs (`--images DIR`):
 - an images folder: the six images named by camera (`CAM_FRONT.jpg` ...) and a `calib.json`
   (docs/runtime.md; without it the bundle's training rig is used, with a warning);
-- a nuScenes-layout dataset (a `v1.0-*` table folder): every keyframe, or `--sample TOKEN`;
+- a nuScenes-layout dataset (a `v1.0-*` table folder): every keyframe, or `--sample TOKEN|SCENE`
+  (repeatable: several tokens and/or scene names in one run, the bundle loaded once);
 - with `--info PKL`: an mmdetection3d info file, DIR (default: the pkl's folder) the data root.
 
 Outputs per frame, in `--out` (all written atomically): `<name>.npz` (Occ3D format: `semantics`
@@ -17,7 +18,7 @@ from __future__ import annotations
 import sys
 import warnings
 from pathlib import Path
-from typing import Iterator, Optional
+from typing import Iterator, List, Optional
 
 import numpy as np
 import typer
@@ -51,39 +52,50 @@ def choose_bank(bundle, prompts: Optional[str], bank: Optional[str]):
 
     if prompts and bank:
         raise AgoInputError(None, "give --prompts or --bank, not both")
+    from .bank import check_bank_for_bundle, check_class_count
+
     if bank:
         if Path(bank).is_file():
-            return PromptBank.load(bank)
+            return check_bank_for_bundle(PromptBank.load(bank), bank, bundle)
         if bank in bundle.banks:
             return bundle.load_bank(bank)
         raise AgoInputError(bank, f"prompt bank file not found (the bundle ships {sorted(bundle.banks)})")
     if prompts:
-        path = resolve_prompts(prompts)
-        stem = path.stem
-        if stem in bundle.banks:   # a shipped prompt file the bundle pre-built: check it is the same text
-            b = bundle.load_bank(stem)
-            from .prompts import parse_prompt_file
+        from .prompts import parse_prompt_file
 
-            if b.source_hash == parse_prompt_file(path).sha256:
+        path = resolve_prompts(prompts)
+        space = parse_prompt_file(path)
+        check_class_count(space.num_classes, path)       # before any encoding
+        if path.stem in bundle.banks:   # a shipped prompt file the bundle pre-built: check it is the same text
+            b = bundle.load_bank(path.stem)
+            if b.source_hash == space.sha256:
                 return b
         from .text_encoder import default_text_encoder
 
-        return bank_for_prompts(path, encoder=default_text_encoder(bundle_dir=bundle.root))
+        encoder = default_text_encoder(bundle_dir=bundle.root)
+        te = bundle.text_encoder
+        if encoder.encoder_id != te["id"] or int(encoder.dim) != int(te["dim"]):
+            raise AgoInputError(encoder.onnx_path, f"text encoder {encoder.encoder_id!r} (dim {encoder.dim}) cannot "
+                                f"make banks for this bundle, which needs {te['id']!r} (dim {te['dim']})")
+        return bank_for_prompts(path, encoder=encoder)
     return bundle.load_bank()
 
 
-def iter_frames(images: Path, sample: Optional[str], info: Optional[Path], fallback_rig) -> Iterator[tuple]:
-    """Yields (name, images dict, rig, source) per frame."""
+def iter_frames(images: Path, sample, info: Optional[Path], fallback_rig) -> Iterator[tuple]:
+    """Yields (name, images dict, rig, source) per frame. `sample`: None (every frame), or sample tokens
+    and/or scene names (a str or a list; each scene gives its keyframes in time order)."""
     from .calibration import find_camera_images, load_images_folder
 
+    wanted = [sample] if isinstance(sample, str) else list(sample or [])
     if info is not None:
         from .mmdet3d_info import load_mmdet3d_info
 
         frames = load_mmdet3d_info(info, images if images is not None else info.parent)
-        if sample:
-            frames = [f for f in frames if f.token == sample]
-            if not frames:
-                raise AgoInputError(info, f"no sample {sample!r}")
+        if wanted:
+            unknown = [w for w in wanted if not any(w in (f.token, f.scene) for f in frames)]
+            if unknown:
+                raise AgoInputError(info, f"no sample or scene {', '.join(map(repr, unknown))}")
+            frames = [f for w in wanted for f in frames if w in (f.token, f.scene)]
         for f in frames:
             yield f.token, f.images, f.rig, str(info)
         return
@@ -96,11 +108,13 @@ def iter_frames(images: Path, sample: Optional[str], info: Optional[Path], fallb
         from .nuscenes import NuScenesDataset
 
         ds = NuScenesDataset(images, load_extras=False)
-        indices = [ds.index_of(sample)] if sample else range(len(ds))
+        indices = ds.indices_of(wanted) if wanted else range(len(ds))
         for i in indices:
             f = ds[i]
             yield f.token, f.images, f.rig, str(images)
         return
+    if wanted:
+        raise AgoInputError("--sample", f"{images} is an images folder (one frame), not a dataset")
     find_camera_images(images)
     imgs, rig, _ = load_images_folder(images, fallback_rig=fallback_rig)
     yield images.resolve().name, imgs, rig, str(images)
@@ -115,7 +129,7 @@ def prediction_picture(pred, images: dict | None, title: str = "") -> np.ndarray
     bev = render.bev_image(pred.semantics, colors=colors, free_index=pred.free_index, grid=pred.grid, scale=scale)
     occupied = pred.semantics != pred.free_index
     ent = render.scalar_bev(pred.entropy, mask=occupied, label="entropy (nats)", grid=pred.grid, scale=scale)
-    panels = [(f"{title}: classes ({pred.identifier})".strip(), bev), ("entropy, max over z", ent)]
+    panels = [(f"classes ({pred.identifier})", bev), ("entropy, max over z", ent)]
     if pred.identifier != "none":
         share = render.scalar_bev(pred.branch.astype(np.float32), reduce="mean", mask=occupied, vmin=0, vmax=1,
                                   label="adapted share", grid=pred.grid, scale=scale)
@@ -124,7 +138,8 @@ def prediction_picture(pred, images: dict | None, title: str = "") -> np.ndarray
     parts = [top, render.legend(pred.class_names, colors[:-1], width=top.shape[1])]
     if images:
         parts.append(render.rig_mosaic(images, width=top.shape[1]))
-    return render.stack_vertical(parts)
+    picture = render.stack_vertical(parts)
+    return render.with_title(picture, title) if title else picture   # the full name, wrapped, never cut
 
 
 def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, sample=None, info=None,
@@ -135,8 +150,17 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
     from .predictor import Predictor
     from .render import save_png
 
+    from .bundle import card_line
+    from .outputs import check_output_dir
+
+    from .heads import IDENTIFIERS
+
     _print_warnings()
+    if identifier is not None and identifier not in IDENTIFIERS:
+        raise AgoInputError("--identifier", f"must be one of {', '.join(IDENTIFIERS)}, got {identifier!r}")
+    check_output_dir(out, "--out")   # before any work
     b = Bundle.load(resolve_bundle(bundle))
+    typer.echo(card_line(b))   # stdout: information; stderr keeps only warnings and the one error line
     chosen = choose_bank(b, prompts, bank)
     predictor = Predictor(b, int8=int8)
     predictor.fold(chosen)   # checks the bank's encoder and width before any work
@@ -170,7 +194,8 @@ def register(app: typer.Typer) -> None:
         out: Path = typer.Option(Path("ago_out"), "--out", "-o", help="output folder"),
         identifier: Optional[str] = typer.Option(None, "--identifier", help="min-entropy | max-conf | none (default: the bundle's)"),
         save_volumes: bool = typer.Option(False, "--save-volumes", help="also save entropy, confidence, branch volumes"),
-        sample: Optional[str] = typer.Option(None, "--sample", help="one sample token of a dataset"),
+        sample: Optional[List[str]] = typer.Option(None, "--sample", help="a dataset's sample token or scene name "
+                                                   "(repeatable: several frames, one bundle load)"),
         info: Optional[Path] = typer.Option(None, "--info", help="mmdetection3d info .pkl"),
         int8: bool = typer.Option(False, "--int8", help="use the bundle's int8 encoder"),
     ) -> None:
@@ -210,9 +235,12 @@ def run_retrieve(phrase: str, images: Path, bundle, out: Path) -> list[Path]:
     from .predictor import Predictor
     from .text_encoder import default_text_encoder
 
+    from .outputs import check_output_dir
+
     _print_warnings()
     if not phrase.strip():
-        raise AgoInputError(None, "--phrase is empty")
+        raise AgoInputError("--phrase", "is empty")
+    check_output_dir(out, "--out")
     b = Bundle.load(resolve_bundle(bundle))
     encoder = default_text_encoder(bundle_dir=b.root)
     te = b.text_encoder

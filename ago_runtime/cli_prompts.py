@@ -46,10 +46,14 @@ def build(prompt_file: str = typer.Argument(..., help="prompt file, or a shipped
           template: Optional[str] = typer.Option(None, "--template", help="phrase template with one {} "
                                                  "(default: the measured winner, see docs/prompts.md)")):
     """Encode a prompt file's phrases into a prompt bank."""
-    from .bank import DEFAULT_TEMPLATE, build_bank
+    from .bank import DEFAULT_TEMPLATE, build_bank, check_template
+    from .outputs import check_output_file
     from .prompts import parse_prompt_file
 
     space = parse_prompt_file(prompt_file)
+    if template is not None:
+        check_template(template)
+    check_output_file(output, "-o")   # before the encoding
     enc = _encoder(encoder)
     bank = build_bank(space, enc, template if template is not None else DEFAULT_TEMPLATE)
     bank.save(output)
@@ -103,6 +107,11 @@ def export_encoder(output: Optional[Path] = typer.Option(None, "-o", "--output",
     require_torch("prompts export-encoder")
     import numpy as np
 
+    from .outputs import check_output_file
+    from .text_encoder import cached_encoder_path
+
+    check_output_file(output if output is not None else cached_encoder_path(), "-o")
+
     from ago_train.text.minilm import TorchMiniLMEncoder, export_onnx
 
     from .text_encoder import OnnxTextEncoder
@@ -122,6 +131,11 @@ def noise(output: Optional[Path] = typer.Option(None, "-o", "--output", help="no
 
     require_torch("prompts noise")
     from ago_train.text.noise import NoiseBank, ensure_noise_bank
+
+    if output is not None:
+        from .outputs import check_output_file
+
+        check_output_file(output, "-o")
 
     path = ensure_noise_bank(output, force=force)
     nb = NoiseBank.load(path)

@@ -125,8 +125,13 @@ def register(app: typer.Typer) -> None:
         """Draw an occupancy grid (BEV and/or 3-D voxels) or a sample's six camera images as a PNG."""
         from . import render
 
+        from .outputs import check_output_file
+
         if view not in ("bev", "voxels", "both"):
-            raise AgoInputError(None, f"--view must be bev, voxels or both, got {view!r}")
+            raise AgoInputError("--view", f"must be bev, voxels or both, got {view!r}")
+        if not path.exists():
+            raise AgoInputError(path, "not found (give a labels .npz or a dataset folder)")
+        check_output_file(out, "--out")
         if path.is_dir():
             image = _rig_picture(path, sample, index)
         else:
@@ -169,8 +174,13 @@ def register(app: typer.Typer) -> None:
         from .occ3d import Occ3DLabels
         from .progress import track
 
+        from .outputs import check_output_file
+
         m = OccupancyMetric()
         subsets = parse_subsets(subset, m.class_names)
+        for option, target in (("--json", json_out), ("--md", md_out)):
+            if target is not None:
+                check_output_file(target, option)   # before scoring, not after the table
         if not pred.is_dir():
             raise AgoInputError(pred, "prediction folder not found")
         gts = find_gt_files(gt)

@@ -15,7 +15,12 @@ when lidar2cam is absent) the calibrated `cam2ego` as is. See `ago_runtime.nusce
 
 `SafeInfoUnpickler` only lets the pickle build plain containers and numpy scalars/arrays/dtypes (the
 classes such files contain); any other global (os.system, builtins.eval, a custom class...) raises
-AgoInputError before it is called. `convert_mmdet3d_info_to_json` turns an info .pkl into plain JSON
+AgoInputError before it is called. What a small file can make the reader allocate is bounded: files
+over 2 GiB are refused unread (MAX_INFO_BYTES); `bytes(n)` / `bytearray(n)` from a number n over 1 MiB
+and list/tuple/set/dict of anything but a container built from the file's own bytes are refused (a
+30-byte pickle calling bytearray(3e9) would otherwise take 3 GB); numpy arrays must carry their data
+(numpy checks the length); the plain copy (`to_plain`) stops past 8 values per byte of the file
+(a list referenced from many places is not expanded without end). `convert_mmdet3d_info_to_json` turns an info .pkl into plain JSON
 once; `load_info_json` reads that JSON; `load_mmdet3d_info` reads the .pkl directly. Both give the
 same frames: scene = info's `scene_token` when present, else "" (format 1.1 has no scene name).
 """
@@ -48,7 +53,11 @@ _NUMPY_GLOBALS = {
     ("numpy._core.numeric", "_frombuffer"): lambda: _np_core("numeric")._frombuffer,
 }
 _BUILTINS = {"list", "dict", "tuple", "set", "frozenset", "int", "float", "complex", "bool", "str",
-             "bytes", "bytearray", "slice", "range"}
+             "bytes", "bytearray", "slice"}
+# Bounds on what a small file may make the reader allocate (module docstring).
+MAX_INFO_BYTES = 2 << 30          # an info .pkl larger than 2 GiB is refused ($AGO_MAX_INFO_BYTES)
+MAX_SIZED_ALLOC = 1 << 20         # bytes(n) / bytearray(n) from an integer n: at most 1 MiB
+PLAIN_NODES_PER_BYTE = 8          # to_plain may make at most this many values per byte of the file (+ 200 000)
 
 
 def _np_core(submodule: str):
@@ -75,10 +84,8 @@ class SafeInfoUnpickler(pickle.Unpickler):
             import codecs
 
             return codecs.encode
-        if module == "builtins" and name in _BUILTINS:
-            import builtins
-
-            return getattr(builtins, name)
+        if module in ("builtins", "__builtin__") and name in _BUILTINS:
+            return _bounded_builtin(name, self.source)
         if module == "collections" and name == "OrderedDict":
             import collections
 
@@ -87,28 +94,78 @@ class SafeInfoUnpickler(pickle.Unpickler):
                                          "(only numpy arrays and plain containers are allowed in an info file)")
 
 
+def _bounded_builtin(name: str, source):
+    """The builtin `name`, wrapped so that a call cannot allocate more than the file itself holds:
+    bytes(n) / bytearray(n) with an integer n above MAX_SIZED_ALLOC, and list/tuple/set/frozenset/dict of
+    anything but an already built container (the only big iterables a pickle could pass are lazy
+    ones, and `range` is not allowed at all), are refused."""
+    import builtins
+
+    fn = getattr(builtins, name)
+    if name in ("bytes", "bytearray"):
+        def sized(*args):
+            if args and isinstance(args[0], int) and not isinstance(args[0], bool) and args[0] > MAX_SIZED_ALLOC:
+                raise AgoInputError(source, f"refusing to unpickle {name}({args[0]}): a pickle may not "
+                                            f"allocate more than {MAX_SIZED_ALLOC} bytes from a number")
+            return fn(*args)
+        return sized
+    if name in ("list", "tuple", "set", "frozenset", "dict"):
+        def built(*args, **kwargs):
+            if args and not isinstance(args[0], (list, tuple, set, frozenset, dict, str, bytes, bytearray)):
+                raise AgoInputError(source, f"refusing to unpickle {name}() of a {type(args[0]).__name__} "
+                                            "(only plain containers are allowed in an info file)")
+            return fn(*args, **kwargs)
+        return built
+    return fn
+
+
+def max_info_bytes() -> int:
+    import os
+
+    env = os.environ.get("AGO_MAX_INFO_BYTES")
+    return int(float(env)) if env else MAX_INFO_BYTES
+
+
 def safe_load_pickle(path: str | Path):
-    """Unpickle `path` with SafeInfoUnpickler; any failure is an AgoInputError naming the file."""
+    """Unpickle `path` with SafeInfoUnpickler; any failure is an AgoInputError naming the file.
+
+    Refuses files over max_info_bytes() before reading them; see _bounded_builtin for the calls."""
     path = Path(path)
     if not path.is_file():
         raise AgoInputError(path, "info file not found")
+    size = path.stat().st_size
+    if size > max_info_bytes():
+        raise AgoInputError(path, f"info file is {size / 2**30:.1f} GiB, more than ago reads "
+                                  f"({max_info_bytes() / 2**30:.1f} GiB; $AGO_MAX_INFO_BYTES sets the limit)")
     data = path.read_bytes()
     try:
         return SafeInfoUnpickler(io.BytesIO(data), str(path)).load()
     except AgoInputError:
         raise
+    except MemoryError:
+        raise AgoInputError(path, "refusing a pickle that asks for more memory than there is") from None
     except Exception as e:  # truncated or malformed pickles raise many kinds of errors
-        raise AgoInputError(path, f"not a readable pickle ({e.__class__.__name__}: {e})") from None
+        raise AgoInputError(path, f"not a readable pickle ({e.__class__.__name__}: {str(e)[:200]})") from None
 
 
-def to_plain(obj):
-    """numpy arrays/scalars inside dicts/lists -> lists/floats/ints/bools (JSON-able)."""
+def to_plain(obj, budget: list[int] | None = None, source=None):
+    """numpy arrays/scalars inside dicts/lists -> lists/floats/ints/bools (JSON-able).
+
+    `budget` = [values left]: a pickle can reference one list from many places (memo), which this
+    copy would expand; past the budget an AgoInputError naming `source` is raised."""
+    if budget is not None:
+        budget[0] -= 1
+        if budget[0] < 0:
+            raise AgoInputError(source, "refusing an info file whose objects expand to more values than "
+                                        "the file could hold (repeated references)")
     if isinstance(obj, dict):
-        return {str(k): to_plain(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [to_plain(v) for v in obj]
+        return {str(k): to_plain(v, budget, source) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple, set, frozenset)):
+        return [to_plain(v, budget, source) for v in obj]
     if isinstance(obj, np.ndarray):
-        return to_plain(obj.tolist())
+        if budget is not None:
+            budget[0] -= int(obj.size)
+        return to_plain(obj.tolist(), budget, source)
     if isinstance(obj, np.generic):
         return obj.item()
     if isinstance(obj, (bytes, bytearray)):
@@ -118,7 +175,8 @@ def to_plain(obj):
 
 def read_mmdet3d_info(pkl_path: str | Path) -> dict:
     """An info .pkl -> plain dict {"metainfo": ..., "data_list": [...]} (checked shape of the top level)."""
-    info = to_plain(safe_load_pickle(pkl_path))
+    budget = [200_000 + PLAIN_NODES_PER_BYTE * Path(pkl_path).stat().st_size] if Path(pkl_path).is_file() else None
+    info = to_plain(safe_load_pickle(pkl_path), budget, pkl_path)
     _check_info(info, pkl_path)
     return info
 

@@ -1,7 +1,8 @@
 """Read a nuScenes-format dataset (real nuScenes or one written by `NuScenesWriter`) as `Frame`s.
 
-Takes a dataset root holding `<version>/*.json` (the thirteen nuScenes tables), `samples/` (and
-`sweeps/` for non-key LiDAR sweeps), optionally `gts/<scene>/<sample token>/labels.npz` (Occ3D GT,
+Takes a dataset root holding `<version>/*.json` (of nuScenes' thirteen tables the six it reads: sensor,
+calibrated_sensor, ego_pose, scene, sample, sample_data; all missing ones are named at once), `samples/`
+(and `sweeps/` for non-key LiDAR sweeps: `nonkey_sweeps(i)`), optionally `gts/<scene>/<sample token>/labels.npz` (Occ3D GT,
 or any `gts_root`), `synthetic/{semantic,depth}/<CAM>/<image stem>.png` (what `ago synth` writes)
 and `splits.json`.
 
@@ -28,6 +29,10 @@ the keyframe LiDAR's, so each camera's cam2ego is expressed in THAT ego frame:
   and the camera exposures is ignored).
 Datasets written by `NuScenesWriter` are exactly synchronised, so both give the same rig there.
 
+Non-key LiDAR sweeps (`is_key_frame` false in sample_data.json): `nonkey_sweeps(i, count)` gives those
+recorded just before keyframe i (its prev chain back to the previous keyframe, nearest first), each with
+its own ego pose; `ago pseudo-labels --sweeps` uses them. `num_nonkey_lidar` counts them.
+
 Bad input raises AgoInputError naming the file: a missing table, a record pointing at a missing file or
 token, a sample without one of the six cameras or LIDAR_TOP, an undecodable or truncated JPEG, a LiDAR
 file whose size is not a multiple of 20 bytes, a labels.npz with the wrong shape.
@@ -43,13 +48,16 @@ import numpy as np
 
 from .camera import CAMERA_NAMES, Camera, Rig
 from .errors import AgoInputError
+from .image_files import decode_image
 from .readers import read_json
 from .frame import Frame, LidarSweep
 from .grid import Grid
-from .nuscenes_schema import LIDAR_CHANNEL, TABLE_NAMES, record_to_matrix
+from .nuscenes_schema import LIDAR_CHANNEL, record_to_matrix
 from .occ3d import Occ3DLabels, labels_path
 
 POINT_BYTES = 5 * 4  # float32 x, y, z, intensity, ring
+# The tables the reader needs (the other seven of nuScenes' thirteen may be absent).
+READ_TABLES = ("sensor", "calibrated_sensor", "ego_pose", "scene", "sample", "sample_data")
 
 
 # ---------------------------------------------------------------------------- file readers
@@ -66,8 +74,8 @@ def read_jpeg_rgb(path: str | Path) -> np.ndarray:
         raise AgoInputError(path, "not a JPEG file (no start-of-image marker)")
     if not data.rstrip(b"\x00").endswith(b"\xff\xd9"):
         raise AgoInputError(path, "truncated JPEG (no end-of-image marker FFD9)")
-    bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
-    if bgr is None or bgr.ndim != 3 or bgr.shape[2] != 3:
+    bgr = decode_image(data, path, cv2.IMREAD_COLOR)
+    if bgr.ndim != 3 or bgr.shape[2] != 3:
         raise AgoInputError(path, "corrupt JPEG (cv2 cannot decode it)")
     return np.ascontiguousarray(bgr[..., ::-1])
 
@@ -94,9 +102,7 @@ def read_png(path: str | Path, dtype: type, hw: tuple[int, int] | None = None) -
         data = path.read_bytes()
     except OSError as e:
         raise AgoInputError(path, f"cannot read the PNG ({e})") from None
-    array = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
-    if array is None:
-        raise AgoInputError(path, "corrupt PNG (cv2 cannot decode it)")
+    array = decode_image(data, path, cv2.IMREAD_UNCHANGED)
     if array.ndim != 2 or array.dtype != dtype:
         raise AgoInputError(path, f"expected a single-channel {np.dtype(dtype).name} PNG, "
                                   f"got shape {array.shape} {array.dtype}")
@@ -154,11 +160,16 @@ class NuScenesDataset:
         self.grid = grid
         self.compensate_ego_motion = compensate_ego_motion
 
-        for name in TABLE_NAMES:  # a nuScenes dataset has all thirteen; we read six of them
-            if not (self.table_dir / f"{name}.json").is_file():
-                raise AgoInputError(self.table_dir / f"{name}.json", "missing nuScenes table")
-        t = {name: {r["token"]: r for r in load_table(self.table_dir, name)}
-             for name in ("sensor", "calibrated_sensor", "ego_pose", "scene", "sample", "sample_data")}
+        # A nuScenes release has thirteen tables; only the six read here are required (a trimmed
+        # extract without attribute/log/map/visibility/... is fine). Every missing one is named at once.
+        missing = [name for name in READ_TABLES if not (self.table_dir / f"{name}.json").is_file()]
+        if len(missing) == 1:
+            raise AgoInputError(self.table_dir / f"{missing[0]}.json", "missing nuScenes table (ago reads "
+                                f"{', '.join(READ_TABLES)})")
+        if missing:
+            raise AgoInputError(self.table_dir, f"missing nuScenes tables {', '.join(f'{m}.json' for m in missing)} "
+                                f"(ago reads {', '.join(READ_TABLES)})")
+        t = {name: {r["token"]: r for r in load_table(self.table_dir, name)} for name in READ_TABLES}
         try:
             self._build_index(t)
         except (KeyError, TypeError, ValueError) as e:
@@ -179,8 +190,11 @@ class NuScenesDataset:
             sensor = self._ref("sensor", t["sensor"], rec.get("sensor_token"), "calibrated_sensor")
             channel_of_calib[token] = sensor["channel"]
         self._key_data: dict[str, dict[str, dict]] = {}
+        self.num_nonkey_lidar = 0   # non-key LIDAR_TOP sweeps listed in sample_data.json
         for rec in self._sample_data.values():
             if not rec.get("is_key_frame"):
+                if channel_of_calib.get(rec.get("calibrated_sensor_token")) == LIDAR_CHANNEL:
+                    self.num_nonkey_lidar += 1
                 continue
             channel = channel_of_calib.get(rec.get("calibrated_sensor_token"))
             if channel is None:
@@ -229,6 +243,23 @@ class NuScenesDataset:
             raise AgoInputError(self.table_dir / "sample.json", f"no sample with token {token!r}")
         return self._index[token]
 
+    def indices_of(self, names: list[str]) -> list[int]:
+        """Dataset indices of sample tokens and/or scene names (a scene: its keyframes in time order), in the
+        order given; every name that is neither is listed in one AgoInputError."""
+        out, unknown = [], []
+        scenes = set(self._scene_names)
+        for name in names:
+            if name in self._index:
+                out.append(self._index[name])
+            elif name in scenes:
+                out += [i for i, s in enumerate(self._scene_names) if s == name]
+            else:
+                unknown.append(name)
+        if unknown:
+            raise AgoInputError(self.table_dir / "sample.json", f"no sample token or scene name "
+                                f"{', '.join(map(repr, unknown))}")
+        return out
+
     def scene_of(self, i: int) -> str:
         return self._scene_names[i]
 
@@ -265,6 +296,44 @@ class NuScenesDataset:
                     out.append(j)
             k += 1
         return out
+
+    # ------------------------------------------------------------------ non-key LiDAR sweeps
+    def nonkey_sweep_records(self, i: int, count: int | None = None) -> list[dict]:
+        """sample_data records of the non-key LIDAR_TOP sweeps recorded just before keyframe i, nearest
+        first: its `prev` chain up to (not including) the previous keyframe, at most `count` (None: all).
+        Real nuScenes has ~9 between two keyframes (LiDAR 20 Hz, keyframes 2 Hz)."""
+        record = self._key_data[self.sample_tokens[i]][LIDAR_CHANNEL]
+        out: list[dict] = []
+        while record.get("prev") and (count is None or len(out) < count):
+            record = self._ref("sample_data", self._sample_data, record["prev"], "sample_data")
+            if record.get("is_key_frame"):
+                break
+            out.append(record)
+        return out
+
+    def nonkey_sweeps(self, i: int, count: int | None = None) -> list[LidarSweep]:
+        """The non-key LiDAR sweeps of `nonkey_sweep_records(i, count)`, read (points, lidar2ego, own ego pose)."""
+        try:
+            return [self._sweep(r) for r in self.nonkey_sweep_records(i, count)]
+        except (KeyError, TypeError, ValueError) as e:
+            if isinstance(e, AgoInputError):
+                raise
+            raise AgoInputError(self.table_dir / "sample_data.json", f"a non-key sweep record of sample "
+                                f"{self.sample_tokens[i]} lacks a field ({e.__class__.__name__}: {e})") from None
+
+    def max_nonkey_sweeps(self) -> int:
+        """The most non-key LiDAR sweeps found between two keyframes (0 when sample_data lists none)."""
+        if not self.num_nonkey_lidar:
+            return 0
+        return max(len(self.nonkey_sweep_records(i)) for i in range(len(self)))
+
+    def nonkey_sweep_files_present(self) -> bool:
+        """Whether the files of the listed non-key sweeps exist (a keyframes-only download lacks sweeps/)."""
+        for i in range(len(self)):
+            recs = self.nonkey_sweep_records(i, 1)
+            if recs:
+                return (self.root / recs[0]["filename"]).is_file()
+        return False
 
     # ------------------------------------------------------------------ frames
     def _file(self, record: dict) -> Path:

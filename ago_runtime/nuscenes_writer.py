@@ -23,7 +23,8 @@ Gives, under `root`:
 Every file goes through a temporary file + rename. Tokens are md5 hex digests of names (scene name,
 timestamp, channel...), so the same inputs give a byte-identical dataset. All cameras of a keyframe
 share the keyframe's timestamp and ego pose (a synthetic rig is perfectly synchronised). Only
-keyframes are written (no intermediate sweeps); box velocities are not stored (nuScenes has no such
+keyframes are written unless `add_sweep` adds non-key LiDAR sweeps (`ago synth --sweeps-between N`,
+off by default), under `sweeps/LIDAR_TOP/`; box velocities are not stored (nuScenes has no such
 field: the devkit derives them from the annotation chain).
 """
 
@@ -213,6 +214,36 @@ class NuScenesWriter:
             gt.save(labels_path(self.root / "gts", scene["name"], sample_token))
         return sample_token
 
+    def add_sweep(self, scene_token: str, timestamp_us: int, ego2global: np.ndarray, lidar_points: np.ndarray,
+                  lidar2ego: np.ndarray) -> str:
+        """Write one NON-KEY LiDAR sweep (nuScenes' `sweeps/LIDAR_TOP/`, is_key_frame false) after the scene's
+        last keyframe; returns its sample_data token. It joins the LIDAR_TOP prev/next chain, so the sweeps
+        added between two keyframes are the ones the reader finds before the later keyframe
+        (`NuScenesDataset.nonkey_sweeps`). Its sample_token is the keyframe before it."""
+        self._check_open()
+        scene = self._scenes.get(scene_token)
+        if scene is None or not scene["_samples"]:
+            raise AgoInputError(self.root, "a non-key sweep needs its scene and a keyframe before it (add_sample first)")
+        timestamp_us = int(timestamp_us)
+        last = self._by_token.get(self._last_sd.get((scene_token, LIDAR_CHANNEL), ""))
+        if last is not None and timestamp_us <= int(last["timestamp"]):
+            raise AgoInputError(self.root, f"scene {scene['name']!r}: sweep timestamps must increase "
+                                           f"({timestamp_us} after {last['timestamp']})")
+        for what, m in (("ego2global", ego2global), ("lidar2ego", lidar2ego)):
+            problem = check_rigid(m)
+            if problem:
+                raise AgoInputError(self.root, f"scene {scene['name']!r} sweep at {timestamp_us}: {what} {problem}")
+        points = np.asarray(lidar_points)
+        if points.ndim != 2 or points.shape[1] != 5:
+            raise AgoInputError(self.root, f"lidar_points must be (N, 5), got {points.shape}")
+        name = f"sweeps/{LIDAR_CHANNEL}/{scene['_logfile']}__{LIDAR_CHANNEL}__{timestamp_us}.pcd.bin"
+        write_bytes(self.root / name, np.ascontiguousarray(points, dtype=np.float32).tobytes())
+        calib = self._calibrated_sensor(scene, LIDAR_CHANNEL, lidar2ego, [])
+        token = _token("sample_data", scene["name"], LIDAR_CHANNEL, "sweep", timestamp_us)
+        self._add_sample_data(scene_token, LIDAR_CHANNEL, scene["_samples"][-1], timestamp_us, ego2global, calib,
+                              name, "pcd", 0, 0, key_frame=False, token=token)
+        return token
+
     def _write_extras(self, extras: dict, cam: str, stem: str, hw: tuple[int, int]) -> None:
         semantic = (extras.get("semantic") or {}).get(cam)
         if semantic is not None:
@@ -246,15 +277,15 @@ class NuScenesWriter:
         return token
 
     def _add_sample_data(self, scene_token, channel, sample_token, timestamp, ego2global, calib_token,
-                         filename, fileformat, width, height) -> None:
-        token = _token("sample_data", sample_token, channel)
+                         filename, fileformat, width, height, key_frame: bool = True, token: str | None = None) -> None:
+        token = token or _token("sample_data", sample_token, channel)
         pose_token = _token("ego_pose", token)
         pose = matrix_to_record(ego2global)
         self._ego_poses.append({"token": pose_token, "timestamp": timestamp,
                                 "rotation": pose["rotation"], "translation": pose["translation"]})
         record = {"token": token, "sample_token": sample_token, "ego_pose_token": pose_token,
                   "calibrated_sensor_token": calib_token, "timestamp": timestamp, "fileformat": fileformat,
-                  "is_key_frame": True, "height": int(height), "width": int(width), "filename": filename,
+                  "is_key_frame": bool(key_frame), "height": int(height), "width": int(width), "filename": filename,
                   "prev": "", "next": ""}
         prev_token = self._last_sd.get((scene_token, channel))
         if prev_token:

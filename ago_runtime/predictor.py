@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .bundle import Bundle
+from .bundle import Bundle, check_heads_fit_encoder
 from .calibration import fit_rig_to_images
 from .camera import Rig
 from .classes import FREE, OCC3D_CLASSES
@@ -89,6 +89,7 @@ class Predictor:
                  chunk: int | None = None):
         self.bundle = bundle if isinstance(bundle, Bundle) else Bundle.load(bundle)
         self.encoder = open_encoder(self.bundle, int8, threads)
+        check_heads_fit_encoder(self.bundle, self.encoder)   # a bad heads.npz is named as such
         self.chunk = chunk   # voxels per head chunk in predict_hidden; None = FoldedHeads.default_chunk
         self._folded: dict[str, FoldedHeads] = {}
 

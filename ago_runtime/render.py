@@ -383,13 +383,44 @@ def _text_size(text: str, scale: float, thick: int) -> tuple[int, int]:
     return w, h + base
 
 
+def _wrap(text: str, width: int, scale: float, thick: int) -> list[str]:
+    """`text` cut into lines that fit `width` pixels (at word boundaries; a word longer than a line is split)."""
+    lines: list[str] = []
+    line = ""
+    for word in text.split(" "):
+        cand = f"{line} {word}" if line else word
+        if _text_size(cand, scale, thick)[0] <= width or not line:
+            line = cand
+        else:
+            lines.append(line)
+            line = word
+        while _text_size(line, scale, thick)[0] > width and len(line) > 1:   # one over-long word
+            cut = len(line)
+            while cut > 1 and _text_size(line[:cut], scale, thick)[0] > width:
+                cut -= 1
+            lines.append(line[:cut])
+            line = line[cut:]
+    if line:
+        lines.append(line)
+    return lines or [""]
+
+
 def _title_bar(text: str, width: int, scale: float | None = None) -> np.ndarray:
+    """A bar of `width` pixels with `text`, on as many lines as it needs (never cut off at the right)."""
     scale = scale or float(np.clip(width / 1000, 0.5, 0.9))
     thick = 2 if scale >= 0.7 else 1
-    _, th = _text_size(text, scale, thick)
-    bar = np.full((th + 12, width, 3), BACKGROUND, dtype=np.uint8)
-    cv2.putText(bar, text, (6, th + 3), FONT, scale, TEXT, thick, cv2.LINE_AA)
+    lines = _wrap(text, max(width - 12, 8), scale, thick)
+    _, th = _text_size("Ag", scale, thick)
+    bar = np.full((len(lines) * (th + 4) + 8, width, 3), BACKGROUND, dtype=np.uint8)
+    for i, line in enumerate(lines):
+        cv2.putText(bar, line, (6, (i + 1) * (th + 4) - 1), FONT, scale, TEXT, thick, cv2.LINE_AA)
     return bar
+
+
+def with_title(img: np.ndarray, text: str) -> np.ndarray:
+    """`img` with a full-width title bar above it (wrapped onto several lines when long)."""
+    img = _as_rgb(img)
+    return np.concatenate([_title_bar(text, img.shape[1]), img], axis=0)
 
 
 def _pad_to(img: np.ndarray, h: int, w: int) -> np.ndarray:

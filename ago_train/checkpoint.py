@@ -67,14 +67,26 @@ def save_checkpoint(path: str | Path, payload: dict) -> Path:
 
 
 def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict:
-    """Read a checkpoint with weights_only=True and check its format; AgoInputError when it is not one."""
+    """Read a checkpoint with weights_only=True and check its format; AgoInputError when it is not one.
+
+    torch's own warnings while it reads (e.g. about a plain pickle that is not a torch zip file) are
+    silenced: the one error line says what is wrong with the file."""
+    import warnings
+
     path = Path(path)
     if not path.is_file():
         raise AgoInputError(path, "checkpoint not found")
     try:
-        ckpt = torch.load(path, map_location=map_location, weights_only=True)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            ckpt = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as e:  # a corrupt file, a pickle with objects, not a torch file ...
-        raise AgoInputError(path, f"not a loadable ago checkpoint ({e.__class__.__name__}: {str(e)[:200]})") from None
+        text = str(e).strip()
+        if "Weights only load failed" in text:
+            raise AgoInputError(path, "not a loadable ago checkpoint: a pickle holding more than tensors and plain "
+                                "values (torch.load(weights_only=True) refuses it; ago never unpickles such files)") from None
+        first = (text.splitlines() or [""])[0]
+        raise AgoInputError(path, f"not a loadable ago checkpoint ({e.__class__.__name__}: {first[:200]})") from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
         raise AgoInputError(path, "not an ago checkpoint (no format tag)")
     if int(ckpt.get("version", -1)) > VERSION:
@@ -118,3 +130,70 @@ def plain(obj: Any) -> Any:
     if isinstance(obj, Path):
         return str(obj)
     return obj
+
+
+# ---- checks of what a checkpoint is used for ------------------------------------------------
+def config_differences(saved: dict, current: dict, prefix: str = "") -> list[str]:
+    """Dotted keys whose values differ between two (nested) config dicts, e.g. ["embed_dim", "grid.shape"]."""
+    out = []
+    for key in sorted(set(saved) | set(current)):
+        a, b = saved.get(key), current.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += config_differences(a, b, f"{prefix}{key}.")
+        elif (list(a) if isinstance(a, tuple) else a) != (list(b) if isinstance(b, tuple) else b):
+            out.append(f"{prefix}{key}")
+    return out
+
+
+def load_model_weights(model: torch.nn.Module, ckpt: dict, path: str | Path, model_config: dict | None = None,
+                       what: str = "the model") -> None:
+    """model.load_state_dict(ckpt["model"], strict) or one AgoInputError naming the checkpoint.
+
+    When `model_config` (the config `model` was built from) is given and differs from the checkpoint's
+    own model_config, the message lists the keys that differ (e.g. a changed model size)."""
+    state = ckpt.get("model")
+    if not isinstance(state, dict):
+        raise AgoInputError(path, "checkpoint has no model weights")
+    diff = []
+    if model_config is not None and isinstance(ckpt.get("model_config"), dict):
+        diff = [k for k in config_differences(plain_dict(ckpt["model_config"]), plain_dict(model_config))
+                if k not in ("pretrained",)]
+    try:
+        model.load_state_dict(state, strict=True)
+    except (RuntimeError, KeyError, ValueError, TypeError) as e:
+        detail = f"; model settings that differ: {', '.join(diff[:8])}" if diff else ""
+        raise AgoInputError(path, f"its weights do not fit {what} ({state_dict_problem(e)}){detail}") from None
+
+
+def state_dict_problem(e: BaseException) -> str:
+    """The telling line of torch's load_state_dict error ("size mismatch for decoder.0.weight: ... [32, 64]
+    ... [24, 64]", "Missing key(s) ..."), shortened, instead of its generic first line."""
+    lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
+    for ln in lines:
+        if ln.startswith(("size mismatch", "Missing key", "Unexpected key")):
+            ln = ln.replace("copying a param with shape ", "").replace("torch.Size", "")
+            return ln[:200]
+    return (lines[0] if lines else e.__class__.__name__)[:200]
+
+
+def plain_dict(d: Any) -> Any:
+    """Tensors in a config dict -> lists (to compare configs saved in checkpoints with fresh ones)."""
+    if isinstance(d, dict):
+        return {k: plain_dict(v) for k, v in d.items()}
+    if isinstance(d, (list, tuple)):
+        return [plain_dict(v) for v in d]
+    if isinstance(d, torch.Tensor):
+        return d.tolist()
+    return d
+
+
+def check_resume_model(ckpt: dict, path: str | Path, model_config: dict) -> None:
+    """Refuse to resume from a checkpoint whose model settings differ from this run's (a changed model
+    size would otherwise fail deep inside load_state_dict, or silently if shapes happened to agree)."""
+    saved = ckpt.get("model_config")
+    if not isinstance(saved, dict):
+        raise AgoInputError(path, "checkpoint has no model_config; cannot resume from it")
+    diff = [k for k in config_differences(plain_dict(saved), plain_dict(model_config)) if k not in ("pretrained",)]
+    if diff:
+        raise AgoInputError(path, "cannot resume: model settings differ from this run's "
+                                  f"({', '.join(diff[:8])}); use the run's own config or another --out")

@@ -19,9 +19,14 @@ def register(app: typer.Typer) -> None:
     app.add_typer(exp, name="experiments")
 
     def _profile(name: str):
+        from ago_runtime.errors import AgoInputError
+
         from .experiments.plan import ExperimentProfile
 
-        return ExperimentProfile.preset(name)
+        try:
+            return ExperimentProfile.preset(name)
+        except AgoInputError as e:
+            raise AgoInputError("--profile", e.problem) from None
 
     @exp.command("run")
     def run_cmd(
@@ -33,10 +38,18 @@ def register(app: typer.Typer) -> None:
         from ago_runtime.cli import require_torch
 
         require_torch("experiments run")
+        from ago_runtime.errors import AgoInputError
+        from ago_runtime.outputs import check_output_dir
+
         from .experiments.driver import EXPERIMENTS, ExperimentRunner
 
         chosen = list(EXPERIMENTS) if not names or names == ["all"] else list(names)
-        ExperimentRunner(_profile(profile), out).run(chosen)
+        unknown = [n for n in chosen if n not in EXPERIMENTS]
+        if unknown:
+            raise AgoInputError("NAMES", f"unknown experiment(s) {unknown}; choose from {', '.join(EXPERIMENTS)} or all")
+        prof = _profile(profile)
+        check_output_dir(out, "--out")
+        ExperimentRunner(prof, out).run(chosen)
         typer.echo(f"written {out}/results.md, {out}/results.json, {out}/figures/")
 
     @exp.command("report")
@@ -45,9 +58,13 @@ def register(app: typer.Typer) -> None:
         out: Path = typer.Option(Path("runs/experiments"), "--out"),
     ):
         """Rewrite results.md / results.json / figures from the runs that exist (trains nothing)."""
+        from ago_runtime.outputs import check_output_dir
+
         from .experiments.report import write_report
 
-        write_report(out, _profile(profile))
+        prof = _profile(profile)
+        check_output_dir(out, "--out")
+        write_report(out, prof)
         typer.echo(f"written {out}/results.md, {out}/results.json, {out}/figures/")
 
     @exp.command("list")

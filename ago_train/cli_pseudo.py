@@ -3,7 +3,11 @@
 Reads a nuScenes-format dataset, labels every keyframe of a split with a segmenter (`files`: masks
 written by Grounded SAM, see docs/vlm_files.md; `sim`: the SIMULATED segmenter, synthetic data only),
 lifts image features with an embedder (`files`, `sim` or `none`), and writes the folder
-described in ago_train/pseudo/generate.py. Resumable: rerun the same command to finish.
+described in ago_train/pseudo/generate.py. Two counts set the LiDAR used per sample: `--keyframes`
+(keyframes superimposed, each labelled with its own images) and `--sweeps` (non-key LiDAR sweeps
+added per keyframe, labelled with its images; default: all the dataset lists). Defaults fit the
+data (resolve_defaults, resolve_split, resolve_sweeps) and are printed as `note:` lines.
+Resumable: rerun the same command to finish (damaged files are remade).
 Needs numpy + opencv only (no torch).
 """
 
@@ -75,40 +79,119 @@ def simulated_text_embeddings():
     return class_text_from_bank(bank), encoder.encode(["sky"])[0]
 
 
+def resolve_defaults(data: Path, segmenter: str | None, masks: Path | None, embedder: str | None,
+                     feats: Path | None) -> tuple[str, Path | None, str, Path | None, list[str]]:
+    """The segmenter / embedder (and their folders) to use when not given, from what `data` holds:
+    - --masks / --feats default to <data>/masks and <data>/feats when those folders exist;
+    - --segmenter: `files` when there are masks, `sim` on `ago synth` data (it has synthetic/semantic/),
+      else an error saying what to give;
+    - --embedder: `files` when there are feature maps, else `none`.
+    Gives (segmenter, masks, embedder, feats, notes for the user)."""
+    from ago_runtime.errors import AgoInputError
+
+    notes = []
+    if masks is None and (data / "masks").is_dir() and segmenter in (None, "files"):
+        masks = data / "masks"
+        notes.append(f"--masks {masks} (found in the dataset folder)")
+    if feats is None and (data / "feats").is_dir() and embedder in (None, "files"):
+        feats = data / "feats"
+        notes.append(f"--feats {feats} (found in the dataset folder)")
+    synthetic = (data / "synthetic" / "semantic").is_dir()
+    if segmenter is None:
+        if masks is not None:
+            segmenter = "files"
+        elif synthetic:
+            segmenter = "sim"
+        else:
+            raise AgoInputError("--segmenter", f"{data} has no label maps (<data>/masks) and is not `ago synth` "
+                                "data: give --segmenter files --masks DIR (layout: docs/vlm_files.md)")
+        notes.append(f"--segmenter {segmenter}")
+    if embedder is None:
+        embedder = "files" if feats is not None else "none"
+        if feats is not None:
+            notes.append("--embedder files")
+    return segmenter, masks, embedder, feats, notes
+
+
+def resolve_split(ds, split: str | None) -> tuple[list[int], str | None]:
+    """Indices of --split (default: "train" when splits.json has one, else every sample) and a note."""
+    if split is not None:
+        return ds.split(split), None
+    if (ds.root / "splits.json").is_file():
+        return ds.split("train"), None
+    return ds.split("all"), f"--split all ({ds.root}/splits.json not found, so every sample)"
+
+
+def resolve_sweeps(ds, sweeps: int | None) -> tuple[int, str | None]:
+    """--sweeps: the non-key LiDAR sweeps per keyframe. Default: all the dataset lists between two keyframes
+    (nuScenes ~9) when their files are there, else 0. An explicit count on a dataset without them is refused."""
+    from ago_runtime.errors import AgoInputError
+
+    listed = ds.max_nonkey_sweeps() if ds.num_nonkey_lidar else 0
+    if sweeps is None:
+        if not listed:
+            return 0, None
+        if not ds.nonkey_sweep_files_present():
+            return 0, (f"--sweeps 0: sample_data.json lists {ds.num_nonkey_lidar} non-key LiDAR sweeps but "
+                       "their files (sweeps/LIDAR_TOP) are missing; only keyframe LiDAR is used")
+        return listed, f"--sweeps {listed} (the non-key LiDAR sweeps listed between two keyframes)"
+    if sweeps > 0 and not listed:
+        raise AgoInputError("--sweeps", f"{ds.table_dir}/sample_data.json lists no non-key LiDAR sweeps, so "
+                            f"--sweeps {sweeps} has nothing to add (--keyframes sets how many keyframes are "
+                            "superimposed; before this option existed --sweeps meant that)")
+    return sweeps, None
+
+
 def register(app: typer.Typer) -> None:
     @app.command("pseudo-labels")
     def pseudo_labels(
         data: Path = typer.Option(..., "--data", help="nuScenes-format dataset folder (real or `ago synth`)."),
         out: Path = typer.Option(..., "--out", help="Output folder (resumable; refused if made with other settings)."),
         prompts: str = typer.Option("cw", "--prompts", help="Prompt file (path or shipped name: cw, ow_pretrain, ow)."),
-        segmenter: str = typer.Option("sim", "--segmenter", help="sim (SIMULATED, synthetic data only) or files."),
-        masks: Path = typer.Option(None, "--masks", help="Label-map folder for --segmenter files."),
-        embedder: str = typer.Option("none", "--embedder", help="sim (SIMULATED), files or none."),
-        feats: Path = typer.Option(None, "--feats", help="Feature-map folder for --embedder files."),
+        segmenter: str = typer.Option(None, "--segmenter", help="files (label maps, docs/vlm_files.md) or sim "
+                                      "(SIMULATED, `ago synth` data only). Default: files when there are label "
+                                      "maps (--masks, or <data>/masks), sim on `ago synth` data."),
+        masks: Path = typer.Option(None, "--masks", help="Label-map folder for --segmenter files (default <data>/masks)."),
+        embedder: str = typer.Option(None, "--embedder", help="files, sim (SIMULATED) or none. Default: files when "
+                                     "there are feature maps (--feats, or <data>/feats), else none."),
+        feats: Path = typer.Option(None, "--feats", help="Feature-map folder for --embedder files (default <data>/feats)."),
         grid: str = typer.Option("100x100x8", "--grid", help="Voxel counts XxYxZ over the Occ3D range."),
-        sweeps: int = typer.Option(10, "--sweeps", help="Keyframes superimposed, the keyframe included (paper: 30)."),
-        interval: int = typer.Option(1, "--interval", help="Keyframe stride between them (paper: 2)."),
-        split: str = typer.Option("train", "--split", help="train, val or all (scenes from splits.json)."),
+        keyframes: int = typer.Option(10, "--keyframes", min=1, help="KEYFRAMES superimposed per sample, the "
+                                      "sample's own included, each labelled with its own images (paper: 30)."),
+        interval: int = typer.Option(1, "--interval", min=1, help="Keyframe stride between them (paper: 2)."),
+        sweeps: int = typer.Option(None, "--sweeps", min=0, help="NON-KEY LiDAR sweeps added per superimposed "
+                                   "keyframe: those recorded just before it (sample_data.json, sweeps/LIDAR_TOP), "
+                                   "labelled with that keyframe's images. Default: all listed between two "
+                                   "keyframes (nuScenes ~9), 0 when the dataset has none."),
+        split: str = typer.Option(None, "--split", help="train, val, ... (scenes from splits.json) or all. "
+                                  "Default: train when splits.json exists, else all."),
         raycast: bool = typer.Option(True, "--raycast/--no-raycast", help="Free space from LiDAR rays (else: every empty voxel is free)."),
-        seed: int = typer.Option(0, "--seed", help="Seed of the simulated backends."),
-        limit: int = typer.Option(0, "--limit", help="Only the first N samples of the split (0 = all)."),
+        seed: int = typer.Option(0, "--seed", min=0, help="Seed of the simulated backends."),
+        limit: int = typer.Option(0, "--limit", min=0, help="Only the first N samples of the split (0 = all)."),
     ):
-        """Lift 2-D masks (and image features) into 3-D pseudo-labels with the LiDAR."""
-        from ago_runtime.errors import AgoInputError
+        """Lift 2-D masks (and image features) into 3-D pseudo-labels with the LiDAR (keyframes + non-key sweeps)."""
         from ago_runtime.nuscenes import NuScenesDataset
+        from ago_runtime.outputs import check_output_dir
 
         from .pseudo.generate import PseudoLabelConfig, generate
 
-        if sweeps < 1 or interval < 1:
-            raise AgoInputError("--sweeps/--interval", f"need >= 1, got {sweeps} / {interval}")
+        check_output_dir(out, "--out")
+        pgrid = parse_grid(grid)
+        segmenter, masks, embedder, feats, notes = resolve_defaults(Path(data), segmenter, masks, embedder, feats)
         space, seg, emb = build_backends(prompts, segmenter, masks, embedder, feats, seed)
         needs_extras = segmenter == "sim" or embedder == "sim"
         ds = NuScenesDataset(data, load_images=False, load_extras=needs_extras)
-        indices = ds.split(split)
+        indices, split_note = resolve_split(ds, split)
+        nonkey, sweep_note = resolve_sweeps(ds, sweeps)
+        notes += [n for n in (split_note, sweep_note) if n]
         if limit > 0:
             indices = indices[:limit]
-        config = PseudoLabelConfig(grid=parse_grid(grid), num_sweeps=sweeps, interval=interval, raycast=raycast)
+        for n in notes:
+            typer.echo(f"note: using {n}")
+        config = PseudoLabelConfig(grid=pgrid, num_keyframes=keyframes, interval=interval, nonkey_sweeps=nonkey,
+                                   raycast=raycast)
         command = "ago " + " ".join(shlex.quote(a) for a in sys.argv[1:])
         result = generate(ds, indices, out, space, seg, emb, config, command=command)
-        typer.echo(f"pseudo-labels: {result['written']} written, {result['skipped']} already there "
+        remade = f", {result['remade']} damaged ones remade" if result.get("remade") else ""
+        typer.echo(f"pseudo-labels: {result['written']} written, {result['skipped']} already there{remade} "
                    f"({result['frames_per_s']} frames/s) -> {out}")

@@ -49,6 +49,9 @@ def register(app: typer.Typer) -> None:
         if print_config:
             typer.echo(json.dumps(cfg.to_dict(), indent=2))
             return
+        from ago_runtime.outputs import check_output_dir
+
+        check_output_dir(cfg.out, "--out (config out)")
         from .trainer import train
 
         r = train(cfg, resume=resume)
@@ -59,7 +62,7 @@ def register(app: typer.Typer) -> None:
     def eval_cmd(
         ckpt: Path = typer.Option(..., "--ckpt", help="checkpoint (.pt) from ago train"),
         data: Path = typer.Option(..., "--data", help="dataset root with Occ3D gts/"),
-        split: str = typer.Option("val", "--split"),
+        split: str = typer.Option("val", "--split", help="split of the dataset's splits.json, or all"),
         prompts: Optional[str] = typer.Option(None, "--prompts", help="prompt file (default: the checkpoint's)"),
         identifier: Optional[str] = typer.Option(None, "--identifier",
                                                  help="min-entropy | max-conf | none (default: none in the "
@@ -67,16 +70,22 @@ def register(app: typer.Typer) -> None:
         out: Optional[Path] = typer.Option(None, "--out", help="folder for metrics.json / metrics.md "
                                                                "(default: <ckpt folder>/eval-<split>)"),
         gts: Optional[str] = typer.Option(None, "--gts", help="Occ3D gts root when not <data>/gts"),
-        max_frames: Optional[int] = typer.Option(None, "--max-frames"),
-        device: str = typer.Option("auto", "--device"),
+        max_frames: Optional[int] = typer.Option(None, "--max-frames", min=1,
+                                                 help="score only the first N frames of the split (default: all)"),
+        device: str = typer.Option("auto", "--device", help="auto | cpu | cuda | cuda:N"),
     ):
         """Score a checkpoint against Occ3D GT (per-class IoU, mIoU, known/unknown mIoU)."""
         from ago_runtime.cli import require_torch
 
         require_torch("eval")
+        from ago_runtime.outputs import check_output_dir
+
+        from .config_checks import check_device
         from .evaluate import evaluate
 
+        check_device(device)
         out = out if out is not None else Path(ckpt).parent / f"eval-{split}"
+        check_output_dir(out, "--out")
         r = evaluate(ckpt, data, split=split, prompts=prompts, identifier=identifier, out=out, gts=gts,
                      max_frames=max_frames, device=device)
         subs = ", ".join(f"{k} {v}" for k, v in r["subsets"].items())
@@ -92,9 +101,9 @@ def register(app: typer.Typer) -> None:
                                              help="pseudo-labels made with prompts/ow_pretrain.txt"),
         pseudo_full: Optional[Path] = typer.Option(None, "--pseudo-full",
                                                    help="pseudo-labels made with prompts/ow.txt (few-shot)"),
-        k: int = typer.Option(100, "--k", help="shots per class"),
+        k: int = typer.Option(100, "--k", min=1, help="shots per class"),
         seeds: str = typer.Option("0,1,2", "--seeds", help="comma-separated few-shot seeds"),
-        fewshot_epochs: Optional[int] = typer.Option(None, "--fewshot-epochs",
+        fewshot_epochs: Optional[int] = typer.Option(None, "--fewshot-epochs", min=1,
                                                      help="fine-tuning epochs (default 12; 1 for tiny)"),
         eval_split: str = typer.Option("val", "--eval-split"),
         identifier: str = typer.Option("min-entropy", "--identifier"),
@@ -105,15 +114,25 @@ def register(app: typer.Typer) -> None:
         from ago_runtime.errors import AgoInputError
 
         require_torch("open-world")
+        from ago_runtime.outputs import check_output_dir
+
+        from .evaluate import IDENTIFIERS
         from .open_world import OpenWorldConfig, run_open_world
 
+        if stage not in ("pretrain", "zeroshot", "fewshot", "all"):
+            raise AgoInputError("--stage", f"must be pretrain, zeroshot, fewshot or all, got {stage!r}")
+        if identifier not in IDENTIFIERS:
+            raise AgoInputError("--identifier", f"must be one of {', '.join(IDENTIFIERS)}, got {identifier!r}")
+        check_output_dir(out, "--out")
         base = _config(config, sets, None, data)
         if stage in ("fewshot", "all") and pseudo_full is None:
-            raise AgoInputError(None, "--pseudo-full is needed for the few-shot stage")
+            raise AgoInputError("--pseudo-full", "is needed for the few-shot stage (--stage fewshot or all)")
         try:
             seed_list = tuple(int(s) for s in seeds.split(",") if s.strip())
         except ValueError:
-            raise AgoInputError(None, f"--seeds must be comma-separated integers, got {seeds!r}") from None
+            raise AgoInputError("--seeds", f"must be comma-separated integers, got {seeds!r}") from None
+        if not seed_list or min(seed_list) < 0:
+            raise AgoInputError("--seeds", f"needs one or more integers >= 0, got {seeds!r}")
         ow = OpenWorldConfig(base=base, pseudo_pretrain=str(pseudo_pretrain),
                              pseudo_full=str(pseudo_full) if pseudo_full else "", out=str(out), k=k,
                              seeds=seed_list, eval_split=eval_split, identifier=identifier,

@@ -32,7 +32,11 @@ class DistInfo:
 
 
 def pick_device(spec: str, local_rank: int = 0) -> torch.device:
-    """"auto" -> cuda:<local_rank> when a GPU is there, else cpu; "cpu" / "cuda" as asked."""
+    """"auto" -> cuda:<local_rank> when a GPU is there, else cpu; "cpu" / "cuda" / "cuda:N" as asked;
+    anything else (e.g. "tpu9") is refused."""
+    from .config_checks import check_device
+
+    check_device(spec)
     if spec == "auto":
         spec = "cuda" if torch.cuda.is_available() else "cpu"
     if spec.startswith("cuda"):

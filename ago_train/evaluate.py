@@ -35,12 +35,18 @@ from .distributed import pick_device
 IDENTIFIERS = ("min-entropy", "max-conf", "none")
 
 
-def load_model(ckpt: dict, device: torch.device):
+def load_model(ckpt: dict, device: torch.device, path: str | Path | None = None):
+    """(ModelConfig, model in eval mode on `device`); AgoInputError naming `path` when the checkpoint's
+    model_config is bad or its weights do not fit it."""
+    from .checkpoint import load_model_weights
     from .model import ModelConfig
 
-    cfg = ModelConfig.from_dict(dict(ckpt["model_config"]))
+    source = str(path) if path is not None else "checkpoint"
+    if not isinstance(ckpt.get("model_config"), dict):
+        raise AgoInputError(source, "checkpoint has no model_config")
+    cfg = ModelConfig.from_dict(dict(ckpt["model_config"]), source=f"{source} (model_config)")
     model = cfg.build()
-    model.load_state_dict(ckpt["model"])
+    load_model_weights(model, ckpt, source, what="its own model_config")
     return cfg, model.to(device).eval()
 
 
@@ -109,13 +115,15 @@ def evaluate(ckpt_path: str | Path, data: str | Path, split: str = "val", prompt
         raise AgoInputError(None, f"unknown identifier {identifier!r}; choose one of {list(IDENTIFIERS)}")
     dev = pick_device(device)
     ckpt = load_checkpoint(ckpt_path, map_location="cpu")
-    mcfg, model = load_model(ckpt, dev)
+    mcfg, model = load_model(ckpt, dev, ckpt_path)
     label_space = parse_prompt_file(prompts) if prompts else checkpoint_label_space(ckpt)
     K = label_space.num_classes
     identifier = identifier or default_identifier(label_space)
     text, phrase_class = bank_for(ckpt, label_space)
     text, phrase_class = text.to(dev), phrase_class.to(dev)
 
+    if max_frames is not None and (not isinstance(max_frames, int) or max_frames < 1):
+        raise AgoInputError("--max-frames", f"must be >= 1 (or left out for every frame), got {max_frames!r}")
     ds, indices = open_frames(data, gts, split)
     if max_frames is not None:
         indices = indices[:max_frames]

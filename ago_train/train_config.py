@@ -129,8 +129,12 @@ class TrainConfig:
             raise AgoInputError(source, f"unknown training config keys {unknown}")
         kw = dict(d)
         if "model" in kw and not isinstance(kw["model"], ModelConfig):
-            kw["model"] = ModelConfig.from_dict(kw["model"])
+            if not isinstance(kw["model"], dict):
+                raise AgoInputError(source, f"model must be an object of model settings, got {kw['model']!r}")
+            kw["model"] = ModelConfig.from_dict(kw["model"], source)
         if "loss" in kw and not isinstance(kw["loss"], LossConfig):
+            if not isinstance(kw["loss"], dict):
+                raise AgoInputError(source, f"loss must be an object of loss settings, got {kw['loss']!r}")
             loss_fields = {f.name for f in dataclasses.fields(LossConfig)}
             bad = sorted(set(kw["loss"]) - loss_fields)
             if bad:
@@ -139,7 +143,9 @@ class TrainConfig:
                 kw["loss"] = LossConfig(**kw["loss"])
             except ValueError as e:
                 raise AgoInputError(source, str(e)) from None
-        return cls(**kw)
+        from .config_checks import check_train_config
+
+        return check_train_config(cls(**kw), source)
 
     def save(self, path: str | Path) -> None:
         write_json(path, self.to_dict())
@@ -179,7 +185,7 @@ class TrainConfig:
             if parts[-1] not in target:
                 raise AgoInputError(None, f"--set {key}: no such config key")
             target[parts[-1]] = value
-        return TrainConfig.from_dict(d)
+        return TrainConfig.from_dict(d, source="--set" if assignments else None)
 
     # ---------------------------------------------------------------------------------------
     def uses_feature_cache(self) -> bool:

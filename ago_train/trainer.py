@@ -33,7 +33,8 @@ from ago_runtime.preprocess import Preprocess
 from ago_runtime.prompts import LabelSpace, parse_prompt_file
 
 from . import distributed as D
-from .checkpoint import load_checkpoint, plain, rng_state, save_checkpoint, set_rng_state
+from .checkpoint import (check_resume_model, load_checkpoint, load_model_weights, plain, rng_state,
+                         save_checkpoint, set_rng_state)
 from .dataset import FrameList, OccSampleDataset, PseudoLabelSet, collate
 from .train_config import TrainConfig
 
@@ -167,6 +168,7 @@ class Trainer:
             indices = indices[: cfg.max_frames]
         if not indices:
             raise AgoInputError(cfg.data, f"no frames in split {cfg.train_split!r}")
+        self.pseudo.check_files([(ds.scene_of(i), ds.sample_tokens[i]) for i in indices])  # before any file is written
         self.preprocess = Preprocess(cfg.model.image_width, cfg.model.image_height)
         self.dataset = OccSampleDataset(FrameList(ds, indices), self.pseudo, K, self.grid, self.preprocess,
                                         with_embeds=True, color_jitter=cfg.color_jitter, seed=cfg.seed,
@@ -195,7 +197,7 @@ class Trainer:
         self.model.train()  # the backbone's BatchNorm layers stay in eval mode (backbone._FrozenBNMixin)
         if cfg.init_from:
             init = load_checkpoint(cfg.init_from)
-            self.model.load_state_dict(init["model"])
+            load_model_weights(self.model, init, cfg.init_from, cfg.model.to_dict(), what="this run's model (init_from)")
         if use_cache:  # after init_from: the cache is keyed by the frozen weights the run really uses
             self.dataset.feature_cache = self._feature_cache()
         self.step_module = TrainStep(self.model, cfg.loss, K).to(info.device)
@@ -234,6 +236,7 @@ class Trainer:
         ckpt = load_checkpoint(path, map_location=self.info.device)
         if ckpt.get("optimizer") is None:
             raise AgoInputError(path, "checkpoint has no optimiser state (an export?); cannot resume from it")
+        check_resume_model(ckpt, path, self.cfg.model.to_dict())
         saved = ckpt["train_config"]
         for key in ("epochs", "batch_size", "seed", "max_steps"):
             if saved.get(key) != getattr(self.cfg, key):

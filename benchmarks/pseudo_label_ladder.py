@@ -74,7 +74,7 @@ def score(samples, gts):
 
 
 def run_rung(ds, indices, space, seg, emb, cfg):
-    cache = LiftCache(ds, seg, cfg.ego_box, min(cfg.num_sweeps * cfg.interval + cfg.interval + 1, 64))
+    cache = LiftCache(ds, seg, cfg.ego_box, min(cfg.num_keyframes * cfg.interval + cfg.interval + 1, 64))
     t0 = time.perf_counter()
     out = [pseudo_sample(ds, i, space, seg, emb, cfg, cache) for i in indices]
     return out, time.perf_counter() - t0
@@ -171,7 +171,8 @@ def main():
     ap.add_argument("--scenes", type=int, default=2)
     ap.add_argument("--frames", type=int, default=24)
     ap.add_argument("--image-size", default="400x225")
-    ap.add_argument("--sweeps", type=int, default=30)
+    ap.add_argument("--keyframes", "--sweeps", dest="sweeps", type=int, default=30,
+                    help="keyframes superimposed (ago pseudo-labels --keyframes; --sweeps is the old name)")
     ap.add_argument("--interval", type=int, default=2)
     ap.add_argument("--every", type=int, default=4, help="score every N-th keyframe")
     ap.add_argument("--out", default=str(RESULTS / "pseudo_labels.md"))
@@ -187,9 +188,9 @@ def main():
     class_text, sky = simulated_text_embeddings()
     emb = SimulatedImageEmbedder(class_text, SimEmbedderConfig(), sky_text=sky)
     grid = Grid()
-    rungs = [("single frame", dict(num_sweeps=1, interval=1, raycast=False)),
-             ("+ aggregation", dict(num_sweeps=args.sweeps, interval=args.interval, raycast=False)),
-             ("+ ray casting", dict(num_sweeps=args.sweeps, interval=args.interval, raycast=True))]
+    rungs = [("single frame", dict(num_keyframes=1, interval=1, raycast=False)),
+             ("+ aggregation", dict(num_keyframes=args.sweeps, interval=args.interval, raycast=False)),
+             ("+ ray casting", dict(num_keyframes=args.sweeps, interval=args.interval, raycast=True))]
     rows, ladder, last = [], [], None
     for seg_name, seg in (("simulated Grounded SAM (default knobs)", SimulatedSegmenter(space)),
                           ("perfect 2-D labels (upper bound)", SimulatedSegmenter(space, SimSegmenterConfig.perfect()))):
@@ -227,7 +228,7 @@ def generation_speed(ds, space, emb) -> list[tuple]:
     from ago_train.pseudo.generate import generate
     out = []
     for shape, sweeps, interval in (((200, 200, 16), 10, 1), ((200, 200, 16), 30, 2), ((100, 100, 8), 10, 1)):
-        cfg = PseudoLabelConfig(grid=Grid.with_shape(shape), num_sweeps=sweeps, interval=interval, raycast=True)
+        cfg = PseudoLabelConfig(grid=Grid.with_shape(shape), num_keyframes=sweeps, interval=interval, raycast=True)
         load = os.getloadavg()[0]
         with tempfile.TemporaryDirectory() as tmp:
             r = generate(ds, ds.split("train"), Path(tmp) / "pl", space, SimulatedSegmenter(space), emb, cfg,

@@ -29,7 +29,7 @@ echo "== 1/5 synthetic data ($SCENES scenes x $FRAMES frames) -> $WORK/synth"
 
 echo "== 2/5 pseudo-labels ($PROMPTS, grid $GRID) -> $WORK/pseudo"
 $AGO pseudo-labels --data "$WORK/synth" --out "$WORK/pseudo" --prompts "$PROMPTS" --grid "$GRID" --split train \
-    --segmenter sim --embedder sim --sweeps 10 --interval 1
+    --segmenter sim --embedder sim --keyframes 10 --interval 1
 
 echo "== 3/5 train ($PRESET preset) -> $WORK/train"
 $AGO train --config "$PRESET" --data "$WORK/synth" --pseudo "$WORK/pseudo" --prompts "$PROMPTS" --out "$WORK/train" \

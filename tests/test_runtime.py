@@ -390,7 +390,9 @@ def test_refuses_bank_of_other_encoder_or_width(bundle_dir, frame_dir, tmp_path)
         "embeddings", "phrases", "class_names", "phrase_class", "encoder_variant", "encoder_hash", "dim",
         "known", "occ3d_ids")}, "encoder_id": "clip-vit-b32"})
     other.save(tmp_path / "other.npz")
-    assert_refused(_infer(bundle_dir, frame_dir, out, "--bank", tmp_path / "other.npz"), str(bundle_dir), out)
+    r = _infer(bundle_dir, frame_dir, out, "--bank", tmp_path / "other.npz")
+    assert_refused(r, str(bundle_dir), out)
+    assert r.stderr.startswith(f"error: {tmp_path / 'other.npz'}:")     # the bank is what must be rebuilt
     narrow = PromptBank(**{**{k: getattr(bank, k) for k in (
         "phrases", "class_names", "phrase_class", "encoder_id", "encoder_variant", "encoder_hash", "known",
         "occ3d_ids")}, "embeddings": bank.embeddings[:, :128], "dim": 128})
@@ -411,3 +413,49 @@ def test_bundle_load_errors_name_the_file(bundle_dir, tmp_path):
     with pytest.raises(AgoInputError) as e:
         Bundle.load(b)
     assert "heads.npz" in str(e.value)
+
+
+def test_cli_infer_several_samples_and_a_scene_with_one_bundle_load(bundle_dir, tmp_path, monkeypatch):
+    """--sample takes tokens and scene names, repeatable; the bundle is loaded once for all frames."""
+    from ago_runtime import bundle as bundle_mod
+    from ago_runtime.nuscenes import NuScenesDataset
+
+    data = tmp_path / "data"
+    assert run_cli(["synth", "--out", data, "--scenes", "2", "--frames", "2", "--image-size", "96x54",
+                    "--grid", "20x20x4", "--val-fraction", "0.5"], cwd=tmp_path).returncode == 0
+    ds = NuScenesDataset(data, load_images=False)
+    scene0, token_last = ds.scenes()[0], ds.sample_tokens[-1]
+    loads = []
+    real_load = bundle_mod.Bundle.load.__func__
+    monkeypatch.setattr(bundle_mod.Bundle, "load", classmethod(lambda cls, *a, **k: loads.append(a) or real_load(cls, *a, **k)))
+    out = tmp_path / "out"
+    r = run_cli(["infer", "--images", data, "--sample", scene0, "--sample", token_last, "--bundle", bundle_dir,
+                 "--out", out], cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    want = [ds.sample_tokens[i] for i in ds.indices_of([scene0])] + [token_last]
+    assert sorted(p.stem for p in out.glob("*.npz")) == sorted(want) and len(want) == 3
+    assert len(loads) == 1
+    assert r.stdout.startswith("bundle: trained on")          # the card line (random test checkpoint)
+
+
+def test_prediction_picture_title_is_never_cut(bundle_dir, frame_dir):
+    """The frame name is a full-width header, wrapped when long (it was cut off inside the first panel)."""
+    from ago_runtime import render
+    from ago_runtime.calibration import load_images_folder
+    from ago_runtime.cli_infer import prediction_picture
+    from ago_runtime.predictor import Predictor
+
+    p = Predictor(bundle_dir)
+    images, rig, _ = load_images_folder(frame_dir)
+    pred = p.predict(images, rig)
+    long = "n015-2018-07-24-11-22-45+0800 ca9a282c9e77460f8360f564131a8af5 " * 3
+    pic = prediction_picture(pred, images, long)
+    plain = prediction_picture(pred, images, "")
+    bar = render._title_bar(long, plain.shape[1])
+    assert pic.shape[0] == plain.shape[0] + bar.shape[0] and pic.shape[1] == plain.shape[1]
+    assert bar.shape[0] > render._title_bar("short", plain.shape[1]).shape[0]      # wrapped onto more lines
+    scale = float(np.clip(plain.shape[1] / 1000, 0.5, 0.9))
+    thick = 2 if scale >= 0.7 else 1
+    lines = render._wrap(long, plain.shape[1] - 12, scale, thick)
+    assert len(lines) >= 2 and "".join(lines).replace(" ", "") == long.replace(" ", "")   # nothing dropped
+    assert all(render._text_size(line, scale, thick)[0] <= plain.shape[1] - 12 for line in lines)

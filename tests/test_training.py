@@ -41,7 +41,7 @@ def tiny_data(tmp_path_factory) -> dict:
     _ago("synth", "--out", str(data), "--scenes", "2", "--frames", "3", "--image-size", "192x128",
          "--grid", GRID, "--seed", "3")
     _ago("pseudo-labels", "--data", str(data), "--out", str(pseudo), "--prompts", "cw", "--grid", GRID,
-         "--split", "all", "--embedder", "sim", "--sweeps", "2")
+         "--split", "all", "--embedder", "sim", "--keyframes", "2")
     return {"data": data, "pseudo": pseudo, "root": root}
 
 
@@ -310,7 +310,7 @@ def test_open_world_protocol_end_to_end(tiny_data, tmp_path):
     pre, full = tmp_path / "pseudo_pre", tmp_path / "pseudo_ow"
     for prompts, out in (("ow_pretrain", pre), ("ow", full)):
         _ago("pseudo-labels", "--data", str(tiny_data["data"]), "--out", str(out), "--prompts", prompts,
-             "--grid", GRID, "--split", "all", "--embedder", "sim", "--sweeps", "1")
+             "--grid", GRID, "--split", "all", "--embedder", "sim", "--keyframes", "1")
     out = tmp_path / "ow"
     _ago("open-world", "--stage", "all", "--config", "tiny", "--data", str(tiny_data["data"]),
          "--set", "train_split=\"all\"", "--set", "max_steps=2", "--set", "device=\"cpu\"",

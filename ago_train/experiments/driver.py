@@ -159,7 +159,7 @@ class ExperimentRunner:
                 continue
             split = "all" if space == "cw" else p.train_split   # cw pseudo-labels on val too: their own mIoU
             self._ago("pseudo-labels", "--data", str(self.data), "--out", str(self.pseudo(space)), "--prompts", space,
-                      "--segmenter", "sim", "--embedder", "sim", "--grid", p.pseudo_grid, "--sweeps", str(p.sweeps),
+                      "--segmenter", "sim", "--embedder", "sim", "--grid", p.pseudo_grid, "--keyframes", str(p.sweeps),
                       "--interval", str(p.interval), "--split", split)
             write_json(done, {"split": split})
 

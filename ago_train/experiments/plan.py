@@ -42,7 +42,7 @@ class ExperimentProfile:
     synth: dict = field(default_factory=lambda: {"scenes": 8, "frames": 12, "image-size": "704x396",
                                                  "grid": "200x200x16", "seed": 0, "val-fraction": 0.25})
     pseudo_grid: str = "100x100x8"            # must be the model's grid
-    sweeps: int = 10
+    sweeps: int = 10                 # keyframes superimposed per pseudo-label sample (`ago pseudo-labels --keyframes`)
     interval: int = 1
     pseudo: dict = field(default_factory=lambda: {"cw": "pseudo_cw", "ow_pretrain": "pseudo_ow_pretrain",
                                                   "ow": "pseudo_ow"})

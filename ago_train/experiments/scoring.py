@@ -135,7 +135,7 @@ def evaluate_views(ckpt_path: str | Path, data: str | Path, views: list[View], s
             raise ValueError(f"view {v.name}: unknown identifier {v.identifier!r}")
     dev = torch.device("cpu")
     ckpt = load_checkpoint(ckpt_path, map_location="cpu")
-    mcfg, model = load_model(ckpt, dev)
+    mcfg, model = load_model(ckpt, dev, ckpt_path)
     banks = {v.name: _bank(ckpt, v.prompts, v.closed_set) for v in views}
     ds, indices = open_frames(data, gts, split)
     if max_frames is not None:

@@ -101,13 +101,16 @@ class ModelConfig:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, d: dict) -> "ModelConfig":
+    def from_dict(cls, d: dict, source: str | None = None) -> "ModelConfig":
+        from ..config_checks import check_model_config
+
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(d) - known)
         if unknown:
-            raise AgoInputError(None, f"unknown model config keys {unknown}")
+            raise AgoInputError(source, f"unknown model config keys {unknown}")
         cfg = cls(**d)
-        cfg.validate()
+        check_model_config(cfg, source)   # types and ranges first: validate() computes with them
+        cfg.validate(source)
         return cfg
 
     @classmethod

@@ -5,9 +5,13 @@ frames in the keyframe's ego frame.
 the points kept (ego-body returns dropped), each point's label-space class (255 = none) from the
 frame's own six images, the camera and pixel of each point, and the frame's feature maps.
 
-`frames_to_aggregate(ds, i, num_sweeps, interval)`: keyframe i first, then up to num_sweeps - 1
+`lift_frame_and_sweeps(frame, segmenter, nonkey)`: the same for the keyframe's sweep and for non-key
+LiDAR sweeps recorded before it (real nuScenes lists ~9 between two keyframes), all labelled with the
+keyframe's images.
+
+`frames_to_aggregate(ds, i, num_keyframes, interval)`: keyframe i first, then up to num_keyframes - 1
 keyframes of the same scene at offsets +-interval*k, nearest first (ds.neighbours). The paper uses
-num_sweeps = 30, interval = 2. Moving objects smear along their path: faithful to the paper.
+30 frames, interval 2. Moving objects smear along their path: faithful to the paper.
 
 `warp_to(lifted, key_ego2global)`: the lifted points in the keyframe's ego frame
 (LidarSweep.points_in) and the LiDAR origin there.
@@ -62,26 +66,50 @@ def check_pose(sweep: LidarSweep, what: str) -> None:
             raise AgoInputError(sweep.path or what, f"{what}: LiDAR sweep has no valid {name} pose")
 
 
+def _kept_points(sweep: LidarSweep, key_ego2global: np.ndarray, ego_box) -> tuple[np.ndarray, np.ndarray]:
+    """(keep (N_all,) bool, kept points (N, 3) in the keyframe's ego frame): finite points outside the
+    ego body box (tested in the sweep's OWN ego frame, where the car's body is)."""
+    own = sweep.points_ego()
+    keep = np.all(np.isfinite(own), axis=1)
+    if ego_box is not None:
+        lo, hi = np.asarray(ego_box[0]), np.asarray(ego_box[1])
+        keep &= ~np.all((own >= lo) & (own <= hi), axis=1)
+    return keep, sweep.points_in(key_ego2global)[keep]
+
+
 def lift_frame(frame: Frame, segmenter: Segmenter, embedder: ImageEmbedder | None = None,
                ego_box=EGO_BOX) -> LiftedFrame:
     """Label (and embed) one frame's own LiDAR points with its own images, all in its own ego frame."""
+    return lift_frame_and_sweeps(frame, segmenter, [], embedder, ego_box)[0]
+
+
+def lift_frame_and_sweeps(frame: Frame, segmenter: Segmenter, nonkey: list[LidarSweep],
+                          embedder: ImageEmbedder | None = None, ego_box=EGO_BOX) -> list[LiftedFrame]:
+    """The keyframe's own LiDAR points, then each non-key sweep of `nonkey` (e.g. the ~9 sweeps recorded
+    between two nuScenes keyframes), all labelled with the KEYFRAME's six images: a non-key sweep's
+    points are moved into the keyframe's ego frame through the two ego poses and projected into the
+    keyframe cameras (static-world assumption over the < 0.5 s between them; moving objects smear,
+    as they do across keyframes). One LiftedFrame per sweep, keyframe first; each keeps its own pose,
+    so `warp_to` places it in any other keyframe's frame. Features (`embedder`) go to the keyframe's own.
+    """
     if not frame.sweeps:
         raise AgoInputError(f"{frame.scene}/{frame.token}", "frame has no LiDAR sweep")
-    sweep = frame.lidar
-    check_pose(sweep, f"{frame.scene}/{frame.token}")
-    pts = sweep.points_ego()
-    keep = np.all(np.isfinite(pts), axis=1)
-    if ego_box is not None:
-        lo, hi = np.asarray(ego_box[0]), np.asarray(ego_box[1])
-        keep &= ~np.all((pts >= lo) & (pts <= hi), axis=1)
-    pts = pts[keep]
-    cam_idx, uv = assign_cameras(pts, frame.rig)
-    seen = [bool(np.any(cam_idx == ci)) for ci in range(len(frame.rig.cameras))]
+    where = f"{frame.scene}/{frame.token}"
+    sweeps = [frame.lidar] + list(nonkey)
+    parts = []
+    for sweep in sweeps:
+        check_pose(sweep, where)
+        keep, pts = _kept_points(sweep, frame.ego2global if sweep is not frame.lidar else sweep.ego2global, ego_box)
+        cam_idx, uv = assign_cameras(pts, frame.rig)
+        parts.append((sweep, keep, cam_idx, uv))
+    seen = [any(bool(np.any(c == ci)) for _, _, c, _ in parts) for ci in range(len(frame.rig.cameras))]
     maps = [segmenter.segment(frame, cam.name) if s else None for cam, s in zip(frame.rig, seen)]
-    labels = lift_labels(cam_idx, uv, maps)
-    lifted = LiftedFrame(sweep, keep, labels, cam_idx.astype(np.int8), uv.astype(np.float32),
-                         None, [(cam.width, cam.height) for cam in frame.rig])
-    return attach_features(frame, lifted, embedder) if embedder is not None else lifted
+    sizes = [(cam.width, cam.height) for cam in frame.rig]
+    lifted = [LiftedFrame(sweep, keep, lift_labels(cam_idx, uv, maps), cam_idx.astype(np.int8), uv.astype(np.float32),
+                          None, sizes) for sweep, keep, cam_idx, uv in parts]
+    if embedder is not None:
+        lifted[0] = attach_features(frame, lifted[0], embedder)
+    return lifted
 
 
 def attach_features(frame: Frame, lifted: LiftedFrame, embedder: ImageEmbedder) -> LiftedFrame:
@@ -102,8 +130,8 @@ def warp_to(lifted: LiftedFrame, key_ego2global: np.ndarray) -> tuple[np.ndarray
     return pts, m[:3, 3].copy()
 
 
-def frames_to_aggregate(ds, i: int, num_sweeps: int, interval: int) -> list[int]:
-    """Keyframe i, then num_sweeps - 1 same-scene neighbours at +-interval*k (nearest first)."""
-    if num_sweeps < 1:
-        raise AgoInputError(None, f"--sweeps must be >= 1 (the keyframe counts), got {num_sweeps}")
-    return [i] + [j for j in ds.neighbours(i, num_sweeps - 1, interval) if j != i]
+def frames_to_aggregate(ds, i: int, num_keyframes: int, interval: int) -> list[int]:
+    """Keyframe i, then num_keyframes - 1 same-scene neighbours at +-interval*k (nearest first)."""
+    if num_keyframes < 1:
+        raise AgoInputError("--keyframes", f"must be >= 1 (the keyframe counts), got {num_keyframes}")
+    return [i] + [j for j in ds.neighbours(i, num_keyframes - 1, interval) if j != i]

@@ -117,9 +117,13 @@ class FileSegmenter:
     def segment(self, frame: Frame, camera: str) -> np.ndarray:
         path = self.path_for(frame, camera)
         if path.suffix == ".png":
-            m = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-            if m is None:
-                raise AgoInputError(path, "not a readable PNG")
+            from ago_runtime.image_files import decode_image
+
+            try:
+                data = path.read_bytes()
+            except OSError as e:
+                raise AgoInputError(path, f"cannot read the label map ({e.strerror or e})") from None
+            m = decode_image(data, path, cv2.IMREAD_UNCHANGED)   # header size limit, corrupt data refused
         else:
             try:
                 m = np.load(path, allow_pickle=False)

@@ -41,7 +41,7 @@ from ago_runtime.grid import Grid
 from ago_runtime.readers import read_npz
 from ago_runtime.progress import track
 
-from .aggregate import EGO_BOX, LiftedFrame, attach_features, frames_to_aggregate, lift_frame, warp_to
+from .aggregate import EGO_BOX, LiftedFrame, attach_features, frames_to_aggregate, lift_frame_and_sweeps, warp_to
 from .lift import feature_sums_per_voxel
 from .raycast import traverse, unique_rays
 from .voting import FeatureMean, vote
@@ -52,8 +52,10 @@ FORMAT_VERSION = 1
 @dataclass
 class PseudoLabelConfig:
     grid: Grid = field(default_factory=Grid)
-    num_sweeps: int = 1        # frames superimposed, keyframe included (paper: 30)
+    num_keyframes: int = 1     # keyframes superimposed, the keyframe included (CLI --keyframes; paper: 30)
     interval: int = 1          # keyframe stride between them (paper: 2)
+    nonkey_sweeps: int = 0     # non-key LiDAR sweeps added per superimposed keyframe, those recorded just
+                               # before it, labelled with its images (CLI --sweeps; real nuScenes has ~9)
     raycast: bool = True       # free = crossed by a ray; else free = every voxel without a hit
     embed_all_frames: bool = False  # E_3D from every aggregated frame (default: the keyframe's own images)
     dedupe_rays: bool = True   # one ray per (sweep, hit voxel)
@@ -192,8 +194,10 @@ class PseudoLabelDir:
     """A pseudo-label output folder: its meta.json and readers.
 
     meta keys: format_version, label_space {name, classes, sha256, prompt_file}, grid (Grid.to_dict),
-    segmenter {name, config}, embedder {name, config} or null, num_sweeps, interval, raycast, config
-    (PseudoLabelConfig), free_index 17, ignore_index 255, created_by.
+    segmenter {name, config}, embedder {name, config} or null, num_keyframes, interval, nonkey_sweeps,
+    raycast, config (PseudoLabelConfig), free_index 17, ignore_index 255, created_by. (Folders written
+    before non-key sweeps were read say `num_sweeps` for num_keyframes and have no nonkey_sweeps (= 0);
+    they are read and resumed as such.)
     """
 
     def __init__(self, out_dir: str | Path):
@@ -230,11 +234,70 @@ class PseudoLabelDir:
         d = sample_dir(self.root, scene, token)
         return (d / "labels.npz").is_file() and (not self.has_embeds or (d / "embeds.npz").is_file())
 
+    def sample_problem(self, scene: str, token: str, full: bool = True) -> str | None:
+        """None when the sample's files are there and sound, else what is wrong (e.g. a labels.npz cut short
+        by a kill). full=True reads the arrays (shapes against the grid, embedding index range); full=False
+        only opens the zip directories and looks for the arrays' names (fast: for `ago train`'s check)."""
+        d = sample_dir(self.root, scene, token)
+        needed = [("labels.npz", ("semantics", "mask_lidar", "mask_camera"))]
+        if self.has_embeds:
+            needed.append(("embeds.npz", ("index", "embeds")))
+        for name, keys in needed:
+            path = d / name
+            if not path.is_file():
+                return f"{path}: missing"
+            if not full:
+                problem = _zip_members_problem(path, keys)
+                if problem:
+                    return f"{path}: {problem}"
+        if not full:
+            return None
+        try:
+            sem, ml, mc = load_pseudo_labels(self.root, scene, token)
+            if sem.shape != tuple(self.grid.shape):
+                return f"{d / 'labels.npz'}: shape {sem.shape}, the folder's grid is {tuple(self.grid.shape)}"
+            if self.has_embeds:
+                index, emb = load_voxel_embeds(self.root, scene, token)
+                if index.size and (index.min() < 0 or index.max() >= self.grid.num_voxels):
+                    return f"{d / 'embeds.npz'}: voxel indices outside the grid"
+                ch = self.embed_channels
+                if ch is not None and emb.shape[1] != ch:
+                    return f"{d / 'embeds.npz'}: {emb.shape[1]} channels, the folder's embedder has {ch}"
+        except AgoInputError as e:
+            return str(e)
+        return None
+
+    def check_files(self, samples: list[tuple[str, str]], full: bool = False) -> None:
+        """Refuse (one AgoInputError naming the first bad file, with the count) before training when any of
+        `samples` (scene, token) has a missing or damaged pseudo-label file."""
+        bad = []
+        for scene, token in samples:
+            problem = self.sample_problem(scene, token, full=full)
+            if problem:
+                bad.append(problem)
+        if bad:
+            first_path, _, what = bad[0].partition(": ")
+            raise AgoInputError(first_path, f"{what} ({len(bad)} of {len(samples)} pseudo-label samples are missing "
+                                "or damaged; rerun the same `ago pseudo-labels` command: it remakes them)")
+
     def labels(self, scene: str, token: str):
         return load_pseudo_labels(self.root, scene, token)
 
     def embeds(self, scene: str, token: str):
         return load_voxel_embeds(self.root, scene, token)
+
+
+def _zip_members_problem(path: Path, keys) -> str | None:
+    """What is wrong with an .npz's zip directory (truncated file, missing arrays), or None."""
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(path) as z:
+            names = set(z.namelist())
+    except (zipfile.BadZipFile, OSError) as e:
+        return f"not a readable npz file ({e.__class__.__name__}: {e}); truncated?"
+    missing = [k for k in keys if f"{k}.npy" not in names]
+    return f"missing arrays {missing}" if missing else None
 
 
 # ------------------------------------------------------------------------------------------------
@@ -253,8 +316,9 @@ def make_meta(label_space, segmenter, embedder, config: PseudoLabelConfig, comma
         "segmenter": {"name": segmenter.name, "config": segmenter.config_dict()},
         "embedder": None if embedder is None else {"name": embedder.name, "config": embedder.config_dict(),
                                                    "channels": getattr(embedder, "channels", None)},
-        "num_sweeps": config.num_sweeps,
+        "num_keyframes": config.num_keyframes,
         "interval": config.interval,
+        "nonkey_sweeps": config.nonkey_sweeps,
         "raycast": config.raycast,
         "config": config.to_dict(),
         "free_index": FREE,
@@ -266,6 +330,11 @@ def make_meta(label_space, segmenter, embedder, config: PseudoLabelConfig, comma
 def _differences(a: dict, b: dict) -> list[str]:
     def strip(m: dict) -> dict:
         m = json.loads(json.dumps({k: m.get(k) for k in _COMPARED}))
+        if isinstance(m.get("config"), dict):   # folders from before non-key sweeps: same meaning, older names
+            c = m["config"]
+            if "num_sweeps" in c and "num_keyframes" not in c:
+                c["num_keyframes"] = c.pop("num_sweeps")
+            c.setdefault("nonkey_sweeps", 0)
         if m.get("label_space"):
             m["label_space"].pop("prompt_file", None)
         if m.get("embedder"):
@@ -283,17 +352,20 @@ class LiftCache:
     embedder reads them when the frame becomes a keyframe).
     """
 
-    def __init__(self, ds, segmenter, ego_box, size: int):
+    def __init__(self, ds, segmenter, ego_box, size: int, nonkey_sweeps: int = 0):
         self.ds, self.segmenter, self.ego_box = ds, segmenter, ego_box
         self.size = max(1, size)
-        self.items: OrderedDict[int, tuple[Frame, LiftedFrame]] = OrderedDict()
+        self.nonkey_sweeps = nonkey_sweeps
+        self.items: OrderedDict[int, tuple[Frame, list[LiftedFrame]]] = OrderedDict()
 
-    def get(self, i: int) -> tuple[Frame, LiftedFrame]:
+    def get(self, i: int) -> tuple[Frame, list[LiftedFrame]]:
+        """(frame, [its own lifted sweep, then its non-key sweeps' lifted points])."""
         if i in self.items:
             self.items.move_to_end(i)
             return self.items[i]
         frame = self.ds[i]
-        lifted = lift_frame(frame, self.segmenter, None, self.ego_box)
+        nonkey = self.ds.nonkey_sweeps(i, self.nonkey_sweeps) if self.nonkey_sweeps > 0 else []
+        lifted = lift_frame_and_sweeps(frame, self.segmenter, nonkey, None, self.ego_box)
         frame.images = {}
         self.items[i] = (frame, lifted)
         while len(self.items) > self.size:
@@ -304,47 +376,67 @@ class LiftCache:
 def pseudo_sample(ds, i: int, label_space, segmenter, embedder, config: PseudoLabelConfig,
                   cache: LiftCache | None = None) -> PseudoSample:
     """Pseudo-labels (and voxel embeddings) of dataset index i, in memory."""
-    cache = cache or LiftCache(ds, segmenter, config.ego_box, config.num_sweeps * config.interval + 1)
-    ids = frames_to_aggregate(ds, i, config.num_sweeps, config.interval)
+    cache = cache or LiftCache(ds, segmenter, config.ego_box, config.num_keyframes * config.interval + 1,
+                               config.nonkey_sweeps)
+    ids = frames_to_aggregate(ds, i, config.num_keyframes, config.interval)
     pairs = [cache.get(j) for j in ids]
-    lifted = [lf for _, lf in pairs]
-    if embedder is not None:
-        for k, (frame, lf) in enumerate(pairs):
-            if k == 0 or config.embed_all_frames:
-                lifted[k] = attach_features(frame, lf, embedder)
+    lifted: list[LiftedFrame] = []   # keyframe i's own sweep first (build_sample embeds from lifted[0])
+    for k, (frame, parts) in enumerate(pairs):
+        own = parts[0]
+        if embedder is not None and (k == 0 or config.embed_all_frames):
+            own = attach_features(frame, own, embedder)
+        lifted += [own] + list(parts[1:])
     return build_sample(pairs[0][0], lifted, label_space.num_classes, config)
 
 
 def generate(ds, indices: list[int], out_dir: str | Path, label_space, segmenter, embedder,
              config: PseudoLabelConfig, command: str = "", progress: bool = True) -> dict:
-    """Write pseudo-labels for dataset `indices` into out_dir; resumable. Gives counts and timing."""
+    """Write pseudo-labels for dataset `indices` into out_dir; resumable. Gives counts and timing.
+
+    A new folder gets nothing (no meta.json) until the first sample has been computed in memory: bad
+    settings (a simulated segmenter on real images, a missing mask file, ...) fail with nothing written.
+    On resume, each existing sample is checked (its arrays read back against the grid); a damaged one
+    (e.g. a labels.npz cut short by a kill) is made again, and counted in "remade"."""
     out = Path(out_dir)
     meta = make_meta(label_space, segmenter, embedder, config, command)
     meta_path = out / "meta.json"
+    indices = sorted(set(int(i) for i in indices))
+    if not indices:
+        raise AgoInputError(out, "no samples to label (empty split or --limit)")
+    remade = 0
     if meta_path.is_file():
         old = PseudoLabelDir(out).meta
         diff = _differences(old, meta)
         if diff:
             raise AgoInputError(meta_path, f"this folder holds pseudo-labels made with other settings "
                                 f"({', '.join(diff)} differ); use another --out or delete it")
+        folder = PseudoLabelDir(out)
+        existing = [i for i in indices if folder.has(ds.scene_of(i), ds.sample_tokens[i])]
+        checked = track(existing, "checking existing", total=len(existing)) if progress and existing else existing
+        damaged = {i for i in checked if folder.sample_problem(ds.scene_of(i), ds.sample_tokens[i]) is not None}
+        remade = len(damaged)
+        todo = [i for i in indices if i in damaged or i not in set(existing)]
+        first = None
     else:
-        out.mkdir(parents=True, exist_ok=True)
-        if label_space.source is not None and Path(label_space.source).is_file():
-            write_bytes(out / "label_space.txt", Path(label_space.source).read_bytes())
-        else:
+        if label_space.source is None or not Path(label_space.source).is_file():
             raise AgoInputError(label_space.source, "prompt file not found (it is copied into the output)")
+        todo = list(indices)
+        # the window of keyframes one sample uses spans num_keyframes * interval keyframes; cap the memory
+        first_cache = LiftCache(ds, segmenter, config.ego_box, 4, config.nonkey_sweeps)
+        first = pseudo_sample(ds, todo[0], label_space, segmenter, embedder, config, first_cache)  # settings work
+        out.mkdir(parents=True, exist_ok=True)
+        write_bytes(out / "label_space.txt", Path(label_space.source).read_bytes())
         write_json(meta_path, meta)
     folder = PseudoLabelDir(out)
 
     # neighbouring keyframes share lifted frames: process in dataset (scene, time) order
-    indices = sorted(set(int(i) for i in indices))
-    todo = [i for i in indices if not folder.has(ds.scene_of(i), ds.sample_tokens[i])]
-    # the window of keyframes one sample uses spans num_sweeps * interval keyframes; cap the memory
-    cache = LiftCache(ds, segmenter, config.ego_box, min(config.num_sweeps * config.interval + config.interval + 1, 64))
+    cache = LiftCache(ds, segmenter, config.ego_box,
+                      min(config.num_keyframes * config.interval + config.interval + 1, 64), config.nonkey_sweeps)
     t0 = time.perf_counter()
     items = track(todo, "pseudo-labels", total=len(todo)) if progress else todo
     for i in items:
-        sample = pseudo_sample(ds, i, label_space, segmenter, embedder, config, cache)
+        sample = first if (first is not None and i == todo[0]) else \
+            pseudo_sample(ds, i, label_space, segmenter, embedder, config, cache)
         save_sample(out, ds.scene_of(i), ds.sample_tokens[i], sample)
     seconds = time.perf_counter() - t0
     channels = getattr(embedder, "channels", None)
@@ -352,4 +444,5 @@ def generate(ds, indices: list[int], out_dir: str | Path, label_space, segmenter
         folder.meta["embedder"]["channels"] = int(channels)   # file backends learn it from the first file
         write_json(meta_path, folder.meta)
     return {"requested": len(indices), "written": len(todo), "skipped": len(indices) - len(todo),
-            "seconds": round(seconds, 3), "frames_per_s": round(len(todo) / seconds, 3) if todo and seconds > 0 else None}
+            "remade": remade, "seconds": round(seconds, 3),
+            "frames_per_s": round(len(todo) / seconds, 3) if todo and seconds > 0 else None}

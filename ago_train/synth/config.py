@@ -41,6 +41,8 @@ class SynthConfig:
     lidar_max_range: float = 80.0
     lidar_range_noise: float = 0.02     # metres, Gaussian
     lidar_position: tuple[float, float, float] = (0.943, 0.0, 1.84)
+    sweeps_between: int = 0             # non-key LiDAR sweeps written between two keyframes (0 = keyframes
+                                        # only, the default; nuScenes: ~9, LiDAR 20 Hz vs keyframes 2 Hz)
     # world
     world_size: float = 440.0           # side of the square city (m) around the start of the ego route (grown for long routes)
     block_min: float = 40.0             # spacing of parallel roads (m)
@@ -67,6 +69,8 @@ class SynthConfig:
             problems.append("val_fraction must be in [0, 1)")
         if self.gt_samples_per_axis < 1:
             problems.append("gt_samples_per_axis must be >= 1")
+        if self.sweeps_between < 0:
+            problems.append("sweeps_between must be >= 0")
         if self.lidar_beams < 1 or self.lidar_azimuth_steps < 8:
             problems.append("the LiDAR needs >= 1 beam and >= 8 azimuth steps")
         if problems:

@@ -6,7 +6,9 @@
   lidar_points (N,5) float32 LiDAR frame [x,y,z,intensity,ring], lidar2ego (4,4),
   annotations [BoxAnnotation] (global frame), gt (Occ3DLabels on config.grid()),
   extras {"semantic": {cam: (H,W) uint8 Occ3D id, 255 = sky}, "depth": {cam: (H,W) float32 m, 0 = none}},
-  lidar_classes (N,) uint8 Occ3D class of each LiDAR return (for checks).
+  lidar_classes (N,) uint8 Occ3D class of each LiDAR return (for checks),
+  sweeps [{timestamp_us, ego2global, lidar_points}]: the `config.sweeps_between` non-key LiDAR sweeps
+  between the previous keyframe and this one (empty by default and for the first keyframe).
 `write_dataset(config, out)` writes every scene through `ago_runtime.nuscenes_writer.NuScenesWriter`
 (the last `val_fraction` of the scenes form the val split) and returns a small summary dict.
 
@@ -84,6 +86,18 @@ def generate_scene(config: SynthConfig, scene_index: int, world: World | None = 
             vis_px += np.bincount(prims.obj[hit_ids] % (n_obj + 1), minlength=n_obj + 1)
             any_px += np.bincount(prims.obj % (n_obj + 1), weights=any_hits, minlength=n_obj + 1)
         scan = scan_lidar(world, prims, aabb, config, ego2world, rng, lidar_dirs)
+        sweeps = []   # non-key LiDAR sweeps between the previous keyframe and this one, oldest first
+        if f > 0 and config.sweeps_between > 0:
+            dt = config.keyframe_interval_s / (config.sweeps_between + 1)
+            for k in range(1, config.sweeps_between + 1):
+                t_k = (f - 1) * config.keyframe_interval_s + k * dt
+                pose_k = world.ego_pose(t_k)
+                prims_k, aabb_k = _visible_subset(world.primitives_at(t_k), pose_k[:2, 3], config.render_distance)
+                rng_k = np.random.default_rng([config.seed, scene_index, f, 13, k])
+                sweeps.append({"timestamp_us": TIMESTAMP_BASE_US + scene_index * 3_600_000_000 + int(round(t_k * 1e6)),
+                               "ego2global": _to_global(pose_k),
+                               "lidar_points": scan_lidar(world, prims_k, aabb_k, config, pose_k, rng_k,
+                                                          lidar_dirs).points})
         gt = occupancy_gt(world, prims, ego2world, grid, rig, depth, scan.origin_world, scan.points_world,
                           config.gt_samples_per_axis)
         # annotations
@@ -107,6 +121,7 @@ def generate_scene(config: SynthConfig, scene_index: int, world: World | None = 
             "extras": {"semantic": semantic,
                        "depth": {c: np.where(semantic[c] == 255, 0.0, d).astype(np.float32) for c, d in depth.items()}},
             "lidar_classes": scan.classes,
+            "sweeps": sweeps,
         }
 
 
@@ -130,6 +145,9 @@ def write_dataset(config: SynthConfig, out: str | Path, progress: bool = True) -
     total = config.num_scenes * config.frames_per_scene
     it = track(frames(), "synth", total=total) if progress else frames()
     for fr in it:
+        for sw in fr["sweeps"]:   # non-key sweeps recorded before this keyframe (config.sweeps_between)
+            writer.add_sweep(fr["scene_token"], sw["timestamp_us"], sw["ego2global"], sw["lidar_points"],
+                             fr["lidar2ego"])
         writer.add_sample(fr["scene_token"], fr["timestamp_us"], fr["ego2global"], fr["rig"], fr["images"],
                           fr["lidar_points"], fr["lidar2ego"], annotations=fr["annotations"], gt=fr["gt"],
                           extras=fr["extras"])

@@ -1,0 +1,550 @@
+"""Bad input, one row each: the command, what is wrong, and the contract README promises for it —
+exit code 2, exactly ONE stderr line `error: <file or option>: <problem>` that names the file or
+option, no traceback, and nothing written (the working directory stays empty, the inputs unchanged,
+the named outputs absent).
+
+Every verb has usage-error rows (unknown option, wrong type, missing option, value out of range),
+because those come from click's exception classes, which typer >= 0.26 vendors as `typer._click`
+(ago_runtime/cli.py finds the classes through typer itself). The rows run in this process through
+`ago_runtime.cli.run`, the function the `ago` console script calls.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import os
+import pickle
+import shutil
+import struct
+import types
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from ago_runtime.calibration import save_calibration
+from ago_runtime.camera import CAMERA_NAMES, Rig
+
+# ------------------------------------------------------------------------------------ running
+def run_ago(args, cwd: Path):
+    """`ago ARGS` in-process with `cwd` as the working directory -> (code, stdout, stderr)."""
+    from ago_runtime.cli import run
+
+    out, err = io.StringIO(), io.StringIO()
+    old = os.getcwd()
+    try:
+        os.chdir(cwd)
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                code = run([str(a) for a in args])
+            except SystemExit as e:
+                code = e.code if isinstance(e.code, int) else 1
+    finally:
+        os.chdir(old)
+    return types.SimpleNamespace(code=code, stdout=out.getvalue(), stderr=err.getvalue())
+
+
+def snapshot(root: Path) -> dict:
+    return {str(p.relative_to(root)): (p.stat().st_size, p.stat().st_mtime_ns)
+            for p in root.rglob("*") if p.is_file()}
+
+
+def assert_one_error_line(r, *needles: str) -> str:
+    assert r.code == 2, f"exit {r.code}\nstdout: {r.stdout[-2000:]}\nstderr: {r.stderr[-2000:]}"
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1, f"expected one stderr line, got {len(lines)}:\n{r.stderr[-3000:]}"
+    assert lines[0].startswith("error: "), lines[0]
+    for needle in needles:
+        assert needle in lines[0], f"{needle!r} not in {lines[0]!r}"
+    assert "Traceback" not in r.stderr + r.stdout
+    return lines[0]
+
+
+# ------------------------------------------------------------------------------------ fixtures
+def write_frame(folder: Path, width: int = 400, height: int = 225, seed: int = 0) -> Path:
+    """Six smooth random JPEGs + a calib.json of a nuScenes-like rig."""
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    for name in CAMERA_NAMES:
+        coarse = rng.uniform(0, 255, (height // 8 + 1, width // 8 + 1, 3)).astype(np.float32)
+        cv2.imwrite(str(folder / f"{name}.jpg"), np.clip(cv2.resize(coarse, (width, height)), 0, 255).astype(np.uint8))
+    save_calibration(folder / "calib.json", Rig.nuscenes_like(width, height))
+    return folder
+
+
+def jpeg_with_size(data: bytes, width: int, height: int) -> bytes:
+    """The same JPEG with its SOF0 frame header claiming another size (the data stays small)."""
+    i = data.index(b"\xff\xc0")
+    b = bytearray(data)
+    b[i + 5:i + 9] = struct.pack(">HH", height, width)
+    return bytes(b)
+
+
+def scrambled(data: bytes, n: int, seed: int, no_ff: bool = False) -> bytes:
+    """Random bytes over n bytes in the middle of the entropy-coded data (markers before and after intact)."""
+    rng = np.random.default_rng(seed)
+    sos = data.index(b"\xff\xda")
+    start = (sos + len(data)) // 2
+    seg = rng.integers(0, 256, n, dtype=np.uint8)
+    if no_ff:
+        seg[seg == 0xFF] = 0
+    b = bytearray(data)
+    b[start:start + n] = seg.tobytes()
+    return bytes(b)
+
+
+@pytest.fixture(scope="module")
+def w(tmp_path_factory):
+    """Inputs for the rows: a synthetic dataset + pseudo-labels, an images folder and damaged copies,
+    a tiny checkpoint and its bundle and damaged copies, hostile pickles."""
+    root = tmp_path_factory.mktemp("bad_inputs")
+    cwd = tmp_path_factory.mktemp("bad_inputs_setup")
+    old_cache = os.environ.get("AGO_CACHE_DIR")
+    os.environ["AGO_CACHE_DIR"] = str(tmp_path_factory.mktemp("bad_inputs_cache"))
+    x = types.SimpleNamespace(root=root)
+    x.data = root / "synth"
+    r = run_ago(["synth", "--out", x.data, "--scenes", "1", "--frames", "2", "--image-size", "96x54",
+                 "--grid", "20x20x4"], cwd)
+    assert r.code == 0, r.stderr
+    x.pseudo = root / "pseudo"
+    r = run_ago(["pseudo-labels", "--data", x.data, "--out", x.pseudo, "--grid", "20x20x4", "--keyframes", "1",
+                 "--split", "all"], cwd)
+    assert r.code == 0, r.stderr
+    x.labels = next(x.pseudo.glob("*/*/labels.npz"))
+    x.gt = next((x.data / "gts").glob("*/*/labels.npz"))
+    x.token = x.gt.parent.name
+    x.a_file = root / "a_file.txt"
+    x.a_file.write_text("not a folder\n")
+
+    x.frame = write_frame(root / "frame")
+    front = (x.frame / "CAM_FRONT.jpg").read_bytes()
+    x.bomb = shutil.copytree(x.frame, root / "bomb")
+    (x.bomb / "CAM_FRONT.jpg").write_bytes(jpeg_with_size(front, 30000, 16875))
+    x.scrambled = shutil.copytree(x.frame, root / "scrambled")
+    (x.scrambled / "CAM_FRONT.jpg").write_bytes(scrambled(front, 2000, seed=1))
+    x.truncated = shutil.copytree(x.frame, root / "truncated")
+    (x.truncated / "CAM_BACK.jpg").write_bytes(front[: len(front) // 2])
+    for name, change in (("negfocal", lambda c: c["intrinsics"][0].__setitem__(0, -c["intrinsics"][0][0])),
+                         ("scaled", lambda c: c.__setitem__("cam2ego", (2 * np.array(c["cam2ego"])).tolist()))):
+        d = shutil.copytree(x.frame, root / name)
+        calib = json.loads((d / "calib.json").read_text())
+        change(calib["cameras"]["CAM_FRONT_LEFT"])
+        (d / "calib.json").write_text(json.dumps(calib))
+        setattr(x, name, d)
+
+    x.pkl_bomb = root / "bomb.pkl"      # 34 bytes that would allocate 3 GB: bytearray(3_000_000_000)
+    x.pkl_bomb.write_bytes(b"c__builtin__\nbytearray\n(\x8a\x05\x00\x5e\xd0\xb2\x00tR.")
+    x.pkl_code = root / "code.pkl"      # would run os.system
+    x.pkl_code.write_bytes(b"cos\nsystem\n(S'echo pwned'\ntR.")
+    nested = [0] * 10
+    for _ in range(7):
+        nested = [nested] * 10          # 10^8 values from a few hundred bytes
+    x.pkl_laughs = root / "laughs.pkl"
+    x.pkl_laughs.write_bytes(pickle.dumps({"data_list": nested}, protocol=4))
+
+    x.big_prompts = root / "big5000.txt"
+    x.big_prompts.write_text("".join(f"class {i}: word{i}\n" for i in range(5000)))
+    x.bad_npz = root / "bad.npz"
+    x.bad_npz.write_bytes(b"PK\x03\x04 this is no zip")
+
+    pytest.importorskip("torch")
+    import torch
+
+    from ago_export.export import export_bundle
+    from ago_export.testing import random_checkpoint
+    from ago_runtime.bank import PromptBank
+    from ago_train.checkpoint import save_checkpoint
+    from ago_train.model import ModelConfig
+    from ago_train.text.noise import NoiseBank
+
+    x.ckpt = random_checkpoint(root / "tiny.pt", "tiny", prompts="cw", seed=1)
+    x.bundle = root / "bundle"
+    export_bundle(x.ckpt, x.bundle, bank_prompts=[], real_frame=False, log=lambda s: None)
+    ck = torch.load(x.ckpt, weights_only=True)
+
+    other = ModelConfig.preset("tiny")
+    other.pretrained, other.hidden_dim = False, 24
+    x.other_size = random_checkpoint(root / "other_size.pt", other, prompts="cw", seed=2)
+    x.mismatched = root / "mismatched.pt"       # weights of the tiny model, model_config of another size
+    save_checkpoint(x.mismatched, {**{k: v for k, v in ck.items() if k not in ("format", "version")},
+                                   "model_config": other.to_dict()})
+    x.raw_pickle = root / "raw.pt"
+    x.raw_pickle.write_bytes(pickle.dumps({"model": [1, 2, 3]}))
+    x.resume_run = root / "resume_run"          # a run folder whose last.pt has the tiny model's size
+    save_checkpoint(x.resume_run / "last.pt", {**{k: v for k, v in ck.items() if k not in ("format", "version")},
+                                               "optimizer": {"state": {}, "param_groups": []}, "scheduler": {},
+                                               "train_config": {"epochs": 1, "batch_size": 1, "seed": 0,
+                                                                "max_steps": 4}, "rng": {}, "step": 1})
+    x.noise = NoiseBank(["alpha", "beta", "gamma"], np.eye(3, 384, dtype=np.float16)).save(root / "noise.npz")
+    x.broken_pseudo = shutil.copytree(x.pseudo, root / "broken_pseudo")
+    victim = next(x.broken_pseudo.glob("*/*/labels.npz"))
+    victim.write_bytes(victim.read_bytes()[: victim.stat().st_size // 2])    # a kill mid-write, by hand
+    x.broken_labels = victim
+
+    bank = PromptBank.load(x.bundle / "banks" / "train.npz")
+    bank.encoder_id = "some-other-encoder"
+    x.foreign_bank = bank.save(root / "foreign.npz")
+    x.bad_heads = shutil.copytree(x.bundle, root / "bad_heads")
+    with np.load(x.bad_heads / "heads.npz") as z:
+        heads = {k: z[k] for k in z.files}
+    heads["W_dec"] = np.concatenate([heads["W_dec"], heads["W_dec"][:, :1]], axis=1)   # Dh + 1
+    np.savez(x.bad_heads / "heads.npz", **heads)
+    meta = json.loads((x.bad_heads / "bundle.json").read_text())
+    from ago_runtime.bundle import file_sha256
+
+    meta["files"]["heads"].update(sha256=file_sha256(x.bad_heads / "heads.npz"),
+                                  size=(x.bad_heads / "heads.npz").stat().st_size)
+    (x.bad_heads / "bundle.json").write_text(json.dumps(meta))
+    yield x
+    if old_cache is None:
+        os.environ.pop("AGO_CACHE_DIR", None)
+    else:
+        os.environ["AGO_CACHE_DIR"] = old_cache
+
+
+# ------------------------------------------------------------------------------------ the table
+# (id, args (a function of the fixture namespace), words the one error line must contain, outputs
+# that must not exist afterwards (relative to the empty working directory)). `{token}` etc. are
+# attributes of the fixture.
+TRAIN = lambda w: ["--data", w.data, "--pseudo", w.pseudo, "--set", 'train_split="all"', "--set",   # noqa: E731
+                   f'noise_bank="{w.noise}"', "--set", 'device="cpu"']
+
+ROWS = [
+    # ---- usage errors, every verb (click's classes, whichever copy typer carries)
+    ("unknown verb", lambda w: ["bogus"], ["bogus"], []),
+    ("synth --scenes ten", lambda w: ["synth", "--scenes", "ten", "--out", "o"], ["--scenes"], ["o"]),
+    ("synth --scenes 0", lambda w: ["synth", "--scenes", "0", "--out", "o"], ["--scenes"], ["o"]),
+    ("synth --frames -3", lambda w: ["synth", "--frames", "-3", "--out", "o"], ["--frames"], ["o"]),
+    ("synth --val-fraction 1.5", lambda w: ["synth", "--val-fraction", "1.5", "--out", "o"], ["--val-fraction"], ["o"]),
+    ("synth --image-size 80", lambda w: ["synth", "--image-size", "80", "--out", "o"], ["--image-size"], ["o"]),
+    ("synth --grid 0x2x2", lambda w: ["synth", "--grid", "0x2x2", "--out", "o"], ["--grid"], ["o"]),
+    ("synth --seed -1", lambda w: ["synth", "--seed", "-1", "--out", "o"], ["--seed"], ["o"]),
+    ("infer --bogus", lambda w: ["infer", "--bogus"], ["--bogus", "no such option"], []),
+    ("infer --save-volumes=maybe", lambda w: ["infer", "--images", w.frame, "--bundle", w.bundle, "--save-volumes=x"],
+     ["--save-volumes"], []),
+    ("infer --identifier", lambda w: ["infer", "--images", w.frame, "--bundle", w.bundle, "--identifier", "vote",
+                                      "--out", "o"], ["identifier", "vote"], ["o"]),
+    ("demo --bogus", lambda w: ["demo", "--bogus"], ["--bogus"], []),
+    ("retrieve no --phrase", lambda w: ["retrieve", "--images", w.frame], ["--phrase", "missing"], []),
+    ("retrieve empty phrase", lambda w: ["retrieve", "--images", w.frame, "--phrase", " ", "--bundle", w.bundle,
+                                         "--out", "o"], ["--phrase"], ["o"]),
+    ("prompts build no file", lambda w: ["prompts", "build"], ["PROMPT_FILE", "missing"], []),
+    ("prompts build no -o", lambda w: ["prompts", "build", "cw"], ["--output", "missing"], []),
+    ("prompts build --template", lambda w: ["prompts", "build", "cw", "-o", "b.npz", "--template", "x"],
+     ["template"], ["b.npz"]),
+    ("prompts show --bogus", lambda w: ["prompts", "show", "cw", "--bogus"], ["--bogus"], []),
+    ("prompts export-encoder --bogus", lambda w: ["prompts", "export-encoder", "--bogus"], ["--bogus"], []),
+    ("prompts noise --bogus", lambda w: ["prompts", "noise", "--bogus"], ["--bogus"], []),
+    ("prompts unknown sub-verb", lambda w: ["prompts", "flatten"], ["flatten"], []),
+    ("show --view", lambda w: ["show", w.gt, "--view", "sideways", "--out", "o.png"], ["--view"], ["o.png"]),
+    ("show --index text", lambda w: ["show", w.data, "--index", "one"], ["--index"], []),
+    ("show no path", lambda w: ["show"], ["PATH", "missing"], []),
+    ("metric no --pred", lambda w: ["metric", "--gt", w.data / "gts"], ["--pred", "missing"], []),
+    ("pseudo-labels --limit -1", lambda w: ["pseudo-labels", "--data", w.data, "--out", "o", "--limit", "-1"],
+     ["--limit"], ["o"]),
+    ("pseudo-labels --keyframes 0", lambda w: ["pseudo-labels", "--data", w.data, "--out", "o", "--keyframes", "0"],
+     ["--keyframes"], ["o"]),
+    ("pseudo-labels --interval 0", lambda w: ["pseudo-labels", "--data", w.data, "--out", "o", "--interval", "0"],
+     ["--interval"], ["o"]),
+    ("pseudo-labels --sweeps without sweeps", lambda w: ["pseudo-labels", "--data", w.data, "--out", "o",
+                                                         "--sweeps", "3", "--grid", "20x20x4"], ["--sweeps"], ["o"]),
+    ("pseudo-labels --segmenter", lambda w: ["pseudo-labels", "--data", w.data, "--out", "o", "--segmenter", "sam"],
+     ["--segmenter", "sam"], ["o"]),
+    ("pseudo-labels --grid", lambda w: ["pseudo-labels", "--data", w.data, "--out", "o", "--grid", "10x10"],
+     ["--grid"], ["o"]),
+    ("pseudo-labels --split", lambda w: ["pseudo-labels", "--data", w.data, "--out", "o", "--split", "test",
+                                         "--grid", "20x20x4"], ["splits.json", "test"], ["o"]),
+    ("pseudo-labels no --data", lambda w: ["pseudo-labels", "--out", "o"], ["--data", "missing"], ["o"]),
+    ("train --set lr=-1", lambda w: ["train", "--config", "tiny", "--set", "lr=-1", "--out", "o"], ["--set", "lr"], ["o"]),
+    ("train --set epochs=abc", lambda w: ["train", "--config", "tiny", "--set", "epochs=abc", "--out", "o"],
+     ["epochs"], ["o"]),
+    ("train --set model.hidden_dim=0", lambda w: ["train", "--config", "tiny", "--set", "model.hidden_dim=0",
+                                                  "--out", "o"], ["model.hidden_dim"], ["o"]),
+    ("train --set unknown key", lambda w: ["train", "--config", "tiny", "--set", "learning_rate=1", "--out", "o"],
+     ["learning_rate"], ["o"]),
+    ("train --set device", lambda w: ["train", "--config", "tiny", "--set", 'device="tpu9"', "--out", "o"],
+     ["tpu9"], ["o"]),
+    ("train --config missing.json", lambda w: ["train", "--config", "missing.json"], ["missing.json"], []),
+    ("train --bogus", lambda w: ["train", "--bogus"], ["--bogus"], []),
+    ("eval --max-frames -1", lambda w: ["eval", "--ckpt", w.ckpt, "--data", w.data, "--split", "all",
+                                        "--max-frames", "-1", "--out", "o"], ["--max-frames"], ["o"]),
+    ("eval --device tpu9", lambda w: ["eval", "--ckpt", w.ckpt, "--data", w.data, "--split", "all", "--device",
+                                      "tpu9", "--out", "o"], ["--device", "tpu9"], ["o"]),
+    ("eval no --data", lambda w: ["eval", "--ckpt", w.ckpt], ["--data", "missing"], []),
+    ("open-world --k 0", lambda w: ["open-world", "--pseudo-pretrain", w.pseudo, "--k", "0", "--out", "o"],
+     ["--k"], ["o"]),
+    ("open-world --seeds", lambda w: ["open-world", "--pseudo-pretrain", w.pseudo, "--stage", "pretrain", "--seeds",
+                                      "a,b", "--out", "o"],
+     ["--seeds"], ["o"]),
+    ("open-world --stage", lambda w: ["open-world", "--pseudo-pretrain", w.pseudo, "--stage", "later", "--out", "o"],
+     ["--stage"], ["o"]),
+    ("experiments run --profile", lambda w: ["experiments", "run", "--profile", "huge", "--out", "o"], ["huge"], ["o"]),
+    ("experiments run unknown name", lambda w: ["experiments", "run", "tab9", "--out", "o"], ["tab9"], ["o"]),
+    ("experiments report --bogus", lambda w: ["experiments", "report", "--bogus"], ["--bogus"], []),
+    ("experiments list --profile", lambda w: ["experiments", "list", "--profile", "huge"], ["huge"], []),
+    ("export no checkpoint", lambda w: ["export"], ["CHECKPOINT", "missing"], []),
+    ("export --bogus", lambda w: ["export", w.ckpt, "--bogus"], ["--bogus"], []),
+    ("export --card-json missing", lambda w: ["export", w.ckpt, "-o", "b", "--card-json", "nope.json"],
+     ["nope.json"], ["b"]),
+
+    # ---- output paths, checked before the work
+    ("synth --out /sys", lambda w: ["synth", "--out", "/sys/ago-test", "--scenes", "1", "--frames", "1"],
+     ["/sys/ago-test", "cannot write"], []),
+    ("synth --out a file", lambda w: ["synth", "--out", w.a_file], ["a_file.txt", "not a folder"], []),
+    ("synth --out under a file", lambda w: ["synth", "--out", w.a_file / "x"], ["a_file.txt", "not a folder"], []),
+    ("pseudo-labels --out /proc", lambda w: ["pseudo-labels", "--data", w.data, "--out", "/proc/ago-test/x"],
+     ["/proc/ago-test/x", "cannot write"], []),
+    ("infer --out /sys", lambda w: ["infer", "--images", w.frame, "--bundle", w.bundle, "--out", "/sys/ago-test"],
+     ["/sys/ago-test"], []),
+    ("infer --out a file", lambda w: ["infer", "--images", w.frame, "--bundle", w.bundle, "--out", w.a_file],
+     ["a_file.txt"], []),
+    ("demo --out /sys", lambda w: ["demo", "--out", "/sys/ago-test"], ["/sys/ago-test"], []),
+    ("retrieve --out /sys", lambda w: ["retrieve", "--images", w.frame, "--phrase", "car", "--bundle", w.bundle,
+                                       "--out", "/sys/ago-test"], ["/sys/ago-test"], []),
+    ("show --out /sys", lambda w: ["show", w.gt, "--out", "/sys/ago-test.png"], ["/sys/ago-test.png"], []),
+    ("show --out a folder", lambda w: ["show", w.gt, "--out", w.root], ["is a folder"], []),
+    ("show --out /dev/null", lambda w: ["show", w.gt, "--out", "/dev/null"], ["/dev/null", "not a regular file"], []),
+    ("metric --json /sys", lambda w: ["metric", "--pred", w.data / "gts", "--gt", w.data / "gts", "--json",
+                                      "/sys/ago-test.json"], ["/sys/ago-test.json"], []),
+    ("metric --md a folder", lambda w: ["metric", "--pred", w.data / "gts", "--gt", w.data / "gts", "--md", w.root],
+     ["is a folder"], []),
+    ("prompts build -o /sys", lambda w: ["prompts", "build", "cw", "-o", "/sys/ago-test.npz"], ["/sys/ago-test.npz"], []),
+    ("prompts noise -o /sys", lambda w: ["prompts", "noise", "-o", "/sys/ago-test.npz"], ["/sys/ago-test.npz"], []),
+    ("prompts export-encoder -o /sys", lambda w: ["prompts", "export-encoder", "-o", "/sys/ago-test.onnx"],
+     ["/sys/ago-test.onnx"], []),
+    ("train --out /sys", lambda w: ["train", "--config", "tiny", "--out", "/sys/ago-test"], ["/sys/ago-test"], []),
+    ("eval --out /sys", lambda w: ["eval", "--ckpt", w.ckpt, "--data", w.data, "--split", "all", "--out",
+                                   "/sys/ago-test"], ["/sys/ago-test"], []),
+    ("open-world --out /sys", lambda w: ["open-world", "--pseudo-pretrain", w.pseudo, "--out", "/sys/ago-test"],
+     ["/sys/ago-test"], []),
+    ("experiments run --out /sys", lambda w: ["experiments", "run", "--profile", "tiny", "--out", "/sys/ago-test"],
+     ["/sys/ago-test"], []),
+    ("experiments report --out a file", lambda w: ["experiments", "report", "--out", w.a_file], ["a_file.txt"], []),
+    ("export -o /sys", lambda w: ["export", w.ckpt, "-o", "/sys/ago-test"], ["/sys/ago-test"], []),
+    ("export -o a file", lambda w: ["export", w.ckpt, "-o", w.a_file], ["a_file.txt"], []),
+
+    # ---- images and calibration
+    ("JPEG header claims 30000x16875", lambda w: ["infer", "--images", w.bomb, "--bundle", w.bundle, "--out", "o"],
+     ["CAM_FRONT.jpg", "30000x16875"], ["o"]),
+    ("JPEG with scrambled middle bytes", lambda w: ["infer", "--images", w.scrambled, "--bundle", w.bundle,
+                                                    "--out", "o"], ["CAM_FRONT.jpg", "corrupt"], ["o"]),
+    ("truncated JPEG", lambda w: ["infer", "--images", w.truncated, "--bundle", w.bundle, "--out", "o"],
+     ["CAM_BACK.jpg"], ["o"]),
+    ("negative focal length", lambda w: ["infer", "--images", w.negfocal, "--bundle", w.bundle, "--out", "o"],
+     ["calib.json", "focal"], ["o"]),
+    ("cam2ego not a rotation", lambda w: ["infer", "--images", w.scaled, "--bundle", w.bundle, "--out", "o"],
+     ["calib.json", "rotation"], ["o"]),
+    ("images folder missing", lambda w: ["infer", "--images", "nowhere", "--bundle", w.bundle, "--out", "o"],
+     ["nowhere"], ["o"]),
+    ("--sample not in the dataset", lambda w: ["infer", "--images", w.data, "--sample", "nosuchtoken", "--bundle",
+                                               w.bundle, "--out", "o"], ["nosuchtoken"], ["o"]),
+    ("--sample on an images folder", lambda w: ["infer", "--images", w.frame, "--sample", "x", "--bundle", w.bundle,
+                                                "--out", "o"], ["--sample"], ["o"]),
+
+    # ---- pickles, banks, bundles, npz
+    ("info pickle allocating 3 GB", lambda w: ["infer", "--info", w.pkl_bomb, "--bundle", w.bundle, "--out", "o"],
+     ["bomb.pkl", "bytearray"], ["o"]),
+    ("info pickle running code", lambda w: ["infer", "--info", w.pkl_code, "--bundle", w.bundle, "--out", "o"],
+     ["code.pkl", "refusing"], ["o"]),
+    ("info pickle of repeated references", lambda w: ["infer", "--info", w.pkl_laughs, "--bundle", w.bundle,
+                                                      "--out", "o"], ["laughs.pkl"], ["o"]),
+    ("5000-class prompt file", lambda w: ["infer", "--images", w.frame, "--bundle", w.bundle, "--prompts",
+                                          w.big_prompts, "--out", "o"], ["big5000.txt", "5000 classes"], ["o"]),
+    ("bank of another encoder", lambda w: ["infer", "--images", w.frame, "--bundle", w.bundle, "--bank",
+                                           w.foreign_bank, "--out", "o"], ["foreign.npz", "some-other-encoder"], ["o"]),
+    ("heads of other widths", lambda w: ["infer", "--images", w.frame, "--bundle", w.bad_heads, "--out", "o"],
+     ["heads.npz"], ["o"]),
+    ("bundle folder missing", lambda w: ["infer", "--images", w.frame, "--bundle", "nobundle", "--out", "o"],
+     ["nobundle"], ["o"]),
+    ("show a broken npz", lambda w: ["show", w.bad_npz, "--out", "o.png"], ["bad.npz"], ["o.png"]),
+    ("show --index out of range", lambda w: ["show", w.data, "--index", "99", "--out", "o.png"], ["--index 99"],
+     ["o.png"]),
+    ("metric on a missing folder", lambda w: ["metric", "--pred", "nopred", "--gt", w.data / "gts"], ["nopred"], []),
+
+    # ---- checkpoints and runs
+    ("eval on a raw pickle", lambda w: ["eval", "--ckpt", w.raw_pickle, "--data", w.data, "--split", "all",
+                                        "--out", "o"], ["raw.pt", "not a loadable"], ["o"]),
+    ("eval on weights not fitting their config", lambda w: ["eval", "--ckpt", w.mismatched, "--data", w.data,
+                                                            "--split", "all", "--out", "o"],
+     ["mismatched.pt", "do not fit"], ["o"]),
+    ("export of weights not fitting their config", lambda w: ["export", w.mismatched, "-o", "b", "--no-real-frame"],
+     ["mismatched.pt"], ["b"]),
+    ("train --resume with another model size", lambda w: ["train", "--config", "tiny", "--resume", "--out",
+                                                          w.resume_run, "--set", "model.hidden_dim=24", *TRAIN(w)],
+     ["last.pt", "model settings differ", "hidden_dim"], []),
+    ("train init_from another size", lambda w: ["train", "--config", "tiny", "--out", "o", "--set",
+                                                f'init_from="{w.other_size}"', *TRAIN(w)],
+     ["other_size.pt", "do not fit"], ["o"]),
+    ("train on a truncated labels.npz", lambda w: ["train", "--config", "tiny", "--out", "o", "--data", w.data,
+                                                   "--pseudo", w.broken_pseudo, "--set", 'train_split="all"',
+                                                   "--set", f'noise_bank="{w.noise}"', "--set", 'device="cpu"'],
+     ["labels.npz", "truncated"], ["o"]),
+]
+
+
+@pytest.mark.parametrize("row", ROWS, ids=[r[0] for r in ROWS])
+def test_bad_input_row(w, row, tmp_path):
+    _, make_args, needles, outputs = row
+    cwd = tmp_path / "cwd"
+    cwd.mkdir()
+    before = snapshot(w.root)
+    r = run_ago(make_args(w), cwd)
+    assert_one_error_line(r, *[str(n) for n in needles])
+    assert not any(cwd.iterdir()), f"written into the working directory: {sorted(os.listdir(cwd))}"
+    for rel in outputs:
+        assert not (cwd / rel).exists()
+    assert snapshot(w.root) == before, "an input changed"
+
+
+def test_the_table_covers_every_verb():
+    """Each verb of `ago --help` (and each prompts / experiments sub-verb) has rows in the table."""
+    import typer.main
+
+    from ago_runtime.cli import app
+
+    class AnyInput:
+        def __getattr__(self, name):
+            return Path("x")
+
+    group = typer.main.get_command(app)
+    verbs = []
+    for name, cmd in group.commands.items():
+        sub = getattr(cmd, "commands", None)
+        verbs += [[name, s] for s in sub] if sub else [[name]]
+    starts = [[str(a) for a in row[1](AnyInput())] for row in ROWS]
+    missing = [" ".join(v) for v in verbs if not any(s[:len(v)] == v for s in starts)]
+    assert len(verbs) >= 18 and not missing, f"verbs without a bad-input row: {missing}"
+
+
+# ------------------------------------------------------------------------------------ rows that are not exit 2
+def test_usage_error_classes_are_found_for_the_installed_typer():
+    """The handler's classes are the ones this typer raises (typer._click for typer >= 0.26, else click)."""
+    import typer
+
+    from ago_runtime.cli import click_exception_classes
+
+    classes = click_exception_classes()
+    assert issubclass(typer.BadParameter, classes["ClickException"])
+    assert any(issubclass(typer.Abort, c) for c in classes["Abort"])
+
+
+def test_scrambled_jpegs_are_refused_as_measured():
+    """decode_image refuses 2 000-byte scrambles of the middle of a real-size JPEG, with and without 0xFF
+    bytes in the junk, where cv2.imdecode alone returns an image for each (docs/runtime.md)."""
+    from ago_runtime.errors import AgoInputError
+    from ago_runtime.image_files import decode_image
+
+    data = (Path(__file__).resolve().parents[1] / "ago_runtime" / "assets" / "demo_frame" / "CAM_FRONT.jpg").read_bytes()
+    assert decode_image(data, "ok.jpg").shape[2] == 3
+    for seed in range(6):
+        bad = scrambled(data, 2000, seed, no_ff=bool(seed % 2))
+        assert cv2.imdecode(np.frombuffer(bad, np.uint8), cv2.IMREAD_COLOR) is not None   # what cv2 alone does
+        with pytest.raises(AgoInputError, match="corrupt image data"):
+            decode_image(bad, f"scrambled{seed}.jpg")
+
+
+def test_png_header_size_is_checked_before_decoding(tmp_path):
+    from ago_runtime.errors import AgoInputError
+    from ago_runtime.nuscenes import read_png
+
+    ok, png = cv2.imencode(".png", np.zeros((4, 4), np.uint8))
+    b = bytearray(png.tobytes())
+    b[16:24] = struct.pack(">II", 100000, 100000)     # IHDR claims 10^10 pixels
+    (tmp_path / "big.png").write_bytes(bytes(b))
+    with pytest.raises(AgoInputError, match="100000x100000"):
+        read_png(tmp_path / "big.png", np.uint8)
+
+
+def test_pseudo_label_resume_remakes_a_truncated_file(w, tmp_path):
+    out = tmp_path / "pl"
+    args = ["pseudo-labels", "--data", w.data, "--out", out, "--grid", "20x20x4", "--keyframes", "1", "--split", "all"]
+    assert run_ago(args, tmp_path).code == 0
+    victim = next(out.glob("*/*/labels.npz"))
+    good = victim.read_bytes()
+    victim.write_bytes(good[: len(good) // 3])
+    r = run_ago(args, tmp_path)
+    assert r.code == 0 and "1 damaged ones remade" in r.stdout, r.stdout + r.stderr
+    from ago_train.pseudo.generate import PseudoLabelDir
+
+    d = PseudoLabelDir(out)
+    assert all(d.sample_problem(s, t) is None for s, t in d.samples())
+
+
+def test_train_on_a_truncated_file_writes_no_run_files(w, tmp_path):
+    out = tmp_path / "run"
+    r = run_ago(["train", "--config", "tiny", "--out", out, "--data", w.data, "--pseudo", w.broken_pseudo,
+                 "--set", 'train_split="all"', "--set", f'noise_bank="{w.noise}"', "--set", 'device="cpu"'], tmp_path)
+    assert_one_error_line(r, str(w.broken_labels.name))
+    assert not (out / "config.json").exists() and not (out / "log.jsonl").exists()
+
+
+def test_export_cleans_temp_folders_of_killed_exports(w, tmp_path):
+    """A killed export's `.NAME.tmp-PID-*` folder is removed by the next export; the bundle is swapped in
+    without ever being missing (atomic exchange), and a fallback swap killed between its renames is undone."""
+    from ago_runtime.atomic import clean_stale_dirs, replace_dir
+    import ago_runtime.atomic as atomic
+
+    out = tmp_path / "bundle"
+    dead = 2 ** 22 + 12345                     # above the default pid_max: no such process
+    stale = tmp_path / f".bundle.tmp-{dead}-abc"
+    stale.mkdir()
+    (stale / "planes.onnx").write_bytes(b"half")
+    alive = tmp_path / f".bundle.tmp-{os.getpid()}-xyz"     # a running export's folder is left alone
+    alive.mkdir()
+    r = run_ago(["export", w.ckpt, "-o", out, "--no-real-frame", "--train-bank-only"], tmp_path)
+    assert r.code == 0, r.stderr
+    assert not stale.exists() and alive.exists() and (out / "bundle.json").is_file()
+    alive.rmdir()
+    card = json.loads((out / "card.json").read_text())
+    assert card["format"] == "ago-bundle-card" and card["label_space"]["name"] == "cw"
+
+    # the swap: old contents replaced, never absent; the fallback path's kill is repaired
+    new = tmp_path / "new"
+    new.mkdir()
+    (new / "bundle.json").write_text("{}")
+    replace_dir(new, out)
+    assert (out / "bundle.json").read_text() == "{}" and not new.exists()
+    moved = tmp_path / f".bundle.old-{dead}"
+    out.rename(moved)                          # as if killed after `out -> .old`, before `tmp -> out`
+    clean_stale_dirs(out)
+    assert (out / "bundle.json").is_file() and not moved.exists()
+    assert atomic._exchange(tmp_path / "nope-a", tmp_path / "nope-b") is False
+
+
+def test_bundle_card_line_and_default_bundle_without_card(w):
+    from ago_runtime.bundle import DEFAULT_BUNDLE_DIR, Bundle, card_line
+
+    b = Bundle.load(w.bundle)
+    assert b.card is not None and card_line(b).startswith("bundle: trained on")
+    if (DEFAULT_BUNDLE_DIR / "bundle.json").is_file() and not (DEFAULT_BUNDLE_DIR / "card.json").is_file():
+        line = card_line(Bundle.load(DEFAULT_BUNDLE_DIR, verify_hashes=False))
+        assert "no bundle card" in line and "SYNTHETIC" in line
+
+
+def test_card_from_a_training_run(tmp_path):
+    """make_card reads the run: synthetic data, frames of the split, steps, eval-val/metrics.json, a note."""
+    from ago_export.card import make_card
+
+    data = tmp_path / "data"
+    (data / "v1.0-trainval").mkdir(parents=True)
+    (data / "v1.0-trainval" / "scene.json").write_text(json.dumps(
+        [{"token": "s1", "name": "a", "description": "ago synth seed 0 scene 0"},
+         {"token": "s2", "name": "b", "description": "ago synth seed 0 scene 1"}]))
+    (data / "v1.0-trainval" / "sample.json").write_text(json.dumps(
+        [{"token": f"t{i}", "scene_token": "s1" if i < 3 else "s2"} for i in range(5)]))
+    (data / "splits.json").write_text(json.dumps({"train": ["a"], "val": ["b"]}))
+    run = tmp_path / "run"
+    (run / "eval-val").mkdir(parents=True)
+    (run / "eval-val" / "metrics.json").write_text(json.dumps({"mIoU": 7.84, "split": "val", "frames": 2}))
+    ckpt = {"step": 384, "epoch": 3, "train_config": {"data": str(data), "train_split": "train", "val_split": "val",
+                                                      "name": "cpu", "pseudo": str(tmp_path / "none")},
+            "label_space": {"name": "cw", "class_names": ["car", "road"]}}
+    card = make_card(ckpt, run / "last.pt", note="demo only", extra={"val_scores": {"mIoU": 8.0}})
+    assert card["trained_on"]["kind"] == "synthetic" and card["trained_on"]["frames"] == 3
+    assert card["val_scores"]["mIoU"] == 8.0 and card["val_scores"]["split"] == "val"
+    s = card["summary"]
+    assert "SYNTHETIC" in s and "3 frames" in s and "384 steps" in s and "val mIoU 8.0 %" in s
+    assert s.endswith("not a nuScenes model; demo only")
