@@ -30,6 +30,9 @@ OCC3D_CLASSES: tuple[str, ...] = (
 )
 FREE = 17
 IGNORE = 255
+# Training only, never written to a file: a pseudo-label voxel the LiDAR hit but no 2-D mask labelled
+# ("occupied, class unknown"): the occupancy loss counts it occupied, the grounding loss ignores it.
+OCCUPIED_UNLABELLED = 254
 NUM_SEMANTIC = 17  # classes 0..16
 OCC3D_ID = {name: i for i, name in enumerate(OCC3D_CLASSES)}
 

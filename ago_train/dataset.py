@@ -7,7 +7,8 @@
   backbone stages' maps, a list of (6, C_l, H_l, W_l) float16 tensors (the JPEGs are not decoded);
 - "ego2img": (6, 4, 4) float32, ego -> resized-image projections (CAMERA_NAMES order);
 - "semantics": (N,) int64 pseudo-label per voxel of the model grid (N = X*Y*Z, C order over [x,y,z]),
-  as stored: 0..K-1 class, 17 = free, 255 = unknown (the losses map it: `pseudo_to_target` here does
+  as stored: 0..K-1 class, 17 = free, 255 = unknown, plus 254 = hit by the LiDAR but unlabelled
+  (ago_runtime.classes.OCCUPIED_UNLABELLED; the losses map it: `pseudo_to_target` here does
   the same mapping to 0..K-1 / K free / IGNORE_INDEX for evaluation code);
 - "e3d_index": (M,) int64 flat voxel indices with a lifted VLM embedding; "e3d_embeds": (M, C) float32;
 - "gt": (Xg, Yg, Zg) uint8 Occ3D GT mapped to the label space (0..K-1, K = free, 255 = ignore) and
@@ -33,7 +34,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from ago_runtime.classes import FREE
+from ago_runtime.classes import FREE, IGNORE, OCCUPIED_UNLABELLED
 from ago_runtime.errors import AgoInputError
 from ago_runtime.grid import Grid
 from ago_runtime.preprocess import Preprocess
@@ -83,14 +84,19 @@ class PseudoLabelSet(PseudoLabelDir):
     def has(self, scene: str, token: str) -> bool:
         return (self.sample_dir(scene, token) / "labels.npz").is_file()
 
-    def labels(self, scene: str, token: str) -> np.ndarray:
-        """(X, Y, Z) uint8 pseudo semantics (0..K-1, 17 = free, 255 = unknown)."""
+    def labels(self, scene: str, token: str, mark_unlabelled_hits: bool = False) -> np.ndarray:
+        """(X, Y, Z) uint8 pseudo semantics (0..K-1, 17 = free, 255 = unknown). With `mark_unlabelled_hits`,
+        voxels the LiDAR hit (mask_lidar) that no mask labelled become OCCUPIED_UNLABELLED (254) instead of
+        255: occupied for the occupancy loss, ignored by the grounding loss (training reads them so)."""
         path = self.sample_dir(scene, token) / "labels.npz"
         if not path.is_file():
             raise AgoInputError(path, "pseudo-label file not found (was `ago pseudo-labels` run on this frame?)")
-        sem = super().labels(scene, token)[0]
+        sem, mask_lidar, _ = super().labels(scene, token)
         if tuple(sem.shape) != tuple(self.grid.shape):
             raise AgoInputError(path, f"semantics shape {sem.shape} does not match the grid {self.grid.shape}")
+        if mark_unlabelled_hits:
+            # mask_lidar = crossed by a ray or hit; a crossed-but-not-hit voxel is free, so 255 there = a hit
+            sem = np.where((sem == IGNORE) & (mask_lidar > 0), OCCUPIED_UNLABELLED, sem).astype(np.uint8)
         return sem
 
     def embeds(self, scene: str, token: str) -> tuple[np.ndarray, np.ndarray]:
@@ -192,7 +198,7 @@ class OccSampleDataset(torch.utils.data.Dataset):
                 images = images * a + b
             item["images"] = torch.from_numpy(np.ascontiguousarray(images))
         if self.pseudo is not None:
-            sem = self.pseudo.labels(frame.scene, frame.token)
+            sem = self.pseudo.labels(frame.scene, frame.token, mark_unlabelled_hits=True)
             item["semantics"] = torch.from_numpy(sem.reshape(-1).astype(np.int64))
             if self.with_embeds:
                 idx, emb = self.pseudo.embeds(frame.scene, frame.token)

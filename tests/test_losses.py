@@ -13,7 +13,7 @@ from ago_train.losses import BankTensors, LossConfig, compute_losses
 from ago_train.losses.align import align_loss
 from ago_train.losses.grounding import semantics_to_targets
 from ago_train.losses.lovasz import lovasz_softmax
-from ago_train.losses.occupancy import occupancy_loss
+from ago_train.losses.occupancy import occupancy_binary, occupancy_loss
 from ago_train.losses.sampling import select_stratified, select_training_voxels
 from ago_train.model.config import ModelConfig
 
@@ -232,3 +232,23 @@ def test_overfitting_one_batch_reduces_the_grounding_loss():
         opt.step()
     assert last < 0.5 * first, (first, last)
     assert float(losses["align"].detach()) < 0.9
+
+
+def test_hit_but_unlabelled_voxels_count_as_occupied_for_occupancy_only():
+    """OCCUPIED_UNLABELLED (the LiDAR hit it, no mask named it): occupancy target 1, no grounding target."""
+    from ago_runtime.classes import OCCUPIED_UNLABELLED
+
+    sem = torch.tensor([0, 3, FREE, OCCUPIED_UNLABELLED, IGNORE])
+    assert occupancy_binary(sem, 4).tolist() == [0, 0, 1, 0, IGNORE]
+    assert semantics_to_targets(sem, 4).tolist() == [0, 3, 4, IGNORE, IGNORE]
+    cfg, model, images, ego2img, batch, bank = _setup(seed=2)
+    model.eval()
+    marked = dict(batch)
+    sem3 = batch["semantics"].clone()
+    sem3[0, :, :2, 3] = OCCUPIED_UNLABELLED        # the unknown strip becomes "hit, unlabelled"
+    marked["semantics"] = sem3
+    with torch.no_grad():
+        a = compute_losses(model(images, ego2img), batch, bank, LossConfig(variant="grounding"))
+        b = compute_losses(model(images, ego2img), marked, bank, LossConfig(variant="grounding"))
+    assert float(a["grounding_ce"]) == pytest.approx(float(b["grounding_ce"]))   # grounding ignores them
+    assert float(a["occ"]) != pytest.approx(float(b["occ"]))                      # occupancy counts them

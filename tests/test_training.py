@@ -227,6 +227,43 @@ def test_overfit_one_frame_then_eval(tiny_data, tmp_path):
     assert js["mIoU"] == res["mIoU"]
 
 
+def test_overfit_three_frames_with_the_stratified_sample(tiny_data, tmp_path):
+    """The cpu preset's sampling rule on a few frames: the loss falls, the frames' pseudo-labels are fitted
+    (mIoU > 0.5) and the amount of predicted matter matches theirs (0.5-2x the occupied labelled voxels):
+    a model that fills the grid, as the old priority sample taught, fails the last bound."""
+    from ago_runtime.classes import OCCUPIED_UNLABELLED
+    from ago_runtime.metric import OccupancyMetric
+    from ago_train.checkpoint import load_checkpoint
+    from ago_train.dataset import IGNORE_INDEX, pseudo_to_target
+    from ago_train.evaluate import load_model, predict_labels
+    from ago_train.trainer import Trainer
+
+    steps = 150
+    cfg = tiny_config(tiny_data, tmp_path / "fit3", max_frames=3, epochs=steps, max_steps=steps, lr=1e-2,
+                      warmup_steps=5, log_every=10, train_voxels=600, voxel_sampling="stratified",
+                      occupied_share=0.5)
+    t = Trainer(cfg, quiet=True)
+    r = t.run()
+    assert np.mean(r["losses"][-10:]) < 0.5 * np.mean(r["losses"][:5])
+    ckpt = load_checkpoint(r["last"])
+    _, model = load_model(ckpt, torch.device("cpu"))
+    K = t.label_space.num_classes
+    m = OccupancyMetric(list(t.label_space.class_names) + ["free"], free_index=K)
+    pred_occ = true_occ = 0
+    for i in range(3):
+        item = t.dataset[i]
+        sem = item["semantics"].numpy()
+        pred = predict_labels(model, item["images"][None], item["ego2img"][None], ckpt["bank"]["embeddings"],
+                              ckpt["bank"]["phrase_class"], K, "none")[0].numpy()
+        target = pseudo_to_target(np.where(sem == OCCUPIED_UNLABELLED, 255, sem), K)
+        keep = target != IGNORE_INDEX
+        m.update(pred[keep], target[keep])
+        pred_occ += int((pred[keep] != K).sum())
+        true_occ += int((target[keep] != K).sum())
+    assert m.miou() > 0.5, m.to_markdown()
+    assert 0.5 < pred_occ / true_occ < 2.0, (pred_occ, true_occ)
+
+
 def _ddp_worker(rank: int, world: int, port: int, cfg_dict: dict, out: str) -> None:
     os.environ.update(RANK=str(rank), WORLD_SIZE=str(world), LOCAL_RANK=str(rank), MASTER_ADDR="127.0.0.1",
                       MASTER_PORT=str(port), AGO_NO_PROGRESS="1")

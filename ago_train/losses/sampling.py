@@ -2,8 +2,9 @@
 
 Two rules (`TrainConfig.voxel_sampling`):
 
-- "stratified" (the default): the sample is drawn from the LABELLED voxels only (pseudo-label class or
-  free; unknown voxels are ignored by every loss, so sampling them is wasted work) in two strata,
+- "stratified" (the default): the sample is drawn from the LABELLED voxels only (pseudo-label class,
+  OCCUPIED_UNLABELLED = hit by the LiDAR without a class, or free; unknown voxels are ignored by every
+  loss, so sampling them is wasted work) in two strata,
   occupied and free. Each stratum gets `occupied_share` resp. 1 - `occupied_share` of the M slots
   (a stratum with too few voxels gives its unused slots to the other), drawn uniformly without
   repeats, and every sampled voxel carries the importance weight
@@ -69,7 +70,7 @@ def select_stratified(semantics: torch.Tensor, num: int, occupied_share: float =
     index = torch.empty(B, num, dtype=torch.long)
     weight = torch.empty(B, num, dtype=torch.float32)
     for b in range(B):
-        occ = torch.nonzero((sem[b] != FREE) & (sem[b] != IGNORE)).reshape(-1)
+        occ = torch.nonzero((sem[b] != FREE) & (sem[b] != IGNORE)).reshape(-1)   # classes + OCCUPIED_UNLABELLED
         free = torch.nonzero(sem[b] == FREE).reshape(-1)
         n_occ, n_free = occ.numel(), free.numel()
         n_lab = n_occ + n_free

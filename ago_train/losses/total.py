@@ -33,7 +33,7 @@ from ago_train.model.scoring import class_logits
 
 from .align import ALIGN_LOSSES, align_loss
 from .grounding import grounding_loss, semantics_to_targets
-from .occupancy import occupancy_loss
+from .occupancy import occupancy_binary, occupancy_loss
 
 VARIANTS = ("align", "grounding", "grounding+align", "ago")
 
@@ -105,6 +105,19 @@ def _flat_targets(batch: dict, outputs: dict, num_classes: int) -> torch.Tensor:
     return target
 
 
+def _flat_occupancy(batch: dict, outputs: dict, num_classes: int) -> torch.Tensor:
+    """(B, N|M) 0 occupied / 1 free / IGNORE from the pseudo semantics (hit-unlabelled voxels occupied)."""
+    sem = batch["semantics"]
+    B = outputs["feat"].shape[0]
+    binary = occupancy_binary(sem.reshape(B, -1), num_classes).to(outputs["feat"].device)
+    if "voxel_index" in outputs:
+        vi = outputs["voxel_index"]
+        if vi.dim() == 1:
+            vi = vi.unsqueeze(0).expand(B, -1)
+        binary = torch.gather(binary, 1, vi)
+    return binary
+
+
 def _align_rows(batch: dict, outputs: dict, num_voxels: int) -> tuple[torch.Tensor, torch.Tensor]:
     """-> (rows into the flattened (B*N or B*M) features, E_3D rows) of the align voxels present."""
     idx = batch["align_index"].long().to(outputs["feat"].device)
@@ -145,12 +158,12 @@ def compute_losses(outputs: dict, batch: dict, bank: BankTensors, cfg: LossConfi
         losses["grounding_ce"], losses["grounding_lovasz"] = ce, lov
         total = total + cfg.w_ce * ce + cfg.w_lovasz * lov
         if cfg.use_occ:
-            losses["occ"] = occupancy_loss(logits, target, K, weight=w)
+            losses["occ"] = occupancy_loss(logits, target, K, weight=w, binary=_flat_occupancy(batch, outputs, K))
             total = total + cfg.w_occ * losses["occ"]
     if not cfg.uses_grounding and cfg.use_occ:
         target = _flat_targets(batch, outputs, K)
         logits = class_logits(feat, bank.text, bank.phrase_class, K, free, None)
-        losses["occ"] = occupancy_loss(logits, target, K, weight=w)
+        losses["occ"] = occupancy_loss(logits, target, K, weight=w, binary=_flat_occupancy(batch, outputs, K))
         total = total + cfg.w_occ * losses["occ"]
     if cfg.uses_align:
         if num_voxels is None:
