@@ -110,6 +110,10 @@ def check_train_config(cfg, source=None):
     if cfg.voxel_sampling not in SAMPLING_RULES:
         raise AgoInputError(source, f"voxel_sampling must be one of {list(SAMPLING_RULES)}, got {cfg.voxel_sampling!r}")
     _num(cfg, "occupied_share", 0.0, source, strict=True, hi=1.0, hi_open=True)
+    from .augment import AUGMENTATIONS
+
+    if cfg.augment not in AUGMENTATIONS:
+        raise AgoInputError(source, f"augment must be one of {list(AUGMENTATIONS)}, got {cfg.augment!r}")
     if not isinstance(cfg.feature_cache, str) or not cfg.feature_cache:
         raise AgoInputError(source, f"feature_cache must be \"off\", \"auto\" or a folder, got {cfg.feature_cache!r}")
     if cfg.snapshot_steps is not None and (not isinstance(cfg.snapshot_steps, (list, tuple))

@@ -140,7 +140,7 @@ class OccSampleDataset(torch.utils.data.Dataset):
     def __init__(self, frames, pseudo: PseudoLabelSet | None, num_classes: int, grid: Grid,
                  preprocess: Preprocess, gt_lut: np.ndarray | None = None, with_gt: bool = False,
                  with_embeds: bool = True, color_jitter: float = 0.0, seed: int = 0, feature_cache=None,
-                 memory_bytes: int = 0):
+                 memory_bytes: int = 0, augment: str = "none"):
         self.frames = frames
         self.pseudo = pseudo
         self.num_classes = int(num_classes)
@@ -160,6 +160,10 @@ class OccSampleDataset(torch.utils.data.Dataset):
         self.memory_bytes = int(memory_bytes)
         self._memory: dict[int, dict] = {}
         self._memory_used = 0
+        from .augment import draw
+
+        draw(augment, 0, 0, 0)  # refuses an unknown kind now
+        self.augment = augment
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -169,14 +173,35 @@ class OccSampleDataset(torch.utils.data.Dataset):
         self.epoch = int(epoch)
 
     def __getitem__(self, i: int) -> dict:
-        if i in self._memory:
-            return self._memory[i]
-        item = self._load(i)
-        if self.memory_bytes > 0 and self.color_jitter == 0:
-            size = sum(t.numel() * t.element_size() for t in _tensors(item))
-            if self._memory_used + size <= self.memory_bytes:
-                self._memory[i] = item
-                self._memory_used += size
+        """The item of frame i, mirrored / turned by this epoch's draw of `augment` (augment.py)."""
+        from .augment import draw
+
+        base = self._memory.get(i)
+        if base is None:
+            base = self._load(i)
+            if self.memory_bytes > 0 and self.color_jitter == 0:
+                size = sum(t.numel() * t.element_size() for t in _tensors(base))
+                if self._memory_used + size <= self.memory_bytes:
+                    self._memory[i] = base
+                    self._memory_used += size
+        t = draw(self.augment, self.seed, self.epoch, i)
+        item = dict(base)
+        if self.feature_cache is not None:   # the cache keeps its own in-memory copy of recent frames
+            item["prefix"] = [torch.from_numpy(m) for m in
+                              self.feature_cache.frame_prefix(base["_image_paths"], base["_source"], flip=t.flip_y)]
+        if t.identity:
+            return item
+        shape = tuple(self.grid.shape)
+        item["ego2img"] = torch.from_numpy(t.ego2img(base["ego2img"].numpy(), self.preprocess.width))
+        if "images" in item and t.flip_y:
+            item["images"] = item["images"].flip(-1).contiguous()
+        if "semantics" in item:
+            item["semantics"] = torch.from_numpy(t.volume(base["semantics"].numpy().reshape(shape)).reshape(-1))
+        if "e3d_index" in item:
+            item["e3d_index"] = torch.from_numpy(t.flat_index(base["e3d_index"].numpy(), shape))
+        for key in ("gt", "gt_mask"):
+            if key in item:
+                item[key] = t.volume(item[key])
         return item
 
     def _load(self, i: int) -> dict:
@@ -186,10 +211,10 @@ class OccSampleDataset(torch.utils.data.Dataset):
             "ego2img": torch.from_numpy(self.preprocess.ego2img(frame.rig)),
             "token": frame.token,
             "scene": frame.scene,
+            "_image_paths": dict(frame.image_paths),
+            "_source": source,
         }
-        if self.feature_cache is not None:
-            item["prefix"] = [torch.from_numpy(m) for m in self.feature_cache.frame_prefix(frame.image_paths, source)]
-        else:
+        if self.feature_cache is None:
             images = self.preprocess.images(frame.images, source=source)
             if self.color_jitter > 0:
                 rng = np.random.default_rng([self.seed, self.epoch, int(i)])

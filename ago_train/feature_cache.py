@@ -13,7 +13,9 @@ reads it instead of decoding six JPEGs and running those stages at every step.
 - Entry: `<fingerprint>/<key[:2]>/<key>.npz` holding arrays `l0`, `l1`, ... ((C_l, H_l, W_l) float16,
   the maps of `backbone.frozen_prefix`), written atomically; on read the shapes and dtype are checked
   against the backbone's and the values must be finite, else the entry is recomputed.
-- A frame's prefix (`frame_prefix`) = per level (6, C_l, H_l, W_l) float16 in CAMERA_NAMES order.
+- A frame's prefix (`frame_prefix`) = per level (6, C_l, H_l, W_l) float16 in CAMERA_NAMES order;
+  `flip=True` gives the prefix of the images flipped left-right (the mirror augmentation,
+  ago_train/augment.py), stored under `<key>-flip`.
   Recently used frames are also kept in memory (up to `memory_bytes`).
 
 The cache is a training-time shortcut only: the exported model and the runtime always run the whole
@@ -122,9 +124,12 @@ class FeatureCache:
         return maps
 
     @torch.no_grad()
-    def _compute(self, images: dict[str, np.ndarray], source: str) -> list[np.ndarray]:
-        """(6 cameras) -> per level (6, C, H, W) float16."""
-        x = torch.from_numpy(self.preprocess.images(images, source=source))
+    def _compute(self, images: dict[str, np.ndarray], source: str, flip: bool = False) -> list[np.ndarray]:
+        """(6 cameras) -> per level (6, C, H, W) float16 (of the images flipped left-right with `flip`)."""
+        x = self.preprocess.images(images, source=source)
+        if flip:
+            x = np.ascontiguousarray(x[..., ::-1])
+        x = torch.from_numpy(x)
         backbone = self.model.backbone
         was = backbone.training
         backbone.eval()
@@ -134,12 +139,12 @@ class FeatureCache:
         return [m.cpu().numpy().astype(np.float16) for m in maps]
 
     # ------------------------------------------------------------------ one frame
-    def frame_prefix(self, image_paths: dict[str, str], source: str = "") -> list[np.ndarray]:
+    def frame_prefix(self, image_paths: dict[str, str], source: str = "", flip: bool = False) -> list[np.ndarray]:
         """The frozen prefix of a frame's six images: per level (6, C_l, H_l, W_l) float16."""
         missing = [c for c in CAMERA_NAMES if c not in image_paths]
         if missing:
             raise AgoInputError(source or None, f"cameras {missing} have no image file")
-        keys = tuple(image_key(image_paths[c]) for c in CAMERA_NAMES)
+        keys = tuple(image_key(image_paths[c]) + ("-flip" if flip else "") for c in CAMERA_NAMES)
         if keys in self._memory:
             self._memory.move_to_end(keys)
             self.stats["memory"] += 1
@@ -148,7 +153,7 @@ class FeatureCache:
         todo = [i for i, m in enumerate(per_cam) if m is None]
         if todo:
             images = {c: read_jpeg_rgb(image_paths[c]) for c in CAMERA_NAMES}
-            computed = self._compute(images, source)
+            computed = self._compute(images, source, flip)
             for i in todo:
                 per_cam[i] = [m[i] for m in computed]
                 save_npz(self._path(keys[i]), compressed=False,
@@ -169,13 +174,15 @@ class FeatureCache:
             _, old = self._memory.popitem(last=False)
             self._memory_used -= sum(m.nbytes for m in old)
 
-    def fill(self, frames, progress: bool = True) -> dict:
-        """Make sure every frame (objects with `.image_paths`, `.scene`, `.token`) is cached; returns stats."""
+    def fill(self, frames, progress: bool = True, flips: tuple[bool, ...] = (False,)) -> dict:
+        """Make sure every frame (objects with `.image_paths`, `.scene`, `.token`) is cached (also flipped
+        when `flips` holds True); returns stats."""
         from ago_runtime.progress import track
 
         items = range(len(frames))
         it = track(items, "caching frozen backbone features", total=len(frames)) if progress else items
         for i in it:
             f = frames[i]
-            self.frame_prefix(f.image_paths, f"{f.scene}/{f.token}")
+            for flip in flips:
+                self.frame_prefix(f.image_paths, f"{f.scene}/{f.token}", flip=flip)
         return dict(self.stats)

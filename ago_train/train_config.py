@@ -54,6 +54,7 @@ class TrainConfig:
     max_frames: int | None = None     # use only the first N training frames (None = all)
     frame_tokens: list[str] | None = None  # train only on these sample tokens (few-shot subsets)
     color_jitter: float = 0.0         # augmentation: max relative brightness/contrast change (0 = off)
+    augment: str = "none"             # grid symmetries (ago_train/augment.py): "none", "flip", "flip+rot180"
     # ---- model and loss ----
     model: ModelConfig = field(default_factory=lambda: ModelConfig.preset("cpu"))
     loss: LossConfig = field(default_factory=LossConfig)

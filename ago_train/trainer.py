@@ -172,7 +172,7 @@ class Trainer:
         self.preprocess = Preprocess(cfg.model.image_width, cfg.model.image_height)
         self.dataset = OccSampleDataset(FrameList(ds, indices), self.pseudo, K, self.grid, self.preprocess,
                                         with_embeds=True, color_jitter=cfg.color_jitter, seed=cfg.seed,
-                                        memory_bytes=cfg.item_memory_mb << 20)
+                                        memory_bytes=cfg.item_memory_mb << 20, augment=cfg.augment)
         # the camera rig of the training data (native image size), for export (a typical rig to trace with)
         self.rig_record = plain(ds[indices[0]].rig.to_dict())
         self.sampler = DistributedSampler(self.dataset, num_replicas=info.world_size, rank=info.rank,
@@ -227,7 +227,8 @@ class Trainer:
         root = None if self.cfg.feature_cache == "auto" else self.cfg.feature_cache
         cache = FeatureCache(self.model, self.preprocess, root)
         if self.info.is_main:
-            cache.fill(self.dataset.frames, progress=not self.quiet)
+            flips = (False, True) if self.cfg.augment != "none" else (False,)
+            cache.fill(self.dataset.frames, progress=not self.quiet, flips=flips)
         D.barrier(self.info)
         return cache
 

@@ -404,6 +404,11 @@ def test_feature_cache_matches_images(tiny_data, tmp_path):
         ref = plain.model.frozen_prefix(img_item["images"][None])[0]
     got = item["prefix"][0].float()
     assert float((got - ref).abs().max()) <= 2e-3 * float(ref.abs().max()) + 1e-3
+    # the mirror augmentation's prefix is the backbone's output on the flipped images
+    flipped = fc.frame_prefix(with_cache.dataset.frames[0].image_paths, flip=True)[0]
+    with torch.no_grad():
+        ref_flip = plain.model.frozen_prefix(img_item["images"].flip(-1)[None])[0]
+    assert float((torch.from_numpy(flipped).float() - ref_flip).abs().max()) <= 2e-3 * float(ref_flip.abs().max()) + 1e-3
     # one optimiser step from each gives the same losses
     a = with_cache.train_step(collate([item]))
     b = plain.train_step(collate([img_item]))
