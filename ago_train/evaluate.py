@@ -81,8 +81,15 @@ def default_identifier(label_space: LabelSpace) -> str:
 
 
 @torch.no_grad()
+def checkpoint_scales(ckpt: dict) -> tuple[float, float]:
+    """(scale_main, scale_adapted) of the identifier: the checkpoint's calibration (calibrate.py), else 1."""
+    cal = ckpt.get("calibration") or {}
+    return float(cal.get("scale_main", 1.0)), float(cal.get("scale_adapted", 1.0))
+
+
 def predict_labels(model, images: torch.Tensor, ego2img: torch.Tensor, text: torch.Tensor,
-                   phrase_class: torch.Tensor, num_classes: int, identifier: str) -> torch.Tensor:
+                   phrase_class: torch.Tensor, num_classes: int, identifier: str,
+                   scales: tuple[float, float] = (1.0, 1.0)) -> torch.Tensor:
     """(B, N) int64 labels on the model grid: 0..K-1 class, K free."""
     from .model.scoring import class_logits, open_world_identify
 
@@ -92,7 +99,7 @@ def predict_labels(model, images: torch.Tensor, ego2img: torch.Tensor, text: tor
     if identifier == "none":
         return main.argmax(dim=-1)
     adapted = class_logits(out["feat_adapted"], text, phrase_class, num_classes, free, None)
-    pred, _branch, _entropy = open_world_identify(main, adapted, identifier, num_classes)
+    pred, _branch, _entropy = open_world_identify(main, adapted, identifier, num_classes, *scales)
     return pred.long()
 
 
@@ -141,7 +148,7 @@ def evaluate(ckpt_path: str | Path, data: str | Path, split: str = "val", prompt
     iterator = loader if quiet else track(loader, description="eval", total=len(loader))
     for batch in iterator:
         pred = predict_labels(model, batch["images"].to(dev), batch["ego2img"].to(dev), text, phrase_class,
-                              K, identifier).cpu().numpy()
+                              K, identifier, checkpoint_scales(ckpt)).cpu().numpy()
         for b in range(pred.shape[0]):
             vol = pred[b].reshape(grid.shape).astype(np.uint8)
             gt, mask = batch["gt"][b], batch["gt_mask"][b]

@@ -219,6 +219,21 @@ class Trainer:
             self.ddp = self.step_module
         self.text = self.bank["embeddings"].to(info.device)
         self.phrase_class = self.bank["phrase_class"].to(info.device)
+        self.align_center = self._align_center() if cfg.loss.align_center and cfg.loss.uses_align else None
+
+    def _align_center(self) -> torch.Tensor:
+        """(C,) mean E_3D over every aligned voxel of the training frames (training data only)."""
+        total, count = None, 0
+        for i in range(len(self.dataset.frames)):
+            f = self.dataset.frames[i]
+            _, emb = self.pseudo.embeds(f.scene, f.token)
+            if emb.size:
+                s = emb.astype(np.float64).sum(0)
+                total = s if total is None else total + s
+                count += len(emb)
+        if count == 0:
+            raise AgoInputError(self.cfg.pseudo, "align_center needs voxel embeddings (embeds.npz) in the pseudo-labels")
+        return torch.as_tensor(total / count, dtype=torch.float32, device=self.info.device)
 
     def _feature_cache(self):
         """The frozen-prefix cache (feature_cache.py), filled for every training frame by rank 0."""
@@ -278,6 +293,8 @@ class Trainer:
             "bank": self.bank,
             "preprocess": plain(self.preprocess.to_dict()),
             "rig": self.rig_record,
+            "align_center": self.align_center.cpu() if self.align_center is not None else None,
+            "calibration": getattr(self, "calibration", None),
         }
 
     def snapshot_path(self, step: int) -> Path:
@@ -325,6 +342,8 @@ class Trainer:
         """One optimiser step on `batch` (the DataLoader's collated dict); returns the loss parts."""
         cfg = self.cfg
         batch = _to_device(batch, self.info.device)
+        if self.align_center is not None:
+            batch["align_center"] = self.align_center
         noise = self.noise_for_step(self.step)
         index, weight = self.voxels_for_step(batch, self.step)
         out = self.ddp(batch, self.text, self.phrase_class, noise, index, weight)
@@ -399,6 +418,11 @@ class Trainer:
                         self.save(epoch)
         finally:
             progress.close()
+        if self.step >= self.total_steps and self.info.is_main:
+            # the identifier's per-branch logit scales, from known-class training voxels (calibrate.py)
+            from .calibrate import fit_scales
+
+            self.calibration = fit_scales(self)
         last = self.save(self.step // self.steps_per_epoch if self.steps_per_epoch else 0)
         return {"step": self.step, "losses": losses, "last": str(last) if last else None,
                 "total_steps": self.total_steps, "steps_per_epoch": self.steps_per_epoch}

@@ -308,3 +308,15 @@ def test_open_world_identify_modes():
     assert branch.tolist() == [0, 0] and pred[0] == 0
     with pytest.raises(ValueError):
         open_world_identify(main, adapted, "vote", num_classes=K)
+    # a voxel the main branch calls free stays free, however sure the adapted branch is
+    free_main = torch.tensor([[0.0, 0.0, 4.0, 0.0]])
+    sure = torch.tensor([[0.0, 9.0, 0.0, 0.0]])
+    for mode in ("min-entropy", "max-conf", "adapted"):
+        pred, branch, _ = open_world_identify(free_main, sure, mode, num_classes=K)
+        assert pred.tolist() == [K] and branch.tolist() == [0]
+    # the scales are temperatures: a flat-looking adapted branch wins once its scale is large enough
+    soft = torch.tensor([[0.0, 0.3, -9.0, 0.0]])
+    firm = torch.tensor([[2.0, 0.0, -9.0, 0.0]])
+    assert open_world_identify(firm, soft, "min-entropy", K)[1].tolist() == [0]
+    pred, branch, _ = open_world_identify(firm, soft, "min-entropy", K, scale_adapted=20.0)
+    assert branch.tolist() == [1] and pred.tolist() == [1]

@@ -37,7 +37,7 @@ from ago_runtime.prompts import LabelSpace, parse_prompt_file
 
 from ..checkpoint import load_checkpoint
 from ..dataset import FrameList, OccSampleDataset, collate
-from ..evaluate import _pct, _to_gt_resolution, bank_for, load_model, scored_subsets
+from ..evaluate import _pct, _to_gt_resolution, bank_for, checkpoint_scales, load_model, scored_subsets
 from ..model.scoring import class_logits, entropy, open_world_identify
 
 IDENTIFIERS = ("none", "max-conf", "min-entropy", "adapted")
@@ -72,12 +72,11 @@ def _bank(ckpt: dict, prompts: str, closed_set: bool) -> _Bank:
     return _Bank(space, text.float(), pc.long(), class_text.float())
 
 
-def _labels(main: torch.Tensor, adapted: torch.Tensor | None, identifier: str, K: int) -> torch.Tensor:
+def _labels(main: torch.Tensor, adapted: torch.Tensor | None, identifier: str, K: int,
+            scales: tuple[float, float] = (1.0, 1.0)) -> torch.Tensor:
     if identifier == "none":
         return main.argmax(-1)
-    if identifier == "adapted":
-        return adapted.argmax(-1)
-    pred, _branch, _h = open_world_identify(main, adapted, identifier, K)
+    pred, _branch, _h = open_world_identify(main, adapted, identifier, K, *scales)
     return pred
 
 
@@ -136,6 +135,7 @@ def evaluate_views(ckpt_path: str | Path, data: str | Path, views: list[View], s
     dev = torch.device("cpu")
     ckpt = load_checkpoint(ckpt_path, map_location="cpu")
     mcfg, model = load_model(ckpt, dev, ckpt_path)
+    scales = checkpoint_scales(ckpt)
     banks = {v.name: _bank(ckpt, v.prompts, v.closed_set) for v in views}
     ds, indices = open_frames(data, gts, split)
     if max_frames is not None:
@@ -164,14 +164,15 @@ def evaluate_views(ckpt_path: str | Path, data: str | Path, views: list[View], s
             main = class_logits(out["feat"], b.text, b.phrase_class, K, free, None)[0]
             adapted = (class_logits(out["feat_adapted"], b.text, b.phrase_class, K, free, None)[0] * v.adapted_scale
                        if v.identifier != "none" or v.name == stats_view else None)
-            labels = _labels(main, adapted, v.identifier, K).numpy().reshape(grid.shape).astype(np.uint8)
+            labels = _labels(main, adapted, v.identifier, K, scales).numpy().reshape(grid.shape).astype(np.uint8)
             gt = luts[v.name][gt_occ]
             metrics[v.name].update(_to_gt_resolution(labels, gt.shape, str(batch["token"][0])), gt, mask)
             if n_frame < keep_frames:
                 kept[v.name].append((batch["scene"][0], batch["token"][0], labels))
             if v.name == stats_view:
-                h_main = entropy(torch.softmax(main[:, : K + 1], -1)).numpy()
-                h_adap = entropy(torch.softmax(adapted[:, : K + 1], -1)).numpy()
+                # the identifier's class entropies: calibrated, over the K classes
+                h_main = entropy(torch.softmax(scales[0] * main[:, :K], -1)).numpy()
+                h_adap = entropy(torch.softmax(scales[1] * adapted[:, :K], -1)).numpy()
                 f = torch.nn.functional.normalize(out["feat"][0], dim=-1)
                 fa = torch.nn.functional.normalize(out["feat_adapted"][0], dim=-1)
                 stats.update(_decimate(gt, grid.shape), _decimate(mask, grid.shape), h_main, h_adap,

@@ -7,6 +7,7 @@
   for the align variants "align_index" (Ma,) int64 flat indices into the batch's B*N voxels
   (b * N + voxel) and "align_embed" (Ma, C) their E_3D embeddings (visible occupied voxels).
 - bank: `BankTensors` (text (P, C), phrase_class (P,), num_classes K, noise (Nn, C) or None).
+- batch may hold "align_center" (C,): subtracted from E_3D before the alignment loss (LossConfig.align_center).
 - sample_weight: (B, M) importance weights of a stratified voxel sample (losses/sampling.py), or None:
   every loss is then the weighted mean over the sampled voxels (an estimate of its whole-grid value).
 Returns a dict of scalar tensors: "total" plus the parts that were computed
@@ -49,6 +50,10 @@ class LossConfig:
     w_occ: float = 1.0
     w_align: float = 1.0
     lovasz_only_present: bool = True
+    # Departure from the paper (docs/training.md, "open world"): align F~_3D with E_3D minus the mean
+    # E_3D of the training frames. The simulated (and CLIP-like) image embeddings share one large
+    # offset; under a cosine loss that offset dominates and the adapter learns little else.
+    align_center: bool = False
 
     def __post_init__(self):
         if self.variant not in VARIANTS:
@@ -170,6 +175,8 @@ def compute_losses(outputs: dict, batch: dict, bank: BankTensors, cfg: LossConfi
             sem = batch["semantics"]
             num_voxels = sem.reshape(sem.shape[0], -1).shape[1]
         rows, emb = _align_rows(batch, outputs, num_voxels)
+        if "align_center" in batch:
+            emb = emb - batch["align_center"].to(emb.device, emb.dtype)
         if cfg.variant != "ago":
             src = feat.reshape(-1, feat.shape[-1])[rows]
         elif "feat_adapted" in outputs:

@@ -8,7 +8,8 @@ dot product with the learnable free embedding; noise words are negatives seen in
 - phrase_to_class_index(phrase_class (P,), K) -> index (K, Pmax) int64, mask (K, Pmax) bool
 - class_logits(feat (B, N, C), text (P, C), phrase_class (P,), K, free_embedding (C,), noise (Nn, C) | None)
     -> (B, N, K + 1 + Nn)
-- open_world_identify(logits_main, logits_adapted, mode, num_classes) -> (pred, branch, entropy)
+- open_world_identify(logits_main, logits_adapted, mode, num_classes, scale_main, scale_adapted)
+    -> (pred, branch, entropy): occupancy from the main branch, class from the trusted branch
 """
 
 from __future__ import annotations
@@ -60,17 +61,25 @@ def entropy(prob: torch.Tensor, dim: int = -1) -> torch.Tensor:
 
 
 def open_world_identify(logits_main: torch.Tensor, logits_adapted: torch.Tensor, mode: str = "min-entropy",
-                        num_classes: int | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Pick per voxel the branch (0 = main F_3D, 1 = adapted F~_3D) to trust, and its class.
+                        num_classes: int | None = None, scale_main: float = 1.0, scale_adapted: float = 1.0
+                        ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Per voxel: free or occupied from the main branch, and the class from the branch it trusts.
 
-    logits_*: (..., K + 1 [+ Nn]); with num_classes=K the noise columns are dropped, without it every
-    column is taken as [K classes | free]. P = softmax over [K classes + free] of each branch.
-    mode: "min-entropy" (lower entropy wins), "max-conf" (higher max probability wins), "none" (main).
-    Returns pred (...) int64 in 0..K (K = free), branch (...) int64, entropy (...) of the chosen branch.
+    logits_*: (..., K + 1 [+ Nn]) in this module's column order (noise columns are dropped).
+    1. Occupancy: the main branch's argmax over [K classes + free] (F_3D is the branch trained on free
+       space; F~_3D is aligned only on occupied voxels, so its free column means nothing).
+    2. Class of an occupied voxel: P = softmax(scale_main * main[:K]), P~ = softmax(scale_adapted *
+       adapted[:K]), both over the K classes (the scales come from ago_train/calibrate.py, fitted on
+       known-class training voxels); "min-entropy" takes the branch with the lower entropy (the
+       paper's c_v = 1[H(P) <= H(P~)]), "max-conf" the one with the higher max probability, "none" the
+       main one, "adapted" the adapted one.
+    Returns pred (...) int64 in 0..K (K = free), branch (...) int64 (1 = adapted; 0 for free voxels) and
+    the chosen branch's class entropy (...).
     """
-    keep = logits_main.shape[-1] if num_classes is None else num_classes + 1
-    p_main = torch.softmax(logits_main[..., :keep].float(), -1)
-    p_adap = torch.softmax(logits_adapted[..., :keep].float(), -1)
+    K = logits_main.shape[-1] - 1 if num_classes is None else num_classes
+    occupied = logits_main[..., : K + 1].argmax(-1) != K
+    p_main = torch.softmax(scale_main * logits_main[..., :K].float(), -1)
+    p_adap = torch.softmax(scale_adapted * logits_adapted[..., :K].float(), -1)
     h_main, h_adap = entropy(p_main), entropy(p_adap)
     if mode == "min-entropy":
         use_adapted = h_adap < h_main
@@ -78,7 +87,11 @@ def open_world_identify(logits_main: torch.Tensor, logits_adapted: torch.Tensor,
         use_adapted = p_adap.amax(-1) > p_main.amax(-1)
     elif mode == "none":
         use_adapted = torch.zeros_like(h_main, dtype=torch.bool)
+    elif mode == "adapted":
+        use_adapted = torch.ones_like(h_main, dtype=torch.bool)
     else:
-        raise ValueError(f"unknown open-world mode {mode!r}; expected min-entropy, max-conf or none")
-    prob = torch.where(use_adapted.unsqueeze(-1), p_adap, p_main)
-    return prob.argmax(-1), use_adapted.long(), torch.where(use_adapted, h_adap, h_main)
+        raise ValueError(f"unknown open-world mode {mode!r}; expected min-entropy, max-conf, none or adapted")
+    use_adapted = use_adapted & occupied
+    cls = torch.where(use_adapted, p_adap.argmax(-1), p_main.argmax(-1))
+    pred = torch.where(occupied, cls, torch.full_like(cls, K))
+    return pred, use_adapted.long(), torch.where(use_adapted, h_adap, h_main)
