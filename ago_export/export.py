@@ -5,13 +5,11 @@ Takes a checkpoint written by ago_train (torch.load(weights_only=True); keys "mo
 docs/runtime.md):
 
 1. the camera-to-voxel encoder plus the modality adapter's hidden layers, as two ONNX graphs
-   (bundle format 2, ago_runtime/encoder.py): `planes.onnx` (images (1,6,3,H,W) + ego2img
-   (1,6,4,4) -> the three TPV planes at the grid's resolution) and `voxels.onnx` (a slab of x rows
-   of the planes -> h (n,Dh), g (n,Da)), so the runtime streams slabs and never holds the grid's
-   features at once; the model's nn.Softplus layers are exported as relu(x) + log1p(exp(-|x|))
-   (same values; onnxruntime's Softplus kernel was measured ~2x slower than this form), and
-   decoder_out is folded into the adapter's first linear layer (with_fused_adapter); key metadata
-   also in metadata_props;
+   (bundle format 3, ago_runtime/encoder.py; the traced modules are ago_export/graphs.py):
+   `planes.onnx` (images (1,6,3,H,W) + ego2img (1,6,4,4) -> the three TPV planes at the grid's
+   resolution, times the decoder's first linear layer, channels last) and `voxels.onnx` (a slab of
+   x rows of the planes -> h (n,Dh), g (n,Da) and the folded bank's scores), so the runtime streams
+   slabs and never holds the grid's features at once; key metadata also in metadata_props;
 2. the linear heads (`heads.npz`) and the learnt free embedding, for bank folding at run time;
 3. banks: "train" (the label-space embeddings saved in the checkpoint) and one per shipped prompt
    file the installed text encoder could build;
@@ -24,7 +22,6 @@ every check passed; a failed check raises AgoInputError (the CLI exits 2) and wr
 
 from __future__ import annotations
 
-import copy
 import datetime as _dt
 import json
 import shutil
@@ -48,6 +45,7 @@ from ago_runtime.heads import HeadWeights
 from ago_runtime.preprocess import Preprocess
 from ago_runtime.prompts import LabelSpace, parse_prompt_text, shipped_label_spaces
 
+from .graphs import PlanesGraph, VoxelsGraph
 from .parity import FP32_TOLERANCE, INT8_TOLERANCE, Tolerance, check_parity, describe
 
 OPSET = 17
@@ -71,90 +69,6 @@ def load_model(checkpoint: str | Path):
     except RuntimeError as e:
         raise AgoInputError(checkpoint, f"weights do not fit the model config ({str(e).splitlines()[0]})") from None
     return model.eval(), ckpt, cfg
-
-
-class StableSoftplus(nn.Module):
-    """softplus(x) = relu(x) + log1p(exp(-|x|)): the same function, faster in onnxruntime."""
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return torch.relu(x) + torch.log1p(torch.exp(-torch.abs(x)))
-
-
-def with_stable_softplus(model: nn.Module) -> nn.Module:
-    """A deep copy of `model` whose nn.Softplus(beta=1) layers are StableSoftplus."""
-    model = copy.deepcopy(model)
-    for parent in model.modules():
-        for name, child in list(parent.named_children()):
-            if isinstance(child, nn.Softplus) and child.beta == 1:
-                setattr(parent, name, StableSoftplus())
-    return model
-
-
-def with_fused_adapter(model: nn.Module) -> nn.Module:
-    """Fold decoder_out into the adapter's first linear layer, in place on an export copy.
-
-    g = adapter(decoder_out(h)) and both decoder_out and the adapter's first layer are linear, so
-    their composition is one (Dh -> A) linear: W = W1 W_dec, b = W1 b_dec + b1. The exported graph
-    then never builds the (N, C) embedding volume (at 200x200x16 that is 640 000 x 384 floats) and
-    does a Dh x A product instead of Dh x C + C x A. Models whose adapter has no first linear
-    (adapter_depth 1) are left as they are.
-    """
-    net = getattr(getattr(model, "adapter", None), "net", None)
-    dec = getattr(model, "decoder_out", None)
-    if not isinstance(net, nn.Sequential) or len(net) == 0 or not isinstance(net[0], nn.Linear) \
-            or not isinstance(dec, nn.Linear):
-        return model
-    first = net[0]
-    with torch.no_grad():
-        w = first.weight.double() @ dec.weight.double()
-        b = first.weight.double() @ dec.bias.double() + first.bias.double()
-        fused = nn.Linear(dec.in_features, first.out_features)
-        fused.weight.copy_(w.float())
-        fused.bias.copy_(b.float())
-    net[0] = fused
-    model.decoder_out = nn.Identity()
-    return model
-
-
-class PlanesForExport(nn.Module):
-    """planes.onnx: images (1,6,3,H,W), ego2img (1,6,4,4) -> plane_xy (D,X,Y), plane_xz (D,X,Z), plane_yz (D,Y,Z),
-    the TPV planes already upsampled to the grid (ago_train.model.aggregate.upsample_planes)."""
-
-    def __init__(self, model: nn.Module):
-        super().__init__()
-        self.model = model
-
-    def forward(self, images: torch.Tensor, ego2img: torch.Tensor):
-        from ago_train.model.aggregate import upsample_planes
-
-        planes = upsample_planes(self.model.planes(images, ego2img), self.model.grid_shape)
-        return planes["xy"][0], planes["xz"][0], planes["yz"][0]
-
-
-class VoxelsForExport(nn.Module):
-    """voxels.onnx: a slab of x rows of the planes -> h (n,Dh), g (n,Da) of its n = x*Y*Z voxels, C order,
-    and the bank-folded phrase scores of both branches.
-
-    The voxel feature is xy[x, y] + xz[x, z] + yz[y, z] (ago_train.model.aggregate.planes_to_voxels),
-    then the decoder MLP (h) and the adapter's hidden layers on decoder_out(h) (g; decoder_out is
-    folded into the adapter's first linear by with_fused_adapter). The folded bank comes in as two
-    INPUTS, bank_main (P', Dh) and bank_adapted (P', Da) (ago_runtime.heads.FoldedHeads.A_main_T /
-    A_ad_T: any bank, any P', no re-export), and s_main = bank_main h^T, s_adapted = bank_adapted g^T
-    (P', n) come out class-major: the scores are the heads' big matrix product, done here by
-    onnxruntime's GEMM (measured ~3x faster than numpy's OpenBLAS for this skinny shape), and the
-    (n, Da) features need not leave onnxruntime at all."""
-
-    def __init__(self, model: nn.Module):
-        super().__init__()
-        self.decoder, self.decoder_out, self.adapter = model.decoder, model.decoder_out, model.adapter
-
-    def forward(self, plane_xy: torch.Tensor, plane_xz: torch.Tensor, plane_yz: torch.Tensor,
-                bank_main: torch.Tensor, bank_adapted: torch.Tensor):
-        vox = plane_xy.unsqueeze(-1) + plane_xz.unsqueeze(-2) + plane_yz.unsqueeze(-3)   # (D, x, Y, Z)
-        f = vox.reshape(vox.shape[0], -1).transpose(0, 1)                                 # (n, D)
-        h = self.decoder(f)
-        g = self.adapter(self.decoder_out(h))
-        return h, g, torch.matmul(bank_main, h.transpose(0, 1)), torch.matmul(bank_adapted, g.transpose(0, 1))
 
 
 def head_weights(model) -> HeadWeights:
@@ -183,33 +97,34 @@ def _finish_onnx(path: Path, metadata: dict[str, str], doc: str) -> None:
 
 
 def export_onnx(model: nn.Module, out_dir: Path, cfg, metadata: dict[str, str]) -> dict[str, str]:
-    """Write planes.onnx and voxels.onnx into out_dir; returns {"planes": file, "voxels": file}."""
-    fast = with_fused_adapter(with_stable_softplus(model)).eval()
+    """Write planes.onnx and voxels.onnx (ago_export.graphs) into out_dir; returns {"planes": file, "voxels": file}."""
     images = torch.zeros(1, cfg.num_cameras, 3, cfg.image_height, cfg.image_width)
     ego2img = torch.eye(4).expand(1, cfg.num_cameras, 4, 4).contiguous()
     X, Y, Z = cfg.grid_obj().shape
-    D = cfg.tpv_dim
+    Dh = cfg.hidden_dim
     slab = min(X, 2)
+    voxels = VoxelsGraph(model).eval()
+    Da = voxels.adapter[0].out_features
     with warnings.catch_warnings(), torch.no_grad():
         warnings.simplefilter("ignore")
-        torch.onnx.export(PlanesForExport(fast).eval(), (images, ego2img), str(out_dir / "planes.onnx"), dynamo=False,
+        torch.onnx.export(PlanesGraph(model).eval(), (images, ego2img), str(out_dir / "planes.onnx"), dynamo=False,
                           opset_version=OPSET, input_names=["images", "ego2img"],
                           output_names=["plane_xy", "plane_xz", "plane_yz"], do_constant_folding=True)
-        torch.onnx.export(VoxelsForExport(fast).eval(),
-                          (torch.zeros(D, slab, Y), torch.zeros(D, slab, Z), torch.zeros(D, Y, Z),
-                           torch.zeros(3, cfg.hidden_dim), torch.zeros(3, fast.adapter.out_dim)),
+        torch.onnx.export(voxels, (torch.zeros(slab, Y, Dh), torch.zeros(slab, Z, Dh), torch.zeros(Y, Z, Dh),
+                                   torch.zeros(3, Dh), torch.zeros(3, Da)),
                           str(out_dir / "voxels.onnx"), dynamo=False, opset_version=OPSET,
                           input_names=VOXEL_INPUTS, output_names=VOXEL_OUTPUTS,
-                          dynamic_axes={"plane_xy": {1: "slab"}, "plane_xz": {1: "slab"}, "bank_main": {0: "phrases"},
+                          dynamic_axes={"plane_xy": {0: "slab"}, "plane_xz": {0: "slab"}, "bank_main": {0: "phrases"},
                                         "bank_adapted": {0: "phrases"}, "h": {0: "voxels"}, "g": {0: "voxels"},
                                         "s_main": {0: "phrases", 1: "voxels"},
                                         "s_adapted": {0: "phrases", 1: "voxels"}},
                           do_constant_folding=True)
     _finish_onnx(out_dir / "planes.onnx", {**metadata, "ago.graph": "planes"},
-                 "ago camera-to-TPV encoder: images (1,6,3,H,W) + ego2img (1,6,4,4) -> plane_xy (D,X,Y), "
-                 "plane_xz (D,X,Z), plane_yz (D,Y,Z) at the grid resolution")
+                 "ago camera-to-TPV encoder: images (1,6,3,H,W) + ego2img (1,6,4,4) -> plane_xy (X,Y,Dh), "
+                 "plane_xz (X,Z,Dh), plane_yz (Y,Z,Dh): the TPV planes at the grid resolution times the decoder's "
+                 "first linear layer (its bias in plane_xy), channels last")
     _finish_onnx(out_dir / "voxels.onnx", {**metadata, "ago.graph": "voxels"},
-                 "ago per-voxel MLPs: plane_xy (D,x,Y), plane_xz (D,x,Z), plane_yz (D,Y,Z) of a slab of x rows, "
+                 "ago per-voxel MLPs: plane_xy (x,Y,Dh), plane_xz (x,Z,Dh) of a slab of x rows, plane_yz (Y,Z,Dh), "
                  "bank_main (P',Dh), bank_adapted (P',Da) -> h (n,Dh), g (n,Da), s_main (P',n), s_adapted (P',n); "
                  "n = x*Y*Z voxels in C order over [x, y, z]")
     return {"planes": "planes.onnx", "voxels": "voxels.onnx"}

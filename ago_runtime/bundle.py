@@ -6,10 +6,12 @@ camera rig it was trained with. Layout (see docs/runtime.md):
 
     bundle_dir/
       bundle.json        metadata (below); format_version, sha256 of every file
-      planes.onnx        images (1,6,3,H,W) f32 + ego2img (1,6,4,4) f32 -> plane_xy (D,X,Y),
-                         plane_xz (D,X,Z), plane_yz (D,Y,Z): the TPV planes at the grid's resolution
-      voxels.onnx        plane_xy (D,x,Y), plane_xz (D,x,Z), plane_yz (D,Y,Z) of a slab of x rows
-                         -> h (n,Dh), g (n,Da) of that slab's n = x*Y*Z voxels (ago_runtime/encoder.py)
+      planes.onnx        images (1,6,3,H,W) f32 + ego2img (1,6,4,4) f32 -> plane_xy (X,Y,Dh),
+                         plane_xz (X,Z,Dh), plane_yz (Y,Z,Dh): the TPV planes at the grid's resolution
+                         times the decoder's first linear layer, channels last
+      voxels.onnx        plane_xy (x,Y,Dh), plane_xz (x,Z,Dh) of a slab of x rows, plane_yz (Y,Z,Dh),
+                         the folded bank -> h (n,Dh), g (n,Da), phrase scores of that slab's
+                         n = x*Y*Z voxels (ago_runtime/encoder.py)
       planes.int8.onnx, voxels.int8.onnx   optional: dynamically quantised (`ago export --int8`)
       heads.npz          W_dec (C,Dh), b_dec (C,), W_ad (C,Da), b_ad (C,), free_embedding (C,)
       banks/<name>.npz   prompt banks (ago_runtime.bank.PromptBank files); "train" = the
@@ -19,8 +21,9 @@ camera rig it was trained with. Layout (see docs/runtime.md):
 format_version, a file whose sha256 differs from bundle.json (e.g. a truncated ONNX), heads of
 the wrong shapes.
 
-Format versions: 2 = the split encoder above (files "planes", "voxels"). Format 1 (one monolithic
-`encoder.onnx`, before 2026-12) is refused with a message to re-export the checkpoint.
+Format versions: 3 = the split encoder above (files "planes", "voxels"; channels-last planes with
+the decoder's first linear inside planes.onnx). Format 2 (planes (D, X, Y) channels first) and
+format 1 (one monolithic `encoder.onnx`) are refused with a message to re-export the checkpoint.
 """
 
 from __future__ import annotations
@@ -41,7 +44,7 @@ from .heads import HeadWeights
 from .preprocess import Preprocess
 
 BUNDLE_FORMAT = "ago-bundle"
-BUNDLE_FORMAT_VERSION = 2
+BUNDLE_FORMAT_VERSION = 3
 ENCODER_FILES = ("planes", "voxels")
 BUNDLE_JSON = "bundle.json"
 ENV_BUNDLE = "AGO_BUNDLE"
@@ -120,8 +123,8 @@ class Bundle:
         if not isinstance(version, int) or version < 1:
             raise AgoInputError(meta_path, f"bad format_version {version!r}")
         if version < BUNDLE_FORMAT_VERSION:
-            raise AgoInputError(meta_path, f"bundle format version {version} (one encoder.onnx) is no longer read; "
-                                "re-export the checkpoint with `ago export`")
+            raise AgoInputError(meta_path, f"bundle format version {version} is no longer read (this ago reads "
+                                f"{BUNDLE_FORMAT_VERSION}); re-export the checkpoint with `ago export`")
         if version > BUNDLE_FORMAT_VERSION:
             raise AgoInputError(meta_path, f"bundle format version {version} is newer than this ago reads "
                                 f"({BUNDLE_FORMAT_VERSION}); upgrade ago or re-export the model")
