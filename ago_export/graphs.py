@@ -348,12 +348,14 @@ class PlanesGraph(nn.Module):
     """planes.onnx: images (1, V, 3, H, W), ego2img (1, V, 4, 4) -> plane_xy (X, Y, Dh), plane_xz (X, Z, Dh),
     plane_yz (Y, Z, Dh): the TPV planes times the decoder's first linear layer (bias in plane_xy only),
     bilinearly upsampled to the grid (align_corners=False, as ago_train.model.aggregate.upsample_planes),
-    channels last."""
+    channels last. per_camera: the backbone and FPN run on one camera after the other (the same
+    weights; BatchNorm is in eval mode, so per-image results are exact) instead of on a batch of V."""
 
-    def __init__(self, model):
+    def __init__(self, model, per_camera: bool = True):
         super().__init__()
         cfg = model.cfg
         self.backbone, self.fpn = model.backbone, model.fpn
+        self.per_camera = per_camera
         with torch.no_grad():
             dummy = torch.zeros(1, 3, cfg.image_height, cfg.image_width)
             sizes = [tuple(int(s) for s in f.shape[-2:]) for f in model.fpn(model.backbone(dummy))]
@@ -365,8 +367,12 @@ class PlanesGraph(nn.Module):
         self.grid_shape = model.grid_shape
 
     def forward(self, images: torch.Tensor, ego2img: torch.Tensor):
-        B, V, C, H, W = images.shape
-        feats = self.fpn(self.backbone(images.reshape(B * V, C, H, W)))
+        V = images.shape[1]
+        if self.per_camera:   # one camera at a time: its activations stay nearer the cache (docs/runtime.md)
+            per = [self.fpn(self.backbone(images[0, v:v + 1])) for v in range(V)]
+            feats = [torch.cat([f[lvl] for f in per]) for lvl in range(len(per[0]))]
+        else:
+            feats = self.fpn(self.backbone(images[0]))
         queries = self.tpv(feats, ego2img[0])
         X, Y, Z = self.grid_shape
         target = {"xy": (X, Y), "xz": (X, Z), "yz": (Y, Z)}
