@@ -450,3 +450,64 @@ def test_optimised_graph_cache_is_used_checked_and_remade(bundle_dir, frame_dir,
         p.unlink()
     Predictor(bundle_dir)
     assert not any(p.exists() for p in cached.values())
+
+
+def _small_dataset(root: Path, frames: int = 4) -> list[str]:
+    """A nuScenes-layout dataset of one scene with `frames` keyframes (smooth random images); -> tokens."""
+    from ago_runtime.nuscenes_writer import NuScenesWriter
+
+    rng = np.random.default_rng(3)
+    rig = Rig.nuscenes_like(320, 180)
+    writer = NuScenesWriter(root, "v1.0-mini")
+    scene = writer.add_scene("scene-0001", "pipeline test")
+    tokens = []
+    for k in range(frames):
+        pose = np.eye(4)
+        pose[:3, 3] = [10.0 + 2 * k, 5.0, 0.0]
+        images = {c.name: np.clip(cv2.resize(rng.uniform(0, 255, (12, 21, 3)).astype(np.float32), (320, 180)),
+                                  0, 255).astype(np.uint8) for c in rig}
+        tokens.append(writer.add_sample(scene, 1_600_000_000_000_000 + k * 500_000, pose, rig, images,
+                                        np.zeros((4, 5), np.float32), np.eye(4)))
+    writer.close({"val": ["scene-0001"]})
+    return tokens
+
+
+def test_infer_dataset_pipeline_outputs_pictures_and_errors(bundle_dir, tmp_path):
+    """The threaded reader / predictor / writer pipeline gives, per frame, what Predictor.predict gives;
+    --picture none|bev|full; a corrupt image in frame 3 ends the run with one line after frames 1-2 are
+    written completely."""
+    from ago_runtime.nuscenes import NuScenesDataset
+    from ago_runtime.predictor import Predictor
+
+    ds_root = tmp_path / "ds"
+    tokens = _small_dataset(ds_root)
+    out = tmp_path / "none"
+    r = _infer(bundle_dir, ds_root, out, "--picture", "none")
+    assert r.returncode == 0, r.stderr
+    assert sorted(p.name for p in out.iterdir()) == sorted(f"{t}.npz" for t in tokens)
+    p = Predictor(bundle_dir)
+    ds = NuScenesDataset(ds_root, load_extras=False)
+    for i in (0, len(tokens) - 1):
+        f = ds[i]
+        with np.load(out / f"{f.token}.npz", allow_pickle=False) as z:
+            assert np.array_equal(z["bank_semantics"], p.predict(f.images, f.rig).semantics)
+    for kind in ("bev", "full"):
+        r = _infer(bundle_dir, ds_root, tmp_path / kind, "--picture", kind)
+        assert r.returncode == 0, r.stderr
+        assert len(list((tmp_path / kind).glob("*.png"))) == len(tokens)
+    bev = cv2.imread(str(next((tmp_path / "bev").glob("*.png"))))
+    full = cv2.imread(str(next((tmp_path / "full").glob("*.png"))))
+    assert bev.shape[0] < full.shape[0] and bev.shape[1] < full.shape[1]   # the cheap picture is smaller
+    assert_refused(_infer(bundle_dir, ds_root, tmp_path / "x", "--picture", "huge"), "--picture", tmp_path / "x")
+    # a corrupt JPEG in the third frame: one error line, the first two frames written completely
+    bad = sorted((ds_root / "samples" / "CAM_FRONT").iterdir())[2]     # names sort by timestamp
+    bad.write_bytes(bad.read_bytes()[: 200])
+    out = tmp_path / "broken"
+    r = _infer(bundle_dir, ds_root, out, "--picture", "none")
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert [ln for ln in r.stderr.splitlines() if ln.startswith("error:")] and bad.name in r.stderr
+    written = sorted(out.iterdir())
+    assert [p.name for p in written] == sorted(f"{t}.npz" for t in tokens[:2])
+    for f in written:
+        with np.load(f, allow_pickle=False) as z:
+            assert z["semantics"].shape == tuple(p.grid.shape)
