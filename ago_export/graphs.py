@@ -9,9 +9,11 @@ for onnxruntime on a CPU; tests/test_export.py checks them against the torch mod
     plane_xy), channels last. The first linear commutes with the plane sum
     (W (xy + xz + yz) + b = (W xy + b) + W xz + W yz) and with bilinear upsampling (its weights sum
     to one), so it runs on the ~11 600 plane cells instead of on every voxel.
-`VoxelsGraph` (voxels.onnx): a slab of x rows plane_xy (x, Y, Dh), plane_xz (x, Z, Dh), plus
-    plane_yz (Y, Z, Dh), bank_main (P', Dh), bank_adapted (P', Da) ->
-    h (n, Dh), g (n, Da), s_main (P', n), s_adapted (P', n) for the slab's n = x*Y*Z voxels.
+`VoxelStageGraph` (voxels_<i>.onnx, one per `voxel_stages(model)`): the per-voxel MLP's linear
+    layers and the folded bank's products, one graph per layer. The runtime sums the planes of a
+    slab of voxels, applies the softplus activations between the stages itself (numpy + OpenCV's
+    vectorised exp / log: measured ~2x faster than onnxruntime's Log in a graph, docs/runtime.md)
+    and runs each stage's GEMMs in onnxruntime.
 
 What is restructured in the TPV encoder (ExportTPV; the trained ago_train.model.tpv.TPVEncoder
 does the same arithmetic in another order):
@@ -32,6 +34,8 @@ does the same arithmetic in another order):
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -41,8 +45,9 @@ PLANES = ("xy", "xz", "yz")
 
 class LogSigmoidSoftplus(nn.Module):
     """softplus(x) = relu(x) - log(sigmoid(|x|)): the same function (sigmoid(|x|) is in [0.5, 1], so
-    no underflow). onnxruntime runs this as Relu, Abs, Sigmoid, Log, Sub, measured faster than its
-    Softplus op and than relu(x) + log1p(exp(-|x|)) (docs/runtime.md)."""
+    no underflow). Marks the activations of the exported MLP (the runtime computes them outside the
+    graphs); as an ONNX graph it was measured faster than onnxruntime's Softplus op and than
+    relu(x) + log1p(exp(-|x|)) (docs/runtime.md)."""
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return torch.relu(x) - torch.log(torch.sigmoid(torch.abs(x)))
@@ -348,14 +353,13 @@ class PlanesGraph(nn.Module):
     """planes.onnx: images (1, V, 3, H, W), ego2img (1, V, 4, 4) -> plane_xy (X, Y, Dh), plane_xz (X, Z, Dh),
     plane_yz (Y, Z, Dh): the TPV planes times the decoder's first linear layer (bias in plane_xy only),
     bilinearly upsampled to the grid (align_corners=False, as ago_train.model.aggregate.upsample_planes),
-    channels last. per_camera: the backbone and FPN run on one camera after the other (the same
-    weights; BatchNorm is in eval mode, so per-image results are exact) instead of on a batch of V."""
+    channels last. (Running the backbone one camera at a time instead of on the batch of six was
+    measured and did not pay: docs/runtime.md.)"""
 
-    def __init__(self, model, per_camera: bool = True):
+    def __init__(self, model):
         super().__init__()
         cfg = model.cfg
         self.backbone, self.fpn = model.backbone, model.fpn
-        self.per_camera = per_camera
         with torch.no_grad():
             dummy = torch.zeros(1, 3, cfg.image_height, cfg.image_width)
             sizes = [tuple(int(s) for s in f.shape[-2:]) for f in model.fpn(model.backbone(dummy))]
@@ -367,12 +371,10 @@ class PlanesGraph(nn.Module):
         self.grid_shape = model.grid_shape
 
     def forward(self, images: torch.Tensor, ego2img: torch.Tensor):
-        V = images.shape[1]
-        if self.per_camera:   # one camera at a time: its activations stay nearer the cache (docs/runtime.md)
-            per = [self.fpn(self.backbone(images[0, v:v + 1])) for v in range(V)]
-            feats = [torch.cat([f[lvl] for f in per]) for lvl in range(len(per[0]))]
-        else:
-            feats = self.fpn(self.backbone(images[0]))
+        return self.from_features(self.fpn(self.backbone(images[0])), ego2img)
+
+    def from_features(self, feats: list[torch.Tensor], ego2img: torch.Tensor):
+        """FPN maps per level (V, D, H_l, W_l), ego2img (1, V, 4, 4) -> the three planes (see the class)."""
         queries = self.tpv(feats, ego2img[0])
         X, Y, Z = self.grid_shape
         target = {"xy": (X, Y), "xz": (X, Z), "yz": (Y, Z)}
@@ -387,22 +389,80 @@ class PlanesGraph(nn.Module):
         return tuple(out)
 
 
-class VoxelsGraph(nn.Module):
-    """voxels.onnx: a slab of x rows -> h (n, Dh), g (n, Da), s_main = bank_main h^T (P', n),
-    s_adapted = bank_adapted g^T (P', n); n = x*Y*Z voxels in C order over [x, y, z].
+@dataclass
+class VoxelStage:
+    """One ONNX graph of the per-voxel MLP (voxels_<i>.onnx). Input x (n, d_in), the activation of the
+    previous layer (the runtime applies the softplus between stages, ago_runtime.encoder.softplus);
+    outputs y = x W^T + b (n, d_out), the next layer's pre-activation (no linear: no y), and, for the
+    stages whose input is h (bank "main") or g (bank "adapted"), s = bank x^T (P', n) with the folded
+    bank fed as the input "bank". activation: whether the runtime applies softplus to y."""
 
-    The voxel's pre-activation is plane_xy[x, y] + plane_xz[x, z] + plane_yz[y, z] (the decoder's first
-    linear is already in the planes), then the decoder's activation and remaining layers (h), then the
-    adapter's hidden layers with decoder_out folded in (g). The folded bank comes in as inputs (any
-    bank, any P', no re-export)."""
+    linear: nn.Linear | None
+    activation: bool
+    bank: str | None
+
+    def spec(self) -> dict:
+        return {"linear": None if self.linear is None else [self.linear.in_features, self.linear.out_features],
+                "activation": "softplus" if self.activation else "none", "bank": self.bank}
+
+
+def voxel_stages(model) -> list[VoxelStage]:
+    """The per-voxel MLP after the planes as stages: the decoder's remaining layers (each Linear +
+    softplus; the first linear is in the planes and its softplus is applied to the plane sum), then
+    from h the adapter's layers with decoder_out folded into the first (fused_adapter; adapter depth 1:
+    g = decoder_out(h), no activation), then the adapted bank's product on g."""
+    stages = [VoxelStage(m, True, None) for m in list(model.decoder.net)[1:] if isinstance(m, nn.Linear)]
+    mods = list(fused_adapter(model))
+    i, bank = 0, "main"
+    while i < len(mods):
+        act = i + 1 < len(mods) and isinstance(mods[i + 1], LogSigmoidSoftplus)
+        stages.append(VoxelStage(mods[i], act, bank))
+        bank = None
+        i += 2 if act else 1
+    stages.append(VoxelStage(None, False, "adapted"))
+    return stages
+
+
+class VoxelStageGraph(nn.Module):
+    """voxels_<i>.onnx for one VoxelStage: inputs x (n, d_in) [, bank (P', d_in)] -> [y (n, d_out)] [, s (P', n)]."""
+
+    def __init__(self, stage: VoxelStage):
+        super().__init__()
+        self.linear, self.bank = stage.linear, stage.bank
+
+    def io_names(self) -> tuple[list[str], list[str]]:
+        return (["x"] + (["bank"] if self.bank else []),
+                (["y"] if self.linear is not None else []) + (["s"] if self.bank else []))
+
+    def forward(self, x, bank=None):
+        out = []
+        if self.linear is not None:
+            out.append(self.linear(x))
+        if self.bank:
+            out.append(torch.matmul(bank, x.t()))
+        return tuple(out)
+
+
+class VoxelsReference(nn.Module):
+    """The whole per-voxel stage in torch, as the runtime runs it slab by slab (tests): a slab of x rows
+    plane_xy (x, Y, Dh), plane_xz (x, Z, Dh), plane_yz (Y, Z, Dh), bank_main (P', Dh), bank_adapted
+    (P', Da) -> h (n, Dh), g (n, Da), s_main (P', n), s_adapted (P', n); n = x*Y*Z in C order."""
 
     def __init__(self, model):
         super().__init__()
-        self.decoder_rest = export_activations(nn.Sequential(*list(model.decoder.net)[1:]))
-        self.adapter = fused_adapter(model)
+        self.stages = voxel_stages(model)
+        self.act = LogSigmoidSoftplus()
 
     def forward(self, plane_xy, plane_xz, plane_yz, bank_main, bank_adapted):
         a = plane_xy.unsqueeze(2) + plane_xz.unsqueeze(1) + plane_yz.unsqueeze(0)      # (x, Y, Z, Dh)
-        h = self.decoder_rest(a.reshape(-1, a.shape[-1]))
-        g = self.adapter(h)
-        return h, g, torch.matmul(bank_main, h.t()), torch.matmul(bank_adapted, g.t())
+        x = self.act(a.reshape(-1, a.shape[-1]))
+        out = {}
+        for st in self.stages:
+            if st.bank == "main":
+                out["h"], out["s_main"] = x, torch.matmul(bank_main, x.t())
+            if st.bank == "adapted":
+                out["g"], out["s_adapted"] = x, torch.matmul(bank_adapted, x.t())
+            if st.linear is not None:
+                x = st.linear(x)
+                x = self.act(x) if st.activation else x
+        return out["h"], out["g"], out["s_main"], out["s_adapted"]

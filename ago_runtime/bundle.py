@@ -9,10 +9,10 @@ camera rig it was trained with. Layout (see docs/runtime.md):
       planes.onnx        images (1,6,3,H,W) f32 + ego2img (1,6,4,4) f32 -> plane_xy (X,Y,Dh),
                          plane_xz (X,Z,Dh), plane_yz (Y,Z,Dh): the TPV planes at the grid's resolution
                          times the decoder's first linear layer, channels last
-      voxels.onnx        plane_xy (x,Y,Dh), plane_xz (x,Z,Dh) of a slab of x rows, plane_yz (Y,Z,Dh),
-                         the folded bank -> h (n,Dh), g (n,Da), phrase scores of that slab's
-                         n = x*Y*Z voxels (ago_runtime/encoder.py)
-      planes.int8.onnx, voxels.int8.onnx   optional: dynamically quantised (`ago export --int8`)
+      voxels_<i>.onnx    the per-voxel MLP, one graph per layer: x (n, d) -> y = x W^T + b and, for
+                         the stages whose input is h or g, the folded bank's scores (bundle.json
+                         "voxel_stages"; ago_runtime/encoder.py)
+      planes.int8.onnx, voxels_<i>.int8.onnx   optional: dynamically quantised (`ago export --int8`)
       heads.npz          W_dec (C,Dh), b_dec (C,), W_ad (C,Da), b_ad (C,), free_embedding (C,)
       banks/<name>.npz   prompt banks (ago_runtime.bank.PromptBank files); "train" = the
                          training label space's embeddings stored in the checkpoint
@@ -21,8 +21,8 @@ camera rig it was trained with. Layout (see docs/runtime.md):
 format_version, a file whose sha256 differs from bundle.json (e.g. a truncated ONNX), heads of
 the wrong shapes.
 
-Format versions: 3 = the split encoder above (files "planes", "voxels"; channels-last planes with
-the decoder's first linear inside planes.onnx). Format 2 (planes (D, X, Y) channels first) and
+Format versions: 3 = the split encoder above (files "planes", "voxels_<i>"; channels-last planes
+with the decoder's first linear inside planes.onnx). Format 2 (planes (D, X, Y) channels first) and
 format 1 (one monolithic `encoder.onnx`) are refused with a message to re-export the checkpoint.
 """
 
@@ -45,7 +45,7 @@ from .preprocess import Preprocess
 
 BUNDLE_FORMAT = "ago-bundle"
 BUNDLE_FORMAT_VERSION = 3
-ENCODER_FILES = ("planes", "voxels")
+ENCODER_FILES = ("planes",)      # plus the voxel stages listed in bundle.json "voxel_stages"
 BUNDLE_JSON = "bundle.json"
 ENV_BUNDLE = "AGO_BUNDLE"
 DEFAULT_BUNDLE_DIR = Path(__file__).resolve().parent / "assets" / "default_bundle"
@@ -75,16 +75,21 @@ class Bundle:
     banks: dict[str, Path] = field(default_factory=dict)
 
     # ---- paths -----------------------------------------------------------------------------
-    def encoder_paths(self, int8: bool = False) -> dict[str, Path]:
-        """{"planes", "voxels"} -> file paths; int8: the quantised ones."""
+    def encoder_paths(self, int8: bool = False) -> dict:
+        """{"planes": path, "voxels": [stage spec + "path", ...]} (bundle.json "voxel_stages"); int8: the
+        quantised graphs."""
         files = self.meta["files"]
-        out = {}
-        for key in ENCODER_FILES:
-            entry = files.get(f"{key}_int8" if int8 else key)
+        suffix = "_int8" if int8 else ""
+
+        def path(key):
+            entry = files.get(key + suffix)
             if entry is None:
                 raise AgoInputError(self.root, "bundle has no int8 encoder (export with `ago export --int8`)")
-            out[key] = self.root / entry["path"]
-        return out
+            return self.root / entry["path"]
+
+        return {"planes": path("planes"),
+                "voxels": [{**st, "path": path(st["file"]), "sha256": files[st["file"] + suffix].get("sha256")}
+                           for st in self.meta["voxel_stages"]]}
 
     @property
     def default_bank(self) -> str:
@@ -135,7 +140,7 @@ class Bundle:
             label_space = meta["label_space"]
             text_encoder = meta["text_encoder"]
             files = meta["files"]
-            for key in ENCODER_FILES + ("heads",):
+            for key in ENCODER_FILES + ("heads",) + tuple(st["file"] for st in meta["voxel_stages"]):
                 files[key]["path"]
         except (KeyError, TypeError, ValueError, AgoInputError) as e:
             raise AgoInputError(meta_path, f"bundle metadata incomplete or malformed ({e.__class__.__name__}: {e})") from None

@@ -39,7 +39,8 @@ def env(tmp_path_factory):
 def test_bundle_is_self_describing(env):
     meta = json.loads((env["bundle"] / "bundle.json").read_text())
     assert meta["format_version"] == 3
-    assert {"planes", "voxels", "heads"} <= set(meta["files"]) and "encoder" not in meta["files"]
+    assert {"planes", "voxels_0", "voxels_1", "heads"} <= set(meta["files"]) and "encoder" not in meta["files"]
+    assert [st["bank"] for st in meta["voxel_stages"]] == ["main", "adapted"]     # tiny: decoder 1 layer, adapter 2
     assert meta["grid"]["shape"] == [20, 20, 4]
     assert [c["name"] for c in meta["label_space"]["classes"]][:3] == ["others", "barrier", "bicycle"]
     assert meta["label_space"]["classes"][4]["occ3d_ids"] == [4]          # car
@@ -55,8 +56,7 @@ def test_bundle_is_self_describing(env):
 
 def test_onnx_files_check_and_carry_metadata(env):
     ios = {"planes": (["images", "ego2img"], ["plane_xy", "plane_xz", "plane_yz"]),
-           "voxels": (["plane_xy", "plane_xz", "plane_yz", "bank_main", "bank_adapted"],
-                      ["h", "g", "s_main", "s_adapted"])}
+           "voxels_0": (["x", "bank"], ["y", "s"]), "voxels_1": (["x", "bank"], ["s"])}
     for name, (inputs, outputs) in ios.items():
         path = env["bundle"] / f"{name}.onnx"
         onnx.checker.check_model(str(path), full_check=True)
@@ -66,7 +66,9 @@ def test_onnx_files_check_and_carry_metadata(env):
         assert json.loads(props["ago.class_names"])[4] == "car"
         assert [i.name for i in model.graph.input] == inputs
         assert [o.name for o in model.graph.output] == outputs
-        assert "Softplus" not in {n.op_type for n in model.graph.node}  # rewritten as relu(x) - log(sigmoid(|x|))
+        ops = {n.op_type for n in model.graph.node}
+        assert "Softplus" not in ops and "NonZero" not in ops     # no data-dependent shapes
+    assert {n.op_type for n in onnx.load(str(env["bundle"] / "voxels_1.onnx")).graph.node} <= {"MatMul", "Transpose", "Gemm"}
 
 
 def test_split_encoder_slabs_equal_the_torch_model_voxel_by_voxel(env):
@@ -75,7 +77,7 @@ def test_split_encoder_slabs_equal_the_torch_model_voxel_by_voxel(env):
 
     from ago_export.export import load_model
     from ago_runtime.bundle import Bundle
-    from ago_runtime.encoder import SplitEncoder
+    from ago_runtime.encoder import open_encoder
 
     model, _ckpt, cfg = load_model(env["ckpt"])
     b = Bundle.load(env["bundle"])
@@ -85,7 +87,7 @@ def test_split_encoder_slabs_equal_the_torch_model_voxel_by_voxel(env):
     with torch.no_grad():
         h_t, g_t = model.forward_hidden(torch.from_numpy(x), torch.from_numpy(m))
     for slab_voxels in (1, 3 * 20 * 4, 10 ** 6):       # 1 x-row, 3 rows (uneven last slab), everything
-        enc = SplitEncoder(b.root / "planes.onnx", b.root / "voxels.onnx", b.grid, slab_voxels=slab_voxels)
+        enc = open_encoder(b, slab_voxels=slab_voxels)
         chunks = list(enc.chunks(x, m))
         assert chunks[0][0] == 0 and chunks[-1][1] == b.grid.num_voxels
         assert all(a[1] == c[0] for a, c in zip(chunks, chunks[1:]))         # contiguous, in order
@@ -102,7 +104,7 @@ def test_parity_report_within_tolerance(env):
         assert "ca9a282c9e77460f8360f564131a8af5" in p["frame"]       # checked on the real keyframe
     q = env["meta"]["parity"]["int8"]
     assert q["rel_err_feat"] > p["rel_err_feat"]                      # int8 really is a different model
-    assert (env["bundle"] / "planes.int8.onnx").is_file() and (env["bundle"] / "voxels.int8.onnx").is_file()
+    assert all((env["bundle"] / f"{k}.int8.onnx").is_file() for k in ("planes", "voxels_0", "voxels_1"))
 
 
 def test_runtime_matches_torch_on_another_frame(env):
@@ -233,3 +235,43 @@ def test_canvas_frames_keep_maps_apart():
                              col0 + 1.0, 1.0, layout)
         got = F.grid_sample(canvas, grid[None], align_corners=False)
         assert torch.allclose(got, want, atol=1e-5)
+
+
+@pytest.mark.parametrize("decoder_layers,adapter_depth", [(1, 1), (2, 3), (1, 4)])
+def test_voxel_stages_equal_the_model_for_any_depth(decoder_layers, adapter_depth):
+    """The staged per-voxel MLP (first linear in the planes, then one stage per layer, h and g where the
+    banks are applied) gives the model's forward_hidden for any decoder / adapter depth."""
+    from ago_export.graphs import PlanesGraph, VoxelsReference, voxel_stages
+    from ago_runtime.camera import Rig
+    from ago_runtime.preprocess import Preprocess
+    from ago_train.model import ModelConfig
+
+    cfg = ModelConfig.preset("tiny")
+    cfg.decoder_layers, cfg.adapter_depth = decoder_layers, adapter_depth
+    torch.manual_seed(2)
+    model = cfg.build().eval()
+    stages = voxel_stages(model)
+    assert [s.bank for s in stages].count("main") == 1 and stages[-1].bank == "adapted"
+    assert len(stages) == decoder_layers - 1 + max(1, adapter_depth - 1) + 1
+    x = torch.randn(1, 6, 3, cfg.image_height, cfg.image_width)
+    m = torch.from_numpy(Preprocess(cfg.image_width, cfg.image_height).ego2img(Rig.nuscenes_like(1600, 900))[None])
+    with torch.no_grad():
+        h_t, g_t = model.forward_hidden(x, m)
+        xy, xz, yz = PlanesGraph(model)(x, m)
+        bm, ba = torch.randn(5, h_t.shape[-1]), torch.randn(5, g_t.shape[-1])
+        h, g, s_main, s_ad = VoxelsReference(model)(xy, xz, yz, bm, ba)
+    assert torch.allclose(h, h_t[0], atol=1e-5) and torch.allclose(g, g_t[0], atol=1e-5)
+    assert torch.allclose(s_main, bm @ h_t[0].t(), atol=1e-4) and torch.allclose(s_ad, ba @ g_t[0].t(), atol=1e-4)
+
+
+def test_deeper_model_exports_and_keeps_parity(tmp_path):
+    """A 2-layer decoder and a 3-layer adapter: four voxel stages, runtime == torch."""
+    from ago_train.model import ModelConfig
+
+    cfg = ModelConfig.preset("tiny")
+    cfg.pretrained, cfg.decoder_layers, cfg.adapter_depth = False, 2, 3
+    ckpt = random_checkpoint(tmp_path / "deep.pt", cfg, prompts="cw", seed=4)
+    meta = export_bundle(ckpt, tmp_path / "b", bank_prompts=[], real_frame=False, log=lambda s: None)
+    assert [st["bank"] for st in meta["voxel_stages"]] == [None, "main", None, "adapted"]
+    p = meta["parity"]["fp32"]
+    assert p["ok"] and min(p["agreement_main"], p["agreement_adapted"], p["agreement_identifier"]) >= 0.999

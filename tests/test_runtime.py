@@ -114,6 +114,17 @@ def _random_heads(rng, C=24, Dh=10, Da=12):
     return HeadWeights(f(C, Dh), f(C), f(C, Da), f(C), f(C))
 
 
+def test_softplus_matches_the_exact_function():
+    from ago_runtime.encoder import Softplus, softplus_
+
+    x = np.concatenate([np.linspace(-120, 120, 200000), np.random.default_rng(0).normal(0, 4, 50000)]).astype(np.float32)
+    want = np.logaddexp(0.0, x.astype(np.float64))
+    got = softplus_(x.copy(), np.empty_like(x))
+    assert np.abs(got - want).max() <= 1e-6 and np.all(np.isfinite(got))
+    two = Softplus(threads=2)(x.reshape(-1, 10).copy())            # split over threads: the same values
+    assert np.array_equal(two.reshape(-1), got)
+
+
 def test_folded_heads_match_unfolded_reference():
     rng = np.random.default_rng(0)
     w = _random_heads(rng)
@@ -198,8 +209,7 @@ def test_streamed_slabs_match_whole_grid_heads(bundle_dir, frame_dir, monkeypatc
     h, g = p.encode_arrays(x, m)
     whole = p.predict_hidden(h, g, bank, "min-entropy")
     for slab_voxels in (20 * 4, 7 * 20 * 4):            # one x-row per slab; 7 rows (uneven last slab)
-        p.encoder = enc.SplitEncoder(p.bundle.root / "planes.onnx", p.bundle.root / "voxels.onnx", p.grid,
-                                     slab_voxels=slab_voxels)
+        p.encoder = enc.open_encoder(p.bundle, slab_voxels=slab_voxels)
         got = p.predict_arrays(x, m, bank, "min-entropy")
         assert np.mean(got.semantics == whole.semantics) > 0.999
         np.testing.assert_allclose(got.entropy, whole.entropy, atol=1e-4)
@@ -379,15 +389,15 @@ def test_refuses_newer_bundle_and_truncated_onnx(bundle_dir, frame_dir, tmp_path
 
     cut = tmp_path / "cut"
     shutil.copytree(bundle_dir, cut)
-    data = (cut / "voxels.onnx").read_bytes()
-    (cut / "voxels.onnx").write_bytes(data[: len(data) // 3])
-    assert_refused(_infer(cut, frame_dir, out), "voxels.onnx", out)
+    data = (cut / "voxels_0.onnx").read_bytes()
+    (cut / "voxels_0.onnx").write_bytes(data[: len(data) // 3])
+    assert_refused(_infer(cut, frame_dir, out), "voxels_0.onnx", out)
     # Even with the recorded size/hash removed, onnxruntime's refusal becomes a one-line error.
     meta = json.loads((cut / "bundle.json").read_text())
     for k in ("size", "sha256"):
-        meta["files"]["voxels"].pop(k)
+        meta["files"]["voxels_0"].pop(k)
     (cut / "bundle.json").write_text(json.dumps(meta))
-    assert_refused(_infer(cut, frame_dir, out), "voxels.onnx", out)
+    assert_refused(_infer(cut, frame_dir, out), "voxels_0.onnx", out)
 
 
 def test_refuses_bank_of_other_encoder_or_width(bundle_dir, frame_dir, tmp_path):
@@ -432,7 +442,7 @@ def test_optimised_graph_cache_is_used_checked_and_remade(bundle_dir, frame_dir,
     monkeypatch.setenv("AGO_CACHE_DIR", str(tmp_path / "cache"))
     first = Predictor(bundle_dir)
     files = first.bundle.meta["files"]
-    cached = {k: optimized_cache_path(files[k]["sha256"]) for k in ("planes", "voxels")}
+    cached = {k: optimized_cache_path(files[k]["sha256"]) for k in ("planes", "voxels_0", "voxels_1")}
     assert all(p.is_file() and p.stat().st_size > 0 for p in cached.values())
     assert not [p for p in cached["planes"].parent.iterdir() if p.name.endswith(".tmp.onnx")]
     images, rig, _ = load_images_folder(frame_dir)
