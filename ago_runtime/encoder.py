@@ -49,7 +49,7 @@ from .grid import Grid
 from .heads import SCORE_BUDGET_BYTES
 
 PLANE_OUTPUTS = ["plane_xy", "plane_xz", "plane_yz"]
-SLAB_VOXELS = 8192    # target voxels per slab (whole x-rows of Y*Z voxels)
+SLAB_VOXELS = 4096    # target voxels per slab (whole x-rows of Y*Z voxels)
 ENV_NO_ORT_CACHE = "AGO_NO_ORT_CACHE"   # =1: never read or write cached optimised graphs
 
 

@@ -425,7 +425,7 @@ def write_report(res: dict, path: Path) -> str:
                      f" | {s['rss_mib']:.0f}" + (f" (<= {rss_t}: {met(s['rss_mib'] <= rss_t)})" if tag else "") + " |")
     L.append("\nOpen: bundle load + onnxruntime sessions (new: cached optimised graphs + one warm-up run of each graph). "
              "First frame: the first `predict_arrays` after that. Swap: a never-seen prompt file through a cold text "
-             "encoder session, folded, then one whole prediction with it (the bank's product runs inside voxels.onnx). "
+             "encoder session, folded, then one whole prediction with it (the bank's product runs in the voxel stages, so this is a whole frame). "
              "Peak RSS: VmHWM of the child (bundle, frame, warm-up, predictions).\n")
     inf = next((c.get("infer") for c in res["configs"] if c.get("infer")), None)
     if inf:
