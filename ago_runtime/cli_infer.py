@@ -9,7 +9,8 @@ Inputs (`--images DIR`):
 Outputs per frame, in `--out` (all written atomically): `<name>.npz` (Occ3D format: `semantics`
 uint8 with free = 17 when every class is one Occ3D class, else bank class indices with free = K;
 `class_names`, `free_index`; with --save-volumes also `entropy`, `confidence`, `branch`) and
-`<name>.png` (BEV of the classes, entropy BEV, camera mosaic, legend).
+`<name>.png` (--picture full: BEV of the classes, entropy BEV, camera mosaic, legend; bev: the class
+BEV and legend; none: no PNG). Reading, inference and writing overlap (run_infer).
 """
 
 from __future__ import annotations
