@@ -259,7 +259,7 @@ def frame_flops(config: str, phrases: int) -> dict:
     import torch
     from torch.utils.flop_counter import FlopCounterMode
 
-    from ago_export.graphs import PlanesGraph, VoxelsGraph
+    from ago_export.graphs import PlanesGraph, VoxelsReference
 
     cfg = model_config(config)
     torch.manual_seed(0)
@@ -283,7 +283,7 @@ def frame_flops(config: str, phrases: int) -> dict:
         with FlopCounterMode(display=False) as fc:
             planes = pg(x, m)
         new_planes = fc.get_total_flops()
-        vg = VoxelsGraph(model).eval()
+        vg = VoxelsReference(model).eval()
         with FlopCounterMode(display=False) as fc:
             vg(planes[0][:1], planes[1][:1], planes[2], torch.zeros(phrases, Dh), torch.zeros(phrases, Da))
         new_voxels = fc.get_total_flops() * X
