@@ -64,6 +64,7 @@ def main() -> None:
     from ago_runtime.encoder import Softplus
 
     os.environ.setdefault("OMP_NUM_THREADS", str(os.cpu_count() or 1))
+    os.environ.setdefault("OMP_WAIT_POLICY", "passive")   # idle OpenMP threads must not spin against the others
     load = " ".join(f"{x:.2f}" for x in os.getloadavg())
     V = H.make_tensor_value_info
     rows = []
