@@ -5,13 +5,13 @@ Takes a checkpoint written by ago_train (torch.load(weights_only=True); keys "mo
 docs/runtime.md):
 
 1. the camera-to-voxel encoder plus the modality adapter's hidden layers, as two ONNX graphs
-   (bundle format 2, ago_runtime/encoder.py): `planes.onnx` (images (1,6,3,H,W) + ego2img
-   (1,6,4,4) -> the three TPV planes at the grid's resolution) and `voxels.onnx` (a slab of x rows
-   of the planes -> h (n,Dh), g (n,Da)), so the runtime streams slabs and never holds the grid's
-   features at once; the model's nn.Softplus layers are exported as relu(x) + log1p(exp(-|x|))
-   (same values; onnxruntime's Softplus kernel was measured ~2x slower than this form), and
-   decoder_out is folded into the adapter's first linear layer (with_fused_adapter); key metadata
-   also in metadata_props;
+   (bundle format 3, ago_runtime/encoder.py; the traced modules are ago_export/graphs.py):
+   `planes.onnx` (images (1,6,3,H,W) + ego2img (1,6,4,4) -> the three TPV planes at the grid's
+   resolution, times the decoder's first linear layer, channels last) and the voxel stages (a slab
+   of voxels -> h (n,Dh), g (n,Da) and the folded bank's scores), so the runtime streams
+   slabs and never holds the grid's features at once; key metadata also in metadata_props;
+   `voxels_<i>.onnx` are the per-voxel MLP's layers and the bank products, one graph per layer
+   (the runtime applies the softplus activations between them);
 2. the linear heads (`heads.npz`) and the learnt free embedding, for bank folding at run time;
 3. banks: "train" (the label-space embeddings saved in the checkpoint) and one per shipped prompt
    file the installed text encoder could build;
@@ -24,7 +24,6 @@ every check passed; a failed check raises AgoInputError (the CLI exits 2) and wr
 
 from __future__ import annotations
 
-import copy
 import datetime as _dt
 import json
 import shutil
@@ -41,13 +40,14 @@ from ago_runtime.bank import PromptBank, bank_for_prompts
 from ago_runtime.bundle import BUNDLE_FORMAT, BUNDLE_FORMAT_VERSION, BUNDLE_JSON, file_sha256
 from ago_runtime.calibration import find_camera_images, load_images_folder
 from ago_runtime.camera import Rig
-from ago_runtime.encoder import VOXEL_INPUTS, VOXEL_OUTPUTS, SplitEncoder
+from ago_runtime.encoder import SplitEncoder
 from ago_runtime.errors import AgoInputError
 from ago_runtime.heads import HeadWeights
 from ago_runtime.preprocess import Preprocess
 from ago_runtime.prompts import LabelSpace, parse_prompt_text, shipped_label_spaces
 
 from .card import write_card
+from .graphs import PlanesGraph, VoxelStageGraph, voxel_stages
 from .parity import FP32_TOLERANCE, INT8_TOLERANCE, Tolerance, check_parity, describe
 
 OPSET = 17
@@ -71,90 +71,6 @@ def load_model(checkpoint: str | Path):
     except RuntimeError as e:
         raise AgoInputError(checkpoint, f"weights do not fit the model config ({str(e).splitlines()[0]})") from None
     return model.eval(), ckpt, cfg
-
-
-class StableSoftplus(nn.Module):
-    """softplus(x) = relu(x) + log1p(exp(-|x|)): the same function, faster in onnxruntime."""
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return torch.relu(x) + torch.log1p(torch.exp(-torch.abs(x)))
-
-
-def with_stable_softplus(model: nn.Module) -> nn.Module:
-    """A deep copy of `model` whose nn.Softplus(beta=1) layers are StableSoftplus."""
-    model = copy.deepcopy(model)
-    for parent in model.modules():
-        for name, child in list(parent.named_children()):
-            if isinstance(child, nn.Softplus) and child.beta == 1:
-                setattr(parent, name, StableSoftplus())
-    return model
-
-
-def with_fused_adapter(model: nn.Module) -> nn.Module:
-    """Fold decoder_out into the adapter's first linear layer, in place on an export copy.
-
-    g = adapter(decoder_out(h)) and both decoder_out and the adapter's first layer are linear, so
-    their composition is one (Dh -> A) linear: W = W1 W_dec, b = W1 b_dec + b1. The exported graph
-    then never builds the (N, C) embedding volume (at 200x200x16 that is 640 000 x 384 floats) and
-    does a Dh x A product instead of Dh x C + C x A. Models whose adapter has no first linear
-    (adapter_depth 1) are left as they are.
-    """
-    net = getattr(getattr(model, "adapter", None), "net", None)
-    dec = getattr(model, "decoder_out", None)
-    if not isinstance(net, nn.Sequential) or len(net) == 0 or not isinstance(net[0], nn.Linear) \
-            or not isinstance(dec, nn.Linear):
-        return model
-    first = net[0]
-    with torch.no_grad():
-        w = first.weight.double() @ dec.weight.double()
-        b = first.weight.double() @ dec.bias.double() + first.bias.double()
-        fused = nn.Linear(dec.in_features, first.out_features)
-        fused.weight.copy_(w.float())
-        fused.bias.copy_(b.float())
-    net[0] = fused
-    model.decoder_out = nn.Identity()
-    return model
-
-
-class PlanesForExport(nn.Module):
-    """planes.onnx: images (1,6,3,H,W), ego2img (1,6,4,4) -> plane_xy (D,X,Y), plane_xz (D,X,Z), plane_yz (D,Y,Z),
-    the TPV planes already upsampled to the grid (ago_train.model.aggregate.upsample_planes)."""
-
-    def __init__(self, model: nn.Module):
-        super().__init__()
-        self.model = model
-
-    def forward(self, images: torch.Tensor, ego2img: torch.Tensor):
-        from ago_train.model.aggregate import upsample_planes
-
-        planes = upsample_planes(self.model.planes(images, ego2img), self.model.grid_shape)
-        return planes["xy"][0], planes["xz"][0], planes["yz"][0]
-
-
-class VoxelsForExport(nn.Module):
-    """voxels.onnx: a slab of x rows of the planes -> h (n,Dh), g (n,Da) of its n = x*Y*Z voxels, C order,
-    and the bank-folded phrase scores of both branches.
-
-    The voxel feature is xy[x, y] + xz[x, z] + yz[y, z] (ago_train.model.aggregate.planes_to_voxels),
-    then the decoder MLP (h) and the adapter's hidden layers on decoder_out(h) (g; decoder_out is
-    folded into the adapter's first linear by with_fused_adapter). The folded bank comes in as two
-    INPUTS, bank_main (P', Dh) and bank_adapted (P', Da) (ago_runtime.heads.FoldedHeads.A_main_T /
-    A_ad_T: any bank, any P', no re-export), and s_main = bank_main h^T, s_adapted = bank_adapted g^T
-    (P', n) come out class-major: the scores are the heads' big matrix product, done here by
-    onnxruntime's GEMM (measured ~3x faster than numpy's OpenBLAS for this skinny shape), and the
-    (n, Da) features need not leave onnxruntime at all."""
-
-    def __init__(self, model: nn.Module):
-        super().__init__()
-        self.decoder, self.decoder_out, self.adapter = model.decoder, model.decoder_out, model.adapter
-
-    def forward(self, plane_xy: torch.Tensor, plane_xz: torch.Tensor, plane_yz: torch.Tensor,
-                bank_main: torch.Tensor, bank_adapted: torch.Tensor):
-        vox = plane_xy.unsqueeze(-1) + plane_xz.unsqueeze(-2) + plane_yz.unsqueeze(-3)   # (D, x, Y, Z)
-        f = vox.reshape(vox.shape[0], -1).transpose(0, 1)                                 # (n, D)
-        h = self.decoder(f)
-        g = self.adapter(self.decoder_out(h))
-        return h, g, torch.matmul(bank_main, h.transpose(0, 1)), torch.matmul(bank_adapted, g.transpose(0, 1))
 
 
 def head_weights(model) -> HeadWeights:
@@ -182,37 +98,46 @@ def _finish_onnx(path: Path, metadata: dict[str, str], doc: str) -> None:
         raise AgoInputError(path, f"onnx.checker refused the exported graph: {str(e).splitlines()[0]}") from None
 
 
-def export_onnx(model: nn.Module, out_dir: Path, cfg, metadata: dict[str, str]) -> dict[str, str]:
-    """Write planes.onnx and voxels.onnx into out_dir; returns {"planes": file, "voxels": file}."""
-    fast = with_fused_adapter(with_stable_softplus(model)).eval()
+def export_onnx(model: nn.Module, out_dir: Path, cfg, metadata: dict[str, str]) -> tuple[dict[str, str], list[dict]]:
+    """Write planes.onnx and voxels_<i>.onnx (ago_export.graphs) into out_dir; returns ({key: file}, the
+    voxel stages' specs for bundle.json "voxel_stages", each with its file key)."""
     images = torch.zeros(1, cfg.num_cameras, 3, cfg.image_height, cfg.image_width)
     ego2img = torch.eye(4).expand(1, cfg.num_cameras, 4, 4).contiguous()
-    X, Y, Z = cfg.grid_obj().shape
-    D = cfg.tpv_dim
-    slab = min(X, 2)
+    files, specs = {"planes": "planes.onnx"}, []
     with warnings.catch_warnings(), torch.no_grad():
         warnings.simplefilter("ignore")
-        torch.onnx.export(PlanesForExport(fast).eval(), (images, ego2img), str(out_dir / "planes.onnx"), dynamo=False,
+        torch.onnx.export(PlanesGraph(model).eval(), (images, ego2img), str(out_dir / "planes.onnx"), dynamo=False,
                           opset_version=OPSET, input_names=["images", "ego2img"],
                           output_names=["plane_xy", "plane_xz", "plane_yz"], do_constant_folding=True)
-        torch.onnx.export(VoxelsForExport(fast).eval(),
-                          (torch.zeros(D, slab, Y), torch.zeros(D, slab, Z), torch.zeros(D, Y, Z),
-                           torch.zeros(3, cfg.hidden_dim), torch.zeros(3, fast.adapter.out_dim)),
-                          str(out_dir / "voxels.onnx"), dynamo=False, opset_version=OPSET,
-                          input_names=VOXEL_INPUTS, output_names=VOXEL_OUTPUTS,
-                          dynamic_axes={"plane_xy": {1: "slab"}, "plane_xz": {1: "slab"}, "bank_main": {0: "phrases"},
-                                        "bank_adapted": {0: "phrases"}, "h": {0: "voxels"}, "g": {0: "voxels"},
-                                        "s_main": {0: "phrases", 1: "voxels"},
-                                        "s_adapted": {0: "phrases", 1: "voxels"}},
-                          do_constant_folding=True)
+        for i, stage in enumerate(voxel_stages(model)):
+            graph = VoxelStageGraph(stage).eval()
+            # the last stage (no linear) takes g: the width of the previous stage's output
+            d_in = stage.linear.in_features if stage.linear is not None else specs[-1]["linear"][1]
+            inputs, outputs = graph.io_names()
+            args = (torch.zeros(2, d_in),) + ((torch.zeros(3, d_in),) if stage.bank else ())
+            axes = {"x": {0: "voxels"}, "bank": {0: "phrases"}, "y": {0: "voxels"}, "s": {0: "phrases", 1: "voxels"}}
+            key = f"voxels_{i}"
+            torch.onnx.export(graph, args, str(out_dir / f"{key}.onnx"), dynamo=False, opset_version=OPSET,
+                              input_names=inputs, output_names=outputs,
+                              dynamic_axes={k: v for k, v in axes.items() if k in inputs + outputs},
+                              do_constant_folding=True)
+            files[key] = f"{key}.onnx"
+            specs.append({"file": key, "input_dim": d_in, **stage.spec()})
     _finish_onnx(out_dir / "planes.onnx", {**metadata, "ago.graph": "planes"},
-                 "ago camera-to-TPV encoder: images (1,6,3,H,W) + ego2img (1,6,4,4) -> plane_xy (D,X,Y), "
-                 "plane_xz (D,X,Z), plane_yz (D,Y,Z) at the grid resolution")
-    _finish_onnx(out_dir / "voxels.onnx", {**metadata, "ago.graph": "voxels"},
-                 "ago per-voxel MLPs: plane_xy (D,x,Y), plane_xz (D,x,Z), plane_yz (D,Y,Z) of a slab of x rows, "
-                 "bank_main (P',Dh), bank_adapted (P',Da) -> h (n,Dh), g (n,Da), s_main (P',n), s_adapted (P',n); "
-                 "n = x*Y*Z voxels in C order over [x, y, z]")
-    return {"planes": "planes.onnx", "voxels": "voxels.onnx"}
+                 "ago camera-to-TPV encoder: images (1,6,3,H,W) + ego2img (1,6,4,4) -> plane_xy (X,Y,Dh), "
+                 "plane_xz (X,Z,Dh), plane_yz (Y,Z,Dh): the TPV planes at the grid resolution times the decoder's "
+                 "first linear layer (its bias in plane_xy), channels last")
+    for spec in specs:
+        _finish_onnx(out_dir / files[spec["file"]], {**metadata, "ago.graph": spec["file"],
+                                                      "ago.voxel_stage": json.dumps(spec)},
+                     "ago per-voxel MLP stage: x (n, d_in) -> y = x W^T + b (n, d_out) the next pre-activation, "
+                     "and for the h / g stages s = bank x^T (P', n)")
+    return files, specs
+
+
+def stage_paths(root: Path, files: dict[str, str], specs: list[dict], suffix: str = "") -> list[dict]:
+    """The voxel stages of a bundle folder as SplitEncoder takes them: spec + "path"."""
+    return [{**s, "path": root / files[s["file"] + suffix]} for s in specs]
 
 
 # ---- label space and banks -----------------------------------------------------------------
@@ -332,11 +257,11 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
             "ago.version": ago_runtime.__version__, "ago.grid": json.dumps(grid.to_dict()),
             "ago.preprocess": json.dumps(pre.to_dict()), "ago.text_encoder": json.dumps(text_encoder),
             "ago.class_names": json.dumps(list(space.class_names)), "ago.label_space": space.name,
-            "ago.outputs": "planes: the TPV planes at the grid; voxels: h (n, Dh) decoder hidden, g (n, Da) adapter "
-                           "hidden, s_main / s_adapted (P', n) bank scores, for a slab of n voxels in C order over [x, y, z]",
+            "ago.outputs": "planes: the TPV planes at the grid (times the decoder's first linear); voxels_<i>: one layer "
+                           "of the per-voxel MLP (y = x W^T + b) and the bank scores s = bank x^T (P', n) of h / g",
         }
         log(f"exporting the encoder to ONNX (opset {OPSET}) ...")
-        files = export_onnx(model, tmp, cfg, metadata)
+        files, stages = export_onnx(model, tmp, cfg, metadata)
         np.savez(tmp / "heads.npz", **heads.to_arrays())
         (tmp / "banks").mkdir()
         bank.save(tmp / "banks" / "train.npz")
@@ -360,8 +285,8 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
         report: dict = {}
         if parity:
             log("checking parity onnxruntime vs torch ...")
-            report["fp32"] = check_parity(model, SplitEncoder(tmp / files["planes"], tmp / files["voxels"], grid),
-                                          heads, bank, x, m, tolerance, frame_name)
+            report["fp32"] = check_parity(model, SplitEncoder(tmp / files["planes"], stage_paths(tmp, files, stages),
+                                                              grid), heads, bank, x, m, tolerance, frame_name)
             log(f"parity fp32: {describe(report['fp32'])}")
             if not report["fp32"]["ok"]:
                 raise AgoInputError(checkpoint, f"export parity check failed on {frame_name}: {describe(report['fp32'])}")
@@ -372,12 +297,13 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
             from .quantize import quantize_encoder
 
             log("quantising the encoder to int8 ...")
-            for key in ("planes", "voxels"):
+            for key in ["planes"] + [st["file"] for st in stages]:
                 quantize_encoder(tmp / files[key], tmp / f"{key}.int8.onnx")
                 files[f"{key}_int8"] = f"{key}.int8.onnx"
             if parity:
-                report["int8"] = check_parity(model, SplitEncoder(tmp / "planes.int8.onnx", tmp / "voxels.int8.onnx",
-                                                                  grid), heads, bank, x, m, int8_tolerance, frame_name)
+                report["int8"] = check_parity(model, SplitEncoder(tmp / "planes.int8.onnx",
+                                                                  stage_paths(tmp, files, stages, "_int8"), grid),
+                                              heads, bank, x, m, int8_tolerance, frame_name)
                 log(f"parity int8: {describe(report['int8'])}")
                 if not report["int8"]["ok"]:
                     raise AgoInputError(checkpoint, f"int8 parity check failed on {frame_name}: "
@@ -404,6 +330,7 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
             "banks": banks,
             "bank_notes": bank_notes,
             "files": file_entries,
+            "voxel_stages": stages,
             "parity": report,
         }
         write_card(tmp, ckpt, checkpoint, **(card or {}))   # card.json: what it was trained on (ago_export/card.py)

@@ -55,7 +55,7 @@ def reference_labels(feat: np.ndarray, feat_ad: np.ndarray, bank, free: np.ndarr
 
 def runtime_labels(encoder, folded: FoldedHeads, images: np.ndarray, ego2img: np.ndarray) -> dict[str, np.ndarray]:
     """Labels the way `ago infer` gets them: the encoder's per-slab phrase scores (for a split bundle
-    computed inside voxels.onnx) through the numpy class max / softmax / identifier."""
+    computed by the voxel stages' GEMMs) through the numpy class max / softmax / identifier."""
     out: dict[str, list] = {"main": [], "adapted": [], "identifier": []}
     for _start, _stop, s_main, s_ad in encoder.score_chunks(images, ego2img, folded):
         out["identifier"].append(folded.classify_scores(s_main.copy(), s_ad.copy(), "min-entropy")[0])

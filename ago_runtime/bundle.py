@@ -6,11 +6,13 @@ camera rig it was trained with. Layout (see docs/runtime.md):
 
     bundle_dir/
       bundle.json        metadata (below); format_version, sha256 of every file
-      planes.onnx        images (1,6,3,H,W) f32 + ego2img (1,6,4,4) f32 -> plane_xy (D,X,Y),
-                         plane_xz (D,X,Z), plane_yz (D,Y,Z): the TPV planes at the grid's resolution
-      voxels.onnx        plane_xy (D,x,Y), plane_xz (D,x,Z), plane_yz (D,Y,Z) of a slab of x rows
-                         -> h (n,Dh), g (n,Da) of that slab's n = x*Y*Z voxels (ago_runtime/encoder.py)
-      planes.int8.onnx, voxels.int8.onnx   optional: dynamically quantised (`ago export --int8`)
+      planes.onnx        images (1,6,3,H,W) f32 + ego2img (1,6,4,4) f32 -> plane_xy (X,Y,Dh),
+                         plane_xz (X,Z,Dh), plane_yz (Y,Z,Dh): the TPV planes at the grid's resolution
+                         times the decoder's first linear layer, channels last
+      voxels_<i>.onnx    the per-voxel MLP, one graph per layer: x (n, d) -> y = x W^T + b and, for
+                         the stages whose input is h or g, the folded bank's scores (bundle.json
+                         "voxel_stages"; ago_runtime/encoder.py)
+      planes.int8.onnx, voxels_<i>.int8.onnx   optional: dynamically quantised (`ago export --int8`)
       heads.npz          W_dec (C,Dh), b_dec (C,), W_ad (C,Da), b_ad (C,), free_embedding (C,)
       banks/<name>.npz   prompt banks (ago_runtime.bank.PromptBank files); "train" = the
                          training label space's embeddings stored in the checkpoint
@@ -21,8 +23,9 @@ camera rig it was trained with. Layout (see docs/runtime.md):
 format_version, a file whose sha256 differs from bundle.json (e.g. a truncated ONNX), heads of
 the wrong shapes.
 
-Format versions: 2 = the split encoder above (files "planes", "voxels"). Format 1 (one monolithic
-`encoder.onnx`, before 2026-12) is refused with a message to re-export the checkpoint.
+Format versions: 3 = the split encoder above (files "planes", "voxels_<i>"; channels-last planes
+with the decoder's first linear inside planes.onnx). Format 2 (planes (D, X, Y) channels first) and
+format 1 (one monolithic `encoder.onnx`) are refused with a message to re-export the checkpoint.
 """
 
 from __future__ import annotations
@@ -43,8 +46,8 @@ from .heads import HeadWeights
 from .preprocess import Preprocess
 
 BUNDLE_FORMAT = "ago-bundle"
-BUNDLE_FORMAT_VERSION = 2
-ENCODER_FILES = ("planes", "voxels")
+BUNDLE_FORMAT_VERSION = 3
+ENCODER_FILES = ("planes",)      # plus the voxel stages listed in bundle.json "voxel_stages"
 BUNDLE_JSON = "bundle.json"
 CARD_FILE = "card.json"          # written by ago_export/card.py
 ENV_BUNDLE = "AGO_BUNDLE"
@@ -76,16 +79,21 @@ class Bundle:
     card: dict | None = None       # card.json (what the model was trained on), None when the bundle has none
 
     # ---- paths -----------------------------------------------------------------------------
-    def encoder_paths(self, int8: bool = False) -> dict[str, Path]:
-        """{"planes", "voxels"} -> file paths; int8: the quantised ones."""
+    def encoder_paths(self, int8: bool = False) -> dict:
+        """{"planes": path, "voxels": [stage spec + "path", ...]} (bundle.json "voxel_stages"); int8: the
+        quantised graphs."""
         files = self.meta["files"]
-        out = {}
-        for key in ENCODER_FILES:
-            entry = files.get(f"{key}_int8" if int8 else key)
+        suffix = "_int8" if int8 else ""
+
+        def path(key):
+            entry = files.get(key + suffix)
             if entry is None:
                 raise AgoInputError(self.root, "bundle has no int8 encoder (export with `ago export --int8`)")
-            out[key] = self.root / entry["path"]
-        return out
+            return self.root / entry["path"]
+
+        return {"planes": path("planes"),
+                "voxels": [{**st, "path": path(st["file"]), "sha256": files[st["file"] + suffix].get("sha256")}
+                           for st in self.meta["voxel_stages"]]}
 
     @property
     def default_bank(self) -> str:
@@ -124,8 +132,8 @@ class Bundle:
         if not isinstance(version, int) or version < 1:
             raise AgoInputError(meta_path, f"bad format_version {version!r}")
         if version < BUNDLE_FORMAT_VERSION:
-            raise AgoInputError(meta_path, f"bundle format version {version} (one encoder.onnx) is no longer read; "
-                                "re-export the checkpoint with `ago export`")
+            raise AgoInputError(meta_path, f"bundle format version {version} is no longer read (this ago reads "
+                                f"{BUNDLE_FORMAT_VERSION}); re-export the checkpoint with `ago export`")
         if version > BUNDLE_FORMAT_VERSION:
             raise AgoInputError(meta_path, f"bundle format version {version} is newer than this ago reads "
                                 f"({BUNDLE_FORMAT_VERSION}); upgrade ago or re-export the model")
@@ -136,7 +144,7 @@ class Bundle:
             label_space = meta["label_space"]
             text_encoder = meta["text_encoder"]
             files = meta["files"]
-            for key in ENCODER_FILES + ("heads",):
+            for key in ENCODER_FILES + ("heads",) + tuple(st["file"] for st in meta["voxel_stages"]):
                 files[key]["path"]
         except (KeyError, TypeError, ValueError, AgoInputError) as e:
             raise AgoInputError(meta_path, f"bundle metadata incomplete or malformed ({e.__class__.__name__}: {e})") from None

@@ -10,12 +10,16 @@ Inputs (`--images DIR`):
 Outputs per frame, in `--out` (all written atomically): `<name>.npz` (Occ3D format: `semantics`
 uint8 with free = 17 when every class is one Occ3D class, else bank class indices with free = K;
 `class_names`, `free_index`; with --save-volumes also `entropy`, `confidence`, `branch`) and
-`<name>.png` (BEV of the classes, entropy BEV, camera mosaic, legend).
+`<name>.png` (--picture full: BEV of the classes, entropy BEV, camera mosaic, legend; bev: the class
+BEV and legend; none: no PNG). Reading, inference and writing overlap (run_infer).
 """
 
 from __future__ import annotations
 
+import queue
 import sys
+import threading
+import time
 import warnings
 from pathlib import Path
 from typing import Iterator, List, Optional
@@ -120,30 +124,73 @@ def iter_frames(images: Path, sample, info: Optional[Path], fallback_rig) -> Ite
     yield images.resolve().name, imgs, rig, str(images)
 
 
-def prediction_picture(pred, images: dict | None, title: str = "") -> np.ndarray:
+PICTURES = ("full", "bev", "none")
+
+
+def prediction_picture(pred, images: dict | None, title: str = "", kind: str = "full") -> np.ndarray:
+    """The PNG of one prediction. kind "full": class BEV, entropy BEV, adapted-branch share, legend and
+    the six cameras; "bev": the class BEV and the legend only (a few ms)."""
     from . import render
 
     colors = render.palette_for(pred.class_names)
     colors = np.concatenate([colors, np.array([[240, 240, 240]], np.uint8)])
     scale = max(3, 360 // max(pred.semantics.shape[:2]))
     bev = render.bev_image(pred.semantics, colors=colors, free_index=pred.free_index, grid=pred.grid, scale=scale)
-    occupied = pred.semantics != pred.free_index
-    ent = render.scalar_bev(pred.entropy, mask=occupied, label="entropy (nats)", grid=pred.grid, scale=scale)
-    panels = [(f"classes ({pred.identifier})", bev), ("entropy, max over z", ent)]
-    if pred.identifier != "none":
-        share = render.scalar_bev(pred.branch.astype(np.float32), reduce="mean", mask=occupied, vmin=0, vmax=1,
-                                  label="adapted share", grid=pred.grid, scale=scale)
-        panels.append(("identifier: adapted branch share", share))
+    panels = [(f"classes ({pred.identifier})", bev)]
+    if kind == "full":
+        occupied = pred.semantics != pred.free_index
+        ent = render.scalar_bev(pred.entropy, mask=occupied, label="entropy (nats)", grid=pred.grid, scale=scale)
+        panels.append(("entropy, max over z", ent))
+        if pred.identifier != "none":
+            share = render.scalar_bev(pred.branch.astype(np.float32), reduce="mean", mask=occupied, vmin=0, vmax=1,
+                                      label="adapted share", grid=pred.grid, scale=scale)
+            panels.append(("identifier: adapted branch share", share))
     top = render.side_by_side(panels)
     parts = [top, render.legend(pred.class_names, colors[:-1], width=top.shape[1])]
-    if images:
+    if images and kind == "full":
         parts.append(render.rig_mosaic(images, width=top.shape[1]))
     picture = render.stack_vertical(parts)
     return render.with_title(picture, title) if title else picture   # the full name, wrapped, never cut
 
 
+def _read_ahead(frames, read, outbox: queue.Queue, stop: threading.Event) -> None:
+    """Reader thread: read(frame) for each frame onto `outbox`, then None; an exception is put on the
+    queue instead (the consumer re-raises it). Stops early when `stop` is set."""
+    try:
+        for frame in frames:
+            if stop.is_set():
+                return
+            outbox.put(read(frame))
+        outbox.put(None)
+    except BaseException as e:  # handed to the main thread
+        outbox.put(e)
+
+
+class _Writer(threading.Thread):
+    """Writer thread: write(item) for each item of `inbox` until None. The first exception is kept in
+    `error` (the main thread re-raises it) and later items are dropped, so the queue never blocks."""
+
+    def __init__(self, write, inbox: queue.Queue):
+        super().__init__(daemon=True)
+        self.write, self.inbox = write, inbox
+        self.error: BaseException | None = None
+
+    def run(self) -> None:
+        while (item := self.inbox.get()) is not None:
+            if self.error is None:
+                try:
+                    self.write(item)
+                except BaseException as e:
+                    self.error = e
+
+
 def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, sample=None, info=None,
-              int8=False) -> list[Path]:
+              int8=False, picture: str = "full") -> list[Path]:
+    """Predict every frame; three stages overlap (threads; numpy, OpenCV and onnxruntime release the GIL):
+    a reader decodes and preprocesses frame i+1 and a writer writes frame i-1 (npz, PNG) while the
+    main thread runs the graphs and heads of frame i. The first frame is read and checked before
+    anything is written; an error in any stage ends the run with that error (the files written
+    before it are complete: every file is written atomically)."""
     from .atomic import save_npz
     from .bundle import Bundle, resolve_bundle
     from .progress import track
@@ -158,29 +205,71 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
     _print_warnings()
     if identifier is not None and identifier not in IDENTIFIERS:
         raise AgoInputError("--identifier", f"must be one of {', '.join(IDENTIFIERS)}, got {identifier!r}")
+    if picture not in PICTURES:
+        raise AgoInputError("--picture", f"must be one of {', '.join(PICTURES)}, got {picture!r}")
     check_output_dir(out, "--out")   # before any work
     b = Bundle.load(resolve_bundle(bundle))
     typer.echo(card_line(b))   # stdout: information; stderr keeps only warnings and the one error line
     chosen = choose_bank(b, prompts, bank)
     predictor = Predictor(b, int8=int8)
-    predictor.fold(chosen)   # checks the bank's encoder and width before any work
+    folded = predictor.fold(chosen)   # checks the bank's encoder and width before any work
+    identifier = identifier or b.identifier
     frames = iter_frames(Path(images) if images else None, sample, Path(info) if info else None, b.rig)
-    first = next(frames)      # reads and checks the first frame before anything is written
     out = Path(out)
-    written = []
 
-    def all_frames():
-        yield first
-        yield from frames
+    def read(frame):
+        name, imgs, rig, source = frame
+        t = time.perf_counter()
+        x, m = predictor.prepare(imgs, rig, source)
+        return name, imgs, x, m, time.perf_counter() - t
 
-    for name, imgs, rig, source in track(all_frames(), "predicting"):
-        pred = predictor.predict(imgs, rig, chosen, identifier, source=source)
+    def write(item):
+        name, imgs, pred = item
         npz = out / f"{name}.npz"
         save_npz(npz, **pred.output_arrays(volumes=save_volumes))
-        png = save_png(out / f"{name}.png", prediction_picture(pred, imgs, name))
+        files = [npz]
+        if picture != "none":
+            files.append(save_png(out / f"{name}.png", prediction_picture(pred, imgs, name, picture)))
         t = pred.timings
-        typer.echo(f"{name}: {npz} {png} (encoder {t['encoder']:.2f} s, heads {t['heads']:.2f} s)", err=True)
-        written += [npz, png]
+        typer.echo(f"{name}: {' '.join(map(str, files))} (preprocess {t['preprocess']:.2f} s, encoder "
+                   f"{t['encoder']:.2f} s, heads {t['heads']:.2f} s)", err=True)
+        return files
+
+    first = read(next(frames))      # reads and checks the first frame before anything is written
+    prepared: queue.Queue = queue.Queue(maxsize=2)
+    to_write: queue.Queue = queue.Queue(maxsize=2)
+    stop = threading.Event()
+    written: list[Path] = []
+    reader = threading.Thread(target=_read_ahead, args=(frames, read, prepared, stop), daemon=True)
+    writer = _Writer(lambda item: written.extend(write(item)), to_write)
+    reader.start()
+    writer.start()
+
+    def stream():
+        yield first
+        while (item := prepared.get()) is not None:
+            if isinstance(item, BaseException):
+                raise item
+            yield item
+
+    try:
+        for name, imgs, x, m, t_pre in track(stream(), "predicting"):
+            if writer.error is not None:
+                break
+            pred = predictor.predict_arrays(x, m, chosen, identifier, folded)
+            pred.timings = {"preprocess": t_pre, **pred.timings}
+            to_write.put((name, imgs, pred))
+    finally:
+        stop.set()
+        while reader.is_alive():           # unblock a reader waiting on a full queue
+            try:
+                prepared.get(timeout=0.05)
+            except queue.Empty:
+                pass
+        to_write.put(None)
+        writer.join()
+    if writer.error is not None:
+        raise writer.error
     return written
 
 
@@ -197,10 +286,13 @@ def register(app: typer.Typer) -> None:
         sample: Optional[List[str]] = typer.Option(None, "--sample", help="a dataset's sample token or scene name "
                                                    "(repeatable: several frames, one bundle load)"),
         info: Optional[Path] = typer.Option(None, "--info", help="mmdetection3d info .pkl"),
-        int8: bool = typer.Option(False, "--int8", help="use the bundle's int8 encoder"),
+        int8: bool = typer.Option(False, "--int8", help="use the bundle's int8 encoder (needs a bundle exported "
+                                  "with `ago export --int8`; faster, less exact: docs/runtime.md)"),
+        picture: str = typer.Option("full", "--picture", help="PNG per frame: full (BEVs, legend, cameras), "
+                                    "bev (class BEV + legend, cheap) or none"),
     ) -> None:
         """Predict 3D occupancy for camera images with an exported bundle (numpy + onnxruntime)."""
-        run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, sample, info, int8)
+        run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, sample, info, int8, picture)
 
     @app.command("demo")
     def demo_cmd(

@@ -152,8 +152,8 @@ class Predictor:
                        folded: FoldedHeads | None = None) -> Prediction:
         """Preprocessed inputs -> Prediction, streaming the encoder's slabs through the heads.
 
-        timings: "encoder" = the graphs (for format 2 including the heads' matrix product, which runs
-        inside voxels.onnx), "heads" = the numpy part (class max, softmax, entropy, identifier)."""
+        timings: "encoder" = the graphs (planes + voxels; the heads' matrix product runs inside
+        voxels.onnx), "heads" = the numpy part (class max, softmax, entropy, identifier)."""
         folded = folded or self.fold(bank)
         self._check_classes(bank)
         n = self.grid.num_voxels

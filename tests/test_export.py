@@ -14,7 +14,8 @@ import pytest
 torch = pytest.importorskip("torch")
 onnx = pytest.importorskip("onnx")
 
-from ago_export.export import StableSoftplus, export_bundle, load_model, with_stable_softplus  # noqa: E402
+from ago_export.export import export_bundle, load_model  # noqa: E402
+from ago_export.graphs import LogSigmoidSoftplus, export_activations  # noqa: E402
 from ago_export.parity import Tolerance, reference_labels  # noqa: E402
 from ago_export.testing import random_checkpoint  # noqa: E402
 from ago_runtime.bundle import Bundle  # noqa: E402
@@ -37,8 +38,9 @@ def env(tmp_path_factory):
 
 def test_bundle_is_self_describing(env):
     meta = json.loads((env["bundle"] / "bundle.json").read_text())
-    assert meta["format_version"] == 2
-    assert {"planes", "voxels", "heads"} <= set(meta["files"]) and "encoder" not in meta["files"]
+    assert meta["format_version"] == 3
+    assert {"planes", "voxels_0", "voxels_1", "heads"} <= set(meta["files"]) and "encoder" not in meta["files"]
+    assert [st["bank"] for st in meta["voxel_stages"]] == ["main", "adapted"]     # tiny: decoder 1 layer, adapter 2
     assert meta["grid"]["shape"] == [20, 20, 4]
     assert [c["name"] for c in meta["label_space"]["classes"]][:3] == ["others", "barrier", "bicycle"]
     assert meta["label_space"]["classes"][4]["occ3d_ids"] == [4]          # car
@@ -54,8 +56,7 @@ def test_bundle_is_self_describing(env):
 
 def test_onnx_files_check_and_carry_metadata(env):
     ios = {"planes": (["images", "ego2img"], ["plane_xy", "plane_xz", "plane_yz"]),
-           "voxels": (["plane_xy", "plane_xz", "plane_yz", "bank_main", "bank_adapted"],
-                      ["h", "g", "s_main", "s_adapted"])}
+           "voxels_0": (["x", "bank"], ["y", "s"]), "voxels_1": (["x", "bank"], ["s"])}
     for name, (inputs, outputs) in ios.items():
         path = env["bundle"] / f"{name}.onnx"
         onnx.checker.check_model(str(path), full_check=True)
@@ -65,7 +66,9 @@ def test_onnx_files_check_and_carry_metadata(env):
         assert json.loads(props["ago.class_names"])[4] == "car"
         assert [i.name for i in model.graph.input] == inputs
         assert [o.name for o in model.graph.output] == outputs
-        assert "Softplus" not in {n.op_type for n in model.graph.node}  # rewritten as relu + log1p(exp(-|x|))
+        ops = {n.op_type for n in model.graph.node}
+        assert "Softplus" not in ops and "NonZero" not in ops     # no data-dependent shapes
+    assert {n.op_type for n in onnx.load(str(env["bundle"] / "voxels_1.onnx")).graph.node} <= {"MatMul", "Transpose", "Gemm"}
 
 
 def test_split_encoder_slabs_equal_the_torch_model_voxel_by_voxel(env):
@@ -74,7 +77,7 @@ def test_split_encoder_slabs_equal_the_torch_model_voxel_by_voxel(env):
 
     from ago_export.export import load_model
     from ago_runtime.bundle import Bundle
-    from ago_runtime.encoder import SplitEncoder
+    from ago_runtime.encoder import open_encoder
 
     model, _ckpt, cfg = load_model(env["ckpt"])
     b = Bundle.load(env["bundle"])
@@ -84,7 +87,7 @@ def test_split_encoder_slabs_equal_the_torch_model_voxel_by_voxel(env):
     with torch.no_grad():
         h_t, g_t = model.forward_hidden(torch.from_numpy(x), torch.from_numpy(m))
     for slab_voxels in (1, 3 * 20 * 4, 10 ** 6):       # 1 x-row, 3 rows (uneven last slab), everything
-        enc = SplitEncoder(b.root / "planes.onnx", b.root / "voxels.onnx", b.grid, slab_voxels=slab_voxels)
+        enc = open_encoder(b, slab_voxels=slab_voxels)
         chunks = list(enc.chunks(x, m))
         assert chunks[0][0] == 0 and chunks[-1][1] == b.grid.num_voxels
         assert all(a[1] == c[0] for a, c in zip(chunks, chunks[1:]))         # contiguous, in order
@@ -101,7 +104,7 @@ def test_parity_report_within_tolerance(env):
         assert "ca9a282c9e77460f8360f564131a8af5" in p["frame"]       # checked on the real keyframe
     q = env["meta"]["parity"]["int8"]
     assert q["rel_err_feat"] > p["rel_err_feat"]                      # int8 really is a different model
-    assert (env["bundle"] / "planes.int8.onnx").is_file() and (env["bundle"] / "voxels.int8.onnx").is_file()
+    assert all((env["bundle"] / f"{k}.int8.onnx").is_file() for k in ("planes", "voxels_0", "voxels_1"))
 
 
 def test_runtime_matches_torch_on_another_frame(env):
@@ -123,11 +126,11 @@ def test_runtime_matches_torch_on_another_frame(env):
         assert np.mean(got == want[key]) >= 0.999
 
 
-def test_stable_softplus_equals_softplus():
-    x = torch.linspace(-40, 40, 10001)
-    assert torch.allclose(StableSoftplus()(x), torch.nn.functional.softplus(x), atol=1e-6, rtol=1e-6)
-    m = with_stable_softplus(torch.nn.Sequential(torch.nn.Linear(3, 3), torch.nn.Softplus()))
-    assert isinstance(m[1], StableSoftplus)
+def test_logsigmoid_softplus_equals_softplus():
+    x = torch.linspace(-100, 100, 20001)
+    assert torch.allclose(LogSigmoidSoftplus()(x), torch.nn.functional.softplus(x), atol=1e-6, rtol=1e-6)
+    m = export_activations(torch.nn.Sequential(torch.nn.Linear(3, 3), torch.nn.Softplus()))
+    assert isinstance(m[1], LogSigmoidSoftplus)
 
 
 def test_failed_parity_writes_nothing(env):
@@ -166,3 +169,109 @@ def test_cli_export_synthetic_frame_and_bad_checkpoint(env, tmp_path):
     assert r.returncode == 2
     assert r.stderr.strip().splitlines()[-1].startswith(f"error: {bad}")
     assert not (tmp_path / "x").exists()
+
+
+# ---------------------------------------------------------------------------- the restructured graphs
+def _tpv_model(k: int, offsets: int, seed: int = 0):
+    """A tiny model whose TPV offsets and attention weights are far from their zero init, so samples
+    land outside the maps (the canvas frames must reproduce zero padding) and weights are uneven."""
+    from ago_train.model import ModelConfig
+
+    cfg = ModelConfig.preset("tiny")
+    cfg.cameras_per_query = cfg.cameras_per_query_side = k
+    cfg.num_sampling_offsets = offsets
+    torch.manual_seed(seed)
+    model = cfg.build().eval()
+    with torch.no_grad():
+        for name, p in model.encoder.named_parameters():
+            if "sampling_offsets" in name:
+                p.normal_(0, 3.0)          # offsets of several pixels, many outside the maps
+            elif "attention_weights" in name:
+                p.normal_(0, 0.5)
+    return cfg, model
+
+
+@pytest.mark.parametrize("k,offsets", [(2, 1), (6, 2), (3, 2)])   # top-k atlas, dense, k=3 with 2 offsets
+def test_export_tpv_equals_the_trained_encoder(k, offsets):
+    """ExportTPV (one grid_sample per attention over zero-framed canvases, per-frame geometry) gives
+    the trained TPVEncoder's planes."""
+    from ago_export.graphs import ExportTPV
+    from ago_runtime.camera import Rig
+    from ago_runtime.preprocess import Preprocess
+
+    cfg, model = _tpv_model(k, offsets)
+    x = torch.randn(1, 6, 3, cfg.image_height, cfg.image_width)
+    m = torch.from_numpy(Preprocess(cfg.image_width, cfg.image_height).ego2img(Rig.nuscenes_like(1600, 900))[None])
+    with torch.no_grad():
+        feats = model.fpn(model.backbone(x[0]))
+        want = model.encoder(feats, m)
+        got = ExportTPV(model.encoder, [tuple(f.shape[-2:]) for f in feats])(feats, m[0])
+    for p in ("xy", "xz", "yz"):
+        rows, cols = model.encoder.plane_hw[p]
+        ref = want[p][0].reshape(-1, rows * cols).t()            # (Q, D)
+        assert torch.allclose(got[p], ref, atol=2e-5, rtol=1e-4), (p, float((got[p] - ref).abs().max()))
+
+
+def test_canvas_frames_keep_maps_apart():
+    """Samples anywhere around a map in the canvas read exactly what grid_sample with zero padding
+    reads from that map alone: nothing from the neighbouring maps."""
+    import torch.nn.functional as F
+
+    from ago_export.graphs import CanvasLayout, canvas_coords, plane_canvas
+
+    torch.manual_seed(0)
+    hw = {"xy": (5, 7), "xz": (5, 3), "yz": (7, 3)}
+    layout = CanvasLayout.planes(hw)
+    maps = [torch.rand(2, *hw[p]) + 1.0 for p in ("xy", "xz", "yz")]   # all > 1: any bleed shows
+    canvas = plane_canvas(maps, layout)[None]
+    for p, mp in zip(("xy", "xz", "yz"), maps):
+        rows, cols = hw[p]
+        px = torch.empty(1, 400).uniform_(-3, cols + 3)
+        py = torch.empty(1, 400).uniform_(-3, rows + 3)
+        want = F.grid_sample(mp[None], torch.stack([px / cols * 2 - 1, py / rows * 2 - 1], -1)[None],
+                             align_corners=False)
+        _, col0, _, _ = layout.blocks[p]
+        grid = canvas_coords(px, py, -0.5, torch.tensor(cols + 0.5), -0.5, torch.tensor(rows + 0.5),
+                             col0 + 1.0, 1.0, layout)
+        got = F.grid_sample(canvas, grid[None], align_corners=False)
+        assert torch.allclose(got, want, atol=1e-5)
+
+
+@pytest.mark.parametrize("decoder_layers,adapter_depth", [(1, 1), (2, 3), (1, 4)])
+def test_voxel_stages_equal_the_model_for_any_depth(decoder_layers, adapter_depth):
+    """The staged per-voxel MLP (first linear in the planes, then one stage per layer, h and g where the
+    banks are applied) gives the model's forward_hidden for any decoder / adapter depth."""
+    from ago_export.graphs import PlanesGraph, VoxelsReference, voxel_stages
+    from ago_runtime.camera import Rig
+    from ago_runtime.preprocess import Preprocess
+    from ago_train.model import ModelConfig
+
+    cfg = ModelConfig.preset("tiny")
+    cfg.decoder_layers, cfg.adapter_depth = decoder_layers, adapter_depth
+    torch.manual_seed(2)
+    model = cfg.build().eval()
+    stages = voxel_stages(model)
+    assert [s.bank for s in stages].count("main") == 1 and stages[-1].bank == "adapted"
+    assert len(stages) == decoder_layers - 1 + max(1, adapter_depth - 1) + 1
+    x = torch.randn(1, 6, 3, cfg.image_height, cfg.image_width)
+    m = torch.from_numpy(Preprocess(cfg.image_width, cfg.image_height).ego2img(Rig.nuscenes_like(1600, 900))[None])
+    with torch.no_grad():
+        h_t, g_t = model.forward_hidden(x, m)
+        xy, xz, yz = PlanesGraph(model)(x, m)
+        bm, ba = torch.randn(5, h_t.shape[-1]), torch.randn(5, g_t.shape[-1])
+        h, g, s_main, s_ad = VoxelsReference(model)(xy, xz, yz, bm, ba)
+    assert torch.allclose(h, h_t[0], atol=1e-5) and torch.allclose(g, g_t[0], atol=1e-5)
+    assert torch.allclose(s_main, bm @ h_t[0].t(), atol=1e-4) and torch.allclose(s_ad, ba @ g_t[0].t(), atol=1e-4)
+
+
+def test_deeper_model_exports_and_keeps_parity(tmp_path):
+    """A 2-layer decoder and a 3-layer adapter: four voxel stages, runtime == torch."""
+    from ago_train.model import ModelConfig
+
+    cfg = ModelConfig.preset("tiny")
+    cfg.pretrained, cfg.decoder_layers, cfg.adapter_depth = False, 2, 3
+    ckpt = random_checkpoint(tmp_path / "deep.pt", cfg, prompts="cw", seed=4)
+    meta = export_bundle(ckpt, tmp_path / "b", bank_prompts=[], real_frame=False, log=lambda s: None)
+    assert [st["bank"] for st in meta["voxel_stages"]] == [None, "main", None, "adapted"]
+    p = meta["parity"]["fp32"]
+    assert p["ok"] and min(p["agreement_main"], p["agreement_adapted"], p["agreement_identifier"]) >= 0.999

