@@ -73,12 +73,15 @@ def load_model(checkpoint: str | Path):
     return model.eval(), ckpt, cfg
 
 
-def head_weights(model) -> HeadWeights:
+def head_weights(model, calibration: dict | None = None) -> HeadWeights:
+    """The linear heads, with the identifier's branch scales from the checkpoint's calibration (1, 1 without)."""
     def f(t):
         return t.detach().cpu().numpy().astype(np.float32)
 
+    cal = calibration or {}
+    scales = np.array([cal.get("scale_main", 1.0), cal.get("scale_adapted", 1.0)], np.float32)
     return HeadWeights(f(model.decoder_out.weight), f(model.decoder_out.bias), f(model.adapter_out.weight),
-                       f(model.adapter_out.bias), f(model.free_embedding))
+                       f(model.adapter_out.bias), f(model.free_embedding), scales)
 
 
 def _finish_onnx(path: Path, metadata: dict[str, str], doc: str) -> None:
@@ -239,7 +242,7 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
     model, ckpt, cfg = load_model(checkpoint)
     space = label_space_of(ckpt, checkpoint)
     bank = train_bank(ckpt, space, checkpoint)
-    heads = head_weights(model)
+    heads = head_weights(model, ckpt.get("calibration"))
     if heads.embed_dim != bank.dim:
         raise AgoInputError(checkpoint, f"model embedding width {heads.embed_dim} differs from its bank's {bank.dim}")
     grid = cfg.grid_obj()

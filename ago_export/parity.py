@@ -36,20 +36,30 @@ FP32_TOLERANCE = Tolerance(1e-3, 0.999)
 INT8_TOLERANCE = Tolerance(0.25, 0.85)
 
 
-def reference_labels(feat: np.ndarray, feat_ad: np.ndarray, bank, free: np.ndarray) -> dict[str, np.ndarray]:
-    """Unfolded float64 reference: per-voxel argmax (K classes + free) and entropy per branch, and the identifier."""
+def reference_labels(feat: np.ndarray, feat_ad: np.ndarray, bank, free: np.ndarray,
+                     scales: tuple[float, float] = (1.0, 1.0)) -> dict[str, np.ndarray]:
+    """Unfolded float64 reference: per-voxel argmax (K classes + free) per branch, and the min-entropy
+    identifier's labels by the rule of ago_train.model.scoring.open_world_identify (occupancy from the
+    main branch, class from the branch whose scaled class distribution has the lower entropy)."""
     T = np.concatenate([bank.embeddings, free[None]]).astype(np.float64)       # (P+1, C)
-    out = {}
-    ent = {}
+    out, zs = {}, {}
     for name, f in (("main", feat), ("adapted", feat_ad)):
         s = f.astype(np.float64) @ T.T                                          # (N, P+1)
         z = np.concatenate([bank.class_scores(s[:, :-1]), s[:, -1:]], axis=1)   # (N, K+1)
-        z = z - z.max(axis=1, keepdims=True)
-        p = np.exp(z)
+        out[name] = z.argmax(axis=1)
+        zs[name] = z
+    K = zs["main"].shape[1] - 1
+    ent, cls = {}, {}
+    for (name, z), scale in zip(zs.items(), scales):
+        c = scale * z[:, :K]
+        c = c - c.max(axis=1, keepdims=True)
+        p = np.exp(c)
         p /= p.sum(axis=1, keepdims=True)
         ent[name] = -(p * np.log(np.maximum(p, 1e-300))).sum(axis=1)
-        out[name] = z.argmax(axis=1)
-    out["identifier"] = np.where(ent["adapted"] < ent["main"], out["adapted"], out["main"])
+        cls[name] = c.argmax(axis=1)
+    occupied = out["main"] != K
+    pick = np.where(ent["adapted"] < ent["main"], cls["adapted"], cls["main"])
+    out["identifier"] = np.where(occupied, pick, K)
     return out
 
 
@@ -79,7 +89,7 @@ def check_parity(model, encoder, heads: HeadWeights, bank, images: np.ndarray, e
     def rel(a, b):
         return float(np.abs(a - b).max() / max(float(np.abs(b).max()), 1e-12))
 
-    want = reference_labels(feat_t, feat_ad_t, bank, heads.free_embedding)
+    want = reference_labels(feat_t, feat_ad_t, bank, heads.free_embedding, heads.scales)
     folded = FoldedHeads(heads, bank.embeddings, bank.phrase_class, bank.num_classes)
     got = runtime_labels(encoder, folded, images, ego2img)
     report = {

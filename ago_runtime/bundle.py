@@ -13,7 +13,8 @@ camera rig it was trained with. Layout (see docs/runtime.md):
                          the stages whose input is h or g, the folded bank's scores (bundle.json
                          "voxel_stages"; ago_runtime/encoder.py)
       planes.int8.onnx, voxels_<i>.int8.onnx   optional: dynamically quantised (`ago export --int8`)
-      heads.npz          W_dec (C,Dh), b_dec (C,), W_ad (C,Da), b_ad (C,), free_embedding (C,)
+      heads.npz          W_dec (C,Dh), b_dec (C,), W_ad (C,Da), b_ad (C,), free_embedding (C,),
+                         branch_scales (2,) the identifier's logit scales (main, adapted; absent = 1, 1)
       banks/<name>.npz   prompt banks (ago_runtime.bank.PromptBank files); "train" = the
                          training label space's embeddings stored in the checkpoint
 
@@ -171,6 +172,7 @@ def _load_heads(path: Path, dim: int) -> HeadWeights:
     try:
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: np.asarray(z[k], dtype=np.float32) for k in HeadWeights.KEYS}
+            scales = np.asarray(z["branch_scales"], dtype=np.float32) if "branch_scales" in z.files else None
     except KeyError as e:
         raise AgoInputError(path, f"heads file lacks array {e}") from None
     except (ValueError, OSError, zipfile.BadZipFile, EOFError) as e:
@@ -183,6 +185,10 @@ def _load_heads(path: Path, dim: int) -> HeadWeights:
         raise AgoInputError(path, f"head shapes {[a.shape for a in arrays.values()]} do not fit embedding width {C}")
     if not all(np.isfinite(a).all() for a in arrays.values()):
         raise AgoInputError(path, "head weights contain NaN or inf")
+    if scales is not None:
+        if scales.shape != (2,) or not np.all(np.isfinite(scales)) or not np.all(scales > 0):
+            raise AgoInputError(path, f"branch_scales must be two positive numbers, got {scales.tolist()}")
+        w.branch_scales = scales
     return w
 
 
@@ -212,14 +218,12 @@ def card_line(bundle: Bundle) -> str:
 
 def check_heads_fit_encoder(bundle: Bundle, encoder) -> None:
     """Refuse, naming heads.npz, heads whose hidden widths differ from the voxel graph's (h: Dh, g: Da)."""
-    try:   # the widths the voxel graph's bank inputs take: bank_main (P', Dh), bank_adapted (P', Da)
-        shapes = {i.name: i.shape for i in encoder.voxels.get_inputs()}
-        dh, da = int(shapes["bank_main"][1]), int(shapes["bank_adapted"][1])
-    except (AttributeError, KeyError, IndexError, TypeError, ValueError):
-        return   # an encoder without such a graph: nothing to compare
+    widths = getattr(encoder, "widths", None)   # the hidden widths the voxel stages give: {"main": Dh, "adapted": Da}
+    if not widths:
+        return   # an encoder without such stages: nothing to compare
+    dh, da = int(widths["main"]), int(widths["adapted"])
     h = bundle.heads
     if (h.W_dec.shape[1], h.W_ad.shape[1]) != (dh, da):
         path = bundle.root / bundle.meta["files"]["heads"]["path"]
         raise AgoInputError(path, f"heads take hidden widths Dh {h.W_dec.shape[1]}, Da {h.W_ad.shape[1]} but the "
-                            f"voxel graph {Path(encoder.voxels_path).name} gives Dh {dh}, Da {da} (mixed files "
-                            "from two exports? re-export the bundle)")
+                            f"voxel stages give Dh {dh}, Da {da} (mixed files from two exports? re-export the bundle)")

@@ -13,8 +13,12 @@ loaded we fold them once: with T = [phrase embeddings; free embedding] (P' = P +
 
 and per voxel only one (Dh x P') product is needed instead of (Dh x C) + (C x P').
 Then: class score = max over the class's phrases, softmax over [K classes + free], entropy,
-confidence (max probability), argmax. The open-world identifier picks per voxel the branch with
-lower entropy ("min-entropy"), higher confidence ("max-conf"), or always the main one ("none").
+confidence (max probability), argmax. The open-world identifier (ago_train.model.scoring.
+open_world_identify, the same rule): a voxel is free when the main branch's argmax over [K + free] is
+free; an occupied voxel takes its class from the branch whose class distribution (softmax over the K
+classes of `scale * scores`, the per-branch logit scales fitted on known-class training voxels,
+heads.npz `branch_scales`) has the lower entropy ("min-entropy"), the higher confidence ("max-conf"),
+the main one ("none", which keeps the plain argmax over [K + free]) or the adapted one ("adapted").
 
 Speed: everything works "class-major": scores are computed as S^T (P', n) = A^T h^T, with the
 phrases sorted by class, so the max over a class's phrases, the softmax and the argmax are
@@ -31,7 +35,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-IDENTIFIERS = ("min-entropy", "max-conf", "none")
+IDENTIFIERS = ("min-entropy", "max-conf", "none", "adapted")
 DEFAULT_CHUNK = 16384           # voxels per chunk for the unfolded helpers below
 SCORE_BUDGET_BYTES = 64 << 20   # FoldedHeads: a chunk's (P', n) score block stays under this
 
@@ -45,8 +49,15 @@ class HeadWeights:
     W_ad: np.ndarray           # (C, Da)
     b_ad: np.ndarray           # (C,)
     free_embedding: np.ndarray  # (C,)
+    branch_scales: np.ndarray | None = None   # (2,) identifier logit scales (main, adapted); None = (1, 1)
 
-    KEYS = ("W_dec", "b_dec", "W_ad", "b_ad", "free_embedding")
+    KEYS = ("W_dec", "b_dec", "W_ad", "b_ad", "free_embedding")   # required; "branch_scales" optional
+
+    @property
+    def scales(self) -> tuple[float, float]:
+        if self.branch_scales is None:
+            return 1.0, 1.0
+        return float(self.branch_scales[0]), float(self.branch_scales[1])
 
     @property
     def embed_dim(self) -> int:
@@ -61,7 +72,9 @@ class HeadWeights:
         return int(self.W_ad.shape[1])
 
     def to_arrays(self) -> dict[str, np.ndarray]:
-        return {k: np.asarray(getattr(self, k), dtype=np.float32) for k in self.KEYS}
+        out = {k: np.asarray(getattr(self, k), dtype=np.float32) for k in self.KEYS}
+        out["branch_scales"] = np.asarray(self.scales, dtype=np.float32)
+        return out
 
 
 @dataclass
@@ -102,6 +115,7 @@ class FoldedHeads:
         self.c_main = (T64 @ weights.b_dec.astype(np.float64)).astype(np.float32)[:, None]              # (P', 1)
         self.A_ad_T = np.ascontiguousarray(T64 @ weights.W_ad.astype(np.float64), dtype=np.float32)     # (P', Da)
         self.c_ad = (T64 @ weights.b_ad.astype(np.float64)).astype(np.float32)[:, None]
+        self.scale_main, self.scale_adapted = weights.scales
 
     @property
     def num_rows(self) -> int:
@@ -169,18 +183,33 @@ class FoldedHeads:
         e.g. computed inside the voxel graph (ago_runtime/encoder.py); s_ad may be None for "none"."""
         if identifier not in IDENTIFIERS:
             raise ValueError(f"identifier must be one of {IDENTIFIERS}, got {identifier!r}")
-        main = self.softmax_stats(self.class_scores(s_main, "main"))
+        z_main = self.class_scores(s_main, "main")
         if identifier == "none":
+            main = self.softmax_stats(z_main)
             return main.label, main.entropy, main.confidence, np.zeros(len(main.label), np.uint8)
-        ad = self.softmax_stats(self.class_scores(s_ad, "adapted"))
+        K = self.num_classes
+        free = z_main[:K].max(axis=0) < z_main[K]
+        main = self.softmax_stats(self._scaled(z_main[:K], self.scale_main))
+        ad = self.softmax_stats(self._scaled(self.class_scores(s_ad, "adapted")[:K], self.scale_adapted))
         if identifier == "min-entropy":
             use_ad = ad.entropy < main.entropy
-        else:
+        elif identifier == "max-conf":
             use_ad = ad.confidence > main.confidence
+        else:
+            use_ad = np.ones(len(main.label), bool)
+        use_ad &= ~free
         label = np.where(use_ad, ad.label, main.label)
+        label[free] = K
         entropy = np.where(use_ad, ad.entropy, main.entropy)
         confidence = np.where(use_ad, ad.confidence, main.confidence)
         return label, entropy, confidence, use_ad.astype(np.uint8)
+
+    @staticmethod
+    def _scaled(z: np.ndarray, scale: float) -> np.ndarray:
+        z = np.ascontiguousarray(z)
+        if scale != 1.0:
+            z *= np.float32(scale)
+        return z
 
     @property
     def default_chunk(self) -> int:

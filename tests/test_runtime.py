@@ -146,13 +146,29 @@ def test_folded_heads_match_unfolded_reference():
     np.testing.assert_allclose(out["entropy"], ref["main"][1], rtol=1e-4, atol=1e-4)
     np.testing.assert_allclose(out["confidence"], ref["main"][2], rtol=1e-4, atol=1e-5)
     assert not out["branch"].any()
-    both = fh.run(h, g, "min-entropy", chunk=1000)
-    use_ad = ref["adapted"][1] < ref["main"][1]
-    decided = np.abs(ref["adapted"][1] - ref["main"][1]) > 1e-4
-    assert np.array_equal(both["branch"][decided].astype(bool), use_ad[decided])
-    assert np.array_equal(both["label"][decided], np.where(use_ad, ref["adapted"][0], ref["main"][0])[decided])
+    # the identifier: free from the main branch; else the class of the branch whose scaled class
+    # distribution (K classes only) has the lower entropy
+    for scales in ((1.0, 1.0), (1.0, 5.0)):
+        w.branch_scales = np.array(scales, np.float32)
+        fs = FoldedHeads(w, emb, pc, K)
+        both = fs.run(h, g, "min-entropy", chunk=1000)
+        cls = {}
+        for (name, x, W, b), sc in zip((("main", h, w.W_dec, w.b_dec), ("adapted", g, w.W_ad, w.b_ad)), scales):
+            s = (x.astype(np.float64) @ W.T.astype(np.float64) + b) @ emb.T.astype(np.float64)
+            z = sc * np.stack([s[:, pc == k].max(1) for k in range(K)], axis=1)
+            p = np.exp(z - z.max(1, keepdims=True))
+            p /= p.sum(1, keepdims=True)
+            cls[name] = (z.argmax(1), -(p * np.log(p)).sum(1))
+        free = ref["main"][0] == K
+        use_ad = (cls["adapted"][1] < cls["main"][1]) & ~free
+        decided = np.abs(cls["adapted"][1] - cls["main"][1]) > 1e-4
+        want = np.where(free, K, np.where(use_ad, cls["adapted"][0], cls["main"][0]))
+        assert np.array_equal(both["branch"][decided].astype(bool), use_ad[decided])
+        assert np.array_equal(both["label"][decided], want[decided])
+        assert free.any() and (~free).any() and use_ad.any() and (~use_ad & ~free).any()
+    w.branch_scales = None
     conf = fh.run(h, g, "max-conf")
-    assert np.all(conf["confidence"] >= out["confidence"] - 1e-6)
+    assert np.all(conf["label"][ref["main"][0] == K] == K)
     # chunking changes nothing but float rounding (BLAS blocks differ with the chunk width)
     a, b = fh.run(h, g, chunk=7), fh.run(h, g, chunk=100000)
     assert np.array_equal(a["label"], b["label"]) and np.array_equal(a["branch"], b["branch"])
