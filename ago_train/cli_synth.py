@@ -26,6 +26,8 @@ def register(app: typer.Typer) -> None:
         sweeps_between: int = typer.Option(0, "--sweeps-between", min=0, max=50,
                                            help="non-key LiDAR sweeps written between two keyframes, in "
                                                 "sweeps/LIDAR_TOP like nuScenes (~9 there); 0 = keyframes only"),
+        jobs: int = typer.Option(1, "--jobs", min=1, max=64,
+                                 help="worker processes rendering scenes in parallel (same dataset for any value)"),
     ) -> None:
         """Generate a synthetic city: six cameras, a 32-beam LiDAR, 3D boxes and Occ3D ground truth."""
         from ago_runtime.outputs import check_output_dir
@@ -38,6 +40,6 @@ def register(app: typer.Typer) -> None:
         check_output_dir(out, "--out")
         config = SynthConfig(seed=seed, num_scenes=scenes, frames_per_scene=frames, image_width=w, image_height=h,
                              grid_shape=shape, val_fraction=val_fraction, sweeps_between=sweeps_between)
-        summary = write_dataset(config, out)
+        summary = write_dataset(config, out, jobs=jobs)
         typer.echo(f"wrote {summary['samples']} keyframes of {summary['scenes']} scenes "
                    f"({len(summary['splits']['train'])} train, {len(summary['splits']['val'])} val) to {out}")

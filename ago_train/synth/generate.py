@@ -125,20 +125,40 @@ def generate_scene(config: SynthConfig, scene_index: int, world: World | None = 
         }
 
 
-def write_dataset(config: SynthConfig, out: str | Path, progress: bool = True) -> dict:
-    """Write `config.num_scenes` scenes under `out` in the nuScenes layout; returns a summary."""
+def _scene_frames(args: tuple[SynthConfig, int]) -> list[dict]:
+    """All keyframes of one scene (a worker process's job for `write_dataset(..., jobs > 1)`)."""
+    config, scene_index = args
+    return list(generate_scene(config, scene_index))
+
+
+def write_dataset(config: SynthConfig, out: str | Path, progress: bool = True, jobs: int = 1) -> dict:
+    """Write `config.num_scenes` scenes under `out` in the nuScenes layout; returns a summary.
+
+    `jobs` > 1 renders whole scenes in that many worker processes (each scene depends only on
+    (seed, scene index), so the dataset is byte-for-byte the same); the writer stays in this process."""
     out = Path(out)
     writer = NuScenesWriter(out, version=config.version)
     val = set(config.val_scene_indices())
     splits = {"train": [], "val": []}
     counts = {"samples": 0, "annotations": 0, "lidar_points": 0}
 
+    def scenes():
+        if jobs <= 1 or config.num_scenes <= 1:
+            for s in range(config.num_scenes):
+                yield s, generate_scene(config, s)
+            return
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(max_workers=min(jobs, config.num_scenes), mp_context=mp.get_context("spawn")) as ex:
+            yield from enumerate(ex.map(_scene_frames, [(config, s) for s in range(config.num_scenes)]))
+
     def frames():
-        for s in range(config.num_scenes):
+        for s, scene in scenes():
             name = config.scene_name(s)
             token = writer.add_scene(name, description=f"ago synth seed {config.seed} scene {s}")
             splits["val" if s in val else "train"].append(name)
-            for frame in generate_scene(config, s):
+            for frame in scene:
                 frame["scene_token"] = token
                 yield frame
 
