@@ -9,7 +9,8 @@ Inputs (`--images DIR`):
 
 Outputs per frame, in `--out` (all written atomically): `<name>.npz` (Occ3D format: `semantics`
 uint8 with free = 17 when every class is one Occ3D class, else bank class indices with free = K;
-`class_names`, `free_index`; with --save-volumes also `entropy`, `confidence`, `branch`) and
+`class_names`, `free_index`; with --save-volumes also `entropy`, `confidence`, `branch` and the
+unexplained-obstacle volumes `unexplained` (score), `unexplained_mask`, `unexplained_threshold`) and
 `<name>.png` (--picture full: BEV of the classes, entropy BEV, camera mosaic, legend; bev: the class
 BEV and legend; none: no PNG). Reading, inference and writing overlap (run_infer).
 """
@@ -131,6 +132,7 @@ def prediction_picture(pred, images: dict | None, title: str = "", kind: str = "
     """The PNG of one prediction. kind "full": class BEV, entropy BEV, adapted-branch share, legend and
     the six cameras; "bev": the class BEV and the legend only (a few ms)."""
     from . import render
+    from .predictor import UNEXPLAINED_THRESHOLD
 
     colors = render.palette_for(pred.class_names)
     colors = np.concatenate([colors, np.array([[240, 240, 240]], np.uint8)])
@@ -145,6 +147,10 @@ def prediction_picture(pred, images: dict | None, title: str = "", kind: str = "
             share = render.scalar_bev(pred.branch.astype(np.float32), reduce="mean", mask=occupied, vmin=0, vmax=1,
                                       label="adapted share", grid=pred.grid, scale=scale)
             panels.append(("identifier: adapted branch share", share))
+        if pred.unexplained is not None:
+            unexp = render.scalar_bev(pred.unexplained, reduce="max", vmin=0, vmax=1, label="unexplained score",
+                                      grid=pred.grid, scale=scale)
+            panels.append((f"unexplained obstacles (> {UNEXPLAINED_THRESHOLD:g} = flagged)", unexp))
     top = render.side_by_side(panels)
     parts = [top, render.legend(pred.class_names, colors[:-1], width=top.shape[1])]
     if images and kind == "full":
@@ -256,7 +262,7 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
         for name, imgs, x, m, t_pre in track(stream(), "predicting"):
             if writer.error is not None:
                 break
-            pred = predictor.predict_arrays(x, m, chosen, identifier, folded)
+            pred = predictor.predict_arrays(x, m, chosen, identifier, folded, volumes=save_volumes)
             pred.timings = {"preprocess": t_pre, **pred.timings}
             to_write.put((name, imgs, pred))
     finally:
@@ -282,7 +288,7 @@ def register(app: typer.Typer) -> None:
         bundle: Optional[Path] = typer.Option(None, "--bundle", help="bundle folder (default: $AGO_BUNDLE, then the shipped one)"),
         out: Path = typer.Option(Path("ago_out"), "--out", "-o", help="output folder"),
         identifier: Optional[str] = typer.Option(None, "--identifier", help="min-entropy | max-conf | none (default: the bundle's)"),
-        save_volumes: bool = typer.Option(False, "--save-volumes", help="also save entropy, confidence, branch volumes"),
+        save_volumes: bool = typer.Option(False, "--save-volumes", help="also save entropy, confidence, branch and the unexplained-obstacle score and mask (drawn in the PNG)"),
         sample: Optional[List[str]] = typer.Option(None, "--sample", help="a dataset's sample token or scene name "
                                                    "(repeatable: several frames, one bundle load)"),
         info: Optional[Path] = typer.Option(None, "--info", help="mmdetection3d info .pkl"),

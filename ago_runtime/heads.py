@@ -178,16 +178,27 @@ class FoldedHeads:
         s_ad = None if identifier == "none" else self.phrase_scores(g, "adapted")
         return self.classify_scores(self.phrase_scores(h, "main"), s_ad, identifier)
 
-    def classify_scores(self, s_main: np.ndarray, s_ad: np.ndarray | None, identifier: str = "min-entropy"):
+    def classify_scores(self, s_main: np.ndarray, s_ad: np.ndarray | None, identifier: str = "min-entropy",
+                        extras: dict | None = None):
         """Like `classify`, from bias-free class-major phrase scores (P', n) of each branch (overwritten),
-        e.g. computed inside the voxel graph (ago_runtime/encoder.py); s_ad may be None for "none"."""
+        e.g. computed inside the voxel graph (ago_runtime/encoder.py); s_ad may be None for "none".
+
+        With `extras` (a dict), also puts there "unexplained" (n,) float32: the UNEXPLAINED-OBSTACLE score
+        p_occ * (1 - max class confidence over the branches used), where p_occ = 1 - p(free) of the main
+        branch's softmax over [K + free] and a branch's class confidence is the max of its calibrated
+        softmax over the K classes: high where something is there but no prompt explains it."""
         if identifier not in IDENTIFIERS:
             raise ValueError(f"identifier must be one of {IDENTIFIERS}, got {identifier!r}")
         z_main = self.class_scores(s_main, "main")
-        if identifier == "none":
-            main = self.softmax_stats(z_main)
-            return main.label, main.entropy, main.confidence, np.zeros(len(main.label), np.uint8)
         K = self.num_classes
+        p_occ = self._occupied_probability(z_main, K) if extras is not None else None
+        if identifier == "none":
+            cls_conf = self.softmax_stats(self._scaled(z_main[:K].copy(), self.scale_main)).confidence \
+                if extras is not None else None
+            main = self.softmax_stats(z_main)
+            if extras is not None:
+                extras["unexplained"] = (p_occ * (1.0 - cls_conf)).astype(np.float32)
+            return main.label, main.entropy, main.confidence, np.zeros(len(main.label), np.uint8)
         free = z_main[:K].max(axis=0) < z_main[K]
         main = self.softmax_stats(self._scaled(z_main[:K], self.scale_main))
         ad = self.softmax_stats(self._scaled(self.class_scores(s_ad, "adapted")[:K], self.scale_adapted))
@@ -202,7 +213,17 @@ class FoldedHeads:
         label[free] = K
         entropy = np.where(use_ad, ad.entropy, main.entropy)
         confidence = np.where(use_ad, ad.confidence, main.confidence)
+        if extras is not None:
+            best = ad.confidence if identifier == "adapted" else np.maximum(main.confidence, ad.confidence)
+            extras["unexplained"] = (p_occ * (1.0 - best)).astype(np.float32)
         return label, entropy, confidence, use_ad.astype(np.uint8)
+
+    @staticmethod
+    def _occupied_probability(z: np.ndarray, K: int) -> np.ndarray:
+        """(K+1, n) class scores (last row free) -> (n,) 1 - softmax(z)[free]."""
+        m = z.max(axis=0)
+        e = cv2.exp(np.ascontiguousarray(z - m))
+        return (1.0 - e[K] / e.sum(axis=0)).astype(np.float32)
 
     @staticmethod
     def _scaled(z: np.ndarray, scale: float) -> np.ndarray:

@@ -48,6 +48,12 @@ class Prediction:
     grid: Grid
     occ3d: np.ndarray | None = None   # (X, Y, Z) uint8 Occ3D ids (free = 17) when every class is one Occ3D class
     timings: dict = field(default_factory=dict)   # seconds: preprocess, encoder, heads
+    unexplained: np.ndarray | None = None   # (X, Y, Z) float32 unexplained-obstacle score (volumes=True)
+
+    @property
+    def unexplained_mask(self) -> np.ndarray | None:
+        """(X, Y, Z) bool: occupied and no prompt explains it (score > UNEXPLAINED_THRESHOLD)."""
+        return None if self.unexplained is None else self.unexplained > UNEXPLAINED_THRESHOLD
 
     @property
     def label_names(self) -> list[str]:
@@ -65,7 +71,16 @@ class Prediction:
                    "free_index": np.array(self.free_index, np.int64)}
         if volumes:
             out.update(entropy=self.entropy, confidence=self.confidence, branch=self.branch)
+            if self.unexplained is not None:
+                out.update(unexplained=self.unexplained, unexplained_mask=self.unexplained_mask.astype(np.uint8),
+                           unexplained_threshold=np.array(UNEXPLAINED_THRESHOLD, np.float32))
         return out
+
+
+# An occupied voxel is called an unexplained obstacle when p_occ * (1 - best class confidence) exceeds
+# this (heads.FoldedHeads.classify_scores): e.g. surely occupied (p_occ ~ 1) while no branch gives any
+# prompted class more than half of its probability. Measured in benchmarks/unexplained_obstacles.py.
+UNEXPLAINED_THRESHOLD = 0.5
 
 
 def occ3d_lookup(bank) -> np.ndarray | None:
@@ -134,7 +149,7 @@ class Predictor:
 
     # ---- prediction ------------------------------------------------------------------------
     def predict(self, images: dict[str, np.ndarray], rig: Rig, bank=None, identifier: str | None = None,
-                source=None) -> Prediction:
+                source=None, volumes: bool = False) -> Prediction:
         """Six images (dict camera -> RGB uint8) + their rig + a bank (default: the bundle's) -> Prediction."""
         identifier = identifier or self.bundle.identifier
         if identifier not in IDENTIFIERS:
@@ -144,12 +159,12 @@ class Predictor:
         t0 = time.perf_counter()
         x, m = self.prepare(images, rig, source)
         t1 = time.perf_counter()
-        pred = self.predict_arrays(x, m, bank, identifier, folded)
+        pred = self.predict_arrays(x, m, bank, identifier, folded, volumes)
         pred.timings = {"preprocess": t1 - t0, **pred.timings}
         return pred
 
     def predict_arrays(self, x: np.ndarray, m: np.ndarray, bank, identifier: str = "min-entropy",
-                       folded: FoldedHeads | None = None) -> Prediction:
+                       folded: FoldedHeads | None = None, volumes: bool = False) -> Prediction:
         """Preprocessed inputs -> Prediction, streaming the encoder's slabs through the heads.
 
         timings: "encoder" = the graphs (planes + voxels; the heads' matrix product runs inside
@@ -160,12 +175,17 @@ class Predictor:
         label_dtype = np.uint8 if bank.num_classes + 1 <= 255 else np.uint16
         out = {"label": np.empty(n, label_dtype), "entropy": np.empty(n, np.float32),
                "confidence": np.empty(n, np.float32), "branch": np.empty(n, np.uint8)}
+        if volumes:
+            out["unexplained"] = np.empty(n, np.float32)
+        extras = {} if volumes else None
         t_enc = t_heads = 0.0
         t = time.perf_counter()
         for start, stop, s_main, s_ad in self.encoder.score_chunks(x, m, folded, adapted=identifier != "none"):
             t2 = time.perf_counter()
             t_enc += t2 - t
-            label, ent, conf, br = folded.classify_scores(s_main, s_ad, identifier)
+            label, ent, conf, br = folded.classify_scores(s_main, s_ad, identifier, extras)
+            if volumes:
+                out["unexplained"][start:stop] = extras["unexplained"]
             out["label"][start:stop], out["entropy"][start:stop] = label, ent
             out["confidence"][start:stop], out["branch"][start:stop] = conf, br
             t = time.perf_counter()
@@ -195,4 +215,5 @@ class Predictor:
             semantics=sem, class_names=list(bank.class_names), free_index=K,
             entropy=out["entropy"].reshape(shape), confidence=out["confidence"].reshape(shape),
             branch=out["branch"].reshape(shape), identifier=identifier, grid=self.grid,
-            occ3d=lut[sem] if lut is not None else None)
+            occ3d=lut[sem] if lut is not None else None,
+            unexplained=out["unexplained"].reshape(shape) if "unexplained" in out else None)

@@ -585,3 +585,31 @@ def test_infer_dataset_pipeline_outputs_pictures_and_errors(bundle_dir, tmp_path
     for f in written:
         with np.load(f, allow_pickle=False) as z:
             assert z["semantics"].shape == tuple(p.grid.shape)
+
+
+def test_unexplained_obstacle_score_on_hand_made_scores():
+    """p_occ * (1 - best class confidence): high where the main branch says occupied and no branch is sure of
+    any prompted class; low for free voxels and for voxels a branch explains."""
+    from ago_runtime.heads import FoldedHeads, HeadWeights
+
+    C, K = 4, 3
+    z = np.zeros
+    w = HeadWeights(z((C, 2), np.float32), z(C, np.float32), z((C, 2), np.float32), z(C, np.float32),
+                    z(C, np.float32))
+    fh = FoldedHeads(w, np.eye(K, C, dtype=np.float32), np.arange(K), K)
+    # rows: 3 phrases (one per class) + free; columns: 4 voxels
+    main = np.array([[9, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 0], [0, 9, 0, 0]], np.float32)   # col 1: free
+    main[:, 2] = [5, 5, 5, 0]        # occupied, classes tied: unexplained
+    main[:, 3] = [5, 5, 5, 0]        # occupied, main unsure, but the adapted branch is sure (below)
+    ad = np.zeros((4, 4), np.float32)
+    ad[:, 3] = [0, 9, 0, 0]
+    for ident in ("none", "min-entropy"):
+        extras = {}
+        label, *_ = fh.classify_scores(main.copy(), ad.copy(), ident, extras)
+        u = extras["unexplained"]
+        assert u.shape == (4,) and np.all((u >= 0) & (u <= 1))
+        assert u[0] < 0.01 and u[1] < 0.01 and u[2] > 0.6
+        if ident == "min-entropy":
+            assert u[3] < 0.01 and label[3] == 1
+        else:
+            assert u[3] > 0.6
