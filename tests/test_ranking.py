@@ -1,0 +1,42 @@
+"""Average precision and ROC AUC on hand-made rankings (ago_runtime/ranking.py)."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+
+from ago_runtime.ranking import average_precision, roc_auc
+
+
+def test_average_precision_by_hand():
+    # ranking: + - + - -  -> precisions at the positives 1/1 and 2/3 -> AP = (1 + 2/3) / 2
+    s = np.array([5, 4, 3, 2, 1.0])
+    y = np.array([1, 0, 1, 0, 0], bool)
+    assert average_precision(s, y) == pytest.approx((1 + 2 / 3) / 2)
+    assert average_precision(s, ~y) == pytest.approx((1 / 2 + 2 / 4 + 3 / 5) / 3)
+    assert average_precision(-s, y) == pytest.approx((1 / 3 + 2 / 4) / 2)
+    assert average_precision(np.arange(4.0), np.array([0, 0, 1, 1], bool)) == pytest.approx(1.0)
+    # all tied: one threshold, precision = prevalence
+    assert average_precision(np.zeros(10), np.arange(10) < 3) == pytest.approx(0.3)
+    assert math.isnan(average_precision(s, np.zeros(5, bool)))
+
+
+def test_random_rankings_score_the_prevalence():
+    rng = np.random.default_rng(0)
+    y = rng.random(20000) < 0.05
+    aps = [average_precision(rng.random(20000), y) for _ in range(5)]
+    assert np.mean(aps) == pytest.approx(y.mean(), abs=0.01)
+
+
+def test_roc_auc_equals_the_pairwise_probability():
+    rng = np.random.default_rng(1)
+    s = rng.integers(0, 4, 30).astype(float)         # many ties
+    y = rng.random(30) < 0.4
+    pos, neg = s[y], s[~y]
+    want = np.mean([(a > b) + 0.5 * (a == b) for a, b in itertools.product(pos, neg)])
+    assert roc_auc(s, y) == pytest.approx(want)
+    assert roc_auc(np.arange(6.0), np.arange(6) >= 3) == 1.0 and roc_auc(-np.arange(6.0), np.arange(6) >= 3) == 0.0
+    assert math.isnan(roc_auc(s, np.ones(30, bool)))
