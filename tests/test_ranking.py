@@ -17,7 +17,7 @@ def test_average_precision_by_hand():
     y = np.array([1, 0, 1, 0, 0], bool)
     assert average_precision(s, y) == pytest.approx((1 + 2 / 3) / 2)
     assert average_precision(s, ~y) == pytest.approx((1 / 2 + 2 / 4 + 3 / 5) / 3)
-    assert average_precision(-s, y) == pytest.approx((1 / 3 + 2 / 4) / 2)
+    assert average_precision(-s, y) == pytest.approx((1 / 3 + 2 / 5) / 2)
     assert average_precision(np.arange(4.0), np.array([0, 0, 1, 1], bool)) == pytest.approx(1.0)
     # all tied: one threshold, precision = prevalence
     assert average_precision(np.zeros(10), np.arange(10) < 3) == pytest.approx(0.3)
