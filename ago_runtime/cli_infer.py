@@ -329,7 +329,7 @@ def run_retrieve(phrase: str, images: Path, bundle, out: Path) -> list[Path]:
     from . import render
     from .atomic import save_npz
     from .bundle import Bundle, resolve_bundle
-    from .heads import cosine_to
+    from .heads import phrase_similarity
     from .predictor import Predictor
     from .text_encoder import default_text_encoder
 
@@ -352,9 +352,7 @@ def run_retrieve(phrase: str, images: Path, bundle, out: Path) -> list[Path]:
     [(name, imgs, rig, source)] = list(iter_frames(Path(images), None, None, b.rig))
     h, g = predictor.encode(imgs, rig, source)
     pred = predictor.predict_hidden(h, g, bank, b.identifier)
-    heads = b.heads
-    sim = np.where(pred.branch.reshape(-1) == 1, cosine_to(g, heads.W_ad, heads.b_ad, direction),
-                   cosine_to(h, heads.W_dec, heads.b_dec, direction)).reshape(b.grid.shape).astype(np.float32)
+    sim = phrase_similarity(b.heads, h, g, pred.branch, direction).reshape(b.grid.shape)
     occupied = pred.semantics != pred.free_index
     slug = "".join(c if c.isalnum() else "_" for c in phrase.strip().lower())[:40]
     npz = out / f"{name}_{slug}.npz"

@@ -293,3 +293,21 @@ def cosine_to(x: np.ndarray, W: np.ndarray, b: np.ndarray, direction: np.ndarray
         norm = np.sqrt(np.einsum("nc,nc->n", f, f))
         out[sl] = (f @ d) / np.maximum(norm, 1e-12)
     return out
+
+
+def phrase_similarity(heads: HeadWeights, h: np.ndarray, g: np.ndarray, branch: np.ndarray,
+                      directions: np.ndarray) -> np.ndarray:
+    """Per-voxel cosine similarity to a phrase, on each voxel's identifier branch (`ago retrieve`).
+
+    h (N, Dh), g (N, Da): hidden features; branch (N,) 0 = main, 1 = adapted; directions (C,) one phrase
+    embedding or (P, C) several (the max over them, as a class's score is the max over its phrases).
+    -> (N,) float32."""
+    d = np.asarray(directions, dtype=np.float32)
+    d = d[None] if d.ndim == 1 else d
+    adapted = np.asarray(branch).reshape(-1) == 1
+    best = np.full(h.shape[0], -np.inf, np.float32)
+    for direction in d:
+        sim = np.where(adapted, cosine_to(g, heads.W_ad, heads.b_ad, direction),
+                       cosine_to(h, heads.W_dec, heads.b_dec, direction))
+        np.maximum(best, sim, out=best)
+    return best

@@ -40,3 +40,19 @@ def test_roc_auc_equals_the_pairwise_probability():
     assert roc_auc(s, y) == pytest.approx(want)
     assert roc_auc(np.arange(6.0), np.arange(6) >= 3) == 1.0 and roc_auc(-np.arange(6.0), np.arange(6) >= 3) == 0.0
     assert math.isnan(roc_auc(s, np.ones(30, bool)))
+
+
+def test_phrase_similarity_takes_each_voxels_branch_and_max_over_phrases():
+    from ago_runtime.heads import HeadWeights, phrase_similarity
+
+    C = 3
+    eye = np.eye(C, dtype=np.float32)
+    heads = HeadWeights(W_dec=eye, b_dec=np.zeros(C, np.float32), W_ad=2 * eye, b_ad=np.zeros(C, np.float32),
+                        free_embedding=np.zeros(C, np.float32))
+    h = np.array([[1, 0, 0], [1, 0, 0]], np.float32)      # main branch points along x
+    g = np.array([[0, 1, 0], [0, 1, 0]], np.float32)      # adapted branch along y
+    branch = np.array([0, 1])
+    one = phrase_similarity(heads, h, g, branch, np.array([1, 0, 0], np.float32))
+    np.testing.assert_allclose(one, [1.0, 0.0], atol=1e-6)
+    two = phrase_similarity(heads, h, g, branch, np.array([[1, 0, 0], [0, 3, 0]], np.float32))
+    np.testing.assert_allclose(two, [1.0, 1.0], atol=1e-6)   # max over the two phrases, direction normalised

@@ -316,14 +316,6 @@ def test_shipped_demo_runs_out_of_the_box(tmp_path):
     env = {k: v for k, v in os.environ.items() if k != "AGO_BUNDLE"}
     r = subprocess.run([sys.executable, "-m", "ago_runtime", "demo", "--out", str(tmp_path / "d")],
                        capture_output=True, text=True, env=env, cwd=tmp_path)
-    from ago_runtime.bundle import BUNDLE_FORMAT_VERSION
-
-    if meta["format_version"] < BUNDLE_FORMAT_VERSION:
-        # TRANSITIONAL (issue 13 branch): the shipped bundle is still format 2 until it is re-exported
-        # with scripts/make_default_bundle.sh; until then the demo must refuse it with one clear line.
-        assert_refused(r, "bundle.json", tmp_path / "d")
-        assert "re-export" in r.stderr
-        return
     assert r.returncode == 0, r.stderr
     with np.load(tmp_path / "d" / "demo_frame.npz", allow_pickle=False) as z:
         sem = z["semantics"]
@@ -332,7 +324,8 @@ def test_shipped_demo_runs_out_of_the_box(tmp_path):
     x0, y0 = sem.shape[0] // 2, sem.shape[1] // 2
     column = sem[x0 - 2:x0 + 3, y0 - 1:y0 + 2, :]
     assert (column == OCC3D_ID["driveable_surface"]).any()
-    assert 0.01 < (sem != FREE).mean() < 0.9
+    # a plausible amount of matter (issue 11: the old bundle called 84 % of the grid occupied)
+    assert 0.01 < (sem != FREE).mean() < 0.5
     assert (tmp_path / "d" / "demo_frame.png").is_file()
 
 
