@@ -93,7 +93,12 @@ class FoldedHeads:
     """
 
     def __init__(self, weights: HeadWeights, phrase_embeddings: np.ndarray, phrase_class: np.ndarray,
-                 num_classes: int):
+                 num_classes: int, reference_classes: int = 0):
+        """`reference_classes` R: the last R of the `num_classes` classes are not the user's but the
+        bundle's own training classes that no user class covers (Predictor.fold_with_reference). They
+        never appear in the labels; they only let the unexplained-obstacle score see what the model
+        takes a voxel to be when no prompt matches it. Labels, entropy and confidence come from the
+        first K = num_classes - R classes + free, exactly as without them."""
         emb = np.asarray(phrase_embeddings, dtype=np.float32)
         pc = np.asarray(phrase_class, dtype=np.int64)
         if emb.ndim != 2 or emb.shape[1] != weights.embed_dim:
@@ -105,10 +110,14 @@ class FoldedHeads:
             raise ValueError(f"classes {missing} have no phrase")
         order = np.argsort(pc, kind="stable")            # phrases grouped by class
         T = np.concatenate([emb[order], weights.free_embedding[None].astype(np.float32)])  # (P', C)
-        self.num_classes = int(num_classes)
+        if not 0 <= int(reference_classes) < int(num_classes):
+            raise ValueError("reference_classes must leave at least one user class")
+        self.num_all = int(num_classes)                       # user + reference classes
+        self.reference_classes = int(reference_classes)
+        self.num_classes = self.num_all - self.reference_classes   # K: the user's classes
         # Row starts of each class (and free, the last row) in the sorted layout, for np.maximum.reduceat.
         counts = np.bincount(pc, minlength=num_classes)
-        self.row_starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.intp)  # K+1 starts; last = free
+        self.row_starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.intp)  # K_all+1 starts; last = free
         self.one_phrase_per_class = bool(np.all(counts == 1))
         T64 = T.astype(np.float64)
         self.A_main_T = np.ascontiguousarray(T64 @ weights.W_dec.astype(np.float64), dtype=np.float32)  # (P', Dh)
@@ -189,19 +198,24 @@ class FoldedHeads:
         softmax over the K classes: high where something is there but no prompt explains it."""
         if identifier not in IDENTIFIERS:
             raise ValueError(f"identifier must be one of {IDENTIFIERS}, got {identifier!r}")
-        z_main = self.class_scores(s_main, "main")
-        K = self.num_classes
-        p_occ = self._occupied_probability(z_main, K) if extras is not None else None
+        z_all = self.class_scores(s_main, "main")          # (K_all + 1, n), free last
+        K, K_all = self.num_classes, self.num_all
+        p_occ = conf_main = None
+        if extras is not None:
+            # occupancy and "explained" judged with every class the folded bank holds (user + reference)
+            p_occ = self._occupied_probability(z_all, K_all)
+            conf_main = self._user_confidence(z_all[:K_all], K, self.scale_main)
+        z_main = z_all if K == K_all else np.concatenate([z_all[:K], z_all[K_all:]])   # user classes + free
         if identifier == "none":
-            cls_conf = self.softmax_stats(self._scaled(z_main[:K].copy(), self.scale_main)).confidence \
-                if extras is not None else None
             main = self.softmax_stats(z_main)
             if extras is not None:
-                extras["unexplained"] = (p_occ * (1.0 - cls_conf)).astype(np.float32)
+                extras["unexplained"] = (p_occ * (1.0 - conf_main)).astype(np.float32)
             return main.label, main.entropy, main.confidence, np.zeros(len(main.label), np.uint8)
         free = z_main[:K].max(axis=0) < z_main[K]
         main = self.softmax_stats(self._scaled(z_main[:K], self.scale_main))
-        ad = self.softmax_stats(self._scaled(self.class_scores(s_ad, "adapted")[:K], self.scale_adapted))
+        z_ad = self.class_scores(s_ad, "adapted")
+        conf_ad = self._user_confidence(z_ad[:K_all], K, self.scale_adapted) if extras is not None else None
+        ad = self.softmax_stats(self._scaled(z_ad[:K], self.scale_adapted))
         if identifier == "min-entropy":
             use_ad = ad.entropy < main.entropy
         elif identifier == "max-conf":
@@ -214,9 +228,18 @@ class FoldedHeads:
         entropy = np.where(use_ad, ad.entropy, main.entropy)
         confidence = np.where(use_ad, ad.confidence, main.confidence)
         if extras is not None:
-            best = ad.confidence if identifier == "adapted" else np.maximum(main.confidence, ad.confidence)
+            best = conf_ad if identifier == "adapted" else np.maximum(conf_main, conf_ad)
             extras["unexplained"] = (p_occ * (1.0 - best)).astype(np.float32)
         return label, entropy, confidence, use_ad.astype(np.uint8)
+
+    @staticmethod
+    def _user_confidence(z: np.ndarray, K: int, scale: float) -> np.ndarray:
+        """(K_all, n) class scores -> (n,) the largest probability a user class (rows < K) gets in the
+        calibrated softmax over all K_all classes (z is not modified)."""
+        z = z * np.float32(scale)
+        z -= z.max(axis=0)
+        e = cv2.exp(np.ascontiguousarray(z))
+        return (e[:K].max(axis=0) / e.sum(axis=0)).astype(np.float32)
 
     @staticmethod
     def _occupied_probability(z: np.ndarray, K: int) -> np.ndarray:

@@ -78,8 +78,9 @@ class Prediction:
 
 
 # An occupied voxel is called an unexplained obstacle when p_occ * (1 - best class confidence) exceeds
-# this (heads.FoldedHeads.classify_scores): e.g. surely occupied (p_occ ~ 1) while no branch gives any
-# prompted class more than half of its probability. Measured in benchmarks/unexplained_obstacles.py.
+# this (heads.FoldedHeads.classify_scores, against the prompted + reference classes: fold_with_reference):
+# e.g. surely occupied (p_occ ~ 1) while no branch gives any prompted class more than half of its
+# probability. Measured in benchmarks/unexplained_obstacles.py (AUROC, and the share flagged at 0.5).
 UNEXPLAINED_THRESHOLD = 0.5
 
 
@@ -126,6 +127,34 @@ class Predictor:
                                             bank.num_classes)
         return self._folded[key]
 
+    def fold_with_reference(self, bank) -> FoldedHeads:
+        """The bank folded with REFERENCE classes appended (cached): the bundle's own training classes that
+        no class of `bank` covers (by Occ3D ids; by identical phrases for classes without ids). Used for the
+        unexplained-obstacle score only (`volumes=True`): with a 5-class prompt file, a building voxel
+        would otherwise look free (no prompt matches it better than the learnt free embedding) or be
+        forced onto the best of 5 wrong classes; against the reference classes it is seen as occupied and
+        as something no prompt explains. Labels are unchanged (FoldedHeads ignores the reference rows)."""
+        train = self.bundle.load_bank()
+        covered = {i for ids in bank.occ3d_ids for i in ids}
+        user_phrases = set(bank.phrases)
+        ref = []
+        for k, name in enumerate(train.class_names):
+            ids = set(train.occ3d_ids[k]) if k < len(train.occ3d_ids) else set()
+            phrases = [p for p, c in zip(train.phrases, train.phrase_class) if c == k]
+            is_covered = ids <= covered if ids else bool(user_phrases & set(phrases))
+            if not is_covered:
+                ref.append(k)
+        key = bank_key(bank) + "+ref:" + ",".join(map(str, ref)) + bank_key(train)
+        if key not in self._folded:
+            self.check_bank(bank)
+            keep = np.isin(train.phrase_class, ref)
+            remap = {k: bank.num_classes + i for i, k in enumerate(ref)}
+            emb = np.concatenate([bank.embeddings, train.embeddings[keep]])
+            pc = np.concatenate([bank.phrase_class, [remap[int(c)] for c in train.phrase_class[keep]]]).astype(np.int64)
+            self._folded[key] = FoldedHeads(self.bundle.heads, emb, pc, bank.num_classes + len(ref),
+                                            reference_classes=len(ref))
+        return self._folded[key]
+
     # ---- encoder ---------------------------------------------------------------------------
     def prepare(self, images: dict[str, np.ndarray], rig: Rig, source=None) -> tuple[np.ndarray, np.ndarray]:
         """-> model inputs: images (1, 6, 3, H, W) float32, ego2img (1, 6, 4, 4) float32."""
@@ -155,7 +184,7 @@ class Predictor:
         if identifier not in IDENTIFIERS:
             raise AgoInputError(None, f"identifier must be one of {IDENTIFIERS}, got {identifier!r}")
         bank = bank if bank is not None else self.bundle.load_bank()
-        folded = self.fold(bank)
+        folded = self.fold_with_reference(bank) if volumes else self.fold(bank)
         t0 = time.perf_counter()
         x, m = self.prepare(images, rig, source)
         t1 = time.perf_counter()
@@ -169,7 +198,8 @@ class Predictor:
 
         timings: "encoder" = the graphs (planes + voxels; the heads' matrix product runs inside
         voxels.onnx), "heads" = the numpy part (class max, softmax, entropy, identifier)."""
-        folded = folded or self.fold(bank)
+        # the unexplained-obstacle score needs the reference classes (fold_with_reference); labels are the same
+        folded = self.fold_with_reference(bank) if volumes else (folded or self.fold(bank))
         self._check_classes(bank)
         n = self.grid.num_voxels
         label_dtype = np.uint8 if bank.num_classes + 1 <= 255 else np.uint16

@@ -283,6 +283,15 @@ def test_cli_infer_images_folder(bundle_dir, frame_dir, tmp_path):
         assert int(z["free_index"]) == FREE
     img = cv2.imread(str(out / "frame.png"))
     assert img is not None and img.shape[0] > 200
+    # the unexplained-obstacle volume folds in reference classes, but the labels stay those of a plain run
+    plain = tmp_path / "plain"
+    r = run_cli(["infer", "--images", frame_dir, "--bundle", bundle_dir, "--out", plain,
+                 "--prompts", "prompts/ow.txt", "--identifier", "max-conf"], cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    with np.load(out / "frame.npz") as z, np.load(plain / "frame.npz") as zp:
+        np.testing.assert_array_equal(z["semantics"], zp["semantics"])
+        assert "unexplained" in z.files and "unexplained" not in zp.files
+        assert np.all((z["unexplained"] >= 0) & (z["unexplained"] <= 1))
 
 
 def test_cli_infer_without_calib_warns_and_uses_bundle_rig(bundle_dir, tmp_path):
@@ -606,3 +615,32 @@ def test_unexplained_obstacle_score_on_hand_made_scores():
             assert u[3] < 0.01 and label[3] == 1
         else:
             assert u[3] > 0.6
+
+
+def test_unexplained_score_sees_reference_classes_and_keeps_the_labels():
+    """With reference classes (training classes no prompt covers) folded in, a voxel that matches only a
+    reference class is occupied and unexplained, while the labels equal those without reference classes."""
+    from ago_runtime.heads import FoldedHeads, HeadWeights
+
+    C = 4
+    z = np.zeros
+    w = HeadWeights(z((C, 2), np.float32), z(C, np.float32), z((C, 2), np.float32), z(C, np.float32),
+                    z(C, np.float32))
+    user = FoldedHeads(w, np.eye(2, C, dtype=np.float32), np.arange(2), 2)
+    with_ref = FoldedHeads(w, np.eye(3, C, dtype=np.float32), np.arange(3), 3, reference_classes=1)
+    # rows: user class 0, user class 1, [reference class 2,] free; columns: 3 voxels
+    # col 0: user class 0; col 1: only the reference class matches (user-only heads call it free);
+    # col 2: free
+    s_user = np.array([[9, 0, 0], [0, 0, 0], [0, 2, 9]], np.float32)
+    s_ref = np.array([[9, 0, 0], [0, 0, 0], [0, 9, 0], [0, 2, 9]], np.float32)
+    for ident in ("none", "min-entropy"):
+        e_user, e_ref = {}, {}
+        lab_u, *_ = user.classify_scores(s_user.copy(), s_user.copy(), ident, e_user)
+        lab_r, *_ = with_ref.classify_scores(s_ref.copy(), s_ref.copy(), ident, e_ref)
+        np.testing.assert_array_equal(lab_u, lab_r)
+        assert lab_r[1] == 2                     # labels: free for the user's classes (index K = 2)
+        assert e_user["unexplained"][1] < 0.2    # without reference classes it looks free
+        assert e_ref["unexplained"][1] > 0.9     # with them: occupied, and no prompt explains it
+        assert e_ref["unexplained"][0] < 0.01 and e_ref["unexplained"][2] < 0.01
+    with pytest.raises(ValueError):
+        FoldedHeads(w, np.eye(2, C, dtype=np.float32), np.arange(2), 2, reference_classes=2)

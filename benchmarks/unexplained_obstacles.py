@@ -1,0 +1,112 @@
+"""How well the runtime's "unexplained obstacle" score finds matter that no prompt explains (AUROC).
+
+    python benchmarks/unexplained_obstacles.py --bundle BUNDLE --data DATASET [--split val] \
+        [--prompts prompts/ow_pretrain.txt] [--max-frames N] [--out benchmarks/results/unexplained_obstacles.md]
+
+The bundle runs through the torch-free runtime (`Predictor.predict(..., volumes=True)`, what
+`ago infer --save-volumes` writes) with a prompt file that names only some classes (default: the
+5-class open-world pretraining file). Scored voxels: GT-occupied voxels inside the GT camera mask, at
+the GT resolution (the model's grid is upsampled by nearest neighbour, as the Occ3D metric does).
+Positives: voxels whose GT class no prompt class covers (e.g. manmade, vegetation, barrier for the
+5-class file); negatives: voxels of the prompted classes. Reported: ROC AUC of the score (target >= 0.75,
+issue "Open world that works"), the average precision beside the positives' prevalence, and at the
+documented threshold (`ago_runtime.predictor.UNEXPLAINED_THRESHOLD`) the share of positives and of
+negatives flagged, plus the mean score per GT class. Writes a markdown table with the command.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from ago_runtime.atomic import write_text  # noqa: E402
+from ago_runtime.bank import bank_for_prompts  # noqa: E402
+from ago_runtime.classes import FREE as OCC3D_FREE, OCC3D_CLASSES  # noqa: E402
+from ago_runtime.metric import upsample_nearest  # noqa: E402
+from ago_runtime.nuscenes import NuScenesDataset  # noqa: E402
+from ago_runtime.predictor import UNEXPLAINED_THRESHOLD, Predictor  # noqa: E402
+from ago_runtime.progress import track  # noqa: E402
+from ago_runtime.prompts import parse_prompt_file  # noqa: E402
+from ago_runtime.ranking import average_precision, roc_auc  # noqa: E402
+
+
+def covered_occ3d_ids(prompt_file: str) -> set[int]:
+    return {i for c in parse_prompt_file(prompt_file).classes for i in c.occ3d_ids}
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--bundle", required=True)
+    ap.add_argument("--data", required=True)
+    ap.add_argument("--split", default="val")
+    ap.add_argument("--prompts", default=str(REPO / "prompts/ow_pretrain.txt"))
+    ap.add_argument("--max-frames", type=int, default=None)
+    ap.add_argument("--out", default=str(REPO / "benchmarks/results/unexplained_obstacles.md"))
+    args = ap.parse_args(argv)
+
+    predictor = Predictor(args.bundle)
+    bank = bank_for_prompts(args.prompts)
+    covered = covered_occ3d_ids(args.prompts)
+    ds = NuScenesDataset(args.data, load_extras=False)
+    indices = ds.split(args.split) if args.split != "all" else list(range(len(ds)))
+    indices = indices[: args.max_frames] if args.max_frames else indices
+    scores, classes = [], []
+    for i in track(indices, "unexplained-obstacle score", total=len(indices)):
+        f = ds[i]
+        pred = predictor.predict(f.images, f.rig, bank, volumes=True, source=str(args.data))
+        gt = f.gt
+        factor = tuple(a // b for a, b in zip(gt.semantics.shape, pred.unexplained.shape))
+        score = upsample_nearest(pred.unexplained, factor)
+        keep = gt.mask_camera.astype(bool) & (gt.semantics != OCC3D_FREE)
+        scores.append(score[keep].astype(np.float32))
+        classes.append(gt.semantics[keep].astype(np.int16))
+    s = np.concatenate(scores)
+    c = np.concatenate(classes)
+    positive = ~np.isin(c, sorted(covered))
+    auc = roc_auc(s, positive)
+    ap_ = average_precision(s, positive)
+    prevalence = float(positive.mean())
+    flagged = s > UNEXPLAINED_THRESHOLD
+    tpr = float(flagged[positive].mean()) if positive.any() else float("nan")
+    fpr = float(flagged[~positive].mean()) if (~positive).any() else float("nan")
+    per_class = []
+    for cid in sorted(set(c.tolist())):
+        sel = c == cid
+        per_class.append((OCC3D_CLASSES[cid], "prompted" if cid in covered else "absent", int(sel.sum()),
+                          float(s[sel].mean()), float(flagged[sel].mean())))
+    cmd = "python benchmarks/unexplained_obstacles.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    rows = "\n".join(f"| {n} | {kind} | {cnt} | {m:.3f} | {100 * fl:.1f} |" for n, kind, cnt, m, fl in per_class)
+    text = f"""# Unexplained-obstacle score: AUROC on the synthetic world
+
+Command: `{cmd}`
+
+Bundle `{args.bundle}` ({predictor.bundle.card.get('note', '') if predictor.bundle.card else ''}), prompt file
+`{args.prompts}` ({bank.num_classes} classes), {len(indices)} frames of `{args.data}` split `{args.split}`.
+Score per voxel: p_occ x (1 - confidence of the best prompted class) on the identifier's branch
+(ago_runtime/heads.py). Scored: GT-occupied voxels in the GT camera mask ({len(s)} voxels); positives =
+classes no prompt covers ({int(positive.sum())} voxels, prevalence {prevalence:.3f}).
+
+| measure | value |
+|---|---:|
+| **ROC AUC** (target >= 0.75) | **{auc:.3f}** |
+| average precision (random ranking = prevalence {prevalence:.3f}) | {ap_:.3f} |
+| flagged at threshold {UNEXPLAINED_THRESHOLD}: share of absent-class voxels | {100 * tpr:.1f} % |
+| flagged at threshold {UNEXPLAINED_THRESHOLD}: share of prompted-class voxels | {100 * fpr:.1f} % |
+
+| GT class | in the prompt file | voxels | mean score | flagged (%) |
+|---|---|---:|---:|---:|
+{rows}
+"""
+    write_text(args.out, text)
+    print(text)
+    return {"auroc": auc, "ap": ap_, "prevalence": prevalence, "tpr": tpr, "fpr": fpr}
+
+
+if __name__ == "__main__":
+    main()
