@@ -148,8 +148,8 @@ def prediction_picture(pred, images: dict | None, title: str = "", kind: str = "
                                       label="adapted share", grid=pred.grid, scale=scale)
             panels.append(("identifier: adapted branch share", share))
         if pred.unexplained is not None:
-            unexp = render.scalar_bev(pred.unexplained, reduce="max", vmin=0, vmax=1, label="unexplained score",
-                                      grid=pred.grid, scale=scale)
+            unexp = render.scalar_bev(pred.unexplained, reduce="max", mask=pred.occupancy > 0.5, vmin=0, vmax=1,
+                                      label="unexplained score", grid=pred.grid, scale=scale)
             panels.append((f"unexplained obstacles (> {UNEXPLAINED_THRESHOLD:g} = flagged)", unexp))
     top = render.side_by_side(panels)
     parts = [top, render.legend(pred.class_names, colors[:-1], width=top.shape[1])]

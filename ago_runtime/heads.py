@@ -192,10 +192,12 @@ class FoldedHeads:
         """Like `classify`, from bias-free class-major phrase scores (P', n) of each branch (overwritten),
         e.g. computed inside the voxel graph (ago_runtime/encoder.py); s_ad may be None for "none".
 
-        With `extras` (a dict), also puts there "unexplained" (n,) float32: the UNEXPLAINED-OBSTACLE score
-        p_occ * (1 - max class confidence over the branches used), where p_occ = 1 - p(free) of the main
-        branch's softmax over [K + free] and a branch's class confidence is the max of its calibrated
-        softmax over the K classes: high where something is there but no prompt explains it."""
+        With `extras` (a dict), also puts there, per voxel (n,) float32, the UNEXPLAINED-OBSTACLE parts:
+        "occupancy" p_occ = 1 - p(free) of the main branch's softmax over [all classes + free], and
+        "unexplained" = 1 - the largest probability a user class gets in a branch's calibrated softmax
+        over all classes (the max over the branches used): how little the prompts explain the matter
+        here, if there is matter (the Predictor flags p_occ > 0.5 and unexplained > the threshold).
+        "All classes" = the user's K plus the reference classes (see __init__)."""
         if identifier not in IDENTIFIERS:
             raise ValueError(f"identifier must be one of {IDENTIFIERS}, got {identifier!r}")
         z_all = self.class_scores(s_main, "main")          # (K_all + 1, n), free last
@@ -209,7 +211,7 @@ class FoldedHeads:
         if identifier == "none":
             main = self.softmax_stats(z_main)
             if extras is not None:
-                extras["unexplained"] = (p_occ * (1.0 - conf_main)).astype(np.float32)
+                extras["occupancy"], extras["unexplained"] = p_occ, (1.0 - conf_main).astype(np.float32)
             return main.label, main.entropy, main.confidence, np.zeros(len(main.label), np.uint8)
         free = z_main[:K].max(axis=0) < z_main[K]
         main = self.softmax_stats(self._scaled(z_main[:K], self.scale_main))
@@ -229,7 +231,7 @@ class FoldedHeads:
         confidence = np.where(use_ad, ad.confidence, main.confidence)
         if extras is not None:
             best = conf_ad if identifier == "adapted" else np.maximum(conf_main, conf_ad)
-            extras["unexplained"] = (p_occ * (1.0 - best)).astype(np.float32)
+            extras["occupancy"], extras["unexplained"] = p_occ, (1.0 - best).astype(np.float32)
         return label, entropy, confidence, use_ad.astype(np.uint8)
 
     @staticmethod

@@ -49,11 +49,14 @@ class Prediction:
     occ3d: np.ndarray | None = None   # (X, Y, Z) uint8 Occ3D ids (free = 17) when every class is one Occ3D class
     timings: dict = field(default_factory=dict)   # seconds: preprocess, encoder, heads
     unexplained: np.ndarray | None = None   # (X, Y, Z) float32 unexplained-obstacle score (volumes=True)
+    occupancy: np.ndarray | None = None     # (X, Y, Z) float32 p_occ against prompted + reference classes
 
     @property
     def unexplained_mask(self) -> np.ndarray | None:
-        """(X, Y, Z) bool: occupied and no prompt explains it (score > UNEXPLAINED_THRESHOLD)."""
-        return None if self.unexplained is None else self.unexplained > UNEXPLAINED_THRESHOLD
+        """(X, Y, Z) bool: occupied (p_occ > 0.5) and no prompt explains it (score > UNEXPLAINED_THRESHOLD)."""
+        if self.unexplained is None:
+            return None
+        return (self.occupancy > 0.5) & (self.unexplained > UNEXPLAINED_THRESHOLD)
 
     @property
     def label_names(self) -> list[str]:
@@ -72,15 +75,16 @@ class Prediction:
         if volumes:
             out.update(entropy=self.entropy, confidence=self.confidence, branch=self.branch)
             if self.unexplained is not None:
-                out.update(unexplained=self.unexplained, unexplained_mask=self.unexplained_mask.astype(np.uint8),
+                out.update(unexplained=self.unexplained, occupancy=self.occupancy,
+                           unexplained_mask=self.unexplained_mask.astype(np.uint8),
                            unexplained_threshold=np.array(UNEXPLAINED_THRESHOLD, np.float32))
         return out
 
 
-# An occupied voxel is called an unexplained obstacle when p_occ * (1 - best class confidence) exceeds
-# this (heads.FoldedHeads.classify_scores, against the prompted + reference classes: fold_with_reference):
-# e.g. surely occupied (p_occ ~ 1) while no branch gives any prompted class more than half of its
-# probability. Measured in benchmarks/unexplained_obstacles.py (AUROC, and the share flagged at 0.5).
+# A voxel is flagged as an unexplained obstacle when it is occupied (p_occ > 0.5) and its score
+# 1 - (best prompted-class probability) exceeds this (heads.FoldedHeads.classify_scores, against the
+# prompted + reference classes: fold_with_reference): no branch gives any prompted class more than half
+# of its probability. Measured in benchmarks/unexplained_obstacles.py (AUROC, share flagged at 0.5).
 UNEXPLAINED_THRESHOLD = 0.5
 
 
@@ -207,6 +211,7 @@ class Predictor:
                "confidence": np.empty(n, np.float32), "branch": np.empty(n, np.uint8)}
         if volumes:
             out["unexplained"] = np.empty(n, np.float32)
+            out["occupancy"] = np.empty(n, np.float32)
         extras = {} if volumes else None
         t_enc = t_heads = 0.0
         t = time.perf_counter()
@@ -216,6 +221,7 @@ class Predictor:
             label, ent, conf, br = folded.classify_scores(s_main, s_ad, identifier, extras)
             if volumes:
                 out["unexplained"][start:stop] = extras["unexplained"]
+                out["occupancy"][start:stop] = extras["occupancy"]
             out["label"][start:stop], out["entropy"][start:stop] = label, ent
             out["confidence"][start:stop], out["branch"][start:stop] = conf, br
             t = time.perf_counter()
@@ -246,4 +252,5 @@ class Predictor:
             entropy=out["entropy"].reshape(shape), confidence=out["confidence"].reshape(shape),
             branch=out["branch"].reshape(shape), identifier=identifier, grid=self.grid,
             occ3d=lut[sem] if lut is not None else None,
-            unexplained=out["unexplained"].reshape(shape) if "unexplained" in out else None)
+            unexplained=out["unexplained"].reshape(shape) if "unexplained" in out else None,
+            occupancy=out["occupancy"].reshape(shape) if "occupancy" in out else None)

@@ -8,10 +8,12 @@ The bundle runs through the torch-free runtime (`Predictor.predict(..., volumes=
 5-class open-world pretraining file). Scored voxels: GT-occupied voxels inside the GT camera mask, at
 the GT resolution (the model's grid is upsampled by nearest neighbour, as the Occ3D metric does).
 Positives: voxels whose GT class no prompt class covers (e.g. manmade, vegetation, barrier for the
-5-class file); negatives: voxels of the prompted classes. Reported: ROC AUC of the score (target >= 0.75,
-issue "Open world that works"), the average precision beside the positives' prevalence, and at the
-documented threshold (`ago_runtime.predictor.UNEXPLAINED_THRESHOLD`) the share of positives and of
-negatives flagged, plus the mean score per GT class. Writes a markdown table with the command.
+5-class file); negatives: voxels of the prompted classes. Reported: ROC AUC of the score
+(`unexplained` = 1 - best prompted-class probability; target >= 0.75, issue "Open world that works")
+and, for comparison, of the product p_occ x score (which also counts the model's geometry misses), the
+average precision beside the positives' prevalence, and the share of positives and of negatives the
+mask flags (p_occ > 0.5 and score > `ago_runtime.predictor.UNEXPLAINED_THRESHOLD`), plus the mean
+score per GT class. Writes a markdown table with the command.
 """
 
 from __future__ import annotations
@@ -56,23 +58,26 @@ def main(argv=None) -> dict:
     ds = NuScenesDataset(args.data, load_extras=False)
     indices = ds.split(args.split) if args.split != "all" else list(range(len(ds)))
     indices = indices[: args.max_frames] if args.max_frames else indices
-    scores, classes = [], []
+    scores, occs, flags, classes = [], [], [], []
     for i in track(indices, "unexplained-obstacle score", total=len(indices)):
         f = ds[i]
         pred = predictor.predict(f.images, f.rig, bank, volumes=True, source=str(args.data))
         gt = f.gt
         factor = tuple(a // b for a, b in zip(gt.semantics.shape, pred.unexplained.shape))
-        score = upsample_nearest(pred.unexplained, factor)
         keep = gt.mask_camera.astype(bool) & (gt.semantics != OCC3D_FREE)
-        scores.append(score[keep].astype(np.float32))
+        scores.append(upsample_nearest(pred.unexplained, factor)[keep].astype(np.float32))
+        occs.append(upsample_nearest(pred.occupancy, factor)[keep].astype(np.float32))
+        flags.append(upsample_nearest(pred.unexplained_mask, factor)[keep])
         classes.append(gt.semantics[keep].astype(np.int16))
     s = np.concatenate(scores)
+    occ = np.concatenate(occs)
     c = np.concatenate(classes)
     positive = ~np.isin(c, sorted(covered))
     auc = roc_auc(s, positive)
+    auc_product = roc_auc(occ * s, positive)
     ap_ = average_precision(s, positive)
     prevalence = float(positive.mean())
-    flagged = s > UNEXPLAINED_THRESHOLD
+    flagged = np.concatenate(flags)
     tpr = float(flagged[positive].mean()) if positive.any() else float("nan")
     fpr = float(flagged[~positive].mean()) if (~positive).any() else float("nan")
     per_class = []
@@ -88,16 +93,19 @@ Command: `{cmd}`
 
 Bundle `{args.bundle}` ({predictor.bundle.card.get('note', '') if predictor.bundle.card else ''}), prompt file
 `{args.prompts}` ({bank.num_classes} classes), {len(indices)} frames of `{args.data}` split `{args.split}`.
-Score per voxel: p_occ x (1 - confidence of the best prompted class) on the identifier's branch
-(ago_runtime/heads.py). Scored: GT-occupied voxels in the GT camera mask ({len(s)} voxels); positives =
+Score per voxel: 1 - the largest probability a prompted class gets (max over the two branches), in
+softmaxes over the prompted classes plus the bundle's training classes no prompt covers (reference
+classes, ago_runtime/heads.py, Predictor.fold_with_reference); mask: p_occ > 0.5 and score >
+{UNEXPLAINED_THRESHOLD}. Scored: GT-occupied voxels in the GT camera mask ({len(s)} voxels); positives =
 classes no prompt covers ({int(positive.sum())} voxels, prevalence {prevalence:.3f}).
 
 | measure | value |
 |---|---:|
-| **ROC AUC** (target >= 0.75) | **{auc:.3f}** |
-| average precision (random ranking = prevalence {prevalence:.3f}) | {ap_:.3f} |
-| flagged at threshold {UNEXPLAINED_THRESHOLD}: share of absent-class voxels | {100 * tpr:.1f} % |
-| flagged at threshold {UNEXPLAINED_THRESHOLD}: share of prompted-class voxels | {100 * fpr:.1f} % |
+| **ROC AUC of the score** (target >= 0.75) | **{auc:.3f}** |
+| ROC AUC of p_occ x score (also counts GT-occupied voxels the model calls free) | {auc_product:.3f} |
+| average precision of the score (random ranking = prevalence {prevalence:.3f}) | {ap_:.3f} |
+| flagged by the mask: share of absent-class voxels | {100 * tpr:.1f} % |
+| flagged by the mask: share of prompted-class voxels | {100 * fpr:.1f} % |
 
 | GT class | in the prompt file | voxels | mean score | flagged (%) |
 |---|---|---:|---:|---:|
@@ -105,7 +113,7 @@ classes no prompt covers ({int(positive.sum())} voxels, prevalence {prevalence:.
 """
     write_text(args.out, text)
     print(text)
-    return {"auroc": auc, "ap": ap_, "prevalence": prevalence, "tpr": tpr, "fpr": fpr}
+    return {"auroc": auc, "auroc_product": auc_product, "ap": ap_, "prevalence": prevalence, "tpr": tpr, "fpr": fpr}
 
 
 if __name__ == "__main__":

@@ -590,9 +590,11 @@ def test_infer_dataset_pipeline_outputs_pictures_and_errors(bundle_dir, tmp_path
 
 
 def test_unexplained_obstacle_score_on_hand_made_scores():
-    """p_occ * (1 - best class confidence): high where the main branch says occupied and no branch is sure of
-    any prompted class; low for free voxels and for voxels a branch explains."""
+    """score = 1 - best prompted-class confidence; occupancy = 1 - p(free): a voxel is flagged when the main
+    branch says occupied and no branch is sure of any prompted class; free voxels and voxels a branch
+    explains are not."""
     from ago_runtime.heads import FoldedHeads, HeadWeights
+    from ago_runtime.predictor import UNEXPLAINED_THRESHOLD
 
     C, K = 4, 3
     z = np.zeros
@@ -608,13 +610,16 @@ def test_unexplained_obstacle_score_on_hand_made_scores():
     for ident in ("none", "min-entropy"):
         extras = {}
         label, *_ = fh.classify_scores(main.copy(), ad.copy(), ident, extras)
-        u = extras["unexplained"]
-        assert u.shape == (4,) and np.all((u >= 0) & (u <= 1))
-        assert u[0] < 0.01 and u[1] < 0.01 and u[2] > 0.6
+        u, occ = extras["unexplained"], extras["occupancy"]
+        assert u.shape == occ.shape == (4,) and np.all((u >= 0) & (u <= 1)) and np.all((occ >= 0) & (occ <= 1))
+        flagged = (occ > 0.5) & (u > UNEXPLAINED_THRESHOLD)
+        assert occ[1] < 0.01 and occ[0] > 0.99 and occ[2] > 0.99
+        assert u[0] < 0.01 and u[2] > 0.6
+        assert not flagged[0] and not flagged[1] and flagged[2]
         if ident == "min-entropy":
-            assert u[3] < 0.01 and label[3] == 1
+            assert u[3] < 0.01 and label[3] == 1 and not flagged[3]
         else:
-            assert u[3] > 0.6
+            assert u[3] > 0.6 and flagged[3]
 
 
 def test_unexplained_score_sees_reference_classes_and_keeps_the_labels():
@@ -639,8 +644,8 @@ def test_unexplained_score_sees_reference_classes_and_keeps_the_labels():
         lab_r, *_ = with_ref.classify_scores(s_ref.copy(), s_ref.copy(), ident, e_ref)
         np.testing.assert_array_equal(lab_u, lab_r)
         assert lab_r[1] == 2                     # labels: free for the user's classes (index K = 2)
-        assert e_user["unexplained"][1] < 0.2    # without reference classes it looks free
-        assert e_ref["unexplained"][1] > 0.9     # with them: occupied, and no prompt explains it
-        assert e_ref["unexplained"][0] < 0.01 and e_ref["unexplained"][2] < 0.01
+        assert e_user["occupancy"][1] < 0.3      # without reference classes it looks free
+        assert e_ref["occupancy"][1] > 0.9 and e_ref["unexplained"][1] > 0.9   # with them: occupied, unexplained
+        assert e_ref["unexplained"][0] < 0.01 and e_ref["occupancy"][2] < 0.01
     with pytest.raises(ValueError):
         FoldedHeads(w, np.eye(2, C, dtype=np.float32), np.arange(2), 2, reference_classes=2)
