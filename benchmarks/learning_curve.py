@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -150,7 +151,7 @@ upsampled); occupancy ratio = predicted occupied / GT occupied voxels in the cam
 
 Object classes at the last snapshot (IoU %): {args.split}: {', '.join(per)}{'; fresh town: ' + ', '.join(per_f) if per_f else ''}.
 
-![learning curve]({Path(args.figure).name})
+![learning curve]({os.path.relpath(args.figure, Path(args.out).parent)})
 """
     write_text(args.out, text)
     steps = [r["step"] for r in rows]

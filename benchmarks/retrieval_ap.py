@@ -46,6 +46,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--prompts", default=str(REPO / "prompts/ow.txt"))
     ap.add_argument("--known-from", default=str(REPO / "prompts/ow_pretrain.txt"))
     ap.add_argument("--max-frames", type=int, default=None)
+    ap.add_argument("--branch", choices=("identifier", "adapted", "main"), default="identifier",
+                    help="whose embedding is compared with the phrase: the identifier's choice per voxel "
+                         "(what `ago retrieve` does), or one branch everywhere")
     ap.add_argument("--out", default=str(REPO / "benchmarks/results/retrieval_ap.md"))
     args = ap.parse_args(argv)
 
@@ -67,7 +70,8 @@ def main(argv=None) -> dict:
         gt = f.gt
         factor = tuple(a // s for a, s in zip(gt.semantics.shape, b.grid.shape))
         keep = gt.mask_camera.astype(bool) & (gt.semantics != FREE)
-        branch = pred.branch.reshape(-1)
+        branch = {"identifier": pred.branch.reshape(-1), "adapted": np.ones(h.shape[0], np.uint8),
+                  "main": np.zeros(h.shape[0], np.uint8)}[args.branch]
         for k in range(K):
             emb = bank.embeddings[bank.phrase_class == k]
             sim = phrase_similarity(b.heads, h, g, branch, emb).reshape(b.grid.shape)
@@ -92,14 +96,15 @@ def main(argv=None) -> dict:
     cmd = "python benchmarks/retrieval_ap.py " + " ".join(argv if argv is not None else sys.argv[1:])
     table = "\n".join(f"| {n} | {kind} | {cnt} | {100 * a:.2f} | {100 * p:.2f} | {a / p if p else float('nan'):.1f} |"
                       for n, kind, cnt, a, p in rows)
-    trained = b.card.get("trained_on", {}) if b.card else {}
+    ls = (b.card or {}).get("label_space") or {}
+    trained = {"label_space": ls.get("name", "?") if isinstance(ls, dict) else ls}
     text = f"""# Open-vocabulary retrieval: average precision per phrase (POP-3D style)
 
 Command: `{cmd}`
 
 Bundle `{args.bundle}` (trained label space: {trained.get('label_space', '?')}), prompt file `{args.prompts}`,
 {len(indices)} frames of `{args.data}` split `{args.split}`. Ranked: the {len(c)} GT-occupied voxels in the GT
-camera mask; similarity on the identifier's branch ({b.identifier}). "known" = covered by `{args.known_from}`.
+camera mask; similarity on {'the identifier' + chr(39) + 's branch (' + b.identifier + ')' if args.branch == 'identifier' else 'the ' + args.branch + ' branch everywhere'}. "known" = covered by `{args.known_from}`.
 
 | class | known / unknown | GT voxels | AP (%) | prevalence (%) | AP / prevalence |
 |---|---|---:|---:|---:|---:|
