@@ -5,8 +5,8 @@
         [--out benchmarks/results/retrieval_ap.md]
 
 For every class of the prompt file, the voxels are ranked by the similarity `ago retrieve` computes
-(cosine between the voxel's embedding on the identifier's branch and the class's phrase embeddings,
-max over its phrases; `ago_runtime.heads.phrase_similarity`). As in POP-3D, where the ranked items are
+(cosine between the voxel's adapted embedding F~_3D and the class's phrase embeddings, max over its
+phrases; `ago_runtime.heads.phrase_similarity`; `--branch identifier|main` for the other choices). As in POP-3D, where the ranked items are
 LiDAR points, the ranked items are the GT-occupied voxels inside the GT camera mask (at the GT
 resolution; the model grid is upsampled by nearest neighbour), pooled over the frames; the positives
 are the voxels of the class's Occ3D ids. Per class: AP and the class's prevalence (the expected AP of
@@ -46,9 +46,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--prompts", default=str(REPO / "prompts/ow.txt"))
     ap.add_argument("--known-from", default=str(REPO / "prompts/ow_pretrain.txt"))
     ap.add_argument("--max-frames", type=int, default=None)
-    ap.add_argument("--branch", choices=("identifier", "adapted", "main"), default="identifier",
-                    help="whose embedding is compared with the phrase: the identifier's choice per voxel "
-                         "(what `ago retrieve` does), or one branch everywhere")
+    ap.add_argument("--branch", choices=("adapted", "identifier", "main"), default="adapted",
+                    help="whose embedding is compared with the phrase: the adapted branch everywhere (what "
+                         "`ago retrieve` does), the identifier's choice per voxel, or the main branch")
     ap.add_argument("--out", default=str(REPO / "benchmarks/results/retrieval_ap.md"))
     args = ap.parse_args(argv)
 
