@@ -15,9 +15,9 @@ def random_checkpoint(path: str | Path, config="tiny", prompts: str = "cw", seed
     """config: a ModelConfig or a preset name ("tiny", "cpu", "full"; "cpu"/"full" without ImageNet weights)."""
     import torch
 
-    from ago_runtime.bank import build_bank
-    from ago_runtime.prompts import parse_prompt_file
-    from ago_runtime.text_encoder import default_text_encoder
+    from ago_runtime.vocab.bank import build_bank
+    from ago_runtime.vocab.prompts import parse_prompt_file
+    from ago_runtime.vocab.text_encoder import default_text_encoder
     from ago_train.checkpoint import save_checkpoint
     from ago_train.model import ModelConfig
 

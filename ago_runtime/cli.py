@@ -26,21 +26,21 @@ import warnings
 
 import typer
 
-from .errors import AgoInputError
+from ago_runtime.errors import AgoInputError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="ago: open-world 3D semantic occupancy from surround cameras (AGO, ICCV 2025).")
 
 # Each module defines `register(app)`. Order = order in `ago --help`.
 COMMAND_MODULES = (
-    "ago_runtime.cli_infer",     # ago infer, ago demo, ago retrieve
-    "ago_runtime.cli_prompts",   # ago prompts build|show
-    "ago_runtime.cli_show",      # ago show, ago metric
-    "ago_train.cli_synth",       # ago synth
-    "ago_train.cli_pseudo",      # ago pseudo-labels
-    "ago_train.cli_train",       # ago train, ago eval, ago open-world
-    "ago_train.cli_experiments", # ago experiments run|report|list
-    "ago_export.cli_export",     # ago export
+    "ago_runtime.predict.cli",     # ago infer, ago demo, ago retrieve
+    "ago_runtime.vocab.cli",   # ago prompts build|show
+    "ago_runtime.pictures.cli",      # ago show, ago metric
+    "ago_train.synth.cli",       # ago synth
+    "ago_train.pseudo.cli",      # ago pseudo-labels
+    "ago_train.cli",       # ago train, ago eval, ago open-world
+    "ago_train.experiments.cli", # ago experiments run|report|list
+    "ago_export.cli",     # ago export
 )
 
 for _name in COMMAND_MODULES:

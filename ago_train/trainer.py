@@ -29,8 +29,8 @@ from torch.utils.data import DataLoader, DistributedSampler
 
 from ago_runtime.atomic import write_text
 from ago_runtime.errors import AgoInputError
-from ago_runtime.preprocess import Preprocess
-from ago_runtime.prompts import LabelSpace, parse_prompt_file
+from ago_runtime.geometry.preprocess import Preprocess
+from ago_runtime.vocab.prompts import LabelSpace, parse_prompt_file
 
 from . import distributed as D
 from .checkpoint import (check_resume_model, load_checkpoint, load_model_weights, plain, rng_state,
@@ -42,7 +42,7 @@ from .train_config import TrainConfig
 # ---- pieces shared with evaluation --------------------------------------------------------------
 def open_frames(data: str | Path, gts: str | None, split: str, load_images: bool = True):
     """The NuScenesDataset at `data` (GT from `gts` or <data>/gts when present) and its indices in `split`."""
-    from ago_runtime.nuscenes import NuScenesDataset
+    from ago_runtime.formats.nuscenes import NuScenesDataset
 
     root = Path(data)
     if not root.exists():
@@ -57,7 +57,7 @@ _BANKS: dict[str, dict] = {}  # per process: prompt file sha256 -> bank dict (th
 
 def build_text_bank(label_space: LabelSpace) -> dict:
     """Encode the label space's phrases with the frozen torch MiniLM -> plain checkpoint 'bank' dict."""
-    from ago_runtime.bank import build_bank
+    from ago_runtime.vocab.bank import build_bank
 
     from .text.minilm import TorchMiniLMEncoder
 

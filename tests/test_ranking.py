@@ -1,4 +1,4 @@
-"""Average precision and ROC AUC on hand-made rankings (ago_runtime/ranking.py)."""
+"""Average precision and ROC AUC on hand-made rankings (ago_runtime/scoring/ranking.py)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from ago_runtime.ranking import average_precision, roc_auc
+from ago_runtime.scoring.ranking import average_precision, roc_auc
 
 
 def test_average_precision_by_hand():

@@ -169,9 +169,9 @@ class ExperimentRunner:
         path = self.out / "data_scores.json"
         if path.is_file():
             return read_json(path)
-        from ago_runtime.metric import OccupancyMetric, upsample_nearest
-        from ago_runtime.nuscenes import NuScenesDataset
-        from ago_runtime.prompts import parse_prompt_file
+        from ago_runtime.scoring.metric import OccupancyMetric, upsample_nearest
+        from ago_runtime.formats.nuscenes import NuScenesDataset
+        from ago_runtime.vocab.prompts import parse_prompt_file
 
         from ..pseudo.generate import load_pseudo_labels, load_voxel_embeds
         from ..trainer import build_text_bank
@@ -241,7 +241,7 @@ class ExperimentRunner:
         return replace(cfg, **changes)
 
     def kshot_tokens(self, seed: int) -> list[str]:
-        from ago_runtime.prompts import parse_prompt_file
+        from ago_runtime.vocab.prompts import parse_prompt_file
 
         from ..dataset import PseudoLabelSet
         from ..open_world import select_kshot
@@ -283,7 +283,7 @@ class ExperimentRunner:
 
     # ---- scoring -----------------------------------------------------------------------
     def ensure_scored(self, spec: RunSpec) -> dict:
-        from ago_runtime.prompts import resolve_prompt_file
+        from ago_runtime.vocab.prompts import resolve_prompt_file
 
         from ..open_world import OpenWorldConfig, known_prompt_file
         from .scoring import evaluate_views

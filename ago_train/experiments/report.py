@@ -308,7 +308,7 @@ def heatmap(title: str, rows: list[str], cols: list[str], values: np.ndarray, ce
 
 
 def figures(out: Path, profile: ExperimentProfile, gap_e3d: dict | None) -> list[str]:
-    from ago_runtime.render import save_png, side_by_side, stack_vertical
+    from ago_runtime.pictures.render import save_png, side_by_side, stack_vertical
 
     fig_dir = out / "figures"
     made = []
@@ -355,10 +355,10 @@ def _caption(text: str, width: int) -> np.ndarray:
 
 
 def render_frames(out: Path, profile: ExperimentProfile) -> list[np.ndarray]:
-    from ago_runtime.metric import upsample_nearest
-    from ago_runtime.nuscenes import NuScenesDataset
-    from ago_runtime.prompts import parse_prompt_file
-    from ago_runtime.render import legend, side_by_side, voxel_view
+    from ago_runtime.scoring.metric import upsample_nearest
+    from ago_runtime.formats.nuscenes import NuScenesDataset
+    from ago_runtime.vocab.prompts import parse_prompt_file
+    from ago_runtime.pictures.render import legend, side_by_side, voxel_view
 
     from ..pseudo.generate import load_pseudo_labels
 

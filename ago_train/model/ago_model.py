@@ -1,6 +1,6 @@
 """`AGOModel`: six camera images -> per-voxel embeddings in the text space.
 
-forward_hidden(images (B, 6, 3, H, W) float32 normalised by ago_runtime.preprocess.Preprocess,
+forward_hidden(images (B, 6, 3, H, W) float32 normalised by ago_runtime.geometry.preprocess.Preprocess,
                ego2img (B, 6, 4, 4) float32 for the resized images)
   -> h (B, N, Dh) decoder hidden, g (B, N, Da) adapter hidden; N = X*Y*Z, C order over [x, y, z].
 forward(images, ego2img, voxel_index=None, prefix=None) -> {"feat": F_3D = decoder_out(h) (B, N, C),

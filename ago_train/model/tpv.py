@@ -37,7 +37,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ago_runtime.grid import Grid
+from ago_runtime.geometry.grid import Grid
 
 from .config import ModelConfig
 

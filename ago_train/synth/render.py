@@ -16,7 +16,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ago_runtime.camera import Camera
+from ago_runtime.geometry.camera import Camera
 
 from . import world as W
 from .raycast import MAP_CLASS, SKY, PrimitiveSet, cast, local_points, surface_normals

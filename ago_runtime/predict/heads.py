@@ -181,7 +181,7 @@ class FoldedHeads:
     def classify_scores(self, s_main: np.ndarray, s_ad: np.ndarray | None, identifier: str = "min-entropy",
                         extras: dict | None = None):
         """Like `classify`, from bias-free class-major phrase scores (P', n) of each branch (overwritten),
-        e.g. computed inside the voxel graph (ago_runtime/encoder.py); s_ad may be None for "none".
+        e.g. computed inside the voxel graph (ago_runtime/predict/encoder.py); s_ad may be None for "none".
 
         With `extras` (a dict), also puts there "unexplained" (n,) float32: the UNEXPLAINED-OBSTACLE score
         p_occ * (1 - max class confidence over the branches used), where p_occ = 1 - p(free) of the main

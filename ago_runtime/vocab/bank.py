@@ -25,9 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import save_npz
-from .errors import AgoInputError
-from .prompts import LabelSpace, parse_prompt_file
+from ago_runtime.atomic import save_npz
+from ago_runtime.errors import AgoInputError
+from ago_runtime.vocab.prompts import LabelSpace, parse_prompt_file
 
 FORMAT_VERSION = 1
 # The default prompt template ("{}" = the plain phrase): chosen by benchmarks/prompt_templates.py,
@@ -246,7 +246,7 @@ def bank_for_prompts(prompt_file: str | Path, encoder=None, cache_dir: str | Pat
     Cache: `cache_dir` (default ~/.cache/ago/banks), file `<label space>-<key>.npz`, key = hash of
     (prompt file sha256, encoder weights sha256, template). `encoder` default: default_text_encoder().
     """
-    from .text_encoder import ago_cache_dir, default_text_encoder
+    from ago_runtime.vocab.text_encoder import ago_cache_dir, default_text_encoder
 
     space = parse_prompt_file(prompt_file)
     encoder = encoder if encoder is not None else default_text_encoder()

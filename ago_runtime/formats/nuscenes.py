@@ -46,14 +46,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .camera import CAMERA_NAMES, Camera, Rig
-from .errors import AgoInputError
-from .image_files import decode_image
-from .readers import read_json
-from .frame import Frame, LidarSweep
-from .grid import Grid
-from .nuscenes_schema import LIDAR_CHANNEL, record_to_matrix
-from .occ3d import Occ3DLabels, labels_path
+from ago_runtime.geometry.camera import CAMERA_NAMES, Camera, Rig
+from ago_runtime.errors import AgoInputError
+from ago_runtime.formats.image_files import decode_image
+from ago_runtime.readers import read_json
+from ago_runtime.formats.frame import Frame, LidarSweep
+from ago_runtime.geometry.grid import Grid
+from ago_runtime.formats.nuscenes_schema import LIDAR_CHANNEL, record_to_matrix
+from ago_runtime.formats.occ3d import Occ3DLabels, labels_path
 
 POINT_BYTES = 5 * 4  # float32 x, y, z, intensity, ring
 # The tables the reader needs (the other seven of nuScenes' thirteen may be absent).

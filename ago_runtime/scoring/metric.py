@@ -31,7 +31,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .classes import FREE, IGNORE, MIOU_STAR_EXCLUDED, OCC3D_CLASSES
+from ago_runtime.classes import FREE, IGNORE, MIOU_STAR_EXCLUDED, OCC3D_CLASSES
 
 
 def upsample_nearest(volume: np.ndarray, factor_xyz: int | Sequence[int]) -> np.ndarray:

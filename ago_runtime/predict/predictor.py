@@ -5,9 +5,9 @@
     pred.semantics                                    # (X, Y, Z) uint8 bank class index, free = K
 
 Steps: Preprocess (resize to the model's input size, ImageNet normalisation; intrinsics scaled to
-match) -> the ONNX encoder (onnxruntime; ago_runtime/encoder.py: the TPV planes once, then the
+match) -> the ONNX encoder (onnxruntime; ago_runtime/predict/encoder.py: the TPV planes once, then the
 per-voxel MLPs slab by slab) -> for each slab, hidden features h (n, Dh), g (n, Da) -> the bank
-folded into the linear heads (ago_runtime.heads.FoldedHeads): phrase scores, max over each class's
+folded into the linear heads (ago_runtime.predict.heads.FoldedHeads): phrase scores, max over each class's
 phrases, softmax over [K classes + free], entropy, identifier, argmax. The whole grid's (N, Dh) and
 (N, Da) features never exist at once, so memory follows the slab, not the grid.
 
@@ -24,14 +24,14 @@ from pathlib import Path
 
 import numpy as np
 
-from .bundle import Bundle, check_heads_fit_encoder
-from .calibration import fit_rig_to_images
-from .camera import Rig
-from .classes import FREE, OCC3D_CLASSES
-from .encoder import open_encoder
-from .errors import AgoInputError
-from .grid import Grid
-from .heads import IDENTIFIERS, FoldedHeads
+from ago_runtime.predict.bundle import Bundle, check_heads_fit_encoder
+from ago_runtime.formats.calibration import fit_rig_to_images
+from ago_runtime.geometry.camera import Rig
+from ago_runtime.classes import FREE, OCC3D_CLASSES
+from ago_runtime.predict.encoder import open_encoder
+from ago_runtime.errors import AgoInputError
+from ago_runtime.geometry.grid import Grid
+from ago_runtime.predict.heads import IDENTIFIERS, FoldedHeads
 
 
 @dataclass

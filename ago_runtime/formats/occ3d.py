@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import save_npz
-from .readers import read_npz
-from .errors import AgoInputError
+from ago_runtime.atomic import save_npz
+from ago_runtime.readers import read_npz
+from ago_runtime.errors import AgoInputError
 
 KEYS = ("semantics", "mask_lidar", "mask_camera")
 

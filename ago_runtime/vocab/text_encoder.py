@@ -2,7 +2,7 @@
 
 Takes phrases (list[str]); gives L2-normalised float32 embeddings (N, dim).
 Default encoder: all-MiniLM-L6-v2 (dim 384; mean over tokens weighted by the attention mask,
-then L2-normalised), tokenised by `ago_runtime.tokenizer.WordPieceTokenizer`.
+then L2-normalised), tokenised by `ago_runtime.vocab.tokenizer.WordPieceTokenizer`.
 
 Where `default_text_encoder()` finds an ONNX file (first that exists wins):
 1. the explicit `path` argument;
@@ -27,8 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import AgoInputError
-from .tokenizer import WordPieceTokenizer
+from ago_runtime.errors import AgoInputError
+from ago_runtime.vocab.tokenizer import WordPieceTokenizer
 
 MINILM_ID = "all-MiniLM-L6-v2"
 MINILM_DIM = 384
@@ -215,12 +215,12 @@ def write_sidecar(onnx_path: str | Path, *, encoder_id: str, variant: str, pooli
                   max_length: int, vocab_path: str | Path | None = None) -> Path:
     """Record encoder id / variant / pooling next to an exported ONNX file (PATH with .json), and copy
     its vocab.txt beside it (PATH stem + .vocab.txt)."""
-    from .atomic import write_json
+    from ago_runtime.atomic import write_json
 
     p = Path(onnx_path).with_suffix(SIDECAR_SUFFIX)
     vocab_name = None
     if vocab_path is not None:  # a copy beside the ONNX file, so the pair can move together
-        from .atomic import write_bytes
+        from ago_runtime.atomic import write_bytes
 
         vocab_name = Path(onnx_path).stem + ".vocab.txt"
         write_bytes(Path(onnx_path).parent / vocab_name, Path(vocab_path).read_bytes())

@@ -25,10 +25,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .classes import FREE, IGNORE, NUM_SEMANTIC, OCC3D_CLASSES
-from .errors import AgoInputError
+from ago_runtime.classes import FREE, IGNORE, NUM_SEMANTIC, OCC3D_CLASSES
+from ago_runtime.errors import AgoInputError
 
-PROMPTS_DIR = Path(__file__).resolve().parents[1] / "prompts"
+PROMPTS_DIR = Path(__file__).resolve().parents[2] / "prompts"
 _CLASS_LINE = re.compile(r"^(?P<name>[^\[\]:@#]+?)\s*(?:\[(?P<ids>[^\]]*)\])?\s*:(?P<phrases>.*)$")
 _NAME_OK = re.compile(r"^[\w][\w \-./']*$")
 
@@ -149,8 +149,8 @@ def _truncate_long_phrase(phrase: str, where: str, max_tokens: int | None, tok) 
 @lru_cache(maxsize=1)
 def _default_tokenizer():
     """(tokenizer, word-piece limit) of the installed MiniLM, or (None, None) without it."""
-    from .text_encoder import minilm_max_length, minilm_vocab_path
-    from .tokenizer import WordPieceTokenizer
+    from ago_runtime.vocab.text_encoder import minilm_max_length, minilm_vocab_path
+    from ago_runtime.vocab.tokenizer import WordPieceTokenizer
 
     vocab = minilm_vocab_path()
     if vocab is None:

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import AgoInputError
+from ago_runtime.errors import AgoInputError
 
 # cam2ego rotations may come rounded (calib.json files with 4 decimals): tolerance on R R^T = I.
 ROTATION_TOLERANCE = 1e-2

@@ -30,9 +30,9 @@ from typing import Mapping, Sequence
 import cv2
 import numpy as np
 
-from .atomic import atomic_path
-from .classes import FREE, IGNORE, OCC3D_CLASSES, OCC3D_COLORS
-from .grid import Grid
+from ago_runtime.atomic import atomic_path
+from ago_runtime.classes import FREE, IGNORE, OCC3D_CLASSES, OCC3D_COLORS
+from ago_runtime.geometry.grid import Grid
 
 FREE_GREY = (250, 250, 250)      # BEV columns seen free (near-white)
 UNKNOWN_GREY = (70, 70, 70)      # BEV columns with nothing known (all 255 / outside the mask)

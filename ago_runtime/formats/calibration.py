@@ -34,11 +34,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .atomic import write_json
-from .camera import CAMERA_NAMES, Camera, Rig
-from .errors import AgoInputError
-from .image_files import decode_image
-from .readers import read_json
+from ago_runtime.atomic import write_json
+from ago_runtime.geometry.camera import CAMERA_NAMES, Camera, Rig
+from ago_runtime.errors import AgoInputError
+from ago_runtime.formats.image_files import decode_image
+from ago_runtime.readers import read_json
 
 CALIB_FILE = "calib.json"
 CALIB_FORMAT = "ago-calibration"
@@ -98,7 +98,7 @@ def load_calibration(path: str | Path) -> Rig:
 
 def read_image(path: str | Path) -> np.ndarray:
     """An image file -> (H, W, 3) uint8 RGB. Refuses unreadable, truncated, corrupt or oversized files
-    (header size limit and corrupt-data check: ago_runtime.image_files)."""
+    (header size limit and corrupt-data check: ago_runtime.formats.image_files)."""
     path = Path(path)
     try:
         data = path.read_bytes()

@@ -11,11 +11,11 @@ camera rig it was trained with. Layout (see docs/runtime.md):
                          times the decoder's first linear layer, channels last
       voxels_<i>.onnx    the per-voxel MLP, one graph per layer: x (n, d) -> y = x W^T + b and, for
                          the stages whose input is h or g, the folded bank's scores (bundle.json
-                         "voxel_stages"; ago_runtime/encoder.py)
+                         "voxel_stages"; ago_runtime/predict/encoder.py)
       planes.int8.onnx, voxels_<i>.int8.onnx   optional: dynamically quantised (`ago export --int8`)
       heads.npz          W_dec (C,Dh), b_dec (C,), W_ad (C,Da), b_ad (C,), free_embedding (C,),
                          branch_scales (2,) the identifier's logit scales (main, adapted; absent = 1, 1)
-      banks/<name>.npz   prompt banks (ago_runtime.bank.PromptBank files); "train" = the
+      banks/<name>.npz   prompt banks (ago_runtime.vocab.bank.PromptBank files); "train" = the
                          training label space's embeddings stored in the checkpoint
 
 `card.json` (optional, ago_export/card.py): what the model was trained on; `Bundle.card`, `card_line`.
@@ -39,12 +39,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import Rig
-from .errors import AgoInputError
-from .readers import read_json
-from .grid import Grid
-from .heads import HeadWeights
-from .preprocess import Preprocess
+from ago_runtime.geometry.camera import Rig
+from ago_runtime.errors import AgoInputError
+from ago_runtime.readers import read_json
+from ago_runtime.geometry.grid import Grid
+from ago_runtime.predict.heads import HeadWeights
+from ago_runtime.geometry.preprocess import Preprocess
 
 BUNDLE_FORMAT = "ago-bundle"
 BUNDLE_FORMAT_VERSION = 3
@@ -52,8 +52,8 @@ ENCODER_FILES = ("planes",)      # plus the voxel stages listed in bundle.json "
 BUNDLE_JSON = "bundle.json"
 CARD_FILE = "card.json"          # written by ago_export/card.py
 ENV_BUNDLE = "AGO_BUNDLE"
-DEFAULT_BUNDLE_DIR = Path(__file__).resolve().parent / "assets" / "default_bundle"
-DEMO_FRAME_DIR = Path(__file__).resolve().parent / "assets" / "demo_frame"
+DEFAULT_BUNDLE_DIR = Path(__file__).resolve().parents[1] / "assets" / "default_bundle"
+DEMO_FRAME_DIR = Path(__file__).resolve().parents[1] / "assets" / "demo_frame"
 HOW_TO_MAKE_DEFAULT = ("build one with scripts/make_default_bundle.sh (synth data -> pseudo-labels -> "
                        "train -> ago export), or pass --bundle DIR / set $AGO_BUNDLE")
 
@@ -115,7 +115,7 @@ class Bundle:
         return self.banks[name]
 
     def load_bank(self, name: str | None = None):
-        from .bank import PromptBank
+        from ago_runtime.vocab.bank import PromptBank
 
         return PromptBank.load(self.bank_path(name))
 

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import Rig
-from .occ3d import Occ3DLabels
+from ago_runtime.geometry.camera import Rig
+from ago_runtime.formats.occ3d import Occ3DLabels
 
 
 @dataclass
