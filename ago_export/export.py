@@ -36,7 +36,7 @@ from torch import nn
 
 import ago_runtime
 from ago_runtime.atomic import replace_dir, temp_dir_beside, write_json
-from ago_runtime.vocab.bank import PromptBank, bank_for_prompts
+from ago_runtime.vocab.bank import PromptBank, load_prompt_bank
 from ago_runtime.predict.bundle import BUNDLE_FORMAT, BUNDLE_FORMAT_VERSION, BUNDLE_JSON, file_sha256
 from ago_runtime.formats.calibration import find_camera_images, load_images_folder
 from ago_runtime.geometry.camera import Rig
@@ -273,7 +273,7 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
         for name in (shipped_label_spaces() if bank_prompts is None else bank_prompts):
             key = Path(name).stem
             try:
-                b = bank_for_prompts(name)
+                b = load_prompt_bank(name)
                 b.check_compatible(bank.encoder_id, bank.dim, checkpoint)
             except AgoInputError as e:
                 bank_notes[key] = f"not built: {e}"

@@ -62,7 +62,7 @@ def bank_for(ckpt: dict, label_space: LabelSpace) -> tuple[torch.Tensor, torch.T
     bank = ckpt["bank"]
     if saved.phrases == label_space.phrases and saved.class_names == label_space.class_names:
         return bank["embeddings"].float(), bank["phrase_class"].long()
-    from ago_runtime.vocab.bank import build_bank
+    from ago_runtime.vocab.bank import load_prompt_bank
 
     from .text.minilm import TorchMiniLMEncoder
 
@@ -70,7 +70,7 @@ def bank_for(ckpt: dict, label_space: LabelSpace) -> tuple[torch.Tensor, torch.T
     if enc.weights_hash != bank["encoder_hash"]:
         raise AgoInputError(None, f"the installed text encoder ({enc.weights_hash[:12]}) differs from the one "
                             f"the checkpoint was trained with ({str(bank['encoder_hash'])[:12]})")
-    new = build_bank(label_space, enc)
+    new = load_prompt_bank(label_space, enc)
     return torch.from_numpy(new.embeddings), torch.from_numpy(new.phrase_class)
 
 

@@ -56,14 +56,15 @@ _BANKS: dict[str, dict] = {}  # per process: prompt file sha256 -> bank dict (th
 
 
 def build_text_bank(label_space: LabelSpace) -> dict:
-    """Encode the label space's phrases with the frozen torch MiniLM -> plain checkpoint 'bank' dict."""
-    from ago_runtime.vocab.bank import build_bank
+    """The label space's bank from the frozen torch MiniLM (ago_runtime.vocab.load_prompt_bank: cached by
+    content hash) -> plain checkpoint 'bank' dict."""
+    from ago_runtime.vocab.bank import load_prompt_bank
 
     from .text.minilm import TorchMiniLMEncoder
 
     key = label_space.sha256 or "\n".join(label_space.phrases)
     if key not in _BANKS:
-        _BANKS[key] = bank_to_dict(build_bank(label_space, TorchMiniLMEncoder()))
+        _BANKS[key] = bank_to_dict(load_prompt_bank(label_space, TorchMiniLMEncoder()))
     return {k: (v.clone() if isinstance(v, torch.Tensor) else v) for k, v in _BANKS[key].items()}
 
 

@@ -119,7 +119,7 @@ def child_frame(bundle: str, reps: int, cache: str) -> dict:
     """First frame of a new process, steady state, planes alone, bank swap, peak RSS."""
     os.environ["AGO_CACHE_DIR"] = cache
     t0 = time.perf_counter()
-    from ago_runtime.vocab.bank import bank_for_prompts
+    from ago_runtime.vocab.bank import load_prompt_bank
     from ago_runtime.predict.predictor import Predictor
 
     t1 = time.perf_counter()
@@ -156,7 +156,7 @@ def child_frame(bundle: str, reps: int, cache: str) -> dict:
     prompt.parent.mkdir(parents=True, exist_ok=True)
     prompt.write_text(f"# {time.time_ns()}\n" + SWAP_PROMPTS)
     s0 = time.perf_counter()
-    new_bank = bank_for_prompts(prompt, cache_dir=Path(cache) / "banks")
+    new_bank = load_prompt_bank(prompt, cache_dir=Path(cache) / "banks")
     s1 = time.perf_counter()
     new_folded = p.fold(new_bank)
     s2 = time.perf_counter()

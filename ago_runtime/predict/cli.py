@@ -42,13 +42,12 @@ def resolve_prompts(path: str) -> Path:
 
 
 def choose_bank(bundle, prompts: Optional[str], bank: Optional[str]):
-    """--bank FILE or a bundle bank name; --prompts FILE (encoded, cached by hash); else the bundle's default."""
-    from ago_runtime.vocab.bank import PromptBank, bank_for_prompts
+    """The bank infer / demo / retrieve use: --bank FILE or a bundle bank name; --prompts FILE (through
+    `load_prompt_bank`: parsed once, cached by content hash); else the bundle's default bank."""
+    from ago_runtime.vocab.bank import PromptBank, check_bank_for_bundle, load_prompt_bank
 
     if prompts and bank:
         raise AgoInputError(None, "give --prompts or --bank, not both")
-    from ago_runtime.vocab.bank import check_bank_for_bundle, check_class_count
-
     if bank:
         if Path(bank).is_file():
             return check_bank_for_bundle(PromptBank.load(bank), bank, bundle)
@@ -56,23 +55,7 @@ def choose_bank(bundle, prompts: Optional[str], bank: Optional[str]):
             return bundle.load_bank(bank)
         raise AgoInputError(bank, f"prompt bank file not found (the bundle ships {sorted(bundle.banks)})")
     if prompts:
-        from ago_runtime.vocab.prompts import parse_prompt_file
-
-        path = resolve_prompts(prompts)
-        space = parse_prompt_file(path)
-        check_class_count(space.num_classes, path)       # before any encoding
-        if path.stem in bundle.banks:   # a shipped prompt file the bundle pre-built: check it is the same text
-            b = bundle.load_bank(path.stem)
-            if b.source_hash == space.sha256:
-                return b
-        from ago_runtime.vocab.text_encoder import default_text_encoder
-
-        encoder = default_text_encoder(bundle_dir=bundle.root)
-        te = bundle.text_encoder
-        if encoder.encoder_id != te["id"] or int(encoder.dim) != int(te["dim"]):
-            raise AgoInputError(encoder.onnx_path, f"text encoder {encoder.encoder_id!r} (dim {encoder.dim}) cannot "
-                                f"make banks for this bundle, which needs {te['id']!r} (dim {te['dim']})")
-        return bank_for_prompts(path, encoder=encoder)
+        return load_prompt_bank(resolve_prompts(prompts), bundle=bundle)
     return bundle.load_bank()
 
 
@@ -321,7 +304,7 @@ def run_retrieve(phrase: str, images: Path, bundle, out: Path) -> list[Path]:
     from ago_runtime.predict.bundle import Bundle, resolve_bundle
     from ago_runtime.predict.heads import cosine_to
     from ago_runtime.predict.predictor import Predictor
-    from ago_runtime.vocab.text_encoder import default_text_encoder
+    from ago_runtime.vocab.text_encoder import bundle_text_encoder
 
     from ago_runtime.outputs import check_output_dir
 
@@ -330,14 +313,9 @@ def run_retrieve(phrase: str, images: Path, bundle, out: Path) -> list[Path]:
         raise AgoInputError("--phrase", "is empty")
     check_output_dir(out, "--out")
     b = Bundle.load(resolve_bundle(bundle))
-    encoder = default_text_encoder(bundle_dir=b.root)
-    te = b.text_encoder
-    if encoder.encoder_id != te["id"] or int(encoder.dim) != int(te["dim"]):
-        raise AgoInputError(None, f"text encoder {encoder.encoder_id!r} (dim {encoder.dim}) does not match the "
-                            f"bundle's {te['id']!r} (dim {te['dim']})")
-    direction = np.asarray(encoder.encode([phrase]), np.float32)[0]
+    direction = np.asarray(bundle_text_encoder(b).encode([phrase]), np.float32)[0]
     predictor = Predictor(b)
-    bank = b.load_bank()
+    bank = choose_bank(b, None, None)
     predictor.fold(bank)
     [(name, imgs, rig, source)] = list(iter_frames(Path(images), None, None, b.rig))
     h, g = predictor.encode(imgs, rig, source)

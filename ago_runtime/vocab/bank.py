@@ -239,17 +239,38 @@ def bank_cache_key(source_hash: str, encoder_hash: str, template: str) -> str:
     return hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
 
 
-def bank_for_prompts(prompt_file: str | Path, encoder=None, cache_dir: str | Path | None = None,
-                     template: str = DEFAULT_TEMPLATE) -> PromptBank:
-    """The bank of a prompt file (path or shipped name), from the cache or built and cached.
+def load_prompt_bank(prompts: "str | Path | LabelSpace", encoder=None, cache_dir: str | Path | None = None,
+                     template: str = DEFAULT_TEMPLATE, *, bundle=None) -> PromptBank:
+    """The one way a prompt file becomes a PromptBank (infer, demo, retrieve, training, pseudo-labels, export):
 
-    Cache: `cache_dir` (default ~/.cache/ago/banks), file `<label space>-<key>.npz`, key = hash of
-    (prompt file sha256, encoder weights sha256, template). `encoder` default: default_text_encoder().
+        prompt file --parse_prompt_file--> LabelSpace --(content hash)--> cached bank --> PromptBank
+
+    1. `prompts`: a prompt file (a path, or a shipped name: "cw" -> prompts/cw.txt), read and checked
+       once by `parse_prompt_file`; or a LabelSpace already parsed (e.g. a checkpoint's).
+    2. With `bundle` (a predict.Bundle, as `ago infer` passes it): more classes than `ago infer` can
+       write are refused before any encoding; a bank the bundle ships for this same prompt text (same
+       name and sha256) is used as it is; `encoder` defaults to the one that fits the bundle
+       (`bundle_text_encoder`).
+    3. The cache: `cache_dir` (default ~/.cache/ago/banks, $AGO_CACHE_DIR/banks), file
+       `<label space>-<key>.npz`, key = hash of (bank format, prompt file sha256, encoder weights sha256,
+       template); a damaged entry is rebuilt.
+    4. Otherwise `build_bank` encodes the phrases with `encoder` (default: default_text_encoder()) and
+       the bank is saved in the cache.
     """
-    from ago_runtime.vocab.text_encoder import ago_cache_dir, default_text_encoder
+    from ago_runtime.vocab.text_encoder import ago_cache_dir, bundle_text_encoder, default_text_encoder
 
-    space = parse_prompt_file(prompt_file)
+    space = prompts if isinstance(prompts, LabelSpace) else parse_prompt_file(prompts)
+    if bundle is not None:
+        check_class_count(space.num_classes, space.source)       # before any encoding
+        stem = space.source.stem if space.source is not None else space.name
+        if stem in bundle.banks:   # a shipped prompt file the bundle pre-built: check it is the same text
+            shipped = bundle.load_bank(stem)
+            if shipped.source_hash == space.sha256:
+                return shipped
+        encoder = encoder if encoder is not None else bundle_text_encoder(bundle)
     encoder = encoder if encoder is not None else default_text_encoder()
+    if not space.sha256:   # not from a file: nothing to key a cache entry by
+        return build_bank(space, encoder, template)
     cache_dir = Path(cache_dir) if cache_dir is not None else ago_cache_dir() / "banks"
     stem = re.sub(r"[^\w.-]+", "_", space.name) or "prompts"
     path = cache_dir / f"{stem}-{bank_cache_key(space.sha256, encoder.weights_hash, template)}.npz"
@@ -261,3 +282,6 @@ def bank_for_prompts(prompt_file: str | Path, encoder=None, cache_dir: str | Pat
     bank = build_bank(space, encoder, template)
     bank.save(path)
     return bank
+
+
+bank_for_prompts = load_prompt_bank   # its name before the vocabulary path was one function

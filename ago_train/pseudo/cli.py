@@ -69,13 +69,13 @@ def build_backends(prompts: str, segmenter: str, masks: Path | None, embedder: s
 
 def simulated_text_embeddings():
     """(class_text (17, 384), sky (384,)): MiniLM embeddings of cw.txt's phrases and of "sky"."""
-    from ago_runtime.vocab.bank import bank_for_prompts
+    from ago_runtime.vocab.bank import load_prompt_bank
     from ago_runtime.vocab.text_encoder import default_text_encoder
 
     from .simulated import class_text_from_bank
 
     encoder = default_text_encoder()
-    bank = bank_for_prompts("cw", encoder=encoder)
+    bank = load_prompt_bank("cw", encoder=encoder)
     return class_text_from_bank(bank), encoder.encode(["sky"])[0]
 
 
