@@ -30,11 +30,10 @@ from ago_runtime.atomic import write_json
 from ago_runtime.errors import AgoInputError
 from ago_runtime.readers import read_json
 
-from .plan import FEWSHOT_VARIANTS, PARADIGMS, ExperimentProfile, RunSpec, cw_run, fewshot_run, ow_run
+from .plan import (ADAPTED_SCALES, FEWSHOT_VARIANTS, PARADIGMS, ExperimentProfile, RunSpec, cw_run, fewshot_run,
+                   ow_run)
 from .scoring import View
 
-# diagnostic temperatures for the adapted branch's logits (Tab. 4 extra rows; chosen on val: optimistic)
-ADAPTED_SCALES = (3.0, 10.0, 30.0)
 EXPERIMENTS = ("tab1", "tab2", "tab3", "tab4", "tab5", "supp", "figures")
 
 

@@ -15,15 +15,19 @@ planes_to_voxels -> decoder MLP -> decoder_out -> adapter.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 from torch import nn
 
 from .aggregate import planes_at_voxels, planes_to_voxels
 from .backbone import build_backbone
-from .config import ModelConfig
 from .fpn import FPN
 from .heads import AdapterHidden, DecoderMLP
 from .tpv import TPVEncoder
+
+if TYPE_CHECKING:   # annotations only: ModelConfig.build() imports this module
+    from .config import ModelConfig
 
 
 class AGOModel(nn.Module):
