@@ -31,7 +31,8 @@ from ago_runtime.geometry.grid import Grid
 from ago_runtime.formats.occ3d import Occ3DLabels
 
 from .raycast import BOX, CONE, CYL, ELL, MAP_CLASS, PrimitiveSet
-from .world import SURFACE_CLASS, World
+from .builder import SURFACE_CLASS
+from .world import World
 
 
 # Painting order within scenery and within movable objects (later wins a shared voxel): big and
