@@ -53,6 +53,18 @@ VERB_MODULES = (
 )
 
 
+def _verbs_first(name: str) -> property:
+    """An attribute typer reads to build the click group, that loads the verb modules first."""
+    def read(self):
+        self._load_verbs()
+        return self.__dict__["_" + name]
+
+    def write(self, value):
+        self.__dict__["_" + name] = value
+
+    return property(read, write)
+
+
 class VerbTable(typer.Typer):
     """A Typer whose verbs come from `verb_modules`, registered the first time its commands are read
     (typer.main.get_command reads `registered_commands` / `registered_groups` to build the click group)."""
@@ -75,23 +87,8 @@ class VerbTable(typer.Typer):
                 raise
             module.register(self)
 
-    @property
-    def registered_commands(self):
-        self._load_verbs()
-        return self._registered_commands
-
-    @registered_commands.setter
-    def registered_commands(self, value):
-        self._registered_commands = value
-
-    @property
-    def registered_groups(self):
-        self._load_verbs()
-        return self._registered_groups
-
-    @registered_groups.setter
-    def registered_groups(self, value):
-        self._registered_groups = value
+    registered_commands = _verbs_first("registered_commands")
+    registered_groups = _verbs_first("registered_groups")
 
 
 app = VerbTable(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
