@@ -25,7 +25,6 @@ CLOTH_COLORS = np.array([[0.1, 0.1, 0.12], [0.2, 0.25, 0.45], [0.6, 0.1, 0.1], [
                          [0.5, 0.45, 0.35], [0.9, 0.6, 0.1], [0.4, 0.4, 0.42]])
 
 
-
 def _wheels(l, w, r=0.33, width=0.22):
     rows = []
     for sx in (0.34, -0.34):
@@ -200,7 +199,6 @@ def add_traffic(b: Builder, roads: list[Road], xroads: list[Road], yroads: list[
                     b.obj(cat, r.point(s, qq), np.arctan2(d[1], d[0]), size, parts, velocity=tuple(d * v))
 
 
-
 def add_crossing_pedestrians(b: Builder, yroads: list[Road], ego_road: Road, x_start: float, travel: float) -> None:
     """Pedestrians walking over the zebra crossings of the ego road near the route."""
     rng = b.rng
@@ -216,7 +214,6 @@ def add_crossing_pedestrians(b: Builder, yroads: list[Road], ego_road: Road, x_s
                 size, parts = make_pedestrian(b)
                 b.obj("human.pedestrian.adult", (x, y), np.pi / 2 if v > 0 else -np.pi / 2, size, parts,
                       velocity=(0.0, v))
-
 
 
 def sidewalk_walkers(b: Builder, x0, x1, y0, y1, sw, verge=0.0):

@@ -43,7 +43,6 @@ def add_blocks(b: Builder, xroads: list[Road], yroads: list[Road], half: float, 
             add_block(b, x0, x1, y0, y1, kind)
 
 
-
 def add_block(b: Builder, x0, x1, y0, y1, kind):
     rng = b.rng
 

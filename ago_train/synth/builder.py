@@ -29,7 +29,6 @@ SLAB_HEIGHT = 0.15
 RASTER_RES = 0.25  # metres per surface-raster cell
 
 
-
 class Builder:
     def __init__(self, config: SynthConfig, rng: np.random.Generator, half_size: float):
         self.cfg = config
@@ -91,5 +90,3 @@ class Builder:
 
 def raised(parts):
     return [(k, (c[0], c[1], c[2] + SLAB_HEIGHT), h, y, cl, m, co, pa) for k, c, h, y, cl, m, co, pa in parts]
-
-

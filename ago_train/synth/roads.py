@@ -82,7 +82,6 @@ def road_network(rng, config: SynthConfig, half: float, x_start: float) -> tuple
     xroads = [_make_road(rng, 0, y, ego=(y == 0.0)) for y in ys]
     yroads = [_make_road(rng, 1, x) for x in xs]
     ego_road = xroads[ys.index(0.0)]
-
     return xroads, yroads, ego_road
 
 
@@ -114,7 +113,6 @@ def ego_route(rng, ego_road: Road, yroads: list[Road], x_start: float, travel: f
         pts.extend(seg)
     route_xy = np.array(pts)
     route_s = np.concatenate([[0], np.cumsum(np.linalg.norm(np.diff(route_xy, axis=0), axis=1))])
-
     return route_xy, route_s
 
 
