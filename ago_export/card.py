@@ -5,7 +5,7 @@
     bundle: trained on the SYNTHETIC world of `ago synth` (128 frames, 10 scenes), 384 steps, label
     space cw (17 classes), val mIoU 7.84 % - not a nuScenes model
 
-so nobody mistakes a demo model for a real one. Read by `ago_runtime.bundle` (`Bundle.card`,
+so nobody mistakes a demo model for a real one. Read by `ago_runtime.predict.bundle` (`Bundle.card`,
 `card_line`); the format is in docs/runtime.md.
 
 `make_card(ckpt, checkpoint_path, note=None, extra=None)` fills the card from what the checkpoint

@@ -1,11 +1,11 @@
 """`ago export`: a training checkpoint -> a self-describing, parity-checked bundle folder.
 
 Takes a checkpoint written by ago_train (torch.load(weights_only=True); keys "model",
-"model_config", "label_space", "bank", ...). Gives a bundle folder (layout: ago_runtime/bundle.py,
+"model_config", "label_space", "bank", ...). Gives a bundle folder (layout: ago_runtime/predict/bundle.py,
 docs/runtime.md):
 
 1. the camera-to-voxel encoder plus the modality adapter's hidden layers, as two ONNX graphs
-   (bundle format 3, ago_runtime/encoder.py; the traced modules are ago_export/graphs.py):
+   (bundle format 3, ago_runtime/predict/encoder.py; the traced modules are ago_export/graphs.py):
    `planes.onnx` (images (1,6,3,H,W) + ego2img (1,6,4,4) -> the three TPV planes at the grid's
    resolution, times the decoder's first linear layer, channels last) and the voxel stages (a slab
    of voxels -> h (n,Dh), g (n,Da) and the folded bank's scores), so the runtime streams
@@ -36,15 +36,15 @@ from torch import nn
 
 import ago_runtime
 from ago_runtime.atomic import replace_dir, temp_dir_beside, write_json
-from ago_runtime.bank import PromptBank, bank_for_prompts
-from ago_runtime.bundle import BUNDLE_FORMAT, BUNDLE_FORMAT_VERSION, BUNDLE_JSON, file_sha256
-from ago_runtime.calibration import find_camera_images, load_images_folder
-from ago_runtime.camera import Rig
-from ago_runtime.encoder import SplitEncoder
+from ago_runtime.vocab.bank import PromptBank, load_prompt_bank
+from ago_runtime.predict.bundle import BUNDLE_FORMAT, BUNDLE_FORMAT_VERSION, BUNDLE_JSON, file_sha256
+from ago_runtime.formats.calibration import find_camera_images, load_images_folder
+from ago_runtime.geometry.camera import Rig
+from ago_runtime.predict.encoder import SplitEncoder
 from ago_runtime.errors import AgoInputError
-from ago_runtime.heads import HeadWeights
-from ago_runtime.preprocess import Preprocess
-from ago_runtime.prompts import LabelSpace, parse_prompt_text, shipped_label_spaces
+from ago_runtime.predict.heads import HeadWeights
+from ago_runtime.geometry.preprocess import Preprocess
+from ago_runtime.vocab.prompts import LabelSpace, parse_prompt_text, shipped_label_spaces
 
 from .card import write_card
 from .graphs import PlanesGraph, VoxelStageGraph, voxel_stages
@@ -201,7 +201,7 @@ def parity_frame(spec: str | Path | None, real_frame: bool, rig: Rig) -> tuple[d
         return synthetic_frame(rig)
     spec = Path(spec)
     if (spec / "mmdet3d_info.pkl").is_file():
-        from ago_runtime.mmdet3d_info import load_mmdet3d_info
+        from ago_runtime.formats.mmdet3d_info import load_mmdet3d_info
 
         frame = load_mmdet3d_info(spec / "mmdet3d_info.pkl", spec)[0]
         return frame.images, frame.rig, f"{spec} (sample {frame.token})"
@@ -273,7 +273,7 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
         for name in (shipped_label_spaces() if bank_prompts is None else bank_prompts):
             key = Path(name).stem
             try:
-                b = bank_for_prompts(name)
+                b = load_prompt_bank(name)
                 b.check_compatible(bank.encoder_id, bank.dim, checkpoint)
             except AgoInputError as e:
                 bank_notes[key] = f"not built: {e}"

@@ -392,7 +392,7 @@ class PlanesGraph(nn.Module):
 @dataclass
 class VoxelStage:
     """One ONNX graph of the per-voxel MLP (voxels_<i>.onnx). Input x (n, d_in), the activation of the
-    previous layer (the runtime applies the softplus between stages, ago_runtime.encoder.softplus);
+    previous layer (the runtime applies the softplus between stages, ago_runtime.predict.encoder.Softplus);
     outputs y = x W^T + b (n, d_out), the next layer's pre-activation (no linear: no y), and, for the
     stages whose input is h (bank "main") or g (bank "adapted"), s = bank x^T (P', n) with the folded
     bank fed as the input "bank". activation: whether the runtime applies softplus to y."""

@@ -1,6 +1,6 @@
 """Parity of an exported encoder (onnxruntime) against the torch model, on one frame.
 
-Takes the torch model, an onnxruntime encoder (ago_runtime.encoder.SplitEncoder), the bundle's heads and a prompt bank, and one
+Takes the torch model, an onnxruntime encoder (ago_runtime.predict.encoder.SplitEncoder), the bundle's heads and a prompt bank, and one
 preprocessed frame (images (1, 6, 3, H, W), ego2img (1, 6, 4, 4)). Gives a JSON-able report:
 
 - `rel_err_feat`, `rel_err_feat_adapted`: max |F_ort - F_torch| / max |F_torch| for the per-voxel
@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ago_runtime.heads import FoldedHeads, HeadWeights, embeddings
+from ago_runtime.predict.heads import FoldedHeads, HeadWeights, embeddings
 
 
 @dataclass(frozen=True)

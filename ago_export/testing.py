@@ -15,9 +15,8 @@ def random_checkpoint(path: str | Path, config="tiny", prompts: str = "cw", seed
     """config: a ModelConfig or a preset name ("tiny", "cpu", "full"; "cpu"/"full" without ImageNet weights)."""
     import torch
 
-    from ago_runtime.bank import build_bank
-    from ago_runtime.prompts import parse_prompt_file
-    from ago_runtime.text_encoder import default_text_encoder
+    from ago_runtime.vocab.bank import load_prompt_bank
+    from ago_runtime.vocab.prompts import parse_prompt_file
     from ago_train.checkpoint import save_checkpoint
     from ago_train.model import ModelConfig
 
@@ -27,7 +26,7 @@ def random_checkpoint(path: str | Path, config="tiny", prompts: str = "cw", seed
     torch.manual_seed(seed)
     model = config.build()
     space = parse_prompt_file(prompts)
-    bank = build_bank(space, default_text_encoder())
+    bank = load_prompt_bank(space)
     return save_checkpoint(path, {
         "model": model.state_dict(), "model_config": config.to_dict(), "step": 0, "epoch": 0,
         "label_space": {"name": space.name, "prompt_text": Path(space.source).read_text(encoding="utf-8"),

@@ -1,3 +1,3 @@
-from .cli import main
+from ago_runtime.cli import main
 
 main()

@@ -1,8 +1,17 @@
-"""The `ago` command line (typer), and its one error path.
+"""The `ago` command line (typer): the app, the table of verb modules, and the one error path.
 
-Each verb lives in a small command module that imports nothing heavy at import time
-(torch is imported inside the command), so `ago infer` works on a runtime-only install and
-`ago train` says which extra to install when torch is missing.
+Verbs live next to what they drive, each module defining `register(app)`:
+ago_runtime/predict/cli.py (infer, demo, retrieve), ago_runtime/vocab/cli.py (prompts build|show),
+ago_runtime/pictures/cli.py (show), ago_runtime/scoring/cli.py (metric), and in the training
+packages ago_train/text/cli.py (prompts export-encoder|noise), ago_train/synth/cli.py (synth),
+ago_train/pseudo/cli.py (pseudo-labels), ago_train/cli.py (train, eval, open-world),
+ago_train/experiments/cli.py (experiments run|report|list), ago_export/cli.py (export).
+`VERB_MODULES` names them as data, like a package's entry points: this module imports none of them
+at import time, and nothing in ago_runtime imports ago_train or ago_export (tests/test_architecture.py).
+The app imports them the first time it is turned into a click command (running `ago`, `--help`,
+typer's CliRunner); a verb module imports nothing heavy (torch is imported inside the command), so
+`ago infer` works on a runtime-only install and `ago train` says which extra to install when torch
+is missing (`ago_runtime.errors.require_torch`). A package that is not installed just has no verbs.
 
 Every failure caused by the user's input leaves through `exit_code_for` (used by `main`):
 - AgoInputError (a file, a config, an option value) and MissingExtra: `error: <file or option>: <problem>`;
@@ -11,7 +20,7 @@ Every failure caused by the user's input leaves through `exit_code_for` (used by
 - an OSError that names a file (PermissionError on an output folder, a full disk ...):
   `error: <file>: <strerror>`;
 each as ONE line on stderr and exit code 2. Anything else is a bug and keeps its traceback.
-Warnings print as one line each (`warning: <message>`).
+Warnings print as one line each (`warning: <message>`, `ago_runtime.errors.one_line_warnings`).
 
 Usage errors are recognised by class name through typer's own exception classes, because typer
 >= 0.26 carries its own copy of click (`typer._click`) while older typer uses the standalone click:
@@ -22,48 +31,69 @@ from __future__ import annotations
 
 import importlib
 import sys
-import warnings
 
 import typer
 
-from .errors import AgoInputError
+from ago_runtime.errors import AgoInputError, MissingExtra, one_line, one_line_warnings, require_torch
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
-                  help="ago: open-world 3D semantic occupancy from surround cameras (AGO, ICCV 2025).")
+__all__ = ["app", "run", "main", "exit_code_for", "click_exception_classes", "MissingExtra", "require_torch"]
 
-# Each module defines `register(app)`. Order = order in `ago --help`.
-COMMAND_MODULES = (
-    "ago_runtime.cli_infer",     # ago infer, ago demo, ago retrieve
-    "ago_runtime.cli_prompts",   # ago prompts build|show
-    "ago_runtime.cli_show",      # ago show, ago metric
-    "ago_train.cli_synth",       # ago synth
-    "ago_train.cli_pseudo",      # ago pseudo-labels
-    "ago_train.cli_train",       # ago train, ago eval, ago open-world
-    "ago_train.cli_experiments", # ago experiments run|report|list
-    "ago_export.cli_export",     # ago export
+# Each module defines `register(app)`. Order = order in `ago --help` (typer lists groups after commands).
+VERB_MODULES = (
+    "ago_runtime.predict.cli",    # ago infer, ago demo, ago retrieve
+    "ago_runtime.vocab.cli",      # ago prompts build|show
+    "ago_train.text.cli",         # ago prompts export-encoder|noise
+    "ago_runtime.pictures.cli",   # ago show
+    "ago_runtime.scoring.cli",    # ago metric
+    "ago_train.synth.cli",        # ago synth
+    "ago_train.pseudo.cli",       # ago pseudo-labels
+    "ago_train.cli",              # ago train, ago eval, ago open-world
+    "ago_train.experiments.cli",  # ago experiments run|report|list
+    "ago_export.cli",             # ago export
 )
 
-for _name in COMMAND_MODULES:
-    try:
-        _mod = importlib.import_module(_name)
-    except ModuleNotFoundError as _e:  # a part not installed (or not written yet) just has no verbs
-        if _e.name is not None and _name.startswith(_e.name):
-            continue
-        raise
-    _mod.register(app)
+
+def _verbs_first(name: str) -> property:
+    """An attribute typer reads to build the click group, that loads the verb modules first."""
+    def read(self):
+        self._load_verbs()
+        return self.__dict__["_" + name]
+
+    def write(self, value):
+        self.__dict__["_" + name] = value
+
+    return property(read, write)
 
 
-class MissingExtra(RuntimeError):
-    pass
+class VerbTable(typer.Typer):
+    """A Typer whose verbs come from `verb_modules`, registered the first time its commands are read
+    (typer.main.get_command reads `registered_commands` / `registered_groups` to build the click group)."""
+
+    def __init__(self, *args, verb_modules: tuple[str, ...] = (), **kwargs):
+        self._verb_modules = tuple(verb_modules)
+        self._verbs_loaded = False
+        super().__init__(*args, **kwargs)
+
+    def _load_verbs(self) -> None:
+        if self._verbs_loaded:
+            return
+        self._verbs_loaded = True
+        for name in self._verb_modules:
+            try:
+                module = importlib.import_module(name)
+            except ModuleNotFoundError as e:  # a part not installed (or not written yet) just has no verbs
+                if e.name is not None and name.startswith(e.name):
+                    continue
+                raise
+            module.register(self)
+
+    registered_commands = _verbs_first("registered_commands")
+    registered_groups = _verbs_first("registered_groups")
 
 
-def require_torch(verb: str) -> None:
-    """Call at the top of a verb that needs torch: a clear message instead of an ImportError trace."""
-    import importlib.util
-
-    if importlib.util.find_spec("torch") is None:  # look, don't import: the runtime never loads torch
-        raise MissingExtra(f"`ago {verb}` needs the training extra: pip install -e '.[train]' "
-                           "(and scripts/setup.sh for the bundled weights)")
+app = VerbTable(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
+                help="ago: open-world 3D semantic occupancy from surround cameras (AGO, ICCV 2025).",
+                verb_modules=VERB_MODULES)
 
 
 # ------------------------------------------------------------------------------------ errors
@@ -88,10 +118,6 @@ def _classes_named(name: str) -> tuple[type, ...]:
 def click_exception_classes() -> dict[str, tuple[type, ...]]:
     """{"ClickException", "Abort", "Exit"} -> the classes of that name typer (and click) raise."""
     return {name: _classes_named(name) for name in ("ClickException", "Abort", "Exit")}
-
-
-def _one_line(text: str) -> str:
-    return " ".join(str(text).split())
 
 
 def _param_name(param) -> str | None:
@@ -125,21 +151,21 @@ def usage_error_line(e: BaseException) -> str:
         name = getattr(e, "option_name", None) or name
     elif not message:
         message = e.format_message() if hasattr(e, "format_message") else str(e)
-    return _one_line(f"{name or command}: {message} (see '{command} --help')")
+    return one_line(f"{name or command}: {message} (see '{command} --help')")
 
 
 def exit_code_for(e: BaseException) -> int:
     """Print the one error line for `e` on stderr and give the exit code; re-raise what is not bad input."""
     classes = click_exception_classes()
     if isinstance(e, (AgoInputError, MissingExtra)):
-        print(f"error: {_one_line(e)}", file=sys.stderr)
+        print(f"error: {one_line(e)}", file=sys.stderr)
         return 2
     if isinstance(e, classes["ClickException"]):
         if type(e).__name__ == "NoArgsIsHelpError":   # `ago` / `ago prompts` alone: the help text
             print(e.format_message(), file=sys.stdout)
             return 2
         if type(e).__name__ == "FileError":
-            print(f"error: {_one_line(e.format_message())}", file=sys.stderr)
+            print(f"error: {one_line(e.format_message())}", file=sys.stderr)
             return 2
         print(f"error: {usage_error_line(e)}", file=sys.stderr)
         return 2
@@ -147,22 +173,14 @@ def exit_code_for(e: BaseException) -> int:
         print("error: interrupted", file=sys.stderr)
         return 130
     if isinstance(e, OSError) and getattr(e, "filename", None):
-        print(f"error: {e.filename}: {_one_line(e.strerror or e)}", file=sys.stderr)
+        print(f"error: {e.filename}: {one_line(e.strerror or e)}", file=sys.stderr)
         return 2
     raise e
 
 
-def _one_line_warnings() -> None:
-    """Show warnings as `warning: <message>`, one line each, on stderr."""
-    def show(message, category, filename, lineno, file=None, line=None):
-        print(f"warning: {_one_line(message)}", file=sys.stderr)
-
-    warnings.showwarning = show
-
-
 def run(argv: list[str] | None = None) -> int:
     """Run `ago` with `argv` (default sys.argv[1:]); gives the exit code (errors already printed)."""
-    _one_line_warnings()
+    one_line_warnings()
     args = list(sys.argv[1:] if argv is None else argv)
     try:
         rc = app(args=args, prog_name="ago", standalone_mode=False)

@@ -1,4 +1,5 @@
-"""One exception type for bad input; the CLI turns it into a one-line message and exit 2."""
+"""The errors every verb shares: bad input (AgoInputError), a missing extra (MissingExtra, require_torch),
+and the one-line form the CLI prints them and warnings in (ago_runtime/cli.py turns them into exit 2)."""
 
 
 class AgoInputError(ValueError):
@@ -8,3 +9,32 @@ class AgoInputError(ValueError):
         self.path = str(path) if path is not None else None
         self.problem = problem
         super().__init__(f"{self.path}: {problem}" if self.path else problem)
+
+
+class MissingExtra(RuntimeError):
+    """A verb needs an optional part (torch: the training extra) that is not installed."""
+
+
+def require_torch(verb: str) -> None:
+    """Call at the top of a verb that needs torch: a clear message instead of an ImportError trace."""
+    import importlib.util
+
+    if importlib.util.find_spec("torch") is None:  # look, don't import: the runtime never loads torch
+        raise MissingExtra(f"`ago {verb}` needs the training extra: pip install -e '.[train]' "
+                           "(and scripts/setup.sh for the bundled weights)")
+
+
+def one_line(text) -> str:
+    """`text` with every run of white space (newlines included) folded to one space."""
+    return " ".join(str(text).split())
+
+
+def one_line_warnings() -> None:
+    """Show warnings as `warning: <message>`, one line each, on stderr (the CLI's warning path)."""
+    import sys
+    import warnings
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        print(f"warning: {one_line(message)}", file=sys.stderr)
+
+    warnings.showwarning = show

@@ -1,50 +1,7 @@
-"""Occ3D ground-truth files: `gts/<scene>/<sample_token>/labels.npz`.
+"""Old import path of `ago_runtime.formats.occ3d`, kept for users: the same module object."""
 
-Keys `semantics`, `mask_lidar`, `mask_camera`, each (X, Y, Z) uint8 in axis order [x, y, z];
-semantics 0..16 are classes, 17 = free, 255 = unknown (pseudo-labels only).
-The masks are stored as uint8 0/1 and must be used as bool.
-"""
+import sys
 
-from __future__ import annotations
+from ago_runtime.formats import occ3d as _moved
 
-from dataclasses import dataclass
-from pathlib import Path
-
-import numpy as np
-
-from .atomic import save_npz
-from .readers import read_npz
-from .errors import AgoInputError
-
-KEYS = ("semantics", "mask_lidar", "mask_camera")
-
-
-@dataclass
-class Occ3DLabels:
-    semantics: np.ndarray    # (X, Y, Z) uint8
-    mask_lidar: np.ndarray   # (X, Y, Z) uint8 0/1
-    mask_camera: np.ndarray  # (X, Y, Z) uint8 0/1
-
-    @property
-    def shape(self) -> tuple[int, int, int]:
-        return tuple(self.semantics.shape)
-
-    @classmethod
-    def load(cls, path: str | Path, shape: tuple[int, int, int] | None = None) -> "Occ3DLabels":
-        """Read and check a labels.npz. `shape`, when given, must match (e.g. Grid.shape)."""
-        path = Path(path)
-        arrays = read_npz(path, KEYS, what="Occ3D labels file")
-        shapes = {k: a.shape for k, a in arrays.items()}
-        if len(set(shapes.values())) != 1 or arrays["semantics"].ndim != 3:
-            raise AgoInputError(path, f"arrays must share one 3-D shape, got {shapes}")
-        if shape is not None and tuple(arrays["semantics"].shape) != tuple(shape):
-            raise AgoInputError(path, f"shape {arrays['semantics'].shape} does not match the grid {tuple(shape)}")
-        return cls(*(arrays[k].astype(np.uint8) for k in KEYS))
-
-    def save(self, path: str | Path) -> None:
-        save_npz(path, semantics=self.semantics.astype(np.uint8), mask_lidar=self.mask_lidar.astype(np.uint8),
-                 mask_camera=self.mask_camera.astype(np.uint8))
-
-
-def labels_path(gts_root: str | Path, scene: str, sample_token: str) -> Path:
-    return Path(gts_root) / scene / sample_token / "labels.npz"
+sys.modules[__name__] = _moved

@@ -18,7 +18,7 @@ import os
 import tempfile
 from pathlib import Path
 
-from .errors import AgoInputError
+from ago_runtime.errors import AgoInputError
 
 
 def _nearest_existing(path: Path) -> Path:

@@ -2,7 +2,7 @@
 
 `OccSampleDataset(frames, pseudo, label_space, grid, preprocess, ...)` is a torch Dataset; item i:
 
-- "images": (6, 3, H, W) float32, `ago_runtime.preprocess.Preprocess` (identical to the runtime);
+- "images": (6, 3, H, W) float32, `ago_runtime.geometry.preprocess.Preprocess` (identical to the runtime);
   or, with a `feature_cache` (ago_train/feature_cache.py), instead of the images "prefix": the frozen
   backbone stages' maps, a list of (6, C_l, H_l, W_l) float16 tensors (the JPEGs are not decoded);
 - "ego2img": (6, 4, 4) float32, ego -> resized-image projections (CAMERA_NAMES order);
@@ -36,8 +36,8 @@ import torch
 
 from ago_runtime.classes import FREE, IGNORE, OCCUPIED_UNLABELLED
 from ago_runtime.errors import AgoInputError
-from ago_runtime.grid import Grid
-from ago_runtime.preprocess import Preprocess
+from ago_runtime.geometry.grid import Grid
+from ago_runtime.geometry.preprocess import Preprocess
 
 from .pseudo.generate import PseudoLabelDir
 

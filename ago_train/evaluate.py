@@ -24,9 +24,9 @@ import torch
 
 from ago_runtime.atomic import write_json, write_text
 from ago_runtime.errors import AgoInputError
-from ago_runtime.metric import OccupancyMetric, upsample_nearest
-from ago_runtime.preprocess import Preprocess
-from ago_runtime.prompts import LabelSpace, parse_prompt_file, parse_prompt_text
+from ago_runtime.scoring.metric import OccupancyMetric, upsample_nearest
+from ago_runtime.geometry.preprocess import Preprocess
+from ago_runtime.vocab.prompts import LabelSpace, parse_prompt_file, parse_prompt_text
 
 from .checkpoint import load_checkpoint
 from .dataset import FrameList, OccSampleDataset, collate
@@ -62,7 +62,7 @@ def bank_for(ckpt: dict, label_space: LabelSpace) -> tuple[torch.Tensor, torch.T
     bank = ckpt["bank"]
     if saved.phrases == label_space.phrases and saved.class_names == label_space.class_names:
         return bank["embeddings"].float(), bank["phrase_class"].long()
-    from ago_runtime.bank import build_bank
+    from ago_runtime.vocab.bank import load_prompt_bank
 
     from .text.minilm import TorchMiniLMEncoder
 
@@ -70,7 +70,7 @@ def bank_for(ckpt: dict, label_space: LabelSpace) -> tuple[torch.Tensor, torch.T
     if enc.weights_hash != bank["encoder_hash"]:
         raise AgoInputError(None, f"the installed text encoder ({enc.weights_hash[:12]}) differs from the one "
                             f"the checkpoint was trained with ({str(bank['encoder_hash'])[:12]})")
-    new = build_bank(label_space, enc)
+    new = load_prompt_bank(label_space, enc)
     return torch.from_numpy(new.embeddings), torch.from_numpy(new.phrase_class)
 
 

@@ -35,10 +35,10 @@ import numpy as np
 import torch
 
 from ago_runtime.atomic import save_npz, write_json
-from ago_runtime.camera import CAMERA_NAMES
+from ago_runtime.geometry.camera import CAMERA_NAMES
 from ago_runtime.errors import AgoInputError
-from ago_runtime.nuscenes import read_jpeg_rgb
-from ago_runtime.preprocess import Preprocess
+from ago_runtime.formats.nuscenes import read_jpeg_rgb
+from ago_runtime.geometry.preprocess import Preprocess
 
 FORMAT_VERSION = 1
 

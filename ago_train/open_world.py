@@ -26,7 +26,7 @@ import numpy as np
 
 from ago_runtime.atomic import write_json, write_text
 from ago_runtime.errors import AgoInputError
-from ago_runtime.prompts import parse_prompt_file, resolve_prompt_file
+from ago_runtime.vocab.prompts import parse_prompt_file, resolve_prompt_file
 
 from .dataset import PseudoLabelSet
 from .train_config import TrainConfig

@@ -31,7 +31,7 @@ from typing import Any
 from ago_runtime.atomic import write_json
 from ago_runtime.errors import AgoInputError
 from ago_runtime.readers import read_json
-from ago_runtime.prompts import resolve_prompt_file
+from ago_runtime.vocab.prompts import resolve_prompt_file
 
 from .losses import LossConfig
 from .model import ModelConfig

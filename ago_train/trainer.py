@@ -29,8 +29,8 @@ from torch.utils.data import DataLoader, DistributedSampler
 
 from ago_runtime.atomic import write_text
 from ago_runtime.errors import AgoInputError
-from ago_runtime.preprocess import Preprocess
-from ago_runtime.prompts import LabelSpace, parse_prompt_file
+from ago_runtime.geometry.preprocess import Preprocess
+from ago_runtime.vocab.prompts import LabelSpace, parse_prompt_file
 
 from . import distributed as D
 from .checkpoint import (check_resume_model, load_checkpoint, load_model_weights, plain, rng_state,
@@ -42,7 +42,7 @@ from .train_config import TrainConfig
 # ---- pieces shared with evaluation --------------------------------------------------------------
 def open_frames(data: str | Path, gts: str | None, split: str, load_images: bool = True):
     """The NuScenesDataset at `data` (GT from `gts` or <data>/gts when present) and its indices in `split`."""
-    from ago_runtime.nuscenes import NuScenesDataset
+    from ago_runtime.formats.nuscenes import NuScenesDataset
 
     root = Path(data)
     if not root.exists():
@@ -56,14 +56,15 @@ _BANKS: dict[str, dict] = {}  # per process: prompt file sha256 -> bank dict (th
 
 
 def build_text_bank(label_space: LabelSpace) -> dict:
-    """Encode the label space's phrases with the frozen torch MiniLM -> plain checkpoint 'bank' dict."""
-    from ago_runtime.bank import build_bank
+    """The label space's bank from the frozen torch MiniLM (ago_runtime.vocab.load_prompt_bank: cached by
+    content hash) -> plain checkpoint 'bank' dict."""
+    from ago_runtime.vocab.bank import load_prompt_bank
 
     from .text.minilm import TorchMiniLMEncoder
 
     key = label_space.sha256 or "\n".join(label_space.phrases)
     if key not in _BANKS:
-        _BANKS[key] = bank_to_dict(build_bank(label_space, TorchMiniLMEncoder()))
+        _BANKS[key] = bank_to_dict(load_prompt_bank(label_space, TorchMiniLMEncoder()))
     return {k: (v.clone() if isinstance(v, torch.Tensor) else v) for k, v in _BANKS[key].items()}
 
 

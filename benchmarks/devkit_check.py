@@ -1,4 +1,4 @@
-"""Open a dataset written by `ago_runtime.nuscenes_writer` with the official nuscenes-devkit.
+"""Open a dataset written by `ago_runtime.formats.nuscenes_writer` with the official nuscenes-devkit.
 
 Run it with a Python that has nuscenes-devkit (a throwaway venv: nuscenes-devkit is NOT a
 dependency of ago), e.g.
@@ -29,10 +29,10 @@ import numpy as np
 
 def write_dataset(root: Path, version: str) -> None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from ago_runtime.camera import Rig
-    from ago_runtime.nuscenes_writer import BoxAnnotation, NuScenesWriter
-    from ago_runtime.nuscenes_schema import record_to_matrix
-    from ago_runtime.occ3d import Occ3DLabels
+    from ago_runtime.geometry.camera import Rig
+    from ago_runtime.formats.nuscenes_writer import BoxAnnotation, NuScenesWriter
+    from ago_runtime.formats.nuscenes_schema import record_to_matrix
+    from ago_runtime.formats.occ3d import Occ3DLabels
 
     rng = np.random.default_rng(0)
     rig = Rig.nuscenes_like(320, 180)
@@ -84,7 +84,7 @@ def check(dataroot: Path, version: str) -> None:
     from nuscenes.utils.geometry_utils import view_points
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from ago_runtime.nuscenes_schema import record_to_matrix
+    from ago_runtime.formats.nuscenes_schema import record_to_matrix
 
     t0 = time.time()
     nusc = NuScenes(version=version, dataroot=str(dataroot), verbose=True)
@@ -130,7 +130,7 @@ def check(dataroot: Path, version: str) -> None:
         mask = nusc.get("map", log["map_token"])["mask"].mask()
         assert mask.ndim == 2 and mask.max() == 255
     # the devkit's LiDAR-into-image projection (pyquaternion pose chain) against ago's reader + Camera.project
-    from ago_runtime.nuscenes import NuScenesDataset
+    from ago_runtime.formats.nuscenes import NuScenesDataset
 
     dataset = NuScenesDataset(dataroot, version, load_images=False, load_extras=False)
     n_compared, max_px, max_m = 0, 0.0, 0.0

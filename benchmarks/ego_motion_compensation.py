@@ -19,7 +19,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from ago_runtime.mmdet3d_info import load_mmdet3d_info, read_mmdet3d_info  # noqa: E402
+from ago_runtime.formats.mmdet3d_info import load_mmdet3d_info, read_mmdet3d_info  # noqa: E402
 from ago_runtime.atomic import write_text  # noqa: E402
 
 

@@ -3,7 +3,7 @@
 Takes a bundle exported with `ago export --int8` and a nuScenes-layout dataset with Occ3D GT (e.g.
 the synthetic city of scripts/make_default_bundle.sh). For each frame of the split: the fp32 and the
 int8 Predictor (the bundle's training bank and identifier), labels brought up to the GT resolution
-(nearest) and scored over mask_camera with ago_runtime.metric.OccupancyMetric (GT mapped into the
+(nearest) and scored over mask_camera with ago_runtime.scoring.metric.OccupancyMetric (GT mapped into the
 bundle's label space, Occ3D classes it does not cover ignored: as `ago eval`). Also: share of voxels
 whose label agrees between int8 and fp32, and the steady-state frame time of both (median of
 --reps, alternating, wall and process CPU time).
@@ -36,9 +36,9 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=None, help="markdown file to write")
     args = ap.parse_args()
     from ago_runtime.classes import FREE, IGNORE
-    from ago_runtime.metric import OccupancyMetric, upsample_nearest
-    from ago_runtime.nuscenes import NuScenesDataset
-    from ago_runtime.predictor import Predictor
+    from ago_runtime.scoring.metric import OccupancyMetric, upsample_nearest
+    from ago_runtime.formats.nuscenes import NuScenesDataset
+    from ago_runtime.predict.predictor import Predictor
 
     load_start = " ".join(f"{x:.2f}" for x in os.getloadavg())
     fp32, int8 = Predictor(args.bundle), Predictor(args.bundle, int8=True)

@@ -29,7 +29,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from ago_runtime.atomic import atomic_path, write_json, write_text  # noqa: E402
-from ago_runtime.charts import PALETTE, line_chart  # noqa: E402
+from ago_runtime.pictures.charts import PALETTE, line_chart  # noqa: E402
 
 
 def occupancy_ratio(metric_summary: dict) -> float:
@@ -58,9 +58,9 @@ def score(ckpt: Path, data: str, split: str, cache: Path) -> dict:
 
 def pseudo_ceiling(pseudo: str, data: str, split: str) -> dict:
     """The pseudo-labels of `split`'s frames scored against GT like a prediction (unknown -> free)."""
-    from ago_runtime.metric import OccupancyMetric, upsample_nearest
-    from ago_runtime.nuscenes import NuScenesDataset
-    from ago_runtime.prompts import parse_prompt_text
+    from ago_runtime.scoring.metric import OccupancyMetric, upsample_nearest
+    from ago_runtime.formats.nuscenes import NuScenesDataset
+    from ago_runtime.vocab.prompts import parse_prompt_text
     from ago_train.dataset import PseudoLabelSet
 
     p = PseudoLabelSet.open(pseudo)

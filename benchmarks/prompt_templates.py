@@ -26,8 +26,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from ago_runtime.atomic import write_text  # noqa: E402
-from ago_runtime.bank import apply_template, build_bank  # noqa: E402
-from ago_runtime.prompts import name_key, parse_prompt_file  # noqa: E402
+from ago_runtime.vocab.bank import apply_template, build_bank  # noqa: E402
+from ago_runtime.vocab.prompts import name_key, parse_prompt_file  # noqa: E402
 
 # Held-out probe words (in no prompt file) with the cw class they belong to: classified through the
 # bank exactly as voxels are (class score = max over the class's phrases).
@@ -67,9 +67,9 @@ def get_encoder(kind: str):
         from ago_train.text.minilm import TorchMiniLMEncoder
 
         return TorchMiniLMEncoder()
-    from ago_runtime.cli_prompts import _encoder
+    from ago_runtime.vocab.text_encoder import text_encoder_for
 
-    return _encoder(kind)
+    return text_encoder_for(kind)
 
 
 def evaluate(encoder, template: str) -> dict:
@@ -134,7 +134,7 @@ def main() -> None:
         lines.append(f"| `{r['template']}`{mark} | {r['probe_acc']:.3f} | {r['probe_margin']:+.3f} | {r['accuracy']:.3f} | {r['margin']:+.3f} | "
                      f"{r['cross']:.3f} | {r['ds']:+.3f} |")
     lines += ["", f"Winner (highest probe accuracy, then accuracy, then probe margin): `{best['template']}` -> "
-              "ago_runtime.bank.DEFAULT_TEMPLATE.", ""]
+              "ago_runtime.vocab.bank.DEFAULT_TEMPLATE.", ""]
     write_text(args.output, "\n".join(lines))
     print("\n".join(lines))
 

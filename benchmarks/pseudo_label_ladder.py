@@ -30,12 +30,12 @@ sys.path.insert(0, str(REPO))
 os.environ.setdefault("AGO_NO_PROGRESS", "1")
 
 from ago_runtime.classes import FREE, IGNORE, NUM_SEMANTIC, OCC3D_CLASSES, OCC3D_ID  # noqa: E402
-from ago_runtime.grid import Grid  # noqa: E402
-from ago_runtime.metric import OccupancyMetric  # noqa: E402
-from ago_runtime.nuscenes import NuScenesDataset  # noqa: E402
-from ago_runtime.prompts import parse_prompt_file, resolve_prompt_file  # noqa: E402
-from ago_runtime.text_encoder import ago_cache_dir  # noqa: E402
-from ago_train.cli_pseudo import simulated_text_embeddings  # noqa: E402
+from ago_runtime.geometry.grid import Grid  # noqa: E402
+from ago_runtime.scoring.metric import OccupancyMetric  # noqa: E402
+from ago_runtime.formats.nuscenes import NuScenesDataset  # noqa: E402
+from ago_runtime.vocab.prompts import parse_prompt_file, resolve_prompt_file  # noqa: E402
+from ago_runtime.vocab.text_encoder import ago_cache_dir  # noqa: E402
+from ago_train.pseudo.cli import simulated_text_embeddings  # noqa: E402
 from ago_train.pseudo.generate import LiftCache, PseudoLabelConfig, pseudo_sample  # noqa: E402
 from ago_train.pseudo.simulated import (SimEmbedderConfig, SimSegmenterConfig, SimulatedImageEmbedder,  # noqa: E402
                                         SimulatedSegmenter, similarity_stats)
@@ -123,7 +123,7 @@ def voxel_embedding_accuracy(samples, gts, class_text) -> dict:
 
 
 def pictures(ds, index, ladder, gt, emb, class_text):
-    from ago_runtime.render import bev_image, save_png, side_by_side
+    from ago_runtime.pictures.render import bev_image, save_png, side_by_side
     panels = [("GT (Occ3D, camera mask dimmed)", bev_image(gt.semantics, mask=gt.mask_camera, scale=2))]
     for name, samples in ladder:
         panels.append((name, bev_image(samples[index].semantics, scale=2)))
@@ -245,7 +245,7 @@ def write_report(args, root, indices, rows, seg2d, emb2d, emb3d, final_observed,
          f"Command: `{cmd}` (dataset `ago synth --scenes {args.scenes} --frames {args.frames} --image-size "
          f"{args.image_size} --grid 200x200x16`, seed 0; {len(indices)} keyframes scored: every "
          f"{args.every}th). Label space `prompts/cw.txt` (17 Occ3D classes); grid 200 x 200 x 16 (0.4 m), "
-         "scored against the synthetic Occ3D GT with `ago_runtime.metric.OccupancyMetric` inside the GT "
+         "scored against the synthetic Occ3D GT with `ago_runtime.scoring.metric.OccupancyMetric` inside the GT "
          "camera mask. The 2-D masks come from the **SIMULATED** segmenter (rendered truth degraded: "
          "misses, boundary errors, confusions, false positives) - not from Grounded SAM; the numbers show the "
          "ladder's shape, not the paper's values (paper, Grounded SAM on nuScenes: 16.0 -> 25.9 -> 28.0 mIoU).",

@@ -6,7 +6,7 @@
 
 For every class of the prompt file, the voxels are ranked by the similarity `ago retrieve` computes
 (cosine between the voxel's adapted embedding F~_3D and the class's phrase embeddings, max over its
-phrases; `ago_runtime.heads.phrase_similarity`; `--branch identifier|main` for the other choices). As in POP-3D, where the ranked items are
+phrases; `ago_runtime.predict.heads.phrase_similarity`; `--branch identifier|main` for the other choices). As in POP-3D, where the ranked items are
 LiDAR points, the ranked items are the GT-occupied voxels inside the GT camera mask (at the GT
 resolution; the model grid is upsampled by nearest neighbour), pooled over the frames; the positives
 are the voxels of the class's Occ3D ids. Per class: AP and the class's prevalence (the expected AP of
@@ -27,15 +27,15 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from ago_runtime.atomic import write_text  # noqa: E402
-from ago_runtime.bank import bank_for_prompts  # noqa: E402
+from ago_runtime.vocab.bank import bank_for_prompts  # noqa: E402
 from ago_runtime.classes import FREE  # noqa: E402
-from ago_runtime.heads import phrase_similarity  # noqa: E402
-from ago_runtime.metric import upsample_nearest  # noqa: E402
-from ago_runtime.nuscenes import NuScenesDataset  # noqa: E402
-from ago_runtime.predictor import Predictor  # noqa: E402
+from ago_runtime.predict.heads import phrase_similarity  # noqa: E402
+from ago_runtime.scoring.metric import upsample_nearest  # noqa: E402
+from ago_runtime.formats.nuscenes import NuScenesDataset  # noqa: E402
+from ago_runtime.predict.predictor import Predictor  # noqa: E402
 from ago_runtime.progress import track  # noqa: E402
-from ago_runtime.prompts import parse_prompt_file  # noqa: E402
-from ago_runtime.ranking import average_precision  # noqa: E402
+from ago_runtime.vocab.prompts import parse_prompt_file  # noqa: E402
+from ago_runtime.scoring.ranking import average_precision  # noqa: E402
 
 
 def main(argv=None) -> dict:

@@ -17,7 +17,7 @@ voxels graph (slab -> scores), one frame of slabs
   Softplus op, as relu(x) - log(sigmoid(|x|)), and with ReLU instead of softplus (not the model: the
   time of the same graph with a free activation, a bound for any softplus rewrite);
 - one graph per layer with the softplus in numpy + OpenCV (what `ago export` writes and
-  ago_runtime.encoder runs), at several slab sizes.
+  ago_runtime.predict.encoder runs), at several slab sizes.
 sessions
 - session open of planes.onnx without / with the cached optimised graph.
 
@@ -184,9 +184,9 @@ def main() -> None:
     args = ap.parse_args()
     import onnxruntime as ort
 
-    from ago_runtime.camera import Rig
-    from ago_runtime.encoder import open_session, session_options
-    from ago_runtime.preprocess import Preprocess
+    from ago_runtime.geometry.camera import Rig
+    from ago_runtime.predict.encoder import open_session, session_options
+    from ago_runtime.geometry.preprocess import Preprocess
 
     load_start = " ".join(f"{x:.2f}" for x in os.getloadavg())
     with tempfile.TemporaryDirectory(prefix="ago_rewrites_") as tmp:
@@ -228,8 +228,8 @@ def main() -> None:
                              "plane_yz": new_planes[2]}
                 s.run(["s_main", "s_adapted"], {**feeds, **bank})
 
-        from ago_runtime.encoder import SplitEncoder
-        from ago_runtime.grid import Grid
+        from ago_runtime.predict.encoder import SplitEncoder
+        from ago_runtime.geometry.grid import Grid
 
         enc = SplitEncoder(files["planes"]["restructured TPV (shipped)"], files["stages"], Grid.from_dict(cfg.grid),
                            warm_up=False)

@@ -61,7 +61,7 @@ SWAP_PROMPTS = ("fire hydrant: fire hydrant, hydrant\nmailbox: mailbox, letter b
 
 # ---------------------------------------------------------------------------- shared helpers
 def model_config(name: str):
-    from ago_runtime.grid import Grid
+    from ago_runtime.geometry.grid import Grid
     from ago_train.model import ModelConfig
 
     cfg = ModelConfig.preset("cpu")
@@ -75,7 +75,7 @@ def model_config(name: str):
 def load_frame(rig_default):
     """The real nuScenes keyframe when present, else the exporter's synthetic frame."""
     if (SHARED_SAMPLE / "mmdet3d_info.pkl").is_file():
-        from ago_runtime.mmdet3d_info import load_mmdet3d_info
+        from ago_runtime.formats.mmdet3d_info import load_mmdet3d_info
 
         f = load_mmdet3d_info(SHARED_SAMPLE / "mmdet3d_info.pkl", SHARED_SAMPLE)[0]
         return f.images, f.rig, f"nuScenes {f.token} (1600x900)"
@@ -119,8 +119,8 @@ def child_frame(bundle: str, reps: int, cache: str) -> dict:
     """First frame of a new process, steady state, planes alone, bank swap, peak RSS."""
     os.environ["AGO_CACHE_DIR"] = cache
     t0 = time.perf_counter()
-    from ago_runtime.bank import bank_for_prompts
-    from ago_runtime.predictor import Predictor
+    from ago_runtime.vocab.bank import load_prompt_bank
+    from ago_runtime.predict.predictor import Predictor
 
     t1 = time.perf_counter()
     p = Predictor(bundle)
@@ -156,7 +156,7 @@ def child_frame(bundle: str, reps: int, cache: str) -> dict:
     prompt.parent.mkdir(parents=True, exist_ok=True)
     prompt.write_text(f"# {time.time_ns()}\n" + SWAP_PROMPTS)
     s0 = time.perf_counter()
-    new_bank = bank_for_prompts(prompt, cache_dir=Path(cache) / "banks")
+    new_bank = load_prompt_bank(prompt, cache_dir=Path(cache) / "banks")
     s1 = time.perf_counter()
     new_folded = p.fold(new_bank)
     s2 = time.perf_counter()
@@ -180,7 +180,7 @@ def child_infer(bundle: str, dataset: str, out: str, picture: str, cache: str) -
 
     os.environ["AGO_CACHE_DIR"] = cache
     os.environ["AGO_NO_PROGRESS"] = "1"
-    from ago_runtime.cli_infer import run_infer
+    from ago_runtime.predict.cli import run_infer
 
     kwargs = {}
     if "picture" in inspect.signature(run_infer).parameters:
@@ -265,8 +265,8 @@ def frame_flops(config: str, phrases: int) -> dict:
     torch.manual_seed(0)
     model = cfg.build().eval().requires_grad_(False)
     x = torch.zeros(1, 6, 3, cfg.image_height, cfg.image_width)
-    from ago_runtime.camera import Rig
-    from ago_runtime.preprocess import Preprocess
+    from ago_runtime.geometry.camera import Rig
+    from ago_runtime.geometry.preprocess import Preprocess
 
     m = torch.from_numpy(Preprocess(cfg.image_width, cfg.image_height).ego2img(Rig.nuscenes_like(1600, 900))[None])
     X, Y, Z = cfg.grid_obj().shape
@@ -324,7 +324,7 @@ def bench_config(name: str, base: Path, work: Path, args, log) -> dict:
     use_shipped = False
     if name == "cpu" and new_meta.is_file():
         meta = json.loads(new_meta.read_text())
-        from ago_runtime.bundle import BUNDLE_FORMAT_VERSION
+        from ago_runtime.predict.bundle import BUNDLE_FORMAT_VERSION
 
         use_shipped = meta.get("format_version") == BUNDLE_FORMAT_VERSION and meta["grid"]["shape"] == [100, 100, 8]
     if use_shipped:

@@ -34,7 +34,7 @@ def main() -> None:
     args = ap.parse_args()
 
     from ago_runtime.atomic import write_json, write_text
-    from ago_runtime.prompts import resolve_prompt_file
+    from ago_runtime.vocab.prompts import resolve_prompt_file
     from ago_train.experiments.driver import EXPERIMENTS, ExperimentRunner, runs_for
     from ago_train.experiments.plan import ExperimentProfile
     from ago_train.experiments.scoring import View, evaluate_views

@@ -22,7 +22,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from ago_runtime.classes import FREE, OCC3D_CLASSES, NUM_SEMANTIC  # noqa: E402
-from ago_runtime.occ3d import Occ3DLabels  # noqa: E402
+from ago_runtime.formats.occ3d import Occ3DLabels  # noqa: E402
 from ago_train.synth.config import SynthConfig, parse_size  # noqa: E402
 from ago_train.synth.generate import write_dataset  # noqa: E402
 

@@ -21,9 +21,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from ago_runtime import text_encoder as te  # noqa: E402
+from ago_runtime.vocab import text_encoder as te  # noqa: E402
 from ago_runtime.atomic import write_text  # noqa: E402
-from ago_runtime.prompts import parse_prompt_file, shipped_label_spaces  # noqa: E402
+from ago_runtime.vocab.prompts import parse_prompt_file, shipped_label_spaces  # noqa: E402
 
 
 def main() -> None:

@@ -28,14 +28,14 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from ago_runtime.atomic import write_text  # noqa: E402
-from ago_runtime.bank import bank_for_prompts  # noqa: E402
+from ago_runtime.vocab.bank import bank_for_prompts  # noqa: E402
 from ago_runtime.classes import FREE as OCC3D_FREE, OCC3D_CLASSES  # noqa: E402
-from ago_runtime.metric import upsample_nearest  # noqa: E402
-from ago_runtime.nuscenes import NuScenesDataset  # noqa: E402
-from ago_runtime.predictor import UNEXPLAINED_THRESHOLD, Predictor  # noqa: E402
+from ago_runtime.scoring.metric import upsample_nearest  # noqa: E402
+from ago_runtime.formats.nuscenes import NuScenesDataset  # noqa: E402
+from ago_runtime.predict.predictor import UNEXPLAINED_THRESHOLD, Predictor  # noqa: E402
 from ago_runtime.progress import track  # noqa: E402
-from ago_runtime.prompts import parse_prompt_file  # noqa: E402
-from ago_runtime.ranking import average_precision, roc_auc  # noqa: E402
+from ago_runtime.vocab.prompts import parse_prompt_file  # noqa: E402
+from ago_runtime.scoring.ranking import average_precision, roc_auc  # noqa: E402
 
 
 def covered_occ3d_ids(prompt_file: str) -> set[int]:
@@ -95,7 +95,7 @@ Bundle `{args.bundle}` ({predictor.bundle.card.get('note', '') if predictor.bund
 `{args.prompts}` ({bank.num_classes} classes), {len(indices)} frames of `{args.data}` split `{args.split}`.
 Score per voxel: 1 - the largest probability a prompted class gets (max over the two branches), in
 softmaxes over the prompted classes plus the bundle's training classes no prompt covers (reference
-classes, ago_runtime/heads.py, Predictor.fold_with_reference); mask: p_occ > 0.5 and score >
+classes, ago_runtime/predict/heads.py, Predictor.fold_with_reference); mask: p_occ > 0.5 and score >
 {UNEXPLAINED_THRESHOLD}. Scored: GT-occupied voxels in the GT camera mask ({len(s)} voxels); positives =
 classes no prompt covers ({int(positive.sum())} voxels, prevalence {prevalence:.3f}).
 

@@ -65,10 +65,10 @@ def main() -> None:
     step(f"{npz.name}: semantics {shape}, classes {names}")
 
     step("in-process: Predictor + bank from the prompt file, then check sys.modules")
-    code = ("import sys; from ago_runtime.bank import bank_for_prompts; from ago_runtime.predictor import Predictor; "
-            "from ago_runtime.bundle import resolve_bundle; from ago_runtime.calibration import load_images_folder; "
-            "from ago_runtime.bundle import DEMO_FRAME_DIR; "
-            f"bank = bank_for_prompts({str(prompt_file)!r}); p = Predictor(resolve_bundle()); "
+    code = ("import sys; from ago_runtime.vocab.bank import load_prompt_bank; from ago_runtime.predict.predictor import Predictor; "
+            "from ago_runtime.predict.bundle import resolve_bundle; from ago_runtime.formats.calibration import load_images_folder; "
+            "from ago_runtime.predict.bundle import DEMO_FRAME_DIR; "
+            f"bank = load_prompt_bank({str(prompt_file)!r}); p = Predictor(resolve_bundle()); "
             "imgs, rig, _ = load_images_folder(DEMO_FRAME_DIR); pred = p.predict(imgs, rig, bank); "
             "assert 'torch' not in sys.modules, 'torch was imported'; print(pred.semantics.shape, bank.encoder_variant)")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)

@@ -68,8 +68,8 @@ python - "$WORK/synth" "$ASSETS/demo_frame" <<'PY'
 import sys, shutil
 from pathlib import Path
 import cv2
-from ago_runtime.calibration import save_calibration
-from ago_runtime.nuscenes import NuScenesDataset
+from ago_runtime.formats.calibration import save_calibration
+from ago_runtime.formats.nuscenes import NuScenesDataset
 
 ds = NuScenesDataset(sys.argv[1], load_extras=False)
 idx = ds.split("val") or list(range(len(ds)))

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ago_runtime.camera import Rig
-from ago_runtime.grid import Grid
-from ago_runtime.preprocess import Preprocess
+from ago_runtime.geometry.camera import Rig
+from ago_runtime.geometry.grid import Grid
+from ago_runtime.geometry.preprocess import Preprocess
 from ago_train.augment import AUGMENTATIONS, GridTransform, draw
 
 

@@ -25,8 +25,8 @@ import cv2
 import numpy as np
 import pytest
 
-from ago_runtime.calibration import save_calibration
-from ago_runtime.camera import CAMERA_NAMES, Rig
+from ago_runtime.formats.calibration import save_calibration
+from ago_runtime.geometry.camera import CAMERA_NAMES, Rig
 
 # ------------------------------------------------------------------------------------ running
 def run_ago(args, cwd: Path):
@@ -155,7 +155,7 @@ def w(tmp_path_factory):
 
     from ago_export.export import export_bundle
     from ago_export.testing import random_checkpoint
-    from ago_runtime.bank import PromptBank
+    from ago_runtime.vocab.bank import PromptBank
     from ago_train.checkpoint import save_checkpoint
     from ago_train.model import ModelConfig
     from ago_train.text.noise import NoiseBank
@@ -193,7 +193,7 @@ def w(tmp_path_factory):
     heads["W_dec"] = np.concatenate([heads["W_dec"], heads["W_dec"][:, :1]], axis=1)   # Dh + 1
     np.savez(x.bad_heads / "heads.npz", **heads)
     meta = json.loads((x.bad_heads / "bundle.json").read_text())
-    from ago_runtime.bundle import file_sha256
+    from ago_runtime.predict.bundle import file_sha256
 
     meta["files"]["heads"].update(sha256=file_sha256(x.bad_heads / "heads.npz"),
                                   size=(x.bad_heads / "heads.npz").stat().st_size)
@@ -435,7 +435,7 @@ def test_scrambled_jpegs_are_refused_as_measured():
     """decode_image refuses 2 000-byte scrambles of the middle of a real-size JPEG, with and without 0xFF
     bytes in the junk, where cv2.imdecode alone returns an image for each (docs/runtime.md)."""
     from ago_runtime.errors import AgoInputError
-    from ago_runtime.image_files import decode_image
+    from ago_runtime.formats.image_files import decode_image
 
     data = (Path(__file__).resolve().parents[1] / "ago_runtime" / "assets" / "demo_frame" / "CAM_FRONT.jpg").read_bytes()
     assert decode_image(data, "ok.jpg").shape[2] == 3
@@ -448,7 +448,7 @@ def test_scrambled_jpegs_are_refused_as_measured():
 
 def test_png_header_size_is_checked_before_decoding(tmp_path):
     from ago_runtime.errors import AgoInputError
-    from ago_runtime.nuscenes import read_png
+    from ago_runtime.formats.nuscenes import read_png
 
     ok, png = cv2.imencode(".png", np.zeros((4, 4), np.uint8))
     b = bytearray(png.tobytes())
@@ -515,7 +515,7 @@ def test_export_cleans_temp_folders_of_killed_exports(w, tmp_path):
 
 
 def test_bundle_card_line_and_default_bundle_without_card(w):
-    from ago_runtime.bundle import DEFAULT_BUNDLE_DIR, Bundle, card_line
+    from ago_runtime.predict.bundle import DEFAULT_BUNDLE_DIR, Bundle, card_line
 
     b = Bundle.load(w.bundle)
     assert b.card is not None and card_line(b).startswith("bundle: trained on")

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from ago_runtime.atomic import atomic_path, save_npz, write_json
-from ago_runtime.camera import CAMERA_NAMES, Camera, Rig
+from ago_runtime.geometry.camera import CAMERA_NAMES, Camera, Rig
 from ago_runtime.errors import AgoInputError
-from ago_runtime.grid import Grid
-from ago_runtime.occ3d import Occ3DLabels
-from ago_runtime.preprocess import Preprocess
+from ago_runtime.geometry.grid import Grid
+from ago_runtime.formats.occ3d import Occ3DLabels
+from ago_runtime.geometry.preprocess import Preprocess
 
 
 def test_occ3d_grid_matches_the_dataset_definition():

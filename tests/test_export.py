@@ -18,9 +18,9 @@ from ago_export.export import export_bundle, load_model  # noqa: E402
 from ago_export.graphs import LogSigmoidSoftplus, export_activations  # noqa: E402
 from ago_export.parity import Tolerance, reference_labels  # noqa: E402
 from ago_export.testing import random_checkpoint  # noqa: E402
-from ago_runtime.bundle import Bundle  # noqa: E402
+from ago_runtime.predict.bundle import Bundle  # noqa: E402
 from ago_runtime.errors import AgoInputError  # noqa: E402
-from ago_runtime.predictor import Predictor  # noqa: E402
+from ago_runtime.predict.predictor import Predictor  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_SAMPLE = REPO.parent / "shared" / "data" / "nuscenes-sample"
@@ -76,8 +76,8 @@ def test_split_encoder_slabs_equal_the_torch_model_voxel_by_voxel(env):
     import torch
 
     from ago_export.export import load_model
-    from ago_runtime.bundle import Bundle
-    from ago_runtime.encoder import open_encoder
+    from ago_runtime.predict.bundle import Bundle
+    from ago_runtime.predict.encoder import open_encoder
 
     model, _ckpt, cfg = load_model(env["ckpt"])
     b = Bundle.load(env["bundle"])
@@ -196,8 +196,8 @@ def test_export_tpv_equals_the_trained_encoder(k, offsets):
     """ExportTPV (one grid_sample per attention over zero-framed canvases, per-frame geometry) gives
     the trained TPVEncoder's planes."""
     from ago_export.graphs import ExportTPV
-    from ago_runtime.camera import Rig
-    from ago_runtime.preprocess import Preprocess
+    from ago_runtime.geometry.camera import Rig
+    from ago_runtime.geometry.preprocess import Preprocess
 
     cfg, model = _tpv_model(k, offsets)
     x = torch.randn(1, 6, 3, cfg.image_height, cfg.image_width)
@@ -242,8 +242,8 @@ def test_voxel_stages_equal_the_model_for_any_depth(decoder_layers, adapter_dept
     """The staged per-voxel MLP (first linear in the planes, then one stage per layer, h and g where the
     banks are applied) gives the model's forward_hidden for any decoder / adapter depth."""
     from ago_export.graphs import PlanesGraph, VoxelsReference, voxel_stages
-    from ago_runtime.camera import Rig
-    from ago_runtime.preprocess import Preprocess
+    from ago_runtime.geometry.camera import Rig
+    from ago_runtime.geometry.preprocess import Preprocess
     from ago_train.model import ModelConfig
 
     cfg = ModelConfig.preset("tiny")

@@ -7,7 +7,7 @@ import itertools
 import pytest
 import torch
 
-from ago_runtime.camera import Rig
+from ago_runtime.geometry.camera import Rig
 from ago_runtime.classes import FREE, IGNORE
 from ago_train.losses import BankTensors, LossConfig, compute_losses
 from ago_train.losses.align import align_loss

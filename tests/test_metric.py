@@ -1,4 +1,4 @@
-"""Tests of ago_runtime.metric (Occ3D mIoU semantics) and the `ago metric` verb."""
+"""Tests of ago_runtime.scoring.metric (Occ3D mIoU semantics) and the `ago metric` verb."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import pytest
 
 from ago_runtime.atomic import save_npz
 from ago_runtime.classes import FREE, OCC3D_CLASSES
-from ago_runtime.metric import OccupancyMetric, upsample_nearest
-from ago_runtime.occ3d import Occ3DLabels
+from ago_runtime.scoring.metric import OccupancyMetric, upsample_nearest
+from ago_runtime.formats.occ3d import Occ3DLabels
 
 ABF = ["a", "b", "free"]  # a tiny label space: two classes + free at 2
 

@@ -8,7 +8,7 @@ import pytest
 import torch
 from torch import nn
 
-from ago_runtime.camera import Rig
+from ago_runtime.geometry.camera import Rig
 from ago_runtime.errors import AgoInputError
 from ago_train.model.config import ModelConfig
 from ago_train.model.scoring import NO_PHRASE_SCORE, class_logits, open_world_identify, phrase_to_class_index

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ago_runtime import text_encoder as te
+from ago_runtime.vocab import text_encoder as te
 from ago_runtime.errors import AgoInputError
 
 noise = pytest.importorskip("ago_train.text.noise")
@@ -109,7 +109,7 @@ def test_missing_wordnet_gives_setup_hint(tmp_path):
     code = (
         "import nltk, ago_train.text.noise as n; from pathlib import Path; "
         f"n.REPO_ROOT = Path({str(tmp_path)!r}); nltk.data.path[:] = [{str(tmp_path)!r}]; "
-        "from ago_runtime.tokenizer import WordPieceTokenizer; from ago_runtime.text_encoder import minilm_vocab_path; "
+        "from ago_runtime.vocab.tokenizer import WordPieceTokenizer; from ago_runtime.vocab.text_encoder import minilm_vocab_path; "
         "n.candidate_words(WordPieceTokenizer(minilm_vocab_path()), ['car'])"
     )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO,

@@ -18,17 +18,17 @@ import cv2
 import numpy as np
 import pytest
 
-from ago_runtime.camera import CAMERA_NAMES, Rig
+from ago_runtime.geometry.camera import CAMERA_NAMES, Rig
 from ago_runtime.errors import AgoInputError
-from ago_runtime.grid import Grid
-from ago_runtime.mmdet3d_info import (convert_mmdet3d_info_to_json, load_info_json, load_mmdet3d_info,
+from ago_runtime.geometry.grid import Grid
+from ago_runtime.formats.mmdet3d_info import (convert_mmdet3d_info_to_json, load_info_json, load_mmdet3d_info,
                                       read_mmdet3d_info, safe_load_pickle)
-from ago_runtime.nuscenes import NuScenesDataset
-from ago_runtime.nuscenes_schema import (CATEGORY_NAMES, TABLE_NAMES, matrix_to_quaternion,
+from ago_runtime.formats.nuscenes import NuScenesDataset
+from ago_runtime.formats.nuscenes_schema import (CATEGORY_NAMES, TABLE_NAMES, matrix_to_quaternion,
                                          quaternion_to_matrix, record_to_matrix)
-from ago_runtime.nuscenes_writer import BoxAnnotation, NuScenesWriter
-from ago_runtime.occ3d import Occ3DLabels
-from ago_runtime.projection_overlay import LAYOUT, render_depth_overlay
+from ago_runtime.formats.nuscenes_writer import BoxAnnotation, NuScenesWriter
+from ago_runtime.formats.occ3d import Occ3DLabels
+from ago_runtime.pictures.projection_overlay import LAYOUT, render_depth_overlay
 
 from conftest import shared_path
 

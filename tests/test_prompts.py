@@ -8,10 +8,10 @@ import zipfile
 import numpy as np
 import pytest
 
-from ago_runtime.bank import PromptBank, bank_for_prompts, build_bank
+from ago_runtime.vocab.bank import PromptBank, bank_for_prompts, build_bank
 from ago_runtime.classes import FREE, IGNORE, OCC3D_CLASSES, OCC3D_ID
 from ago_runtime.errors import AgoInputError
-from ago_runtime.prompts import (PROMPTS_DIR, name_key, parse_prompt_file, parse_prompt_text,
+from ago_runtime.vocab.prompts import (PROMPTS_DIR, name_key, parse_prompt_file, parse_prompt_text,
                                  shipped_label_spaces)
 
 

@@ -9,12 +9,12 @@ import cv2
 import numpy as np
 import pytest
 
-from ago_runtime.camera import CAMERA_NAMES, Rig
+from ago_runtime.geometry.camera import CAMERA_NAMES, Rig
 from ago_runtime.classes import FREE, IGNORE, NUM_SEMANTIC, OCC3D_ID
 from ago_runtime.errors import AgoInputError
-from ago_runtime.frame import Frame, LidarSweep
-from ago_runtime.grid import Grid
-from ago_runtime.prompts import parse_prompt_file, resolve_prompt_file
+from ago_runtime.formats.frame import Frame, LidarSweep
+from ago_runtime.geometry.grid import Grid
+from ago_runtime.vocab.prompts import parse_prompt_file, resolve_prompt_file
 from ago_train.pseudo.aggregate import lift_frame, warp_to
 from ago_train.pseudo.backends import FileImageEmbedder, FileSegmenter
 from ago_train.pseudo.generate import (PseudoLabelConfig, PseudoLabelDir, build_sample, generate,
@@ -431,7 +431,7 @@ def _stand_in_text(seed=0, dim=384):
 
 
 def minilm_class_text():
-    from ago_train.cli_pseudo import simulated_text_embeddings
+    from ago_train.pseudo.cli import simulated_text_embeddings
     return simulated_text_embeddings()[0]
 
 
@@ -539,7 +539,7 @@ def test_cli_pseudo_labels_is_resumable(synth_root, tmp_path):
 
 def test_label_map_files_give_the_same_pseudo_labels_as_the_truth(synth_root, tmp_path, cw):
     """Masks written in the documented layout (here: the rendered truth) -> same result as the perfect simulation."""
-    from ago_runtime.nuscenes import NuScenesDataset
+    from ago_runtime.formats.nuscenes import NuScenesDataset
     from ago_train.pseudo.generate import pseudo_sample
     ds = NuScenesDataset(synth_root, load_images=False)
     masks = tmp_path / "masks"

@@ -1,4 +1,4 @@
-"""Average precision and ROC AUC on hand-made rankings (ago_runtime/ranking.py)."""
+"""Average precision and ROC AUC on hand-made rankings (ago_runtime/scoring/ranking.py)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from ago_runtime.ranking import average_precision, roc_auc
+from ago_runtime.scoring.ranking import average_precision, roc_auc
 
 
 def test_average_precision_by_hand():
@@ -43,7 +43,7 @@ def test_roc_auc_equals_the_pairwise_probability():
 
 
 def test_phrase_similarity_takes_each_voxels_branch_and_max_over_phrases():
-    from ago_runtime.heads import HeadWeights, phrase_similarity
+    from ago_runtime.predict.heads import HeadWeights, phrase_similarity
 
     C = 3
     eye = np.eye(C, dtype=np.float32)

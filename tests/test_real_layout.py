@@ -16,10 +16,10 @@ import cv2
 import numpy as np
 import pytest
 
-from ago_runtime.camera import CAMERA_NAMES
+from ago_runtime.geometry.camera import CAMERA_NAMES
 from ago_runtime.classes import FREE, NUM_SEMANTIC, OCC3D_CLASSES
 from ago_runtime.errors import AgoInputError
-from ago_runtime.nuscenes import READ_TABLES, NuScenesDataset
+from ago_runtime.formats.nuscenes import READ_TABLES, NuScenesDataset
 
 VERSION = "v1.0-trainval"
 SWEEPS = 3

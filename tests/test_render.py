@@ -1,4 +1,4 @@
-"""Tests of ago_runtime.render (pictures) and the `ago show` verb."""
+"""Tests of ago_runtime.pictures.render (pictures) and the `ago show` verb."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ import cv2
 import numpy as np
 import pytest
 
-from ago_runtime import render
+from ago_runtime.pictures import render
 from ago_runtime.atomic import save_npz
 from ago_runtime.classes import FREE, OCC3D_CLASSES, OCC3D_COLORS, OCC3D_ID
-from ago_runtime.occ3d import Occ3DLabels
+from ago_runtime.formats.occ3d import Occ3DLabels
 
 CAR, BUS, TRUCK = OCC3D_ID["car"], OCC3D_ID["bus"], OCC3D_ID["truck"]
 
@@ -266,8 +266,8 @@ def test_cli_show_bad_input_exit_2(tmp_path, monkeypatch, capsys):
 
 
 def _tiny_dataset(root):
-    from ago_runtime.camera import CAMERA_NAMES, Rig
-    from ago_runtime.nuscenes_writer import NuScenesWriter
+    from ago_runtime.geometry.camera import CAMERA_NAMES, Rig
+    from ago_runtime.formats.nuscenes_writer import NuScenesWriter
 
     rig = Rig.nuscenes_like(160, 90)
     colours = {n: np.array([40 * i + 20, 200 - 30 * i, 90], dtype=np.uint8) for i, n in enumerate(CAMERA_NAMES)}

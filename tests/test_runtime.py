@@ -20,11 +20,11 @@ import cv2
 import numpy as np
 import pytest
 
-from ago_runtime.calibration import load_calibration, save_calibration
-from ago_runtime.camera import CAMERA_NAMES, Rig
+from ago_runtime.formats.calibration import load_calibration, save_calibration
+from ago_runtime.geometry.camera import CAMERA_NAMES, Rig
 from ago_runtime.classes import FREE, OCC3D_CLASSES, OCC3D_ID
 from ago_runtime.errors import AgoInputError
-from ago_runtime.heads import FoldedHeads, HeadWeights
+from ago_runtime.predict.heads import FoldedHeads, HeadWeights
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_SAMPLE = REPO.parent / "shared" / "data" / "nuscenes-sample"
@@ -102,8 +102,8 @@ def assert_refused(r, path_part: str, out: Path | None = None):
 
 # ---------------------------------------------------------------------------- torch-free
 def test_runtime_never_imports_torch():
-    code = ("import ago_runtime.predictor, ago_runtime.cli, ago_runtime.cli_infer, ago_runtime.bundle, "
-            "ago_runtime.calibration, ago_runtime.heads; import sys; assert 'torch' not in sys.modules, 'torch'")
+    code = ("import ago_runtime.predict.predictor, ago_runtime.cli, ago_runtime.predict.cli, ago_runtime.predict.bundle, "
+            "ago_runtime.formats.calibration, ago_runtime.predict.heads; import sys; assert 'torch' not in sys.modules, 'torch'")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
 
@@ -115,7 +115,7 @@ def _random_heads(rng, C=24, Dh=10, Da=12):
 
 
 def test_softplus_matches_the_exact_function():
-    from ago_runtime.encoder import Softplus, softplus_
+    from ago_runtime.predict.encoder import Softplus, softplus_
 
     x = np.concatenate([np.linspace(-120, 120, 200000), np.random.default_rng(0).normal(0, 4, 50000)]).astype(np.float32)
     want = np.logaddexp(0.0, x.astype(np.float64))
@@ -187,8 +187,8 @@ def test_calibration_roundtrip_and_list_layout(tmp_path):
 
 # ---------------------------------------------------------------------------- predictor
 def test_predictor_outputs_and_identifier(bundle_dir, frame_dir):
-    from ago_runtime.calibration import load_images_folder
-    from ago_runtime.predictor import Predictor
+    from ago_runtime.formats.calibration import load_images_folder
+    from ago_runtime.predict.predictor import Predictor
 
     p = Predictor(bundle_dir)
     images, rig, _ = load_images_folder(frame_dir)
@@ -212,10 +212,10 @@ def test_predictor_outputs_and_identifier(bundle_dir, frame_dir):
 def test_streamed_slabs_match_whole_grid_heads(bundle_dir, frame_dir, monkeypatch):
     """`predict` (voxels.onnx slab by slab, the bank's scores from the graph's GEMM) gives what the
     numpy heads give on the whole grid's h, g; a large bank is cut into thinner slabs."""
-    import ago_runtime.encoder as enc
-    from ago_runtime.calibration import load_images_folder
-    from ago_runtime.heads import SCORE_BUDGET_BYTES
-    from ago_runtime.predictor import Predictor
+    import ago_runtime.predict.encoder as enc
+    from ago_runtime.formats.calibration import load_images_folder
+    from ago_runtime.predict.heads import SCORE_BUDGET_BYTES
+    from ago_runtime.predict.predictor import Predictor
 
     p = Predictor(bundle_dir)
     assert isinstance(p.encoder, enc.SplitEncoder)
@@ -237,9 +237,9 @@ def test_streamed_slabs_match_whole_grid_heads(bundle_dir, frame_dir, monkeypatc
 
 def test_bank_swap_to_unseen_classes(bundle_dir, frame_dir, tmp_path):
     """Classes the model never saw ("fire hydrant", "mailbox") with no retraining and no re-export."""
-    from ago_runtime.bank import bank_for_prompts
-    from ago_runtime.calibration import load_images_folder
-    from ago_runtime.predictor import Predictor
+    from ago_runtime.vocab.bank import bank_for_prompts
+    from ago_runtime.formats.calibration import load_images_folder
+    from ago_runtime.predict.predictor import Predictor
 
     prompt = tmp_path / "street.txt"
     prompt.write_text("fire hydrant: fire hydrant, hydrant\nmailbox: mailbox, letter box\nroad [driveable_surface]: road\n")
@@ -316,7 +316,7 @@ def test_shipped_demo_runs_out_of_the_box(tmp_path):
     """The default bundle and demo frame ship in the package: `ago demo` works after install."""
     import json
 
-    from ago_runtime.bundle import DEFAULT_BUNDLE_DIR, DEMO_FRAME_DIR
+    from ago_runtime.predict.bundle import DEFAULT_BUNDLE_DIR, DEMO_FRAME_DIR
 
     assert (DEFAULT_BUNDLE_DIR / "bundle.json").is_file() and (DEFAULT_BUNDLE_DIR / "planes.onnx").is_file()
     assert sorted(p.stem for p in DEMO_FRAME_DIR.glob("CAM_*.jpg")) == sorted(CAMERA_NAMES)
@@ -419,7 +419,7 @@ def test_refuses_newer_bundle_and_truncated_onnx(bundle_dir, frame_dir, tmp_path
 
 
 def test_refuses_bank_of_other_encoder_or_width(bundle_dir, frame_dir, tmp_path):
-    from ago_runtime.bank import PromptBank
+    from ago_runtime.vocab.bank import PromptBank
 
     out = tmp_path / "out"
     bank = PromptBank.load(bundle_dir / "banks" / "ow.npz")
@@ -440,7 +440,7 @@ def test_refuses_bank_of_other_encoder_or_width(bundle_dir, frame_dir, tmp_path)
 
 
 def test_bundle_load_errors_name_the_file(bundle_dir, tmp_path):
-    from ago_runtime.bundle import Bundle
+    from ago_runtime.predict.bundle import Bundle
 
     with pytest.raises(AgoInputError, match="bundle folder not found"):
         Bundle.load(tmp_path / "nope")
@@ -454,8 +454,8 @@ def test_bundle_load_errors_name_the_file(bundle_dir, tmp_path):
 
 def test_cli_infer_several_samples_and_a_scene_with_one_bundle_load(bundle_dir, tmp_path, monkeypatch):
     """--sample takes tokens and scene names, repeatable; the bundle is loaded once for all frames."""
-    from ago_runtime import bundle as bundle_mod
-    from ago_runtime.nuscenes import NuScenesDataset
+    from ago_runtime.predict import bundle as bundle_mod
+    from ago_runtime.formats.nuscenes import NuScenesDataset
 
     data = tmp_path / "data"
     assert run_cli(["synth", "--out", data, "--scenes", "2", "--frames", "2", "--image-size", "96x54",
@@ -477,10 +477,10 @@ def test_cli_infer_several_samples_and_a_scene_with_one_bundle_load(bundle_dir, 
 
 def test_prediction_picture_title_is_never_cut(bundle_dir, frame_dir):
     """The frame name is a full-width header, wrapped when long (it was cut off inside the first panel)."""
-    from ago_runtime import render
-    from ago_runtime.calibration import load_images_folder
-    from ago_runtime.cli_infer import prediction_picture
-    from ago_runtime.predictor import Predictor
+    from ago_runtime.pictures import render
+    from ago_runtime.formats.calibration import load_images_folder
+    from ago_runtime.predict.cli import prediction_picture
+    from ago_runtime.predict.predictor import Predictor
 
     p = Predictor(bundle_dir)
     images, rig, _ = load_images_folder(frame_dir)
@@ -501,9 +501,9 @@ def test_prediction_picture_title_is_never_cut(bundle_dir, frame_dir):
 def test_optimised_graph_cache_is_used_checked_and_remade(bundle_dir, frame_dir, tmp_path, monkeypatch):
     """The first session of a graph writes onnxruntime's optimised graph to the cache; later sessions
     read it (same results); a damaged cache file is removed and remade; AGO_NO_ORT_CACHE=1 bypasses it."""
-    from ago_runtime.calibration import load_images_folder
-    from ago_runtime.encoder import optimized_cache_path
-    from ago_runtime.predictor import Predictor
+    from ago_runtime.formats.calibration import load_images_folder
+    from ago_runtime.predict.encoder import optimized_cache_path
+    from ago_runtime.predict.predictor import Predictor
 
     monkeypatch.setenv("AGO_CACHE_DIR", str(tmp_path / "cache"))
     first = Predictor(bundle_dir)
@@ -530,7 +530,7 @@ def test_optimised_graph_cache_is_used_checked_and_remade(bundle_dir, frame_dir,
 
 def _small_dataset(root: Path, frames: int = 4) -> list[str]:
     """A nuScenes-layout dataset of one scene with `frames` keyframes (smooth random images); -> tokens."""
-    from ago_runtime.nuscenes_writer import NuScenesWriter
+    from ago_runtime.formats.nuscenes_writer import NuScenesWriter
 
     rng = np.random.default_rng(3)
     rig = Rig.nuscenes_like(320, 180)
@@ -552,8 +552,8 @@ def test_infer_dataset_pipeline_outputs_pictures_and_errors(bundle_dir, tmp_path
     """The threaded reader / predictor / writer pipeline gives, per frame, what Predictor.predict gives;
     --picture none|bev|full; a corrupt image in frame 3 ends the run with one line after frames 1-2 are
     written completely."""
-    from ago_runtime.nuscenes import NuScenesDataset
-    from ago_runtime.predictor import Predictor
+    from ago_runtime.formats.nuscenes import NuScenesDataset
+    from ago_runtime.predict.predictor import Predictor
 
     ds_root = tmp_path / "ds"
     tokens = _small_dataset(ds_root)
@@ -593,8 +593,8 @@ def test_unexplained_obstacle_score_on_hand_made_scores():
     """score = 1 - best prompted-class confidence; occupancy = 1 - p(free): a voxel is flagged when the main
     branch says occupied and no branch is sure of any prompted class; free voxels and voxels a branch
     explains are not."""
-    from ago_runtime.heads import FoldedHeads, HeadWeights
-    from ago_runtime.predictor import UNEXPLAINED_THRESHOLD
+    from ago_runtime.predict.heads import FoldedHeads, HeadWeights
+    from ago_runtime.predict.predictor import UNEXPLAINED_THRESHOLD
 
     C, K = 4, 3
     z = np.zeros
@@ -625,7 +625,7 @@ def test_unexplained_obstacle_score_on_hand_made_scores():
 def test_unexplained_score_sees_reference_classes_and_keeps_the_labels():
     """With reference classes (training classes no prompt covers) folded in, a voxel that matches only a
     reference class is occupied and unexplained, while the labels equal those without reference classes."""
-    from ago_runtime.heads import FoldedHeads, HeadWeights
+    from ago_runtime.predict.heads import FoldedHeads, HeadWeights
 
     C = 4
     z = np.zeros

@@ -176,7 +176,7 @@ def test_cli_writes_nuscenes_layout(tmp_path):
     assert len(list((out / "gts").glob("*/*/labels.npz"))) == 4
     assert len(list((out / "synthetic" / "depth" / "CAM_BACK").glob("*.png"))) == 4
     assert (out / "v1.0-trainval" / "sample_annotation.json").is_file()
-    from ago_runtime.nuscenes import NuScenesDataset
+    from ago_runtime.formats.nuscenes import NuScenesDataset
 
     ds = NuScenesDataset(out)
     frame = ds[0]

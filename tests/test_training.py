@@ -18,7 +18,7 @@ import pytest
 import torch
 
 from ago_runtime.errors import AgoInputError
-from ago_runtime.grid import Grid
+from ago_runtime.geometry.grid import Grid
 
 REPO = Path(__file__).resolve().parents[1]
 GRID = "20x20x4"
@@ -188,7 +188,7 @@ def test_bad_inputs_raise_ago_input_error(tiny_data, tmp_path):
 @pytest.mark.slow
 def test_overfit_one_frame_then_eval(tiny_data, tmp_path):
     """A short run lowers the loss; 100 steps on one frame fit its pseudo-labels (mIoU > 0.7); eval writes files."""
-    from ago_runtime.metric import OccupancyMetric
+    from ago_runtime.scoring.metric import OccupancyMetric
     from ago_train.checkpoint import load_checkpoint
     from ago_train.dataset import IGNORE_INDEX, pseudo_to_target
     from ago_train.evaluate import evaluate, load_model, predict_labels
@@ -232,7 +232,7 @@ def test_overfit_three_frames_with_the_stratified_sample(tiny_data, tmp_path):
     (mIoU > 0.5) and the amount of predicted matter matches theirs (0.5-2x the occupied labelled voxels):
     a model that fills the grid, as the old priority sample taught, fails the last bound."""
     from ago_runtime.classes import OCCUPIED_UNLABELLED
-    from ago_runtime.metric import OccupancyMetric
+    from ago_runtime.scoring.metric import OccupancyMetric
     from ago_train.checkpoint import load_checkpoint
     from ago_train.dataset import IGNORE_INDEX, pseudo_to_target
     from ago_train.evaluate import load_model, predict_labels

@@ -30,11 +30,10 @@ from ago_runtime.atomic import write_json
 from ago_runtime.errors import AgoInputError
 from ago_runtime.readers import read_json
 
-from .plan import FEWSHOT_VARIANTS, PARADIGMS, ExperimentProfile, RunSpec, cw_run, fewshot_run, ow_run
+from .plan import (ADAPTED_SCALES, FEWSHOT_VARIANTS, PARADIGMS, ExperimentProfile, RunSpec, cw_run, fewshot_run,
+                   ow_run)
 from .scoring import View
 
-# diagnostic temperatures for the adapted branch's logits (Tab. 4 extra rows; chosen on val: optimistic)
-ADAPTED_SCALES = (3.0, 10.0, 30.0)
 EXPERIMENTS = ("tab1", "tab2", "tab3", "tab4", "tab5", "supp", "figures")
 
 
@@ -169,9 +168,9 @@ class ExperimentRunner:
         path = self.out / "data_scores.json"
         if path.is_file():
             return read_json(path)
-        from ago_runtime.metric import OccupancyMetric, upsample_nearest
-        from ago_runtime.nuscenes import NuScenesDataset
-        from ago_runtime.prompts import parse_prompt_file
+        from ago_runtime.scoring.metric import OccupancyMetric, upsample_nearest
+        from ago_runtime.formats.nuscenes import NuScenesDataset
+        from ago_runtime.vocab.prompts import parse_prompt_file
 
         from ..pseudo.generate import load_pseudo_labels, load_voxel_embeds
         from ..trainer import build_text_bank
@@ -241,7 +240,7 @@ class ExperimentRunner:
         return replace(cfg, **changes)
 
     def kshot_tokens(self, seed: int) -> list[str]:
-        from ago_runtime.prompts import parse_prompt_file
+        from ago_runtime.vocab.prompts import parse_prompt_file
 
         from ..dataset import PseudoLabelSet
         from ..open_world import select_kshot
@@ -283,7 +282,7 @@ class ExperimentRunner:
 
     # ---- scoring -----------------------------------------------------------------------
     def ensure_scored(self, spec: RunSpec) -> dict:
-        from ago_runtime.prompts import resolve_prompt_file
+        from ago_runtime.vocab.prompts import resolve_prompt_file
 
         from ..open_world import OpenWorldConfig, known_prompt_file
         from .scoring import evaluate_views

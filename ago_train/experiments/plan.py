@@ -31,6 +31,8 @@ PROFILES = ("tiny", "cpu", "full")
 # loss variants of the paradigm ablation, in the paper's order
 PARADIGMS = ("align", "grounding", "grounding+align", "ago")
 FEWSHOT_VARIANTS = ("align", "grounding", "ago")
+# diagnostic temperatures for the adapted branch's logits (Tab. 4 extra rows; chosen on val: optimistic)
+ADAPTED_SCALES = (3.0, 10.0, 30.0)
 
 
 @dataclass

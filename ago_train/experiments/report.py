@@ -20,7 +20,7 @@ from ago_runtime.atomic import write_json, write_text
 from ago_runtime.classes import OCC3D_CLASSES
 from ago_runtime.readers import read_json
 
-from .plan import FEWSHOT_VARIANTS, PARADIGMS, ExperimentProfile, cw_run, fewshot_run, ow_run
+from .plan import ADAPTED_SCALES, FEWSHOT_VARIANTS, PARADIGMS, ExperimentProfile, cw_run, fewshot_run, ow_run
 
 PAPER_TABLES = Path(__file__).with_name("paper_tables.json")
 PAPER_NAMES = {"align": "POP-3D-like align", "grounding": "grounding only", "grounding+align": "grounding + align",
@@ -123,8 +123,6 @@ def table4(out: Path, profile: ExperimentProfile) -> dict:
              "ow-adapted": "adapted F~_3D only"}
     if zs is None:
         t["missing"].append(ow_run("ago").name)
-    from .driver import ADAPTED_SCALES
-
     names.update({f"ow-min-entropy-x{s:g}": f"min entropy, adapted logits x{s:g} (diagnostic, chosen on val)"
                   for s in ADAPTED_SCALES})
     for key, label in names.items():
@@ -308,7 +306,7 @@ def heatmap(title: str, rows: list[str], cols: list[str], values: np.ndarray, ce
 
 
 def figures(out: Path, profile: ExperimentProfile, gap_e3d: dict | None) -> list[str]:
-    from ago_runtime.render import save_png, side_by_side, stack_vertical
+    from ago_runtime.pictures.render import save_png, side_by_side, stack_vertical
 
     fig_dir = out / "figures"
     made = []
@@ -355,10 +353,10 @@ def _caption(text: str, width: int) -> np.ndarray:
 
 
 def render_frames(out: Path, profile: ExperimentProfile) -> list[np.ndarray]:
-    from ago_runtime.metric import upsample_nearest
-    from ago_runtime.nuscenes import NuScenesDataset
-    from ago_runtime.prompts import parse_prompt_file
-    from ago_runtime.render import legend, side_by_side, voxel_view
+    from ago_runtime.scoring.metric import upsample_nearest
+    from ago_runtime.formats.nuscenes import NuScenesDataset
+    from ago_runtime.vocab.prompts import parse_prompt_file
+    from ago_runtime.pictures.render import legend, side_by_side, voxel_view
 
     from ..pseudo.generate import load_pseudo_labels
 

@@ -31,9 +31,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ago_runtime.metric import OccupancyMetric
-from ago_runtime.preprocess import Preprocess
-from ago_runtime.prompts import LabelSpace, parse_prompt_file
+from ago_runtime.scoring.metric import OccupancyMetric
+from ago_runtime.geometry.preprocess import Preprocess
+from ago_runtime.vocab.prompts import LabelSpace, parse_prompt_file
 
 from ..checkpoint import load_checkpoint
 from ..dataset import FrameList, OccSampleDataset, collate

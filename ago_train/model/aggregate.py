@@ -4,7 +4,7 @@ Takes the three plane maps plane_xy (B, D, Xt, Yt), plane_xz (B, D, Xt, Zt), pla
 and the grid shape (X, Y, Z). Planes coarser than the grid are upsampled bilinearly
 (align_corners=False) to (X, Y), (X, Z), (Y, Z). A voxel's feature is the sum of the three plane
 features it projects onto: f[x, y, z] = xy[x, y] + xz[x, z] + yz[y, z].
-Gives (B, N, D) with N = X*Y*Z in C order over [x, y, z] (= ago_runtime.grid.Grid.flat_index).
+Gives (B, N, D) with N = X*Y*Z in C order over [x, y, z] (= ago_runtime.geometry.grid.Grid.flat_index).
 """
 
 from __future__ import annotations

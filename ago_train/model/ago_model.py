@@ -1,6 +1,6 @@
 """`AGOModel`: six camera images -> per-voxel embeddings in the text space.
 
-forward_hidden(images (B, 6, 3, H, W) float32 normalised by ago_runtime.preprocess.Preprocess,
+forward_hidden(images (B, 6, 3, H, W) float32 normalised by ago_runtime.geometry.preprocess.Preprocess,
                ego2img (B, 6, 4, 4) float32 for the resized images)
   -> h (B, N, Dh) decoder hidden, g (B, N, Da) adapter hidden; N = X*Y*Z, C order over [x, y, z].
 forward(images, ego2img, voxel_index=None, prefix=None) -> {"feat": F_3D = decoder_out(h) (B, N, C),
@@ -15,15 +15,19 @@ planes_to_voxels -> decoder MLP -> decoder_out -> adapter.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 from torch import nn
 
 from .aggregate import planes_at_voxels, planes_to_voxels
 from .backbone import build_backbone
-from .config import ModelConfig
 from .fpn import FPN
 from .heads import AdapterHidden, DecoderMLP
 from .tpv import TPVEncoder
+
+if TYPE_CHECKING:   # annotations only: ModelConfig.build() imports this module
+    from .config import ModelConfig
 
 
 class AGOModel(nn.Module):

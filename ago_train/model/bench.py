@@ -17,7 +17,7 @@ import time
 
 import torch
 
-from ago_runtime.camera import Rig
+from ago_runtime.geometry.camera import Rig
 
 from .config import ModelConfig
 

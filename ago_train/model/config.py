@@ -20,7 +20,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, fields
 
 from ago_runtime.errors import AgoInputError
-from ago_runtime.grid import Grid
+from ago_runtime.geometry.grid import Grid
 
 BACKBONES = ("efficientnet_lite0", "resnet101", "tiny_cnn")
 
@@ -32,9 +32,9 @@ def _default_grid() -> dict:
 @dataclass
 class ModelConfig:
     # --- geometry / input
-    grid: dict = field(default_factory=_default_grid)  # ago_runtime.grid.Grid.to_dict()
-    image_width: int = 352   # = ago_runtime.preprocess.Preprocess.width
-    image_height: int = 192  # = ago_runtime.preprocess.Preprocess.height
+    grid: dict = field(default_factory=_default_grid)  # ago_runtime.geometry.grid.Grid.to_dict()
+    image_width: int = 352   # = ago_runtime.geometry.preprocess.Preprocess.width
+    image_height: int = 192  # = ago_runtime.geometry.preprocess.Preprocess.height
     num_cameras: int = 6
     # --- image backbone + FPN
     backbone: str = "efficientnet_lite0"  # "efficientnet_lite0" | "resnet101" | "tiny_cnn"

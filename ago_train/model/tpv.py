@@ -31,15 +31,18 @@ with one softmax over all sampled points per head.
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ago_runtime.grid import Grid
+from ago_runtime.geometry.grid import Grid
 
-from .config import ModelConfig
+if TYPE_CHECKING:   # annotations only: ModelConfig.build() imports this module
+    from .config import ModelConfig
+
 
 PLANES = ("xy", "xz", "yz")
 

@@ -24,7 +24,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from ago_runtime.errors import AgoInputError
-from ago_runtime.frame import Frame, LidarSweep
+from ago_runtime.formats.frame import Frame, LidarSweep
 
 from .backends import ImageEmbedder, Segmenter
 from .lift import assign_cameras, lift_labels

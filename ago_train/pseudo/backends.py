@@ -30,8 +30,8 @@ import numpy as np
 
 from ago_runtime.errors import AgoInputError
 from ago_runtime.readers import read_json
-from ago_runtime.frame import Frame
-from ago_runtime.prompts import LabelSpace, name_key
+from ago_runtime.formats.frame import Frame
+from ago_runtime.vocab.prompts import LabelSpace, name_key
 
 NO_LABEL = 255
 FILE_NO_LABEL = 0  # the id that means "no label" in label-map files (255 is accepted as well)
@@ -117,7 +117,7 @@ class FileSegmenter:
     def segment(self, frame: Frame, camera: str) -> np.ndarray:
         path = self.path_for(frame, camera)
         if path.suffix == ".png":
-            from ago_runtime.image_files import decode_image
+            from ago_runtime.formats.image_files import decode_image
 
             try:
                 data = path.read_bytes()

@@ -32,12 +32,12 @@ from pathlib import Path
 import numpy as np
 
 from ago_runtime.atomic import save_npz, write_bytes, write_json
-from ago_runtime.camera import Rig
+from ago_runtime.geometry.camera import Rig
 from ago_runtime.classes import FREE, IGNORE
 from ago_runtime.errors import AgoInputError
 from ago_runtime.readers import read_json
-from ago_runtime.frame import Frame
-from ago_runtime.grid import Grid
+from ago_runtime.formats.frame import Frame
+from ago_runtime.geometry.grid import Grid
 from ago_runtime.readers import read_npz
 from ago_runtime.progress import track
 

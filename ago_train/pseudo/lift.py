@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ago_runtime.camera import Rig
+from ago_runtime.geometry.camera import Rig
 
 NO_CAMERA = -1
 NO_LABEL = 255

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ago_runtime.grid import Grid
+from ago_runtime.geometry.grid import Grid
 
 
 def traverse(origins: np.ndarray, ends: np.ndarray, grid: Grid) -> np.ndarray:

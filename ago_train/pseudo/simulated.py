@@ -33,8 +33,8 @@ import numpy as np
 
 from ago_runtime.classes import NUM_SEMANTIC, OCC3D_CLASSES, OCC3D_ID
 from ago_runtime.errors import AgoInputError
-from ago_runtime.frame import Frame
-from ago_runtime.prompts import LabelSpace
+from ago_runtime.formats.frame import Frame
+from ago_runtime.vocab.prompts import LabelSpace
 
 NO_LABEL = 255
 THING_IDS = frozenset(range(1, 11))  # barrier .. truck: countable objects; the rest are surfaces/stuff

@@ -10,9 +10,9 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from ago_runtime.camera import Rig
+from ago_runtime.geometry.camera import Rig
 from ago_runtime.errors import AgoInputError
-from ago_runtime.grid import Grid
+from ago_runtime.geometry.grid import Grid
 
 
 @dataclass

@@ -9,7 +9,7 @@
   lidar_classes (N,) uint8 Occ3D class of each LiDAR return (for checks),
   sweeps [{timestamp_us, ego2global, lidar_points}]: the `config.sweeps_between` non-key LiDAR sweeps
   between the previous keyframe and this one (empty by default and for the first keyframe).
-`write_dataset(config, out)` writes every scene through `ago_runtime.nuscenes_writer.NuScenesWriter`
+`write_dataset(config, out)` writes every scene through `ago_runtime.formats.nuscenes_writer.NuScenesWriter`
 (the last `val_fraction` of the scenes form the val split) and returns a small summary dict.
 
 Global frame = the world frame shifted by GLOBAL_OFFSET so that every pose is positive (nuScenes maps
@@ -23,7 +23,7 @@ from typing import Iterator
 
 import numpy as np
 
-from ago_runtime.nuscenes_writer import BoxAnnotation, NuScenesWriter
+from ago_runtime.formats.nuscenes_writer import BoxAnnotation, NuScenesWriter
 from ago_runtime.progress import track
 
 from .config import SynthConfig

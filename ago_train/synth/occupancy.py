@@ -25,13 +25,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from ago_runtime.camera import Rig
+from ago_runtime.geometry.camera import Rig
 from ago_runtime.classes import FREE
-from ago_runtime.grid import Grid
-from ago_runtime.occ3d import Occ3DLabels
+from ago_runtime.geometry.grid import Grid
+from ago_runtime.formats.occ3d import Occ3DLabels
 
 from .raycast import BOX, CONE, CYL, ELL, MAP_CLASS, PrimitiveSet
-from .world import SURFACE_CLASS, World
+from .builder import SURFACE_CLASS
+from .world import World
 
 
 # Painting order within scenery and within movable objects (later wins a shared voxel): big and

@@ -16,9 +16,11 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ago_runtime.camera import Camera
+from ago_runtime.geometry.camera import Camera
 
-from . import world as W
+from . import builder as B
+from .agents import CLOTH_COLORS
+from .world import World
 from .raycast import MAP_CLASS, SKY, PrimitiveSet, cast, local_points, surface_normals
 
 _NOISE = {}
@@ -56,7 +58,7 @@ SURFACE_COLORS = np.array([
 ], np.float32)
 
 
-def albedo_and_class(world: W.World, prims: PrimitiveSet, ids: np.ndarray, points: np.ndarray):
+def albedo_and_class(world: World, prims: PrimitiveSet, ids: np.ndarray, points: np.ndarray):
     """For hit points (m,3) on ids (m,) (primitive index or GROUND): albedo (m,3), class (m,), normal (m,3),
     and a surface code (m,) (255 for non-ground materials) used for LiDAR reflectivity."""
     fine, big = noise_tables()
@@ -69,7 +71,7 @@ def albedo_and_class(world: W.World, prims: PrimitiveSet, ids: np.ndarray, point
     is_prim = ids >= 0
     pid = np.where(is_prim, ids, 0)
     q = np.zeros((m, 3))
-    mat = np.full(m, W.M_GROUND, np.uint8)
+    mat = np.full(m, B.M_GROUND, np.uint8)
     if is_prim.any():
         q[is_prim] = local_points(prims, pid[is_prim], points[is_prim])
         normal[is_prim] = surface_normals(prims, pid[is_prim], q[is_prim])
@@ -84,24 +86,24 @@ def albedo_and_class(world: W.World, prims: PrimitiveSet, ids: np.ndarray, point
     if len(gi):
         gx, gy = x[gi], y[gi]
         sc, mk = world.raster_at(gx, gy)
-        cls[gi] = W.SURFACE_CLASS[sc]
+        cls[gi] = B.SURFACE_CLASS[sc]
         nfg, nbg = nf[gi], nb[gi]
         col = SURFACE_COLORS[sc] * ((0.82 + 0.3 * nfg) * (0.88 + 0.24 * nbg))[:, None]
 
         def where(cond):
             return np.nonzero(cond)[0]
 
-        k = where(sc == W.S_GRASS)
+        k = where(sc == B.S_GRASS)
         col[k] = np.where(nbg[k, None] > 0.5, np.float32([0.36, 0.5, 0.2]), np.float32([0.24, 0.4, 0.15])) \
             * (0.7 + 0.6 * nfg[k, None])
-        k = where((sc == W.S_SIDEWALK) | (sc == W.S_PLAZA))
-        size = np.where(sc[k] == W.S_PLAZA, 1.2, 0.6)
+        k = where((sc == B.S_SIDEWALK) | (sc == B.S_PLAZA))
+        size = np.where(sc[k] == B.S_PLAZA, 1.2, 0.6)
         col[k[(np.mod(gx[k], size) < 0.04) | (np.mod(gy[k], size) < 0.04)]] *= 0.72
-        k = where(sc == W.S_RAIL)
+        k = where(sc == B.S_RAIL)
         col[k[(np.mod(gx[k], 0.65) < 0.22) | (np.mod(gy[k], 0.65) < 0.22)]] = [0.3, 0.22, 0.16]
-        k = where(sc == W.S_WATER)
-        col[k] = SURFACE_COLORS[W.S_WATER] * (0.9 + 0.2 * nbg[k, None]) + 0.1 * world.sky_horizon.astype(np.float32)
-        painted = (mk > 0) & (sc <= W.S_PARKING)
+        k = where(sc == B.S_WATER)
+        col[k] = SURFACE_COLORS[B.S_WATER] * (0.9 + 0.2 * nbg[k, None]) + 0.1 * world.sky_horizon.astype(np.float32)
+        painted = (mk > 0) & (sc <= B.S_PARKING)
         k = where(painted & (mk == 1))
         col[k] = np.float32([0.85, 0.85, 0.83]) * (0.9 + 0.1 * nfg[k, None])
         col[where(painted & (mk == 2))] = [0.85, 0.68, 0.2]
@@ -130,7 +132,7 @@ def _material(world, prims, mt, i, qq, normal, f, bg, x, y, z):
     along = np.where(np.abs(n_loc[:, 0]) > np.abs(n_loc[:, 1]), qq[:, 1], qq[:, 0])
     zb = qq[:, 2] + h[:, 2]  # height above the primitive's base
     vertical = np.abs(normal[:, 2]) < 0.5
-    if mt == W.M_BUILDING:
+    if mt == B.M_BUILDING:
         sp = np.maximum(prims.param[i], 1e-3)
         brick = base[:, 0] > base[:, 2] * 1.4
         c = base * (0.85 + 0.25 * f)
@@ -145,37 +147,37 @@ def _material(world, prims, mt, i, qq, normal, f, bg, x, y, z):
         roof = ~vertical
         c[roof] = np.array([0.32, 0.31, 0.3]) * (0.8 + 0.3 * f[roof])
         return c
-    if mt == W.M_WALL:
+    if mt == B.M_WALL:
         return base * (0.75 + 0.35 * f) * np.where(np.mod(along, 2.5) < 0.06, 0.7, 1.0)[:, None]
-    if mt == W.M_BODY:
+    if mt == B.M_BODY:
         c = base * (0.93 + 0.1 * f)
         c[zb < 0.08] *= 0.4
         lamp = vertical & (np.abs(n_loc[:, 0]) > 0.9) & (np.abs(qq[:, 1]) > h[:, 1] - 0.35) & (zb > h[:, 2] * 1.2)
         c[lamp] = np.where(n_loc[lamp, :1] > 0, [0.95, 0.95, 0.85], [0.8, 0.1, 0.08])
         return c
-    if mt == W.M_CABIN:
+    if mt == B.M_CABIN:
         half_along = np.where(np.abs(n_loc[:, 0]) > np.abs(n_loc[:, 1]), h[:, 1], h[:, 0])
         pillar = np.abs(along) > half_along - 0.1
         glassc = np.array([0.1, 0.12, 0.15]) + 0.25 * bg * world.sky_horizon[None]
         return np.where((vertical & ~pillar)[:, None], glassc, base * 0.95)
-    if mt == W.M_TIRE:
+    if mt == B.M_TIRE:
         return np.array([0.07, 0.07, 0.07]) * (0.7 + 0.6 * f)
-    if mt == W.M_FOLIAGE:
+    if mt == B.M_FOLIAGE:
         leaf = _lookup(fine, x * 1.7 + z, y * 1.7 - z * 1.3, 14.0)[:, None]
         return base * (0.45 + 0.9 * leaf) * (0.8 + 0.4 * bg)
-    if mt == W.M_BARK:
+    if mt == B.M_BARK:
         return base * (0.6 + 0.6 * _lookup(fine, along * 8, zb * 0.5, 6.0)[:, None])
-    if mt == W.M_PERSON:
-        trousers = W.CLOTH_COLORS[prims.param[i].astype(np.int64) % len(W.CLOTH_COLORS)]
+    if mt == B.M_PERSON:
+        trousers = CLOTH_COLORS[prims.param[i].astype(np.int64) % len(CLOTH_COLORS)]
         legs = zb < h[:, 2] * 2 * 0.48
         return np.where(legs[:, None], trousers, base) * (0.85 + 0.2 * f)
-    if mt == W.M_SIGN:
+    if mt == B.M_SIGN:
         face = np.abs(n_loc[:, 0]) > 0.9
         symbol = face & (np.abs(qq[:, 1]) < 0.1) & (np.abs(qq[:, 2]) < 0.22)
         c = np.where(face[:, None], base, [0.5, 0.5, 0.52])
         c[symbol] = [0.95, 0.95, 0.95]
         return c
-    if mt == W.M_TLIGHT:
+    if mt == B.M_TLIGHT:
         lamp_z = (0.3, 0.0, -0.3)
         c = np.full((len(i), 3), 0.1, np.float32)
         front = np.abs(n_loc[:, 0]) > 0.9
@@ -184,20 +186,20 @@ def _material(world, prims, mt, i, qq, normal, f, bg, x, y, z):
             lit = prims.param[i] == k
             c[disk] = np.where(lit[disk, None], lc, np.array(lc) * 0.25)
         return c
-    if mt == W.M_CONE:
+    if mt == B.M_CONE:
         band = (zb > h[:, 2] * 0.8) & (zb < h[:, 2] * 1.2)
         return np.where(band[:, None], [0.95, 0.95, 0.95], base)
-    if mt == W.M_BARRIER:
+    if mt == B.M_BARRIER:
         stripe = np.mod(along + zb, 0.6) < 0.3
         return np.where(stripe[:, None], [0.95, 0.95, 0.95], base)
-    if mt == W.M_CONCRETE:
+    if mt == B.M_CONCRETE:
         return base * (0.75 + 0.35 * f)
-    if mt == W.M_PLASTIC:
+    if mt == B.M_PLASTIC:
         ribs = (prims.param[i] > 0) & vertical & (np.mod(along, 0.45) < 0.06)
         c = base * (0.9 + 0.15 * f)
         c[ribs] *= 0.7
         return c
-    if mt == W.M_BUS:
+    if mt == B.M_BUS:
         band = vertical & (zb > 1.0) & (zb < h[:, 2] * 2 - 0.35)
         pillar = np.mod(along, 1.4) < 0.12
         glassc = np.array([0.12, 0.14, 0.18]) + 0.25 * bg * world.sky_horizon[None]
@@ -258,7 +260,7 @@ def camera_rects(cam2world: np.ndarray, K: np.ndarray, width: int, height: int, 
     return list(zip(idx[ok].tolist(), r0[ok].tolist(), r1[ok].tolist(), c0[ok].tolist(), c1[ok].tolist()))
 
 
-def render_camera(world: W.World, prims: PrimitiveSet, aabb: tuple[np.ndarray, np.ndarray], camera: Camera,
+def render_camera(world: World, prims: PrimitiveSet, aabb: tuple[np.ndarray, np.ndarray], camera: Camera,
                   rays: CameraRays, ego2global: np.ndarray, rng: np.random.Generator, noise_std: float = 3.0,
                   exposure: float = 1.0):
     cam2world = ego2global @ camera.cam2ego

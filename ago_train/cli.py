@@ -42,7 +42,7 @@ def register(app: typer.Typer) -> None:
         print_config: bool = typer.Option(False, "--print-config", help="print the resolved config and exit"),
     ):
         """Train AGO from pseudo-labels (single process, or DDP under torchrun)."""
-        from ago_runtime.cli import require_torch
+        from ago_runtime.errors import require_torch
 
         require_torch("train")
         cfg = _config(config, sets, out, data, pseudo, prompts)
@@ -75,7 +75,7 @@ def register(app: typer.Typer) -> None:
         device: str = typer.Option("auto", "--device", help="auto | cpu | cuda | cuda:N"),
     ):
         """Score a checkpoint against Occ3D GT (per-class IoU, mIoU, known/unknown mIoU)."""
-        from ago_runtime.cli import require_torch
+        from ago_runtime.errors import require_torch
 
         require_torch("eval")
         from ago_runtime.outputs import check_output_dir
@@ -110,7 +110,7 @@ def register(app: typer.Typer) -> None:
         out: Path = typer.Option(Path("runs/open-world"), "--out"),
     ):
         """The paper's open-world protocol: pretrain (5 classes), zero-shot and few-shot on 15 classes."""
-        from ago_runtime.cli import require_torch
+        from ago_runtime.errors import require_torch
         from ago_runtime.errors import AgoInputError
 
         require_torch("open-world")

@@ -32,7 +32,7 @@ def register(app: typer.Typer) -> None:
                                       "(default: filled from the checkpoint, its log and <ckpt dir>/eval-val)"),
     ) -> None:
         """Export a checkpoint to a self-describing ONNX bundle, parity-checked against torch."""
-        from ago_runtime.cli import require_torch
+        from ago_runtime.errors import require_torch
 
         require_torch("export")
         from ago_runtime.errors import AgoInputError

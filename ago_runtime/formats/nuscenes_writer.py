@@ -39,12 +39,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .atomic import write_bytes, write_json
-from .camera import CAMERA_NAMES, Rig
-from .errors import AgoInputError
-from .nuscenes_schema import (ATTRIBUTES, CATEGORIES, CATEGORY_NAMES, LIDAR_CHANNEL, TABLE_NAMES,
+from ago_runtime.atomic import write_bytes, write_json
+from ago_runtime.geometry.camera import CAMERA_NAMES, Rig
+from ago_runtime.errors import AgoInputError
+from ago_runtime.formats.nuscenes_schema import (ATTRIBUTES, CATEGORIES, CATEGORY_NAMES, LIDAR_CHANNEL, TABLE_NAMES,
                               VISIBILITY_LEVELS, check_rigid, matrix_to_record, yaw_to_quaternion)
-from .occ3d import Occ3DLabels, labels_path
+from ago_runtime.formats.occ3d import Occ3DLabels, labels_path
 
 JPEG_QUALITY = 95
 MAP_RESOLUTION = 0.1      # metres per map-mask pixel, as nuScenes

@@ -190,7 +190,7 @@ class FoldedHeads:
     def classify_scores(self, s_main: np.ndarray, s_ad: np.ndarray | None, identifier: str = "min-entropy",
                         extras: dict | None = None):
         """Like `classify`, from bias-free class-major phrase scores (P', n) of each branch (overwritten),
-        e.g. computed inside the voxel graph (ago_runtime/encoder.py); s_ad may be None for "none".
+        e.g. computed inside the voxel graph (ago_runtime/predict/encoder.py); s_ad may be None for "none".
 
         With `extras` (a dict), also puts there, per voxel (n,) float32, the UNEXPLAINED-OBSTACLE parts:
         "occupancy" p_occ = 1 - p(free) of the main branch's softmax over [all classes + free], and

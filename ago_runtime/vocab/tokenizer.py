@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import AgoInputError
+from ago_runtime.errors import AgoInputError
 
 MAX_CHARS_PER_WORD = 100
 

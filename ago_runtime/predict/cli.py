@@ -18,30 +18,20 @@ BEV and legend; none: no PNG). Reading, inference and writing overlap (run_infer
 from __future__ import annotations
 
 import queue
-import sys
 import threading
 import time
-import warnings
 from pathlib import Path
 from typing import Iterator, List, Optional
 
 import numpy as np
 import typer
 
-from .errors import AgoInputError
-
-
-def _print_warnings():
-    """Show warnings as one line each on stderr."""
-    def show(message, category, filename, lineno, file=None, line=None):
-        print(f"warning: {message}", file=sys.stderr)
-
-    warnings.showwarning = show
+from ago_runtime.errors import AgoInputError, one_line_warnings
 
 
 def resolve_prompts(path: str) -> Path:
     """A prompt file relative to the cwd, else in the installed `prompts` package (by name or file name)."""
-    from .prompts import PROMPTS_DIR, resolve_prompt_file
+    from ago_runtime.vocab.prompts import PROMPTS_DIR, resolve_prompt_file
 
     p = Path(path)
     if p.is_file():
@@ -52,13 +42,12 @@ def resolve_prompts(path: str) -> Path:
 
 
 def choose_bank(bundle, prompts: Optional[str], bank: Optional[str]):
-    """--bank FILE or a bundle bank name; --prompts FILE (encoded, cached by hash); else the bundle's default."""
-    from .bank import PromptBank, bank_for_prompts
+    """The bank infer / demo / retrieve use: --bank FILE or a bundle bank name; --prompts FILE (through
+    `load_prompt_bank`: parsed once, cached by content hash); else the bundle's default bank."""
+    from ago_runtime.vocab.bank import PromptBank, check_bank_for_bundle, load_prompt_bank
 
     if prompts and bank:
         raise AgoInputError(None, "give --prompts or --bank, not both")
-    from .bank import check_bank_for_bundle, check_class_count
-
     if bank:
         if Path(bank).is_file():
             return check_bank_for_bundle(PromptBank.load(bank), bank, bundle)
@@ -66,34 +55,18 @@ def choose_bank(bundle, prompts: Optional[str], bank: Optional[str]):
             return bundle.load_bank(bank)
         raise AgoInputError(bank, f"prompt bank file not found (the bundle ships {sorted(bundle.banks)})")
     if prompts:
-        from .prompts import parse_prompt_file
-
-        path = resolve_prompts(prompts)
-        space = parse_prompt_file(path)
-        check_class_count(space.num_classes, path)       # before any encoding
-        if path.stem in bundle.banks:   # a shipped prompt file the bundle pre-built: check it is the same text
-            b = bundle.load_bank(path.stem)
-            if b.source_hash == space.sha256:
-                return b
-        from .text_encoder import default_text_encoder
-
-        encoder = default_text_encoder(bundle_dir=bundle.root)
-        te = bundle.text_encoder
-        if encoder.encoder_id != te["id"] or int(encoder.dim) != int(te["dim"]):
-            raise AgoInputError(encoder.onnx_path, f"text encoder {encoder.encoder_id!r} (dim {encoder.dim}) cannot "
-                                f"make banks for this bundle, which needs {te['id']!r} (dim {te['dim']})")
-        return bank_for_prompts(path, encoder=encoder)
+        return load_prompt_bank(resolve_prompts(prompts), bundle=bundle)
     return bundle.load_bank()
 
 
 def iter_frames(images: Path, sample, info: Optional[Path], fallback_rig) -> Iterator[tuple]:
     """Yields (name, images dict, rig, source) per frame. `sample`: None (every frame), or sample tokens
     and/or scene names (a str or a list; each scene gives its keyframes in time order)."""
-    from .calibration import find_camera_images, load_images_folder
+    from ago_runtime.formats.calibration import find_camera_images, load_images_folder
 
     wanted = [sample] if isinstance(sample, str) else list(sample or [])
     if info is not None:
-        from .mmdet3d_info import load_mmdet3d_info
+        from ago_runtime.formats.mmdet3d_info import load_mmdet3d_info
 
         frames = load_mmdet3d_info(info, images if images is not None else info.parent)
         if wanted:
@@ -110,7 +83,7 @@ def iter_frames(images: Path, sample, info: Optional[Path], fallback_rig) -> Ite
     if not images.is_dir():
         raise AgoInputError(images, "images folder not found")
     if any(p.is_dir() and p.name.startswith("v1.0") for p in images.iterdir()):
-        from .nuscenes import NuScenesDataset
+        from ago_runtime.formats.nuscenes import NuScenesDataset
 
         ds = NuScenesDataset(images, load_extras=False)
         indices = ds.indices_of(wanted) if wanted else range(len(ds))
@@ -131,8 +104,8 @@ PICTURES = ("full", "bev", "none")
 def prediction_picture(pred, images: dict | None, title: str = "", kind: str = "full") -> np.ndarray:
     """The PNG of one prediction. kind "full": class BEV, entropy BEV, adapted-branch share, legend and
     the six cameras; "bev": the class BEV and the legend only (a few ms)."""
-    from . import render
-    from .predictor import UNEXPLAINED_THRESHOLD
+    from ago_runtime.pictures import render
+    from ago_runtime.predict.predictor import UNEXPLAINED_THRESHOLD
 
     colors = render.palette_for(pred.class_names)
     colors = np.concatenate([colors, np.array([[240, 240, 240]], np.uint8)])
@@ -197,18 +170,18 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
     main thread runs the graphs and heads of frame i. The first frame is read and checked before
     anything is written; an error in any stage ends the run with that error (the files written
     before it are complete: every file is written atomically)."""
-    from .atomic import save_npz
-    from .bundle import Bundle, resolve_bundle
-    from .progress import track
-    from .predictor import Predictor
-    from .render import save_png
+    from ago_runtime.atomic import save_npz
+    from ago_runtime.predict.bundle import Bundle, resolve_bundle
+    from ago_runtime.progress import track
+    from ago_runtime.predict.predictor import Predictor
+    from ago_runtime.pictures.render import save_png
 
-    from .bundle import card_line
-    from .outputs import check_output_dir
+    from ago_runtime.predict.bundle import card_line
+    from ago_runtime.outputs import check_output_dir
 
-    from .heads import IDENTIFIERS
+    from ago_runtime.predict.heads import IDENTIFIERS
 
-    _print_warnings()
+    one_line_warnings()
     if identifier is not None and identifier not in IDENTIFIERS:
         raise AgoInputError("--identifier", f"must be one of {', '.join(IDENTIFIERS)}, got {identifier!r}")
     if picture not in PICTURES:
@@ -307,7 +280,7 @@ def register(app: typer.Typer) -> None:
         prompts: Optional[str] = typer.Option(None, "--prompts", help="prompt file (default: the bundle's classes)"),
     ) -> None:
         """Run `ago infer` on the shipped demo frame with the shipped default bundle."""
-        from .bundle import DEMO_FRAME_DIR, HOW_TO_MAKE_DEFAULT
+        from ago_runtime.predict.bundle import DEMO_FRAME_DIR, HOW_TO_MAKE_DEFAULT
 
         if not DEMO_FRAME_DIR.is_dir():
             raise AgoInputError(DEMO_FRAME_DIR, f"no demo frame installed; {HOW_TO_MAKE_DEFAULT}")
@@ -326,28 +299,23 @@ def register(app: typer.Typer) -> None:
 
 
 def run_retrieve(phrase: str, images: Path, bundle, out: Path) -> list[Path]:
-    from . import render
-    from .atomic import save_npz
-    from .bundle import Bundle, resolve_bundle
-    from .heads import phrase_similarity
-    from .predictor import Predictor
-    from .text_encoder import default_text_encoder
+    from ago_runtime.pictures import render
+    from ago_runtime.atomic import save_npz
+    from ago_runtime.predict.bundle import Bundle, resolve_bundle
+    from ago_runtime.predict.heads import phrase_similarity
+    from ago_runtime.predict.predictor import Predictor
+    from ago_runtime.vocab.text_encoder import bundle_text_encoder
 
-    from .outputs import check_output_dir
+    from ago_runtime.outputs import check_output_dir
 
-    _print_warnings()
+    one_line_warnings()
     if not phrase.strip():
         raise AgoInputError("--phrase", "is empty")
     check_output_dir(out, "--out")
     b = Bundle.load(resolve_bundle(bundle))
-    encoder = default_text_encoder(bundle_dir=b.root)
-    te = b.text_encoder
-    if encoder.encoder_id != te["id"] or int(encoder.dim) != int(te["dim"]):
-        raise AgoInputError(None, f"text encoder {encoder.encoder_id!r} (dim {encoder.dim}) does not match the "
-                            f"bundle's {te['id']!r} (dim {te['dim']})")
-    direction = np.asarray(encoder.encode([phrase]), np.float32)[0]
+    direction = np.asarray(bundle_text_encoder(b).encode([phrase]), np.float32)[0]
     predictor = Predictor(b)
-    bank = b.load_bank()
+    bank = choose_bank(b, None, None)
     predictor.fold(bank)
     [(name, imgs, rig, source)] = list(iter_frames(Path(images), None, None, b.rig))
     h, g = predictor.encode(imgs, rig, source)

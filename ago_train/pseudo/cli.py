@@ -22,7 +22,7 @@ import typer
 
 def parse_grid(text: str):
     from ago_runtime.errors import AgoInputError
-    from ago_runtime.grid import Grid
+    from ago_runtime.geometry.grid import Grid
 
     parts = str(text).lower().split("x")
     try:
@@ -38,10 +38,10 @@ def build_backends(prompts: str, segmenter: str, masks: Path | None, embedder: s
                    seed: int):
     """(label_space, segmenter, embedder or None) from the CLI choices."""
     from ago_runtime.errors import AgoInputError
-    from ago_runtime.prompts import parse_prompt_file, resolve_prompt_file
+    from ago_runtime.vocab.prompts import parse_prompt_file, resolve_prompt_file
 
-    from .pseudo.backends import FileImageEmbedder, FileSegmenter
-    from .pseudo.simulated import (SimEmbedderConfig, SimSegmenterConfig, SimulatedImageEmbedder,
+    from .backends import FileImageEmbedder, FileSegmenter
+    from .simulated import (SimEmbedderConfig, SimSegmenterConfig, SimulatedImageEmbedder,
                                    SimulatedSegmenter)
 
     space = parse_prompt_file(resolve_prompt_file(prompts))
@@ -69,13 +69,13 @@ def build_backends(prompts: str, segmenter: str, masks: Path | None, embedder: s
 
 def simulated_text_embeddings():
     """(class_text (17, 384), sky (384,)): MiniLM embeddings of cw.txt's phrases and of "sky"."""
-    from ago_runtime.bank import bank_for_prompts
-    from ago_runtime.text_encoder import default_text_encoder
+    from ago_runtime.vocab.bank import load_prompt_bank
+    from ago_runtime.vocab.text_encoder import default_text_encoder
 
-    from .pseudo.simulated import class_text_from_bank
+    from .simulated import class_text_from_bank
 
     encoder = default_text_encoder()
-    bank = bank_for_prompts("cw", encoder=encoder)
+    bank = load_prompt_bank("cw", encoder=encoder)
     return class_text_from_bank(bank), encoder.encode(["sky"])[0]
 
 
@@ -170,10 +170,10 @@ def register(app: typer.Typer) -> None:
         limit: int = typer.Option(0, "--limit", min=0, help="Only the first N samples of the split (0 = all)."),
     ):
         """Lift 2-D masks (and image features) into 3-D pseudo-labels with the LiDAR (keyframes + non-key sweeps)."""
-        from ago_runtime.nuscenes import NuScenesDataset
+        from ago_runtime.formats.nuscenes import NuScenesDataset
         from ago_runtime.outputs import check_output_dir
 
-        from .pseudo.generate import PseudoLabelConfig, generate
+        from .generate import PseudoLabelConfig, generate
 
         check_output_dir(out, "--out")
         pgrid = parse_grid(grid)

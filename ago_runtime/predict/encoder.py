@@ -1,6 +1,6 @@
 """The bundle's camera-to-voxel encoder, delivered in chunks of voxels (onnxruntime + numpy/OpenCV; no torch).
 
-Bundle format 3 (ago_runtime/bundle.py):
+Bundle format 3 (ago_runtime/predict/bundle.py):
 
 - `planes.onnx` runs once per frame,
       images (1,6,3,H,W) + ego2img (1,6,4,4) -> plane_xy (X,Y,Dh), plane_xz (X,Z,Dh), plane_yz (Y,Z,Dh)
@@ -12,7 +12,7 @@ Bundle format 3 (ago_runtime/bundle.py):
   gives y = x W^T + b (the next layer's pre-activation; the softplus between layers runs here in
   numpy + OpenCV, ~2x faster than onnxruntime's Log kernel) and, where x is h or g, the bank scores
   s_main = bank_main h^T / s_adapted = bank_adapted g^T (P', n). bank_* are the bank folded into the
-  linear heads (ago_runtime.heads.FoldedHeads), fed at run time, so the heads' matrix product runs in
+  linear heads (ago_runtime.predict.heads.FoldedHeads), fed at run time, so the heads' matrix product runs in
   onnxruntime's GEMM and any bank works without re-export.
   Memory scales with the slab, not the grid (SLAB_VOXELS voxels; docs/runtime.md has the slab sizes
   measured).
@@ -44,9 +44,9 @@ import cv2
 import numpy as np
 import onnxruntime as ort
 
-from .errors import AgoInputError
-from .grid import Grid
-from .heads import SCORE_BUDGET_BYTES
+from ago_runtime.errors import AgoInputError
+from ago_runtime.geometry.grid import Grid
+from ago_runtime.predict.heads import SCORE_BUDGET_BYTES
 
 PLANE_OUTPUTS = ["plane_xy", "plane_xz", "plane_yz"]
 SLAB_VOXELS = 4096    # target voxels per slab (whole x-rows of Y*Z voxels)
@@ -85,7 +85,7 @@ def _cpu_tag() -> str:
 
 
 def optimized_cache_path(sha256: str) -> Path:
-    from .text_encoder import ago_cache_dir
+    from ago_runtime.vocab.text_encoder import ago_cache_dir
 
     return ago_cache_dir() / "ort" / f"{sha256[:32]}-ort{ort.__version__}-{_cpu_tag()}.onnx"
 

@@ -17,10 +17,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .atomic import write_bytes
-from .errors import AgoInputError
-from .frame import Frame
-from .nuscenes import read_jpeg_rgb
+from ago_runtime.atomic import write_bytes
+from ago_runtime.errors import AgoInputError
+from ago_runtime.formats.frame import Frame
+from ago_runtime.formats.nuscenes import read_jpeg_rgb
 
 LAYOUT: tuple[tuple[str, ...], ...] = (
     ("CAM_FRONT_LEFT", "CAM_FRONT", "CAM_FRONT_RIGHT"),

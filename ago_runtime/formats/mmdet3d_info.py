@@ -11,7 +11,7 @@ Camera poses: `lidar2cam` in these files includes the ego motion between the LiD
 camera exposure (lidar -> ego at LiDAR time -> global -> ego at camera time -> camera). With
 `compensate_ego_motion=True` (default) a camera's cam2ego is taken as lidar2ego @ inv(lidar2cam), i.e.
 the camera seen from the keyframe (LiDAR) ego frame, the frame the Occ3D grid lives in; with False (or
-when lidar2cam is absent) the calibrated `cam2ego` as is. See `ago_runtime.nuscenes` for the same choice.
+when lidar2cam is absent) the calibrated `cam2ego` as is. See `ago_runtime.formats.nuscenes` for the same choice.
 
 `SafeInfoUnpickler` only lets the pickle build plain containers and numpy scalars/arrays/dtypes (the
 classes such files contain); any other global (os.system, builtins.eval, a custom class...) raises
@@ -33,13 +33,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import write_json
-from .camera import CAMERA_NAMES, Camera, Rig
-from .errors import AgoInputError
-from .readers import read_json
-from .frame import Frame, LidarSweep
-from .nuscenes import read_jpeg_rgb, read_lidar_bin
-from .nuscenes_schema import check_rigid
+from ago_runtime.atomic import write_json
+from ago_runtime.geometry.camera import CAMERA_NAMES, Camera, Rig
+from ago_runtime.errors import AgoInputError
+from ago_runtime.readers import read_json
+from ago_runtime.formats.frame import Frame, LidarSweep
+from ago_runtime.formats.nuscenes import read_jpeg_rgb, read_lidar_bin
+from ago_runtime.formats.nuscenes_schema import check_rigid
 
 # (module, name) pairs a mmdetection3d info pickle may reference; nothing else is ever imported.
 _NUMPY_GLOBALS = {

@@ -13,8 +13,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .camera import CAMERA_NAMES, Rig
-from .errors import AgoInputError
+from ago_runtime.geometry.camera import CAMERA_NAMES, Rig
+from ago_runtime.errors import AgoInputError
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)

@@ -21,7 +21,7 @@ def register(app: typer.Typer) -> None:
     def _profile(name: str):
         from ago_runtime.errors import AgoInputError
 
-        from .experiments.plan import ExperimentProfile
+        from .plan import ExperimentProfile
 
         try:
             return ExperimentProfile.preset(name)
@@ -35,13 +35,13 @@ def register(app: typer.Typer) -> None:
         out: Path = typer.Option(Path("runs/experiments"), "--out", help="experiments folder (cache; resumable)"),
     ):
         """Make or reuse the data, train or reuse the runs, score them, write results.md + figures."""
-        from ago_runtime.cli import require_torch
+        from ago_runtime.errors import require_torch
 
         require_torch("experiments run")
         from ago_runtime.errors import AgoInputError
         from ago_runtime.outputs import check_output_dir
 
-        from .experiments.driver import EXPERIMENTS, ExperimentRunner
+        from .driver import EXPERIMENTS, ExperimentRunner
 
         chosen = list(EXPERIMENTS) if not names or names == ["all"] else list(names)
         unknown = [n for n in chosen if n not in EXPERIMENTS]
@@ -60,7 +60,7 @@ def register(app: typer.Typer) -> None:
         """Rewrite results.md / results.json / figures from the runs that exist (trains nothing)."""
         from ago_runtime.outputs import check_output_dir
 
-        from .experiments.report import write_report
+        from .report import write_report
 
         prof = _profile(profile)
         check_output_dir(out, "--out")
@@ -70,7 +70,7 @@ def register(app: typer.Typer) -> None:
     @exp.command("list")
     def list_cmd(profile: str = typer.Option("cpu", "--profile")):
         """Each experiment and the training runs it needs."""
-        from .experiments.driver import EXPERIMENTS, runs_for
+        from .driver import EXPERIMENTS, runs_for
 
         p = _profile(profile)
         for e in EXPERIMENTS:

@@ -33,7 +33,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .errors import AgoInputError
+from ago_runtime.errors import AgoInputError
 
 MAX_IMAGE_PIXELS = 50_000_000
 MAX_IMAGE_SIDE = 16384

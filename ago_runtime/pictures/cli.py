@@ -1,0 +1,91 @@
+"""CLI verb `ago show`: pictures of occupancy grids and camera rigs.
+
+`ago show LABELS.npz [--gt GT.npz] [--view bev|voxels|both] [--out out.png]`
+    PNG of an occupancy grid (any npz with a `semantics` (X, Y, Z) array); with --gt, prediction
+    and ground truth side by side (voxels outside the GT's mask_camera washed out).
+`ago show DATASET_DIR (--sample TOKEN | --index I) [--out out.png]`
+    the six camera images of one nuScenes-layout sample in the 2 x 3 rig layout.
+(`ago metric`, which scores such grids, is in ago_runtime/scoring/cli.py.)
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import typer
+
+from ago_runtime.classes import FREE, OCC3D_CLASSES, OCC3D_COLORS
+from ago_runtime.errors import AgoInputError
+from ago_runtime.formats.occ3d import load_semantics
+from ago_runtime.scoring.metric import to_gt_resolution
+
+
+def register(app: typer.Typer) -> None:
+    @app.command("show")
+    def show(
+        path: Path = typer.Argument(..., help="labels.npz (key 'semantics'), or a nuScenes-layout dataset folder"),
+        out: Path = typer.Option(Path("ago_show.png"), "--out", "-o", help="PNG to write"),
+        gt: Optional[Path] = typer.Option(None, "--gt", help="ground-truth labels.npz: draw prediction vs GT"),
+        view: str = typer.Option("both", "--view", help="bev | voxels | both"),
+        sample: Optional[str] = typer.Option(None, "--sample", help="dataset folder: sample token"),
+        index: Optional[int] = typer.Option(None, "--index", help="dataset folder: sample index"),
+        use_mask: Optional[bool] = typer.Option(None, "--mask/--no-mask",
+                                                help="wash out voxels outside mask_camera (default: on with --gt)"),
+    ) -> None:
+        """Draw an occupancy grid (BEV and/or 3-D voxels) or a sample's six camera images as a PNG."""
+        from ago_runtime.pictures import render
+
+        from ago_runtime.outputs import check_output_file
+
+        if view not in ("bev", "voxels", "both"):
+            raise AgoInputError("--view", f"must be bev, voxels or both, got {view!r}")
+        if not path.exists():
+            raise AgoInputError(path, "not found (give a labels .npz or a dataset folder)")
+        check_output_file(out, "--out")
+        if path.is_dir():
+            image = _rig_picture(path, sample, index)
+        else:
+            sem, mask = load_semantics(path)
+            if gt is not None:
+                gt_sem, gt_mask = load_semantics(gt)
+                if sem.shape != gt_sem.shape:
+                    sem = to_gt_resolution(sem, gt_sem.shape, path)
+                image = render.prediction_vs_gt(sem, gt_sem, gt_mask if use_mask is not False else None, views=view,
+                                                titles=(path.parent.name + "/" + path.name, "ground truth"))
+            else:
+                m = mask if use_mask else None  # a single grid is drawn whole unless --mask
+                panels = []
+                if view in ("bev", "both"):
+                    panels.append(("BEV (x forward = up)", render.bev_image(sem, mask=m, scale=4)))
+                if view in ("voxels", "both"):
+                    panels.append(("3-D", render.voxel_view(sem, mask=m)))
+                fig = render.side_by_side(panels)
+                present = [i for i in np.unique(sem).tolist() if i < FREE]
+                names = [OCC3D_CLASSES[i] for i in present]
+                image = render.stack_vertical([fig, render.legend(names, OCC3D_COLORS[present], width=fig.shape[1])])
+        render.save_png(out, image)
+        typer.echo(f"wrote {out} ({image.shape[1]}x{image.shape[0]})")
+
+def _rig_picture(root: Path, sample: str | None, index: int | None) -> np.ndarray:
+    """The six camera images of one sample of a nuScenes-layout dataset in the 2 x 3 rig layout,
+    with the sample's Occ3D GT as a BEV beside it when the dataset has one."""
+    from ago_runtime.pictures import render
+    from ago_runtime.formats.nuscenes import NuScenesDataset
+
+    if (sample is None) == (index is None):
+        raise AgoInputError(root, "a dataset folder needs exactly one of --sample TOKEN or --index I")
+    ds = NuScenesDataset(root, load_extras=False)
+    if index is None:
+        index = ds.index_of(sample)
+    if not 0 <= index < len(ds):
+        raise AgoInputError(root, f"--index {index} out of range (the dataset has {len(ds)} samples)")
+    frame = ds[index]
+    rig = render.rig_mosaic(frame.images)
+    title = f"{frame.scene}  sample {frame.token}"
+    if frame.gt is None:
+        return render.side_by_side([(title, rig)])
+    scale = max(1, int(round(rig.shape[0] / frame.gt.shape[0])))
+    bev = render.bev_image(frame.gt.semantics, scale=scale, mask=frame.gt.mask_camera)
+    return render.side_by_side([(title, rig), ("Occ3D GT (BEV, forward = up)", bev)])

@@ -1,0 +1,9 @@
+"""ago_runtime.predict: running an exported model - bundle + images + rig + prompt bank -> occupancy.
+
+Holds `bundle` (Bundle: the exported folder, read and checked), `encoder` (the ONNX camera-to-voxel
+encoder, slab by slab), `heads` (the linear heads folded with a bank, numpy), `predictor`
+(Predictor, Prediction) and `cli` (`ago infer`, `ago demo`, `ago retrieve`).
+
+May import: numpy, onnxruntime, OpenCV, ago_runtime's basics, geometry, formats and vocab;
+`cli` may also import pictures and typer.
+"""

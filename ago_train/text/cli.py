@@ -1,0 +1,73 @@
+"""`ago prompts export-encoder` and `ago prompts noise` (need torch), and the `--encoder torch` choice.
+
+export-encoder [-o P]  write MiniLM as ONNX (needs torch) - default the ago cache
+noise [-o P]           build the WordNet noise-word bank for training (needs torch + nltk data)
+
+`register(app)` adds both verbs to ago_runtime's `ago prompts` group (ago_runtime/vocab/cli.py) and the
+torch MiniLM to `ago_runtime.vocab.text_encoder.NAMED_ENCODERS` as "torch", so `ago prompts build
+--encoder torch` finds it without ago_runtime importing ago_train. Imports nothing heavy at import time.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from ago_runtime.errors import require_torch
+
+
+def torch_encoder():
+    """The fp32 MiniLM in torch (bundled weights): `--encoder torch`."""
+    require_torch("prompts build --encoder torch")
+    from .minilm import TorchMiniLMEncoder
+
+    return TorchMiniLMEncoder()
+
+
+def export_encoder(output: Optional[Path] = typer.Option(None, "-o", "--output",
+                                                         help="ONNX file (default ~/.cache/ago/text_encoder/all-MiniLM-L6-v2.onnx)")):
+    """Export all-MiniLM-L6-v2 (bundled weights) to ONNX fp32, for runtime use without torch."""
+    require_torch("prompts export-encoder")
+    import numpy as np
+
+    from ago_runtime.outputs import check_output_file
+    from ago_runtime.vocab.text_encoder import cached_encoder_path
+
+    check_output_file(output if output is not None else cached_encoder_path(), "-o")
+
+    from .minilm import TorchMiniLMEncoder, export_onnx
+
+    from ago_runtime.vocab.text_encoder import OnnxTextEncoder
+
+    path = export_onnx(output)
+    test = ["car", "a traffic cone on the road", "vegetation"]
+    cos = (OnnxTextEncoder(path).encode(test) * TorchMiniLMEncoder().encode(test)).sum(1).min()
+    typer.echo(f"{path}: ONNX opset 17, inputs input_ids/attention_mask (int64, dynamic batch x sequence), "
+               f"output normalised embeddings (batch, 384); min cosine to torch {float(np.round(cos, 6))}")
+
+
+def noise(output: Optional[Path] = typer.Option(None, "-o", "--output", help="noise bank file (default: the ago cache)"),
+          force: bool = typer.Option(False, "--force", help="rebuild even if the file exists")):
+    """Build the noise-word bank (WordNet nouns minus label phrases and near-synonyms)."""
+    require_torch("prompts noise")
+    from .noise import NoiseBank, ensure_noise_bank
+
+    if output is not None:
+        from ago_runtime.outputs import check_output_file
+
+        check_output_file(output, "-o")
+
+    path = ensure_noise_bank(output, force=force)
+    nb = NoiseBank.load(path)
+    typer.echo(f"{path}: {len(nb.words)} noise words, dim {nb.dim}, {path.stat().st_size / 1e6:.1f} MB")
+
+
+def register(app: typer.Typer) -> None:
+    from ago_runtime.vocab.cli import prompts_app
+    from ago_runtime.vocab.text_encoder import NAMED_ENCODERS
+
+    NAMED_ENCODERS["torch"] = torch_encoder
+    prompts_app.command("export-encoder")(export_encoder)
+    prompts_app.command("noise")(noise)

@@ -1,0 +1,194 @@
+"""The layout rules of docs/architecture.md, checked on the source (ast; nothing is imported but in the
+last test):
+
+- no import circles among the modules of ago_runtime, ago_train and ago_export, counting module-level
+  imports and, separately, every import (inside functions too; `if TYPE_CHECKING:` blocks excluded);
+- the direction: ago_runtime imports neither ago_train nor ago_export, ago_train does not import
+  ago_export (ago_export exports ago_train's model, so it imports ago_train);
+- inside ago_runtime, each subpackage imports only the ones below it (the table ALLOWED), a verb
+  module (`<subpackage>/cli.py`) anything in ago_runtime;
+- every package opens with a docstring saying what it holds (and, in ago_runtime, what it may import);
+- importing every ago_runtime module and building the whole `ago` app loads no torch.
+"""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+PACKAGES = ("ago_runtime", "ago_train", "ago_export")
+
+BASICS = {"errors", "atomic", "readers", "outputs", "progress", "classes"}
+# subpackage -> the ago_runtime parts its (non-cli) modules may import; "basics" = the top-level modules above
+ALLOWED = {
+    "basics": {"basics"},
+    "geometry": {"basics", "geometry"},
+    "formats": {"basics", "geometry", "formats"},
+    "vocab": {"basics", "vocab"},
+    "scoring": {"basics", "scoring"},
+    "predict": {"basics", "geometry", "formats", "vocab", "predict"},
+    "pictures": {"basics", "geometry", "formats", "pictures"},
+}
+
+
+def _modules() -> dict[str, tuple[Path, bool]]:
+    """module name -> (file, is a package __init__)."""
+    out = {}
+    for pkg in PACKAGES:
+        for p in sorted((REPO / pkg).rglob("*.py")):
+            parts = list(p.relative_to(REPO).with_suffix("").parts)
+            is_pkg = parts[-1] == "__init__"
+            out[".".join(parts[:-1] if is_pkg else parts)] = (p, is_pkg)
+    return out
+
+
+def _targets(module: str, is_pkg: bool, node: ast.AST) -> list[str]:
+    """The module names an import statement may load (for `from x import y`: x and x.y)."""
+    if isinstance(node, ast.Import):
+        return [a.name for a in node.names]
+    base = module.split(".") if is_pkg else module.split(".")[:-1]
+    if node.level:
+        base = base[: len(base) - (node.level - 1)]
+        prefix = ".".join(base + ([node.module] if node.module else []))
+    else:
+        prefix = node.module or ""
+    return [prefix] + [f"{prefix}.{a.name}" for a in node.names]
+
+
+def _is_type_checking(node: ast.If) -> bool:
+    t = node.test
+    return (isinstance(t, ast.Name) and t.id == "TYPE_CHECKING") or (
+        isinstance(t, ast.Attribute) and t.attr == "TYPE_CHECKING")
+
+
+def _imports(tree: ast.Module, everywhere: bool):
+    """Import nodes at module level (also under if / try), or everywhere; never under `if TYPE_CHECKING:`."""
+    def walk(body, top):
+        for n in body:
+            if isinstance(n, (ast.Import, ast.ImportFrom)):
+                yield n
+            elif isinstance(n, ast.If) and _is_type_checking(n):
+                continue
+            elif isinstance(n, (ast.If, ast.Try, ast.With)) or (everywhere and hasattr(n, "body")):
+                for field in ("body", "orelse", "finalbody"):
+                    yield from walk(getattr(n, field, []) or [], top)
+                for h in getattr(n, "handlers", []):
+                    yield from walk(h.body, top)
+    yield from walk(tree.body, True)
+
+
+def import_graph(everywhere: bool) -> dict[str, set[str]]:
+    mods = _modules()
+    graph = {}
+    for name, (path, is_pkg) in mods.items():
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        deps = set()
+        for node in _imports(tree, everywhere):
+            deps |= {t for t in _targets(name, is_pkg, node) if t in mods and t != name}
+        graph[name] = deps
+    return graph
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan, iterative)."""
+    index, low, on_stack, stack, out = {}, {}, set(), [], []
+    counter = 0
+    for root in graph:
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph[root])))]
+        index[root] = low[root] = counter
+        counter += 1
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            v, children = work[-1]
+            for w in children:
+                if w not in index:
+                    index[w] = low[w] = counter
+                    counter += 1
+                    stack.append(w)
+                    on_stack.add(w)
+                    work.append((w, iter(sorted(graph[w]))))
+                    break
+                if w in on_stack:
+                    low[v] = min(low[v], index[w])
+            else:
+                work.pop()
+                if work:
+                    low[work[-1][0]] = min(low[work[-1][0]], low[v])
+                if low[v] == index[v]:
+                    comp = []
+                    while True:
+                        w = stack.pop()
+                        on_stack.discard(w)
+                        comp.append(w)
+                        if w == v:
+                            break
+                    if len(comp) > 1:
+                        out.append(sorted(comp))
+    return out
+
+
+def _part(module: str) -> str | None:
+    """The part of ago_runtime a module is in: a subpackage's name, "basics", "top" (cli, __main__, an old
+    import path), or None outside ago_runtime and for the package itself."""
+    parts = module.split(".")
+    if parts[0] != "ago_runtime" or len(parts) == 1:
+        return None
+    if len(parts) > 2 or (REPO / "ago_runtime" / parts[1] / "__init__.py").is_file():
+        return parts[1]
+    return "basics" if parts[1] in BASICS else "top"
+
+
+def test_no_import_circles_at_module_level():
+    assert cycles(import_graph(everywhere=False)) == []
+
+
+def test_no_import_circles_counting_imports_inside_functions():
+    assert cycles(import_graph(everywhere=True)) == []
+
+
+def test_dependencies_point_down():
+    graph = import_graph(everywhere=True)
+    up = [(m, d) for m, deps in graph.items() for d in deps
+          if (m.startswith("ago_runtime") and d.split(".")[0] in ("ago_train", "ago_export"))
+          or (m.startswith("ago_train") and d.startswith("ago_export"))]
+    assert up == [], f"imports that point up: {up}"
+
+
+def test_ago_runtime_subpackages_import_only_what_is_below_them():
+    subpackages = {p.name for p in (REPO / "ago_runtime").iterdir() if (p / "__init__.py").is_file()}
+    assert subpackages == set(ALLOWED) - {"basics"}, "a subpackage missing from ALLOWED (or one gone)"
+    bad = []
+    for m, deps in import_graph(everywhere=True).items():
+        part = _part(m)
+        if part in (None, "top") or m.endswith(".cli"):   # verb modules may import anything in ago_runtime
+            continue
+        bad += [f"{m} -> {d}" for d in deps if _part(d) is not None and _part(d) not in ALLOWED[part]]
+    assert bad == [], f"imports across the layers of ago_runtime (see ALLOWED): {bad}"
+
+
+def test_every_package_says_what_it_holds():
+    missing = []
+    for init in sorted(p for pkg in PACKAGES for p in (REPO / pkg).rglob("__init__.py")):
+        doc = ast.get_docstring(ast.parse(init.read_text(encoding="utf-8")))
+        rel = init.parent.relative_to(REPO)
+        if not doc or (rel.parts[0] == "ago_runtime" and len(rel.parts) == 2 and "May import" not in doc):
+            missing.append(str(rel))
+    assert missing == [], f"packages without a docstring (ago_runtime's: with 'May import'): {missing}"
+
+
+def test_runtime_and_the_whole_cli_load_no_torch():
+    """Every ago_runtime module imported, and the `ago` app built with all its verbs (the training verbs'
+    modules included): torch is not loaded."""
+    names = sorted(m for m in _modules() if m.startswith("ago_runtime") and not m.endswith("__main__"))
+    code = (f"import importlib, sys, typer.main\nfor n in {names!r}: importlib.import_module(n)\n"
+            "from ago_runtime.cli import app\ngroup = typer.main.get_command(app)\n"
+            "assert {'train', 'export', 'prompts'} <= set(group.commands), sorted(group.commands)\n"
+            "assert 'torch' not in sys.modules, 'torch was imported'\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO)
+    assert r.returncode == 0, r.stderr
