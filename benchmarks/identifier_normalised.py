@@ -59,7 +59,7 @@ v = r["views"]["ne"]
 row = (f"| `{run}` | {Hm:.3f} | {Ha:.3f} | {v['subsets']['known']} | {v['subsets']['unknown']} | {v['mIoU']} | "
        + " / ".join(str(v["metric"]["iou"][k]) for k in ("barrier", "traffic_cone", "terrain", "manmade", "vegetation")) + " |")
 print(row)
-head = ("# Normalised min-entropy identifier (diagnostic)\n\nCommand: `python benchmarks/identifier_normalised.py RUN PROMPTS`, "
+head = ("# Normalised min-entropy identifier (diagnostic)\n\nCommand: `python benchmarks/identifier_normalised.py RUN_DIR PROMPTS_WITH_KNOWN` (val split of the run data), "
         "one row per run (rows are appended).\n\n| run | typical H(P) | typical H(P~) | known mIoU | unknown mIoU | mIoU | "
         "barrier / traffic cone / terrain / manmade / vegetation IoU |\n|---|---:|---:|---:|---:|---:|---|\n")
 text = out_md.read_text() if out_md.is_file() else head

@@ -304,35 +304,37 @@ def embeddings(x: np.ndarray, W: np.ndarray, b: np.ndarray, chunk: int = DEFAULT
     return out
 
 
-def cosine_to(x: np.ndarray, W: np.ndarray, b: np.ndarray, direction: np.ndarray,
+def cosine_to(x: np.ndarray, W: np.ndarray, b: np.ndarray, directions: np.ndarray,
               chunk: int = DEFAULT_CHUNK) -> np.ndarray:
-    """Cosine similarity between each voxel's embedding x W^T + b and one direction (C,) -> (N,) float32."""
-    d = np.asarray(direction, dtype=np.float32)
-    d = d / max(float(np.linalg.norm(d)), 1e-12)
+    """Max cosine similarity between each voxel's embedding x W^T + b and the directions (C,) or (P, C)
+    -> (N,) float32 (each chunk's embeddings are computed once for all directions)."""
+    d = np.asarray(directions, dtype=np.float32).reshape(-1, W.shape[0])
+    d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
     Wt = np.ascontiguousarray(W.T, dtype=np.float32)
+    dt = np.ascontiguousarray(d.T)
     out = np.empty(x.shape[0], np.float32)
     for start in range(0, x.shape[0], chunk):
         sl = slice(start, start + chunk)
         f = x[sl] @ Wt
         f += b
         norm = np.sqrt(np.einsum("nc,nc->n", f, f))
-        out[sl] = (f @ d) / np.maximum(norm, 1e-12)
+        out[sl] = (f @ dt).max(axis=1) / np.maximum(norm, 1e-12)
     return out
 
 
 def phrase_similarity(heads: HeadWeights, h: np.ndarray, g: np.ndarray, branch: np.ndarray,
                       directions: np.ndarray) -> np.ndarray:
-    """Per-voxel cosine similarity to a phrase, on each voxel's identifier branch (`ago retrieve`).
+    """Per-voxel cosine similarity to a phrase, on each voxel's branch (`ago retrieve`: the adapted one).
 
     h (N, Dh), g (N, Da): hidden features; branch (N,) 0 = main, 1 = adapted; directions (C,) one phrase
     embedding or (P, C) several (the max over them, as a class's score is the max over its phrases).
-    -> (N,) float32."""
-    d = np.asarray(directions, dtype=np.float32)
-    d = d[None] if d.ndim == 1 else d
+    Each voxel is projected on its own branch only. -> (N,) float32."""
     adapted = np.asarray(branch).reshape(-1) == 1
-    best = np.full(h.shape[0], -np.inf, np.float32)
-    for direction in d:
-        sim = np.where(adapted, cosine_to(g, heads.W_ad, heads.b_ad, direction),
-                       cosine_to(h, heads.W_dec, heads.b_dec, direction))
-        np.maximum(best, sim, out=best)
-    return best
+    if adapted.all():
+        return cosine_to(g, heads.W_ad, heads.b_ad, directions)
+    if not adapted.any():
+        return cosine_to(h, heads.W_dec, heads.b_dec, directions)
+    out = np.empty(h.shape[0], np.float32)
+    out[adapted] = cosine_to(g[adapted], heads.W_ad, heads.b_ad, directions)
+    out[~adapted] = cosine_to(h[~adapted], heads.W_dec, heads.b_dec, directions)
+    return out

@@ -138,19 +138,18 @@ class Predictor:
         would otherwise look free (no prompt matches it better than the learnt free embedding) or be
         forced onto the best of 5 wrong classes; against the reference classes it is seen as occupied and
         as something no prompt explains. Labels are unchanged (FoldedHeads ignores the reference rows)."""
-        train = self.bundle.load_bank()
-        covered = {i for ids in bank.occ3d_ids for i in ids}
-        user_phrases = set(bank.phrases)
-        ref = []
-        for k, name in enumerate(train.class_names):
-            ids = set(train.occ3d_ids[k]) if k < len(train.occ3d_ids) else set()
-            phrases = [p for p, c in zip(train.phrases, train.phrase_class) if c == k]
-            is_covered = ids <= covered if ids else bool(user_phrases & set(phrases))
-            if not is_covered:
-                ref.append(k)
-        key = bank_key(bank) + "+ref:" + ",".join(map(str, ref)) + bank_key(train)
+        key = bank_key(bank) + "+reference"   # the bundle's training bank is fixed: one entry per user bank
         if key not in self._folded:
             self.check_bank(bank)
+            train = self.bundle.load_bank()
+            covered = {i for ids in bank.occ3d_ids for i in ids}
+            user_phrases = set(bank.phrases)
+            ref = []
+            for k in range(train.num_classes):
+                ids = set(train.occ3d_ids[k]) if k < len(train.occ3d_ids) else set()
+                phrases = {p for p, c in zip(train.phrases, train.phrase_class) if c == k}
+                if not (ids <= covered if ids else bool(user_phrases & phrases)):
+                    ref.append(k)
             keep = np.isin(train.phrase_class, ref)
             remap = {k: bank.num_classes + i for i, k in enumerate(ref)}
             emb = np.concatenate([bank.embeddings, train.embeddings[keep]])
