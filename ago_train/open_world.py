@@ -59,6 +59,21 @@ def open_world_label_space(eval_prompts: str, pretrain_prompts: str):
     return space
 
 
+def paper_split(eval_prompts: str, pretrain_prompts: str) -> tuple[list[str], list[str]]:
+    """The AGO paper's known / unknown split of the evaluation classes after pretraining (its Tab. 2):
+    a class is known only when one pretraining class stands for exactly its Occ3D ids; the classes that
+    refine a pretraining super-category ("vehicle" -> car, bus, ...) count as unknown, like the classes
+    pretraining never saw. -> (known, unknown) class names of the evaluation space, in its order (classes
+    without Occ3D ids are left out). `open_world_label_space` is this driver's split, where a refined
+    class counts as known."""
+    space = parse_prompt_file(eval_prompts)
+    pre = parse_prompt_file(pretrain_prompts)
+    exact = {frozenset(c.occ3d_ids) for c in pre.classes if c.occ3d_ids}
+    scored = [c for c in space.classes if c.occ3d_ids]
+    known = [c.name for c in scored if frozenset(c.occ3d_ids) in exact]
+    return known, [c.name for c in scored if c.name not in known]
+
+
 def known_prompt_file(ow: OpenWorldConfig, out: Path) -> Path:
     """A copy of the evaluation prompt file with an `@known:` line (unless it has one)."""
     src = resolve_prompt_file(ow.eval_prompts)

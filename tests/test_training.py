@@ -341,6 +341,22 @@ def test_select_kshot_covers_every_class_k_times(tmp_path):
     assert select_kshot(pseudo, frames, 3, k=2, seed=2)[0] != tokens          # another seed, another subset
 
 
+def test_paper_split_counts_refined_classes_unknown(tmp_path):
+    """The paper's zero-shot split: known only where one pretraining class is exactly the class; classes
+    refining a super-category count unknown (this driver's own split counts them known)."""
+    from ago_train.open_world import open_world_label_space, paper_split
+
+    known, unknown = paper_split("ow", "ow_pretrain")
+    assert known == ["pedestrian", "driveable_surface", "sidewalk"]
+    assert len(unknown) == 12 and {"car", "bicycle", "barrier", "vegetation"} <= set(unknown)
+    assert {"car", "bicycle"} <= open_world_label_space("ow", "ow_pretrain").known
+    pre = tmp_path / "pre.txt"
+    pre.write_text("@name: pre\ncar: car\nflat [driveable_surface, sidewalk]: road, pavement\n")
+    ev = tmp_path / "ev.txt"
+    ev.write_text("@name: ev\ncar: car\ntruck: truck\ndriveable_surface: road\nsidewalk: sidewalk\n")
+    assert paper_split(str(ev), str(pre)) == (["car"], ["truck", "driveable_surface", "sidewalk"])
+
+
 @pytest.mark.slow
 def test_open_world_protocol_end_to_end(tiny_data, tmp_path):
     """Stages pretrain -> zeroshot -> fewshot on the tiny set through the CLI; results JSON + markdown."""
