@@ -39,6 +39,7 @@ from ago_runtime.geometry.camera import CAMERA_NAMES
 from ago_runtime.errors import AgoInputError
 from ago_runtime.formats.nuscenes import read_jpeg_rgb
 from ago_runtime.geometry.preprocess import Preprocess
+from ago_runtime.predict.bundle import file_sha256
 
 FORMAT_VERSION = 1
 
@@ -51,11 +52,7 @@ def default_cache_root() -> Path:
 
 def image_key(path: str | Path) -> str:
     """sha256 (hex) of an image file's bytes."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
+    return file_sha256(path)
 
 
 def backbone_fingerprint(model, preprocess: Preprocess) -> str:

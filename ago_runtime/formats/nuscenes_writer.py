@@ -132,6 +132,13 @@ class NuScenesWriter:
         return token
 
     # ------------------------------------------------------------------ samples
+    def _check_poses(self, where: str, ego2global: np.ndarray, lidar2ego: np.ndarray) -> None:
+        """AgoInputError naming `where` unless both transforms are rigid (rotation + translation)."""
+        for what, m in (("ego2global", ego2global), ("lidar2ego", lidar2ego)):
+            problem = check_rigid(m)
+            if problem:
+                raise AgoInputError(self.root, f"{where}: {what} {problem}")
+
     def add_sample(self, scene_token: str, timestamp_us: int, ego2global: np.ndarray, rig: Rig,
                    images: dict[str, np.ndarray], lidar_points: np.ndarray, lidar2ego: np.ndarray,
                    annotations=(), gt: Occ3DLabels | None = None, extras: dict | None = None) -> str:
@@ -148,10 +155,7 @@ class NuScenesWriter:
         if scene["_samples"] and timestamp_us <= self._by_token[scene["_samples"][-1]]["timestamp"]:
             raise AgoInputError(self.root, f"scene {scene['name']!r}: timestamps must increase "
                                            f"({timestamp_us} after {self._by_token[scene['_samples'][-1]]['timestamp']})")
-        for what, m in (("ego2global", ego2global), ("lidar2ego", lidar2ego)):
-            problem = check_rigid(m)
-            if problem:
-                raise AgoInputError(self.root, f"scene {scene['name']!r} at {timestamp_us}: {what} {problem}")
+        self._check_poses(f"scene {scene['name']!r} at {timestamp_us}", ego2global, lidar2ego)
         rig.validate(str(self.root))
         points = np.asarray(lidar_points)
         if points.ndim != 2 or points.shape[1] != 5:
@@ -229,10 +233,7 @@ class NuScenesWriter:
         if last is not None and timestamp_us <= int(last["timestamp"]):
             raise AgoInputError(self.root, f"scene {scene['name']!r}: sweep timestamps must increase "
                                            f"({timestamp_us} after {last['timestamp']})")
-        for what, m in (("ego2global", ego2global), ("lidar2ego", lidar2ego)):
-            problem = check_rigid(m)
-            if problem:
-                raise AgoInputError(self.root, f"scene {scene['name']!r} sweep at {timestamp_us}: {what} {problem}")
+        self._check_poses(f"scene {scene['name']!r} sweep at {timestamp_us}", ego2global, lidar2ego)
         points = np.asarray(lidar_points)
         if points.ndim != 2 or points.shape[1] != 5:
             raise AgoInputError(self.root, f"lidar_points must be (N, 5), got {points.shape}")
