@@ -74,14 +74,19 @@ def load_model(checkpoint: str | Path):
 
 
 def head_weights(model, calibration: dict | None = None) -> HeadWeights:
-    """The linear heads, with the identifier's branch scales from the checkpoint's calibration (1, 1 without)."""
+    """The linear heads, with the identifier's branch scales from the checkpoint's calibration (1, 1 without)
+    and, when the calibration has them, the adapted branch's standardisation statistics."""
     def f(t):
         return t.detach().cpu().numpy().astype(np.float32)
 
     cal = calibration or {}
     scales = np.array([cal.get("scale_main", 1.0), cal.get("scale_adapted", 1.0)], np.float32)
-    return HeadWeights(f(model.decoder_out.weight), f(model.decoder_out.bias), f(model.adapter_out.weight),
-                       f(model.adapter_out.bias), f(model.free_embedding), scales)
+    heads = HeadWeights(f(model.decoder_out.weight), f(model.decoder_out.bias), f(model.adapter_out.weight),
+                        f(model.adapter_out.bias), f(model.free_embedding), scales)
+    if "adapted_mean" in cal:   # the adapted branch's phrase standardisation (ago_train/calibrate.py)
+        heads.adapted_mean = np.asarray(cal["adapted_mean"], dtype=np.float32)
+        heads.adapted_cov = np.asarray(cal["adapted_cov"], dtype=np.float32)
+    return heads
 
 
 def _finish_onnx(path: Path, metadata: dict[str, str], doc: str) -> None:

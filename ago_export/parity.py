@@ -37,14 +37,21 @@ INT8_TOLERANCE = Tolerance(0.25, 0.85)
 
 
 def reference_labels(feat: np.ndarray, feat_ad: np.ndarray, bank, free: np.ndarray,
-                     scales: tuple[float, float] = (1.0, 1.0)) -> dict[str, np.ndarray]:
+                     scales: tuple[float, float] = (1.0, 1.0), adapted_stats: tuple | None = None
+                     ) -> dict[str, np.ndarray]:
     """Unfolded float64 reference: per-voxel argmax (K classes + free) per branch, and the min-entropy
     identifier's labels by the rule of ago_train.model.scoring.open_world_identify (occupancy from the
-    main branch, class from the branch whose scaled class distribution has the lower entropy)."""
+    main branch, class from the branch whose scaled class distribution has the lower entropy).
+    `adapted_stats` (mean (C,), cov (C, C)): the adapted phrase scores are standardised, (s - m.t) / sqrt(t'St)."""
     T = np.concatenate([bank.embeddings, free[None]]).astype(np.float64)       # (P+1, C)
     out, zs = {}, {}
     for name, f in (("main", feat), ("adapted", feat_ad)):
         s = f.astype(np.float64) @ T.T                                          # (N, P+1)
+        if name == "adapted" and adapted_stats is not None:
+            m, S = (np.asarray(a, dtype=np.float64) for a in adapted_stats)
+            P = T.shape[0] - 1
+            sd = np.sqrt(np.einsum("pc,cd,pd->p", T[:P], S, T[:P]))
+            s[:, :P] = (s[:, :P] - T[:P] @ m) / sd
         z = np.concatenate([bank.class_scores(s[:, :-1]), s[:, -1:]], axis=1)   # (N, K+1)
         out[name] = z.argmax(axis=1)
         zs[name] = z
@@ -89,7 +96,8 @@ def check_parity(model, encoder, heads: HeadWeights, bank, images: np.ndarray, e
     def rel(a, b):
         return float(np.abs(a - b).max() / max(float(np.abs(b).max()), 1e-12))
 
-    want = reference_labels(feat_t, feat_ad_t, bank, heads.free_embedding, heads.scales)
+    stats = None if heads.adapted_mean is None else (heads.adapted_mean, heads.adapted_cov)
+    want = reference_labels(feat_t, feat_ad_t, bank, heads.free_embedding, heads.scales, stats)
     folded = FoldedHeads(heads, bank.embeddings, bank.phrase_class, bank.num_classes)
     got = runtime_labels(encoder, folded, images, ego2img)
     report = {

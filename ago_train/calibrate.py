@@ -9,8 +9,14 @@ pseudo-label class over labelled occupied voxels of training frames. Only traini
 the classes of the training label space take part (never val data, GT or unknown-class labels); the
 result is two numbers the runtime multiplies in (`bundle heads`, docs/runtime.md).
 
+Before the scales, `fit_scales` also takes the mean and covariance of F~_3D over the visible occupied
+voxels of the same training frames (the voxels the alignment loss sees; no labels at all). With them
+the adapted branch's phrase scores are standardised (model/scoring.py, `phrase_standardisation`; a
+departure from the paper, docs/training.md), and its scale is fitted on the standardised logits.
+
 `fit_scales(trainer, max_frames=16, voxels_per_frame=4000)` -> {"scale_main", "scale_adapted",
-"nll_main", "nll_adapted", "voxels", "frames"}.
+"nll_main", "nll_adapted", "voxels", "frames", "adapted_mean" (C,), "adapted_cov" (C, C) (float32
+tensors; absent when the run has no aligned voxels), "adapted_voxels"}.
 """
 
 from __future__ import annotations
@@ -20,7 +26,7 @@ import math
 import numpy as np
 import torch
 
-from .model.scoring import class_logits
+from .model.scoring import adapted_logits, class_logits
 
 SCALE_GRID = np.exp(np.linspace(math.log(1e-2), math.log(1e3), 81))
 
@@ -56,7 +62,8 @@ def fit_scales(trainer, max_frames: int = 16, voxels_per_frame: int = 4000) -> d
     gen = torch.Generator().manual_seed(trainer.cfg.seed)
     n = len(trainer.dataset)
     order = torch.randperm(n, generator=gen)[: min(max_frames, n)].tolist()
-    main, adapted, target = [], [], []
+    main, feats_adapted, target = [], [], []
+    stat_sum, stat_outer, stat_n = None, None, 0
     from .dataset import collate
 
     saved_epoch, saved_aug = trainer.dataset.epoch, trainer.dataset.augment
@@ -75,9 +82,17 @@ def fit_scales(trainer, max_frames: int = 16, voxels_per_frame: int = 4000) -> d
             out = model(images, batch["ego2img"].to(dev), pick[None].to(dev), prefix, adapted=True)
             free = out["free_embedding"]
             main.append(class_logits(out["feat"], trainer.text, trainer.phrase_class, K, free, None)[0, :, :K].cpu())
-            adapted.append(class_logits(out["feat_adapted"], trainer.text, trainer.phrase_class, K, free,
-                                        None)[0, :, :K].cpu())
+            feats_adapted.append(out["feat_adapted"][0].cpu())
             target.append(sem[pick].long())
+            # statistics of F~_3D over this frame's visible occupied voxels (those with an E_3D), no labels
+            vis = batch.get("align_index")
+            if vis is not None and vis.numel():
+                vis = vis[torch.randperm(vis.numel(), generator=gen)[:voxels_per_frame]].long()
+                fa = model(images, batch["ego2img"].to(dev), vis[None].to(dev), prefix,
+                           adapted=True)["feat_adapted"][0].double().cpu()
+                stat_sum = fa.sum(0) if stat_sum is None else stat_sum + fa.sum(0)
+                stat_outer = fa.T @ fa if stat_outer is None else stat_outer + fa.T @ fa
+                stat_n += fa.shape[0]
     finally:
         trainer.dataset.augment = saved_aug
         trainer.dataset.epoch = saved_epoch
@@ -85,7 +100,14 @@ def fit_scales(trainer, max_frames: int = 16, voxels_per_frame: int = 4000) -> d
     if not target:
         return {"scale_main": 1.0, "scale_adapted": 1.0, "voxels": 0, "frames": 0}
     t = torch.cat(target)
+    stats: dict = {}
+    if stat_n > 1:
+        mean = stat_sum / stat_n
+        cov = (stat_outer - stat_n * torch.outer(mean, mean)) / (stat_n - 1)
+        stats = {"adapted_mean": mean.float(), "adapted_cov": cov.float(), "adapted_voxels": stat_n}
     s_main, nll_main = best_scale(torch.cat(main), t)
-    s_ad, nll_ad = best_scale(torch.cat(adapted), t)
+    ad = adapted_logits(torch.cat(feats_adapted)[None], trainer.text.cpu(), trainer.phrase_class.cpu(), K,
+                        model.free_embedding.detach().cpu(), stats)[0, :, :K]
+    s_ad, nll_ad = best_scale(ad, t)
     return {"scale_main": s_main, "scale_adapted": s_ad, "nll_main": nll_main, "nll_adapted": nll_ad,
-            "voxels": int(t.numel()), "frames": len(order)}
+            "voxels": int(t.numel()), "frames": len(order), **stats}

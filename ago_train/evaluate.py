@@ -87,18 +87,24 @@ def checkpoint_scales(ckpt: dict) -> tuple[float, float]:
     return float(cal.get("scale_main", 1.0)), float(cal.get("scale_adapted", 1.0))
 
 
+def checkpoint_adapted_stats(ckpt: dict) -> dict | None:
+    """The adapted branch's standardisation statistics (calibrate.py) of a checkpoint, or None."""
+    cal = ckpt.get("calibration") or {}
+    return cal if "adapted_mean" in cal else None
+
+
 def predict_labels(model, images: torch.Tensor, ego2img: torch.Tensor, text: torch.Tensor,
                    phrase_class: torch.Tensor, num_classes: int, identifier: str,
-                   scales: tuple[float, float] = (1.0, 1.0)) -> torch.Tensor:
+                   scales: tuple[float, float] = (1.0, 1.0), adapted_stats: dict | None = None) -> torch.Tensor:
     """(B, N) int64 labels on the model grid: 0..K-1 class, K free."""
-    from .model.scoring import class_logits, open_world_identify
+    from .model.scoring import adapted_logits, class_logits, open_world_identify
 
     out = model(images, ego2img, adapted=identifier != "none")   # F~_3D only when the identifier reads it
     free = out.get("free_embedding", model.free_embedding)
     main = class_logits(out["feat"], text, phrase_class, num_classes, free, None)
     if identifier == "none":
         return main.argmax(dim=-1)
-    adapted = class_logits(out["feat_adapted"], text, phrase_class, num_classes, free, None)
+    adapted = adapted_logits(out["feat_adapted"], text, phrase_class, num_classes, free, adapted_stats)
     pred, _branch, _entropy = open_world_identify(main, adapted, identifier, num_classes, *scales)
     return pred.long()
 
@@ -148,7 +154,8 @@ def evaluate(ckpt_path: str | Path, data: str | Path, split: str = "val", prompt
     iterator = loader if quiet else track(loader, description="eval", total=len(loader))
     for batch in iterator:
         pred = predict_labels(model, batch["images"].to(dev), batch["ego2img"].to(dev), text, phrase_class,
-                              K, identifier, checkpoint_scales(ckpt)).cpu().numpy()
+                              K, identifier, checkpoint_scales(ckpt),
+                              checkpoint_adapted_stats(ckpt)).cpu().numpy()
         for b in range(pred.shape[0]):
             vol = pred[b].reshape(grid.shape).astype(np.uint8)
             gt, mask = batch["gt"][b], batch["gt_mask"][b]

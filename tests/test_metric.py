@@ -278,3 +278,34 @@ def test_cli_metric_bad_inputs_exit_2(tmp_path, monkeypatch, capsys):
 
 def test_class_table_is_occ3d():
     assert OccupancyMetric().class_names == list(OCC3D_CLASSES)
+
+
+def test_cli_metric_in_a_prompt_files_space(tmp_path, monkeypatch):
+    """--prompts: GT of classes outside the prompt file is ignored (as ago eval does), predictions are
+    matched by class name, and the @known line gives known / unknown subsets."""
+    shape = (4, 4, 2)
+    sem = np.full(shape, 17, np.uint8)
+    sem[0] = 11   # driveable_surface
+    sem[1] = 12   # other_flat: not in the prompt file
+    sem[2, :2] = 4  # car
+    gt_root, pred_root = tmp_path / "gt", tmp_path / "pred"
+    mask = np.ones(shape, np.uint8)
+    Occ3DLabels(sem, mask, mask).save(gt_root / "scene-0001" / "tok0" / "labels.npz")
+    pred = sem.copy()
+    pred[1] = 11        # other_flat GT predicted as driveable surface: only counts without --prompts
+    save_npz(pred_root / "tok0.npz", semantics=pred, class_names=np.array(OCC3D_CLASSES, dtype=str))
+    prompts = tmp_path / "p.txt"
+    prompts.write_text("@name: t\n@known: driveable_surface\ncar: car\ndriveable_surface: driveable surface\n")
+    assert _run_cli(monkeypatch, "metric", "--pred", str(pred_root), "--gt", str(gt_root),
+                    "--json", str(tmp_path / "plain.json")) == 0
+    assert _run_cli(monkeypatch, "metric", "--pred", str(pred_root), "--gt", str(gt_root), "--prompts", str(prompts),
+                    "--json", str(tmp_path / "space.json")) == 0
+    plain = json.loads((tmp_path / "plain.json").read_text())
+    space = json.loads((tmp_path / "space.json").read_text())
+    assert plain["iou"]["driveable_surface"] == 50.0
+    assert space["iou"]["driveable_surface"] == 100.0 and space["iou"]["car"] == 100.0
+    assert space["subsets"]["known"]["mIoU"] == 100.0 and space["subsets"]["unknown"]["classes"] == ["car"]
+    # a prediction of a class the prompt file does not have is refused, naming the file
+    pred[3] = 9  # truck
+    save_npz(pred_root / "tok0.npz", semantics=pred, class_names=np.array(OCC3D_CLASSES, dtype=str))
+    assert _run_cli(monkeypatch, "metric", "--pred", str(pred_root), "--gt", str(gt_root), "--prompts", str(prompts)) == 2

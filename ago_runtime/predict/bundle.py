@@ -173,6 +173,7 @@ def _load_heads(path: Path, dim: int) -> HeadWeights:
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: np.asarray(z[k], dtype=np.float32) for k in HeadWeights.KEYS}
             scales = np.asarray(z["branch_scales"], dtype=np.float32) if "branch_scales" in z.files else None
+            stats = {k: np.asarray(z[k], dtype=np.float32) for k in ("adapted_mean", "adapted_cov") if k in z.files}
     except KeyError as e:
         raise AgoInputError(path, f"heads file lacks array {e}") from None
     except (ValueError, OSError, zipfile.BadZipFile, EOFError) as e:
@@ -189,6 +190,14 @@ def _load_heads(path: Path, dim: int) -> HeadWeights:
         if scales.shape != (2,) or not np.all(np.isfinite(scales)) or not np.all(scales > 0):
             raise AgoInputError(path, f"branch_scales must be two positive numbers, got {scales.tolist()}")
         w.branch_scales = scales
+    if stats:
+        m, S = stats.get("adapted_mean"), stats.get("adapted_cov")
+        if m is None or S is None or m.shape != (C,) or S.shape != (C, C):
+            raise AgoInputError(path, f"adapted_mean and adapted_cov must be ({C},) and ({C}, {C}), got "
+                                f"{None if m is None else m.shape} and {None if S is None else S.shape}")
+        if not (np.isfinite(m).all() and np.isfinite(S).all() and np.all(np.diag(S) >= 0)):
+            raise AgoInputError(path, "adapted_mean / adapted_cov contain NaN, inf or a negative variance")
+        w.adapted_mean, w.adapted_cov = m, S
     return w
 
 

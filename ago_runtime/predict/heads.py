@@ -50,8 +50,13 @@ class HeadWeights:
     b_ad: np.ndarray           # (C,)
     free_embedding: np.ndarray  # (C,)
     branch_scales: np.ndarray | None = None   # (2,) identifier logit scales (main, adapted); None = (1, 1)
+    # mean (C,) and covariance (C, C) of F~_3D over training voxels (ago_train/calibrate.py): when present,
+    # every phrase's adapted score is standardised, z = (F~.t - m.t) / sqrt(t' S t) (phrase_standardisation)
+    adapted_mean: np.ndarray | None = None
+    adapted_cov: np.ndarray | None = None
 
-    KEYS = ("W_dec", "b_dec", "W_ad", "b_ad", "free_embedding")   # required; "branch_scales" optional
+    KEYS = ("W_dec", "b_dec", "W_ad", "b_ad", "free_embedding")   # required
+    OPTIONAL = ("branch_scales", "adapted_mean", "adapted_cov")
 
     @property
     def scales(self) -> tuple[float, float]:
@@ -74,7 +79,21 @@ class HeadWeights:
     def to_arrays(self) -> dict[str, np.ndarray]:
         out = {k: np.asarray(getattr(self, k), dtype=np.float32) for k in self.KEYS}
         out["branch_scales"] = np.asarray(self.scales, dtype=np.float32)
+        if self.adapted_mean is not None:
+            out["adapted_mean"] = np.asarray(self.adapted_mean, dtype=np.float32)
+            out["adapted_cov"] = np.asarray(self.adapted_cov, dtype=np.float32)
         return out
+
+    def adapted_phrase_map(self, phrases: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(P, C) phrase embeddings -> (scale (P,), bias (P,)) of the adapted branch's standardisation
+        z = scale * (F~.t) + bias with scale = 1/sqrt(t' S t), bias = -(m.t) * scale; (1, 0) without statistics.
+        The same map as ago_train.model.scoring.phrase_standardisation, in float64."""
+        t = np.asarray(phrases, dtype=np.float64)
+        if self.adapted_mean is None:
+            return np.ones(len(t)), np.zeros(len(t))
+        var = np.einsum("pc,cd,pd->p", t, self.adapted_cov.astype(np.float64), t)
+        scale = 1.0 / np.sqrt(np.maximum(var, 1e-12))
+        return scale, -(t @ self.adapted_mean.astype(np.float64)) * scale
 
 
 @dataclass
@@ -122,8 +141,12 @@ class FoldedHeads:
         T64 = T.astype(np.float64)
         self.A_main_T = np.ascontiguousarray(T64 @ weights.W_dec.astype(np.float64), dtype=np.float32)  # (P', Dh)
         self.c_main = (T64 @ weights.b_dec.astype(np.float64)).astype(np.float32)[:, None]              # (P', 1)
-        self.A_ad_T = np.ascontiguousarray(T64 @ weights.W_ad.astype(np.float64), dtype=np.float32)     # (P', Da)
-        self.c_ad = (T64 @ weights.b_ad.astype(np.float64)).astype(np.float32)[:, None]
+        # adapted branch: each phrase row standardised (HeadWeights.adapted_phrase_map); the free row as is
+        scale, bias = weights.adapted_phrase_map(T64[:-1])
+        scale, bias = np.append(scale, 1.0), np.append(bias, 0.0)
+        T_ad = T64 * scale[:, None]
+        self.A_ad_T = np.ascontiguousarray(T_ad @ weights.W_ad.astype(np.float64), dtype=np.float32)     # (P', Da)
+        self.c_ad = (T_ad @ weights.b_ad.astype(np.float64) + bias).astype(np.float32)[:, None]
         self.scale_main, self.scale_adapted = weights.scales
 
     @property

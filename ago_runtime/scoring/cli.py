@@ -6,12 +6,17 @@
     token: `<pred>/<scene>/<token>/labels.npz`, `<pred>/<token>/labels.npz` or `<pred>/<token>.npz`,
     each with a `semantics` array at GT resolution or an integer fraction of it (upsampled by
     nearest-neighbour repetition; evaluation is at GT resolution).
+`--prompts FILE` scores in that prompt file's label space, as the torch evaluation (`ago eval`) does:
+    GT voxels of Occ3D classes no prompt covers are ignored, predictions are matched by class name,
+    mIoU is over the file's classes, and its @known line gives "known" / "unknown" subsets.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 from typing import List, Optional
+
+import numpy as np
 
 import typer
 
@@ -60,6 +65,30 @@ def parse_subsets(items: list[str] | None, class_names: list[str]) -> dict[str, 
     return out
 
 
+def prediction_in_space(path: Path, sem: np.ndarray, names: list[str]) -> np.ndarray:
+    """A prediction file's labels as indices of `names` (a label space's classes then "free"), matched by
+    class name: the file's `bank_semantics` / `bank_class_names` when present (ago infer with a bank
+    whose classes are Occ3D classes), else its `semantics` / `class_names`."""
+    with np.load(path, allow_pickle=False) as z:
+        if "bank_semantics" in z.files and "bank_class_names" in z.files:
+            sem, file_names = np.asarray(z["bank_semantics"]), [str(c) for c in z["bank_class_names"]]
+        elif "class_names" in z.files:
+            file_names = [str(c) for c in z["class_names"]]
+        else:
+            raise AgoInputError(path, "--prompts needs prediction files with class names (written by ago infer)")
+    index = {c: i for i, c in enumerate(names)}
+    lut = np.full(max(len(file_names), 1), 255, np.int64)
+    for i, c in enumerate(file_names):
+        lut[i] = index.get(c, 255)
+    present = np.unique(sem)
+    if present.size and present.max() >= len(file_names):
+        raise AgoInputError(path, f"labels up to {int(present.max())} but only {len(file_names)} class names")
+    outside = [file_names[v] for v in present if lut[v] == 255]
+    if outside:
+        raise AgoInputError(path, f"predicts {outside[:3]}, not classes of the --prompts file")
+    return lut[sem].astype(np.uint8)
+
+
 def register(app: typer.Typer) -> None:
     @app.command("metric")
     def metric(
@@ -72,6 +101,10 @@ def register(app: typer.Typer) -> None:
                                                    help="extra mIoU over classes: NAME=c1,c2 (repeatable)"),
         allow_missing: bool = typer.Option(False, "--allow-missing", help="skip GT frames with no prediction"),
         no_mask: bool = typer.Option(False, "--no-mask", help="score every voxel, not only mask_camera"),
+        prompts: Optional[Path] = typer.Option(
+            None, "--prompts", help="score in this prompt file's label space (as `ago eval` does): GT voxels of "
+            "Occ3D classes no prompt covers are ignored, mIoU over its classes, and known / unknown subsets "
+            "from its @known line"),
     ) -> None:
         """Occ3D mIoU (mask_camera voxels, confusion matrix over the whole split) of predictions vs GT."""
         from ago_runtime.atomic import write_json, write_text
@@ -81,8 +114,21 @@ def register(app: typer.Typer) -> None:
 
         from ago_runtime.outputs import check_output_file
 
-        m = OccupancyMetric()
-        subsets = parse_subsets(subset, m.class_names)
+        space = None
+        if prompts is not None:
+            from ago_runtime.vocab.prompts import parse_prompt_file
+
+            space = parse_prompt_file(prompts)
+            K = space.num_classes
+            m = OccupancyMetric(list(space.class_names) + ["free"], free_index=K)
+            gt_lut = space.gt_lut(free_index=K)
+            subsets = parse_subsets(subset, m.class_names)
+            if space.known and any(c not in space.known for c in space.class_names):
+                subsets.setdefault("known", [c for c in space.class_names if c in space.known])
+                subsets.setdefault("unknown", [c for c in space.class_names if c not in space.known])
+        else:
+            m = OccupancyMetric()
+            subsets = parse_subsets(subset, m.class_names)
         for option, target in (("--json", json_out), ("--md", md_out)):
             if target is not None:
                 check_output_file(target, option)   # before scoring, not after the table
@@ -104,10 +150,14 @@ def register(app: typer.Typer) -> None:
         for gt_file, p in track(pairs, description="scoring", total=len(pairs)):
             labels = Occ3DLabels.load(gt_file)
             sem, _ = load_semantics(p)
+            gt_sem = labels.semantics
+            if space is not None:
+                sem = prediction_in_space(p, sem, m.class_names)
+                gt_sem = gt_lut[gt_sem]
             sem = to_gt_resolution(sem, labels.shape, p)
             if sem.max() >= m.num_labels:
                 raise AgoInputError(p, f"prediction labels must lie in 0..{m.num_labels - 1}, found {sem.max()}")
-            m.update(sem, labels.semantics, None if no_mask else labels.mask_camera.astype(bool))
+            m.update(sem, gt_sem, None if no_mask else labels.mask_camera.astype(bool))
         table = m.to_markdown(subsets)
         typer.echo(table)
         if missing:

@@ -37,8 +37,9 @@ from ago_runtime.vocab.prompts import LabelSpace, parse_prompt_file
 
 from ..checkpoint import load_checkpoint
 from ..dataset import FrameList, OccSampleDataset, collate
-from ..evaluate import _pct, _to_gt_resolution, bank_for, checkpoint_scales, load_model, scored_subsets
-from ..model.scoring import class_logits, entropy, open_world_identify
+from ..evaluate import (_pct, _to_gt_resolution, bank_for, checkpoint_adapted_stats, checkpoint_scales, load_model,
+                        scored_subsets)
+from ..model.scoring import adapted_logits, class_logits, entropy, open_world_identify
 
 IDENTIFIERS = ("none", "max-conf", "min-entropy", "adapted")
 
@@ -136,6 +137,7 @@ def evaluate_views(ckpt_path: str | Path, data: str | Path, views: list[View], s
     ckpt = load_checkpoint(ckpt_path, map_location="cpu")
     mcfg, model = load_model(ckpt, dev, ckpt_path)
     scales = checkpoint_scales(ckpt)
+    adapted_stats = checkpoint_adapted_stats(ckpt)
     banks = {v.name: _bank(ckpt, v.prompts, v.closed_set) for v in views}
     ds, indices = open_frames(data, gts, split)
     if max_frames is not None:
@@ -162,7 +164,8 @@ def evaluate_views(ckpt_path: str | Path, data: str | Path, views: list[View], s
             b = banks[v.name]
             K = b.space.num_classes
             main = class_logits(out["feat"], b.text, b.phrase_class, K, free, None)[0]
-            adapted = (class_logits(out["feat_adapted"], b.text, b.phrase_class, K, free, None)[0] * v.adapted_scale
+            adapted = (adapted_logits(out["feat_adapted"], b.text, b.phrase_class, K, free, adapted_stats)[0]
+                       * v.adapted_scale
                        if v.identifier != "none" or v.name == stats_view else None)
             labels = _labels(main, adapted, v.identifier, K, scales).numpy().reshape(grid.shape).astype(np.uint8)
             gt = luts[v.name][gt_occ]

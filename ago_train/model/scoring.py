@@ -38,12 +38,16 @@ def phrase_to_class_index(phrase_class: torch.Tensor, num_classes: int) -> tuple
 
 
 def class_logits(feat: torch.Tensor, text: torch.Tensor, phrase_class: torch.Tensor, num_classes: int,
-                 free_embedding: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:
-    """feat (B, N, C) -> logits (B, N, K + 1 + Nn) in the column order of this module."""
+                 free_embedding: torch.Tensor, noise: torch.Tensor | None = None,
+                 phrase_bias: torch.Tensor | None = None) -> torch.Tensor:
+    """feat (B, N, C) -> logits (B, N, K + 1 + Nn) in the column order of this module.
+    `phrase_bias` (P,) is added to each phrase's dot product (the adapted branch's standardisation)."""
     index, mask = phrase_to_class_index(phrase_class.cpu(), num_classes)
     index, mask = index.to(feat.device), mask.to(feat.device)
     K, pmax = index.shape
     phrase_scores = feat @ text.to(feat.dtype).T                                  # (B, N, P)
+    if phrase_bias is not None:
+        phrase_scores = phrase_scores + phrase_bias.to(feat.device, feat.dtype)
     B, N, _ = phrase_scores.shape
     gathered = phrase_scores[..., index.reshape(-1)].reshape(B, N, K, pmax)
     gathered = gathered.masked_fill(~mask, float("-inf"))
@@ -54,6 +58,35 @@ def class_logits(feat: torch.Tensor, text: torch.Tensor, phrase_class: torch.Ten
     if noise is not None and noise.shape[0] > 0:
         cols.append(feat @ noise.to(feat.dtype).T)
     return torch.cat(cols, -1)
+
+
+def phrase_standardisation(text: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor
+                           ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per phrase t: the affine map that standardises its dot products with the adapted embedding,
+    z = (x.t - m.t) / sqrt(t' S t), where m (C,) and S (C, C) are the mean and covariance of F~_3D over
+    training voxels (ago_train/calibrate.py; no labels). -> (text scaled by 1/sd (P, C), bias -m.t/sd (P,)).
+
+    Why: the adapted branch is aligned with image embeddings, not trained to rank classes against each
+    other, so some phrases score high on every voxel (their dot product with the mean embedding); a
+    class's voxels rank high for its phrase (retrieval works) while the argmax across phrases is taken
+    by those generic phrases. Standardising each phrase's score over the training distribution makes the
+    phrases comparable, for any bank, with no retraining (the runtime folds the same map into the bank)."""
+    t = text.double()
+    sd = torch.einsum("pc,cd,pd->p", t, cov.double(), t).clamp_min(1e-12).sqrt()
+    return (t / sd[:, None]).to(text.dtype), (-(t @ mean.double()) / sd).to(text.dtype)
+
+
+def adapted_logits(feat_adapted: torch.Tensor, text: torch.Tensor, phrase_class: torch.Tensor, num_classes: int,
+                   free_embedding: torch.Tensor, stats: dict | None = None) -> torch.Tensor:
+    """Class logits of the adapted branch (B, N, K + 1): phrase-standardised when `stats` holds the
+    training statistics {"adapted_mean" (C,), "adapted_cov" (C, C)} of F~_3D, plain dot products otherwise.
+    The free column stays the plain dot product with the free embedding (the identifier never reads it)."""
+    if not stats or "adapted_mean" not in stats:
+        return class_logits(feat_adapted, text, phrase_class, num_classes, free_embedding, None)
+    mean = torch.as_tensor(stats["adapted_mean"], dtype=torch.float32, device=feat_adapted.device)
+    cov = torch.as_tensor(stats["adapted_cov"], dtype=torch.float32, device=feat_adapted.device)
+    scaled, bias = phrase_standardisation(text.to(feat_adapted.device), mean, cov)
+    return class_logits(feat_adapted, scaled, phrase_class, num_classes, free_embedding, None, phrase_bias=bias)
 
 
 def entropy(prob: torch.Tensor, dim: int = -1) -> torch.Tensor:
