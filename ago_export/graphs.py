@@ -466,3 +466,37 @@ class VoxelsReference(nn.Module):
                 x = st.linear(x)
                 x = self.act(x) if st.activation else x
         return out["h"], out["g"], out["s_main"], out["s_adapted"]
+
+
+def bank_scores_model():
+    """The runtime's generic bank-product graph (ago_runtime/assets/graphs/bank_scores.onnx): inputs
+    x (n, d) and bank (P', d), output s = bank x^T (P', n), every dimension symbolic, no weights. The
+    runtime computes both branches' folded-bank scores with it (onnxruntime's GEMM; numpy's OpenBLAS was
+    3-20x slower for this skinny shape here), so it can score any subset of voxels of any bundle.
+    Rewrite the file with `write_bank_scores()`; tests/test_runtime.py checks it."""
+    from onnx import TensorProto, helper
+
+    graph = helper.make_graph(
+        [helper.make_node("Transpose", ["x"], ["xt"], perm=[1, 0]), helper.make_node("MatMul", ["bank", "xt"], ["s"])],
+        "ago_bank_scores",
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, ["voxels", "width"]),
+         helper.make_tensor_value_info("bank", TensorProto.FLOAT, ["phrases", "width"])],
+        [helper.make_tensor_value_info("s", TensorProto.FLOAT, ["phrases", "voxels"])])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=8,
+                              producer_name="ago_export.graphs.bank_scores_model")
+    return model
+
+
+def write_bank_scores(path=None):
+    """Write bank_scores_model() to the runtime's asset (or `path`)."""
+    import onnx
+    from pathlib import Path
+
+    from ago_runtime.predict.encoder import BANK_SCORES_GRAPH
+
+    path = Path(path or BANK_SCORES_GRAPH)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    model = bank_scores_model()
+    onnx.checker.check_model(model, full_check=True)
+    onnx.save(model, str(path))
+    return path

@@ -71,14 +71,19 @@ def reference_labels(feat: np.ndarray, feat_ad: np.ndarray, bank, free: np.ndarr
 
 
 def runtime_labels(encoder, folded: FoldedHeads, images: np.ndarray, ego2img: np.ndarray) -> dict[str, np.ndarray]:
-    """Labels the way `ago infer` gets them: the encoder's per-slab phrase scores (for a split bundle
-    computed by the voxel stages' GEMMs) through the numpy class max / softmax / identifier."""
-    out: dict[str, list] = {"main": [], "adapted": [], "identifier": []}
+    """Labels the way `ago infer` gets them: "identifier" from the runtime's own slab loop (the adapted
+    branch only where the main branch calls a voxel occupied: ago_runtime.predict.predictor.classify_slabs);
+    "main" and "adapted" from both branches' scores on every voxel (the encoder's score_chunks), each through
+    the numpy class max / softmax."""
+    from ago_runtime.predict.predictor import classify_slabs
+
+    out: dict[str, list] = {"main": [], "adapted": []}
     for _start, _stop, s_main, s_ad in encoder.score_chunks(images, ego2img, folded):
-        out["identifier"].append(folded.classify_scores(s_main.copy(), s_ad.copy(), "min-entropy")[0])
         out["main"].append(folded.softmax_stats(folded.class_scores(s_main, "main")).label)
         out["adapted"].append(folded.softmax_stats(folded.class_scores(s_ad, "adapted")).label)
-    return {k: np.concatenate(v) for k, v in out.items()}
+    labels = {k: np.concatenate(v) for k, v in out.items()}
+    labels["identifier"] = classify_slabs(encoder, folded, images, ego2img, "min-entropy", label_dtype=np.int64)[0]["label"]
+    return labels
 
 
 def check_parity(model, encoder, heads: HeadWeights, bank, images: np.ndarray, ego2img: np.ndarray,

@@ -237,8 +237,10 @@ def main() -> None:
 
         def staged(voxels):
             rows_per = enc.rows_per_slab(voxels)
-            for x0 in range(0, X, rows_per):
-                enc._slab(new_planes, x0, min(X, x0 + rows_per), fold, ("s_main", "s_adapted"))
+            for x0 in range(0, X, rows_per):   # both branches on every voxel, as the one-graph variants
+                h = enc.hidden_slab(new_planes, x0, min(X, x0 + rows_per))
+                enc.scores(fold["main"], h)
+                enc.scores(fold["adapted"], enc.adapted_hidden(h))
 
         cases = {k: (lambda s=s, kind=kind: frame(s, kind, 65536 if kind == "old" else 8192)) for k, (s, kind) in vsess.items()}
         for v in (2048, 4096, 8192, 16384, 65536):

@@ -7,6 +7,7 @@ checked torch-free in a subprocess).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
 import json
 import os
@@ -236,6 +237,108 @@ def test_streamed_slabs_match_whole_grid_heads(bundle_dir, frame_dir, monkeypatc
     monkeypatch.setattr(enc, "SCORE_BUDGET_BYTES", 1)
     seen = [stop - start for start, stop, _s, _a in p.encoder.score_chunks(x, m, p.fold(bank))]
     assert seen == [20 * 4] * 20 and SCORE_BUDGET_BYTES > 1
+
+
+def test_bank_scores_graph_is_the_generic_bank_product():
+    """The runtime's generic bank-product graph (no weights, every dimension symbolic): s = bank x^T for any
+    width, any number of phrases and voxels; the committed file is what ago_export.graphs writes."""
+    import onnxruntime as ort
+
+    from ago_runtime.predict.encoder import BANK_SCORES_GRAPH
+
+    sess = ort.InferenceSession(str(BANK_SCORES_GRAPH), providers=["CPUExecutionProvider"])
+    rng = np.random.default_rng(0)
+    for n, d, P in ((1, 3, 1), (777, 128, 46), (50, 384, 5)):
+        x = rng.normal(size=(n, d)).astype(np.float32)
+        bank = rng.normal(size=(P, d)).astype(np.float32)
+        (s,) = sess.run(["s"], {"x": x, "bank": bank})
+        np.testing.assert_allclose(s, bank.astype(np.float64) @ x.T.astype(np.float64), rtol=1e-5, atol=1e-4)
+    onnx = pytest.importorskip("onnx")
+    pytest.importorskip("torch")
+    from ago_export.graphs import bank_scores_model
+
+    committed, made = onnx.load(str(BANK_SCORES_GRAPH)), bank_scores_model()
+    assert committed.graph.SerializeToString() == made.graph.SerializeToString()
+
+
+def test_adapted_branch_runs_only_where_the_main_branch_sees_matter(bundle_dir, frame_dir, monkeypatch):
+    """The adapter's stages and the adapted bank's product run only on the voxels the main branch calls
+    occupied (with volumes: on every voxel, for the unexplained-obstacle score), and every output equals
+    the full computation (adapted branch on every voxel) on every voxel."""
+    import ago_runtime.predict.encoder as enc
+    from ago_runtime.formats.calibration import load_images_folder
+    from ago_runtime.predict.heads import MainPart
+    from ago_runtime.predict.predictor import Predictor
+
+    p = Predictor(bundle_dir)
+    images, rig, _ = load_images_folder(frame_dir)
+    x, m = p.prepare(images, rig)
+    # weaker phrases, so that about a quarter of the voxels are occupied (random weights call ~all occupied)
+    bank = dataclasses.replace(p.bundle.load_bank(), embeddings=p.bundle.load_bank().embeddings * 0.3)
+    K, N = bank.num_classes, p.grid.num_voxels
+    rows = []
+    real = enc.SplitEncoder.adapted_hidden
+    monkeypatch.setattr(enc.SplitEncoder, "adapted_hidden", lambda self, h: rows.append(len(h)) or real(self, h))
+    for ident in ("min-entropy", "max-conf", "adapted", "none"):
+        for volumes in (False, True):
+            folded = p.fold_with_reference(bank) if volumes else p.fold(bank)
+            rows.clear()
+            got = p.predict_arrays(x, m, bank, ident, volumes=volumes)
+            adapter_rows = sum(rows)
+            # the full computation: both branches' scores on every voxel, the adapted one used everywhere
+            full = {k: [] for k in ("label", "entropy", "confidence", "branch", "unexplained", "occupancy", "need")}
+            for _a, _b, s_main, s_ad in p.encoder.score_chunks(x, m, folded, adapted=ident != "none"):
+                part = folded.main_part(s_main, ident, volumes)
+                if part.need is not None:
+                    full["need"].append(np.isin(np.arange(s_main.shape[1]), part.need))
+                    part = MainPart(part.identifier, part.main, part.free, np.arange(s_main.shape[1]),
+                                    part.p_occ, part.conf_main)
+                extras = {} if volumes else None
+                out = folded.finish(part, s_ad, extras)
+                for k, v in zip(("label", "entropy", "confidence", "branch"), out):
+                    full[k].append(v)
+                for k in (extras or {}):
+                    full[k].append(extras[k])
+            full = {k: np.concatenate(v) if v else None for k, v in full.items()}
+            np.testing.assert_array_equal(got.semantics.reshape(-1), full["label"])
+            np.testing.assert_array_equal(got.branch.reshape(-1), full["branch"])
+            np.testing.assert_allclose(got.entropy.reshape(-1), full["entropy"], atol=1e-5)
+            np.testing.assert_allclose(got.confidence.reshape(-1), full["confidence"], atol=1e-5)
+            occupied = got.semantics.reshape(-1) != K
+            if ident == "none":
+                assert adapter_rows == 0                                 # no adapted branch at all
+            else:
+                need = full["need"]
+                assert 0.05 * N < occupied.sum() < 0.95 * N and np.all(need[occupied])
+                assert adapter_rows == need.sum()                        # the adapter ran on those voxels only
+                assert need.sum() == (N if volumes else occupied.sum())
+                assert not got.branch.reshape(-1)[~occupied].any()
+            if volumes:
+                np.testing.assert_allclose(got.occupancy.reshape(-1), full["occupancy"], atol=1e-6)
+                np.testing.assert_allclose(got.unexplained.reshape(-1), full["unexplained"], atol=1e-5)
+
+
+def test_requery_with_the_frames_planes_skips_the_planes_graph(bundle_dir, frame_dir, tmp_path):
+    """Another bank on the same frame with its planes passed in gives what a whole new prediction gives."""
+    from ago_runtime.formats.calibration import load_images_folder
+    from ago_runtime.predict.predictor import Predictor
+    from ago_runtime.vocab.bank import bank_for_prompts
+
+    p = Predictor(bundle_dir)
+    images, rig, _ = load_images_folder(frame_dir)
+    x, m = p.prepare(images, rig)
+    planes = p.encoder.plane_maps(x, m)
+    prompt = tmp_path / "street.txt"
+    prompt.write_text("fire hydrant: fire hydrant, hydrant\ncar: car\nroad [driveable_surface]: road\n")
+    bank = bank_for_prompts(prompt, cache_dir=tmp_path / "banks")
+    whole = p.predict_arrays(x, m, bank)
+    calls = []
+    run = p.encoder.planes.run
+    p.encoder.planes = types.SimpleNamespace(run=lambda *a, **k: calls.append(1) or run(*a, **k))
+    again = p.predict_arrays(x, m, bank, planes=planes)
+    assert calls == []
+    np.testing.assert_array_equal(again.semantics, whole.semantics)
+    np.testing.assert_allclose(again.entropy, whole.entropy, atol=1e-6)
 
 
 def test_bank_swap_to_unseen_classes(bundle_dir, frame_dir, tmp_path):

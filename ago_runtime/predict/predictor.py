@@ -196,37 +196,23 @@ class Predictor:
         return pred
 
     def predict_arrays(self, x: np.ndarray, m: np.ndarray, bank, identifier: str = "min-entropy",
-                       folded: FoldedHeads | None = None, volumes: bool = False) -> Prediction:
-        """Preprocessed inputs -> Prediction, streaming the encoder's slabs through the heads.
+                       folded: FoldedHeads | None = None, volumes: bool = False,
+                       planes: list[np.ndarray] | None = None) -> Prediction:
+        """Preprocessed inputs -> Prediction, slab by slab: the main branch on every voxel, then the
+        adapted branch only on the voxels that need it (`classify_slabs`).
 
-        timings: "encoder" = the graphs (planes + voxels; the heads' matrix product runs inside
-        voxels.onnx), "heads" = the numpy part (class max, softmax, entropy, identifier)."""
+        planes: this frame's `self.encoder.plane_maps(x, m)` when the caller already has them (re-querying
+        the same frame with another bank skips the planes graph); None runs it.
+        timings: "encoder" = the graphs (planes, voxel stages and the bank products) and the numpy glue
+        between them (plane sums, softplus, gathers), "heads" = the numpy heads (class max, softmax,
+        entropy, identifier)."""
         # the unexplained-obstacle score needs the reference classes (fold_with_reference); labels are the same
         folded = self.fold_with_reference(bank) if volumes else (folded or self.fold(bank))
         self._check_classes(bank)
-        n = self.grid.num_voxels
         label_dtype = np.uint8 if bank.num_classes + 1 <= 255 else np.uint16
-        out = {"label": np.empty(n, label_dtype), "entropy": np.empty(n, np.float32),
-               "confidence": np.empty(n, np.float32), "branch": np.empty(n, np.uint8)}
-        if volumes:
-            out["unexplained"] = np.empty(n, np.float32)
-            out["occupancy"] = np.empty(n, np.float32)
-        extras = {} if volumes else None
-        t_enc = t_heads = 0.0
-        t = time.perf_counter()
-        for start, stop, s_main, s_ad in self.encoder.score_chunks(x, m, folded, adapted=identifier != "none"):
-            t2 = time.perf_counter()
-            t_enc += t2 - t
-            label, ent, conf, br = folded.classify_scores(s_main, s_ad, identifier, extras)
-            if volumes:
-                out["unexplained"][start:stop] = extras["unexplained"]
-                out["occupancy"][start:stop] = extras["occupancy"]
-            out["label"][start:stop], out["entropy"][start:stop] = label, ent
-            out["confidence"][start:stop], out["branch"][start:stop] = conf, br
-            t = time.perf_counter()
-            t_heads += t - t2
+        out, timings = classify_slabs(self.encoder, folded, x, m, identifier, volumes, label_dtype, planes)
         pred = self._prediction(out, bank, identifier)
-        pred.timings = {"encoder": t_enc, "heads": t_heads}
+        pred.timings = timings
         return pred
 
     def _check_classes(self, bank) -> None:
@@ -253,3 +239,52 @@ class Predictor:
             occ3d=lut[sem] if lut is not None else None,
             unexplained=out["unexplained"].reshape(shape) if "unexplained" in out else None,
             occupancy=out["occupancy"].reshape(shape) if "occupancy" in out else None)
+
+
+def classify_slabs(encoder, folded: FoldedHeads, x: np.ndarray, m: np.ndarray, identifier: str = "min-entropy",
+                   volumes: bool = False, label_dtype=np.uint8, planes: list[np.ndarray] | None = None):
+    """One frame through the encoder and the folded heads, slab by slab -> (out, timings): out = dict of
+    (N,) arrays label, entropy, confidence, branch (+ unexplained, occupancy with volumes).
+
+    Per slab: h of every voxel and the main branch's scores; `FoldedHeads.main_part` says which voxels
+    need the adapted branch (those the main branch calls occupied; every voxel with volumes, for the
+    unexplained-obstacle score); only their h is gathered and run through the adapter's stages and the
+    adapted bank's product. Free voxels take the main branch's label, entropy, confidence and branch 0
+    (FoldedHeads.finish), exactly what they took when the adapted branch ran on every voxel."""
+    encoder.check_folded(folded)
+    n = encoder.grid.num_voxels
+    out = {"label": np.empty(n, label_dtype), "entropy": np.empty(n, np.float32),
+           "confidence": np.empty(n, np.float32), "branch": np.empty(n, np.uint8)}
+    if volumes:
+        out["unexplained"] = np.empty(n, np.float32)
+        out["occupancy"] = np.empty(n, np.float32)
+    extras = {} if volumes else None
+    t_enc = t_heads = 0.0
+    t = time.perf_counter()
+    if planes is None:
+        planes = encoder.plane_maps(x, m)
+    row = encoder.grid.shape[1] * encoder.grid.shape[2]
+    for x0, x1 in encoder.slabs(encoder.slab_rows(folded)):
+        h = encoder.hidden_slab(planes, x0, x1)
+        s_main = encoder.scores(folded.A_main_T, h)
+        t2 = time.perf_counter()
+        t_enc += t2 - t
+        part = folded.main_part(s_main, identifier, volumes)
+        t3 = time.perf_counter()
+        t_heads += t3 - t2
+        s_ad = None
+        if part.need is not None and len(part.need):
+            h_need = h if len(part.need) == len(h) else h[part.need]   # need is sorted: all = arange(n)
+            s_ad = encoder.scores(folded.A_ad_T, encoder.adapted_hidden(h_need))
+        t4 = time.perf_counter()
+        t_enc += t4 - t3
+        label, ent, conf, br = folded.finish(part, s_ad, extras)
+        sl = slice(x0 * row, x1 * row)
+        if volumes:
+            out["unexplained"][sl] = extras["unexplained"]
+            out["occupancy"][sl] = extras["occupancy"]
+        out["label"][sl], out["entropy"][sl] = label, ent
+        out["confidence"][sl], out["branch"][sl] = conf, br
+        t = time.perf_counter()
+        t_heads += t - t4
+    return out, {"encoder": t_enc, "heads": t_heads}

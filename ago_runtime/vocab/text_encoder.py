@@ -28,6 +28,7 @@ from typing import Callable
 
 import numpy as np
 
+from ago_runtime.cache import ago_cache_dir, open_session  # noqa: F401  (ago_cache_dir: its old home, still imported from here)
 from ago_runtime.errors import AgoInputError, MissingExtra, require_torch
 from ago_runtime.vocab.tokenizer import WordPieceTokenizer
 
@@ -37,12 +38,6 @@ ENV_TEXT_ENCODER = "AGO_TEXT_ENCODER"
 BUNDLE_ENCODER_NAME = "text_encoder.onnx"
 # A sidecar JSON next to an exported ONNX file records its encoder id, variant, pooling, vocab.
 SIDECAR_SUFFIX = ".json"
-
-
-def ago_cache_dir() -> Path:
-    """Root of ago's caches: $AGO_CACHE_DIR or ~/.cache/ago."""
-    env = os.environ.get("AGO_CACHE_DIR")
-    return Path(env).expanduser() if env else Path.home() / ".cache" / "ago"
 
 
 def cached_encoder_path() -> Path:
@@ -141,14 +136,10 @@ class OnnxTextEncoder:
         self.batch_size = batch_size
         self.tokenizer = WordPieceTokenizer(vocab_path, max_length=max_length or side.get("max_length")
                                             or minilm_max_length())
-        opts = ort.SessionOptions()
-        if threads is not None:
-            opts.intra_op_num_threads = threads
-        opts.log_severity_level = 3
-        try:
-            self.session = ort.InferenceSession(str(self.onnx_path), opts, providers=["CPUExecutionProvider"])
-        except Exception as e:  # onnxruntime raises its own exception types for corrupt files
-            raise AgoInputError(onnx_path, f"onnxruntime cannot load it: {e}") from None
+        # the file's sha256 (the bank cache's key) also keys onnxruntime's cached optimised graph: a new
+        # prompt file then opens the encoder in ~0.07 s instead of ~0.3 s (graph optimisation)
+        self._weights_hash = file_sha256(self.onnx_path)
+        self.session = open_session(self.onnx_path, threads, self._weights_hash)
         self.input_names = [i.name for i in self.session.get_inputs()]
         for needed in ("input_ids", "attention_mask"):
             if needed not in self.input_names:
@@ -181,7 +172,7 @@ class OnnxTextEncoder:
 
     @property
     def weights_hash(self) -> str:
-        return file_sha256(self.onnx_path)
+        return self._weights_hash
 
     def _run(self, ids: np.ndarray, mask: np.ndarray) -> np.ndarray:
         feeds = {"input_ids": ids, "attention_mask": mask}
