@@ -52,8 +52,31 @@ def best_scale(logits: torch.Tensor, target: torch.Tensor) -> tuple[float, float
     return s, nll(s)
 
 
+def entropy_matched_scale(logits: torch.Tensor, target_entropy: float) -> float:
+    """(M, K) logits -> the scale s with mean entropy of softmax(s * logits) equal to `target_entropy`
+    (bisection in log s; the mean entropy falls monotonically as s grows). Clamped to SCALE_GRID's range."""
+    logits = logits.double()
+
+    def mean_entropy(s: float) -> float:
+        p = torch.softmax(s * logits, -1)
+        return float(-(p * torch.log(p.clamp_min(1e-300))).sum(-1).mean())
+
+    lo, hi = float(SCALE_GRID[0]), float(SCALE_GRID[-1])
+    if mean_entropy(lo) <= target_entropy:
+        return lo
+    if mean_entropy(hi) >= target_entropy:
+        return hi
+    for _ in range(60):
+        mid = math.sqrt(lo * hi)
+        if mean_entropy(mid) > target_entropy:
+            lo = mid
+        else:
+            hi = mid
+    return math.sqrt(lo * hi)
+
+
 @torch.no_grad()
-def fit_scales(trainer, max_frames: int = 16, voxels_per_frame: int = 4000) -> dict:
+def fit_scales(trainer, max_frames: int = 16, voxels_per_frame: int = 4000, adapted_rule: str = "nll") -> dict:
     """Scales of both branches from the trainer's training frames (see the module docstring)."""
     model, dev = trainer.model, trainer.info.device
     K = trainer.label_space.num_classes
@@ -109,5 +132,17 @@ def fit_scales(trainer, max_frames: int = 16, voxels_per_frame: int = 4000) -> d
     ad = adapted_logits(torch.cat(feats_adapted)[None], trainer.text.cpu(), trainer.phrase_class.cpu(), K,
                         model.free_embedding.detach().cpu(), stats)[0, :, :K]
     s_ad, nll_ad = best_scale(ad, t)
-    return {"scale_main": s_main, "scale_adapted": s_ad, "nll_main": nll_main, "nll_adapted": nll_ad,
-            "voxels": int(t.numel()), "frames": len(order), **stats}
+    out = {"scale_main": s_main, "scale_adapted": s_ad, "nll_main": nll_main, "nll_adapted": nll_ad,
+           "voxels": int(t.numel()), "frames": len(order), **stats}
+    # the main branch's mean entropy at its fitted scale on the same voxels, and the adapted scale that
+    # gives the adapted branch that mean entropy (adapted_rule "entropy")
+    p = torch.softmax(s_main * torch.cat(main).double(), -1)
+    h_main = float(-(p * torch.log(p.clamp_min(1e-300))).sum(-1).mean())
+    out["entropy_main"] = h_main
+    out["scale_adapted_nll"] = s_ad
+    out["scale_adapted_entropy"] = entropy_matched_scale(ad, h_main)
+    if adapted_rule == "entropy":
+        out["scale_adapted"] = out["scale_adapted_entropy"]
+    out["adapted_rule"] = adapted_rule
+    return out
+

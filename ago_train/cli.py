@@ -2,6 +2,7 @@
 
     ago train --config cpu|tiny|full|cfg.json [--set key=value ...] [--resume] [--out DIR]
     torchrun --nproc_per_node 2 -m ago_runtime.cli train --config ...      (DDP; gloo on CPU, nccl on GPU)
+    ago calibrate RUN                       (re-fit the identifier's calibration of RUN/last.pt, no training)
     ago eval --ckpt RUN/last.pt --data DIR [--split val] [--prompts FILE] [--identifier ...] [--out DIR]
     ago open-world --stage pretrain|zeroshot|fewshot|all --config cpu --data DIR \
         --pseudo-pretrain DIR --pseudo-full DIR [--k 100] [--seeds 0,1,2] [--out DIR]
@@ -57,6 +58,21 @@ def register(app: typer.Typer) -> None:
         r = train(cfg, resume=resume)
         if r["last"]:
             typer.echo(f"trained {r['step']} steps; checkpoint {r['last']}")
+
+    @app.command("calibrate")
+    def calibrate_cmd(
+        run: Path = typer.Argument(..., help="a finished `ago train` folder (config.json, last.pt)"),
+    ):
+        """Re-fit the open-world identifier's calibration of RUN/last.pt on its training frames (no training)."""
+        from ago_runtime.errors import require_torch
+
+        require_torch("calibrate")
+        from .trainer import recalibrate
+
+        cal = recalibrate(run)
+        typer.echo(f"calibrated {run / 'last.pt'}: scale_main {cal['scale_main']:.3f}, scale_adapted "
+                   f"{cal['scale_adapted']:.3f} ({cal.get('adapted_rule', 'nll')}), adapted statistics from "
+                   f"{cal.get('adapted_voxels', 0)} voxels")
 
     @app.command("eval")
     def eval_cmd(

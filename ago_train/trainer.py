@@ -461,3 +461,26 @@ def train(cfg: TrainConfig, resume: bool = False, quiet: bool = False) -> dict:
         return Trainer(cfg, resume=resume, dist_info=info, quiet=quiet).run()
     finally:
         D.cleanup(info)
+
+
+def recalibrate(run_dir) -> dict:
+    """Re-fit the calibration of a finished run's `<run>/last.pt` on its training frames and rewrite the
+    checkpoint (atomically; the weights, optimiser and step are kept): `ago calibrate RUN`. For runs made
+    before a calibration change (e.g. the adapted branch's standardisation statistics)."""
+    from pathlib import Path
+
+    from ago_runtime.errors import AgoInputError
+
+    from .calibrate import fit_scales
+
+    run = Path(run_dir)
+    if not (run / "config.json").is_file() or not (run / "last.pt").is_file():
+        raise AgoInputError(run, "not a finished `ago train` folder (needs config.json and last.pt)")
+    trainer = Trainer(TrainConfig.load(run / "config.json"), resume=True, quiet=True)
+    trainer.setup()
+    if trainer.step < trainer.total_steps:
+        raise AgoInputError(run / "last.pt", f"the run stopped at step {trainer.step} of {trainer.total_steps}; "
+                            "finish it with `ago train --resume` (which calibrates at the end)")
+    trainer.calibration = fit_scales(trainer)
+    trainer.save(trainer.step // trainer.steps_per_epoch if trainer.steps_per_epoch else 0)
+    return trainer.calibration
