@@ -77,7 +77,11 @@ def entropy_matched_scale(logits: torch.Tensor, target_entropy: float) -> float:
 
 @torch.no_grad()
 def fit_scales(trainer, max_frames: int = 16, voxels_per_frame: int = 4000, adapted_rule: str = "nll") -> dict:
-    """Scales of both branches from the trainer's training frames (see the module docstring)."""
+    """Scales of both branches from the trainer's training frames (see the module docstring).
+    `adapted_rule`: "nll" (the adapted scale minimising the NLL, the default) or "entropy" (the scale that
+    gives P~ the main branch's mean entropy on the same voxels); both values are recorded either way."""
+    if adapted_rule not in ("nll", "entropy"):
+        raise ValueError(f"unknown adapted_rule {adapted_rule!r}; expected 'nll' or 'entropy'")
     model, dev = trainer.model, trainer.info.device
     K = trainer.label_space.num_classes
     was = model.training
@@ -102,17 +106,21 @@ def fit_scales(trainer, max_frames: int = 16, voxels_per_frame: int = 4000, adap
             prefix = [p.reshape(-1, *p.shape[2:]).float().to(dev) for p in batch["prefix"]] if "prefix" in batch \
                 else None
             images = batch["images"].to(dev) if "images" in batch else None
-            out = model(images, batch["ego2img"].to(dev), pick[None].to(dev), prefix, adapted=True)
-            free = out["free_embedding"]
-            main.append(class_logits(out["feat"], trainer.text, trainer.phrase_class, K, free, None)[0, :, :K].cpu())
-            feats_adapted.append(out["feat_adapted"][0].cpu())
-            target.append(sem[pick].long())
-            # statistics of F~_3D over this frame's visible occupied voxels (those with an E_3D), no labels
+            # one forward pass for the labelled voxels (scales) and this frame's visible occupied voxels
+            # (those with an E_3D: the statistics of F~_3D, no labels)
             vis = batch.get("align_index")
-            if vis is not None and vis.numel():
-                vis = vis[torch.randperm(vis.numel(), generator=gen)[:voxels_per_frame]].long()
-                fa = model(images, batch["ego2img"].to(dev), vis[None].to(dev), prefix,
-                           adapted=True)["feat_adapted"][0].double().cpu()
+            vis = vis[torch.randperm(vis.numel(), generator=gen)[:voxels_per_frame]].long() \
+                if vis is not None and vis.numel() else torch.zeros(0, dtype=torch.long)
+            index = torch.cat([pick, vis])
+            out = model(images, batch["ego2img"].to(dev), index[None].to(dev), prefix, adapted=True)
+            free = out["free_embedding"]
+            n = pick.numel()
+            main.append(class_logits(out["feat"][:, :n], trainer.text, trainer.phrase_class, K, free,
+                                     None)[0, :, :K].cpu())
+            feats_adapted.append(out["feat_adapted"][0, :n].cpu())
+            target.append(sem[pick].long())
+            if vis.numel():
+                fa = out["feat_adapted"][0, n:].double().cpu()
                 stat_sum = fa.sum(0) if stat_sum is None else stat_sum + fa.sum(0)
                 stat_outer = fa.T @ fa if stat_outer is None else stat_outer + fa.T @ fa
                 stat_n += fa.shape[0]
