@@ -54,10 +54,9 @@ from ago_runtime.predict.heads import SCORE_BUDGET_BYTES
 
 PLANE_OUTPUTS = ["plane_xy", "plane_xz", "plane_yz"]
 SLAB_VOXELS = 4096    # target voxels per slab (whole x-rows of Y*Z voxels)
-ENV_NO_ORT_CACHE = "AGO_NO_ORT_CACHE"
 # s = bank x^T for any x (n, d) and bank (P', d): the folded bank's scores of any subset of voxels
 # (written by ago_export.graphs.write_bank_scores; no weights)
-BANK_SCORES_GRAPH = Path(__file__).resolve().parents[1] / "assets" / "graphs" / "bank_scores.onnx"   # =1: never read or write cached optimised graphs
+BANK_SCORES_GRAPH = Path(__file__).resolve().parents[1] / "assets" / "graphs" / "bank_scores.onnx"
 
 
 def load_session(path: Path, threads: int | None, inputs: list[str], outputs: list[str],

@@ -55,8 +55,7 @@ class HeadWeights:
     adapted_mean: np.ndarray | None = None
     adapted_cov: np.ndarray | None = None
 
-    KEYS = ("W_dec", "b_dec", "W_ad", "b_ad", "free_embedding")   # required
-    OPTIONAL = ("branch_scales", "adapted_mean", "adapted_cov")
+    KEYS = ("W_dec", "b_dec", "W_ad", "b_ad", "free_embedding")   # required; the fields above after it optional
 
     @property
     def scales(self) -> tuple[float, float]:
