@@ -3,11 +3,14 @@
     python benchmarks/train_step_speed.py --data DIR --pseudo DIR [--steps 20] [--warmup 3] \
         [--out benchmarks/results/train_step_speed.md]
 
-Two `Trainer`s are built on the same frames and pseudo-labels:
+Three `Trainer`s are built on the same frames and pseudo-labels:
 - "before": the cpu preset as it was at commit 073a3f4 (images decoded and the whole backbone run at
-  every step, the 8000-voxel priority sample: `feature_cache=off`, `voxel_sampling=priority`);
+  every step, the 8000-voxel priority sample: `feature_cache=off`, `voxel_sampling=priority`, the
+  TPV encoder's reference arithmetic, torch's default AdamW);
+- "after, reference TPV + unfused AdamW": today's recipe without the canvas TPV layout and the fused
+  optimiser (what the two buy on their own);
 - "after": the cpu preset of today (`TrainConfig.preset("cpu")` with the same data).
-Their steps are interleaved (before, after, before, ...) so that the load of the machine weighs on
+Their steps are interleaved (before, ..., after, before, ...) so that the load of the machine weighs on
 both alike, and the median of each is taken over `--steps` steps after `--warmup` steps.
 
 Every timed step is `Trainer.train_step` itself (data fetch timed apart). The split by part comes
@@ -37,15 +40,24 @@ from ago_train.model.aggregate import planes_at_voxels, planes_to_voxels  # noqa
 from ago_train.train_config import TrainConfig  # noqa: E402
 from ago_train.trainer import Trainer, _to_device  # noqa: E402
 
-BEFORE = ["feature_cache=\"off\"", "voxel_sampling=\"priority\"", "train_voxels=8000", "model.frozen_stages=1"]
+BEFORE = ["feature_cache=\"off\"", "voxel_sampling=\"priority\"", "train_voxels=8000", "model.frozen_stages=1",
+          "model.tpv_layout=\"reference\""]
+# the same recipe as "after" with the TPV encoder's reference arithmetic and the unfused AdamW: what the
+# canvas layout (ago_train/model/tpv_canvas.py) and the fused optimiser buy on their own
+REFERENCE_TPV = ["model.tpv_layout=\"reference\""]
+RECIPES = {"before": BEFORE, "after, reference TPV + unfused AdamW": REFERENCE_TPV, "after": []}
 
 
-def make_trainer(overrides: list[str], data: str, pseudo: str, out: Path) -> Trainer:
+def make_trainer(overrides: list[str], data: str, pseudo: str, out: Path, fused_adamw: bool = True) -> Trainer:
     cfg = TrainConfig.preset("cpu").with_overrides(
         [f"data=\"{data}\"", f"pseudo=\"{pseudo}\"", f"out=\"{out}\"", "max_steps=100000", "log_every=100000",
          "ckpt_every=100000", *overrides])
     t = Trainer(cfg, quiet=True)
     t.setup()
+    if not fused_adamw:   # the optimiser of the earlier recipes (torch's default foreach AdamW)
+        params = [p for p in t.model.parameters() if p.requires_grad]
+        t.optimizer = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay, fused=False)
+        t.scheduler = torch.optim.lr_scheduler.LambdaLR(t.optimizer, lambda s: cfg.lr_at(s, t.total_steps) / cfg.lr)
     t.ddp.train()
     return t
 
@@ -160,8 +172,8 @@ def main(argv=None) -> dict:
     torch.set_num_threads(args.threads)
     os.environ.setdefault("AGO_NO_PROGRESS", "1")
     work = Path(args.work)
-    recipes = {"before": BEFORE, "after": []}
-    trainers = {name: make_trainer(ov, args.data, args.pseudo, work / name) for name, ov in recipes.items()}
+    trainers = {name: make_trainer(ov, args.data, args.pseudo, work / f"r{i}", fused_adamw=(name == "after"))
+                for i, (name, ov) in enumerate(RECIPES.items())}
     feeds = {name: Batches(t) for name, t in trainers.items()}
     load0 = os.getloadavg()
     step_s = {n: [] for n in trainers}
@@ -191,39 +203,47 @@ def main(argv=None) -> dict:
     cpu = {n: statistics.median(v) for n, v in cpu_s.items()}
     ratio = med["before"] / med["after"]
     cpu_ratio = cpu["before"] / cpu["after"]
-    names = list(split["before"][0]) + [k for k in split["after"][0] if k not in split["before"][0]]
+    order = list(trainers)
+    names = []
+    for n in order:
+        names += [k for k in split[n][0] if k not in names]
     rows = []
     for k in names:
-        vals = [statistics.median(p.get(k, 0.0) for p in split[n]) * 1000 for n in ("before", "after")]
-        rows.append(f"| {k} | {vals[0]:.0f} | {vals[1]:.0f} |")
-    tot = [sum(statistics.median(p.get(k, 0.0) for p in split[n]) for k in names) * 1000 for n in ("before", "after")]
+        vals = [statistics.median(p.get(k, 0.0) for p in split[n]) * 1000 for n in order]
+        rows.append(f"| {k} | " + " | ".join(f"{v:.0f}" for v in vals) + " |")
+    tot = [sum(statistics.median(p.get(k, 0.0) for p in split[n]) for k in names) * 1000 for n in order]
+    head = " | ".join(order)
+    line = lambda label, vals: f"| {label} | " + " | ".join(vals) + " |"   # noqa: E731
     cmd = "python benchmarks/train_step_speed.py " + " ".join(argv if argv is not None else sys.argv[1:])
     cfg_after = trainers["after"].cfg
     text = f"""# Training step of the `cpu` preset: before vs after (one run, interleaved)
 
 Command: `{cmd}`
 
-- before: {', '.join(BEFORE)} (the cpu preset as at commit 073a3f4)
+- before: {', '.join(BEFORE)}, torch's default (foreach) AdamW (the cpu preset as at commit 073a3f4)
 - after: `TrainConfig.preset("cpu")`: feature_cache={cfg_after.feature_cache}, voxel_sampling={cfg_after.voxel_sampling},
-  train_voxels={cfg_after.train_voxels}, frozen_stages={cfg_after.model.frozen_stages}
+  train_voxels={cfg_after.train_voxels}, frozen_stages={cfg_after.model.frozen_stages},
+  tpv_layout={cfg_after.model.tpv_layout}, fused AdamW
+- after, reference TPV + unfused AdamW: the same with {', '.join(REFERENCE_TPV)} and the foreach AdamW
+  (the recipe of the previous measurement)
 - {args.steps} timed steps each after {args.warmup} warm-up steps, interleaved; torch threads {args.threads};
   load average {load0[0]:.2f} before, {load1[0]:.2f} after
 - frames: {len(trainers['after'].dataset)} training frames of `{args.data}`
 
-| | before | after |
-|---|---:|---:|
-| **median step (s), data included** | **{med['before']:.3f}** | **{med['after']:.3f}** |
-| median data fetch (s) | {statistics.median(data_s['before']):.3f} | {statistics.median(data_s['after']):.3f} |
-| **speed-up (wall clock)** | | **{ratio:.2f}x** |
-| median CPU time of a step (s, all threads of this process) | {cpu['before']:.3f} | {cpu['after']:.3f} |
-| speed-up (CPU time: the work itself, less sensitive to other jobs) | | {cpu_ratio:.2f}x |
+| | {head} |
+|---|{"---:|" * len(order)}
+{line("**median step (s), data included**", [f"**{med[n]:.3f}**" for n in order])}
+{line("median data fetch (s)", [f"{statistics.median(data_s[n]):.3f}" for n in order])}
+{line("**speed-up over before (wall clock)**", [f"**{med['before'] / med[n]:.2f}x**" for n in order])}
+{line("median CPU time of a step (s, all threads of this process)", [f"{cpu[n]:.3f}" for n in order])}
+{line("speed-up over before (CPU time: the work itself, less sensitive to other jobs)", [f"{cpu['before'] / cpu[n]:.2f}x" for n in order])}
 
 ## Split of a step by part (median ms over {args.profiled} profiled steps)
 
-| part | before | after |
-|---|---:|---:|
+| part | {head} |
+|---|{"---:|" * len(order)}
 {chr(10).join(rows)}
-| sum of parts | {tot[0]:.0f} | {tot[1]:.0f} |
+{line("sum of parts", [f"{v:.0f}" for v in tot])}
 
 Backward parts are read from gradient hooks on the boundary tensors (voxel features, FPN outputs,
 backbone outputs), so each is the time between two boundaries of the one backward pass.

@@ -217,7 +217,7 @@ def test_canvas_frames_keep_maps_apart():
     reads from that map alone: nothing from the neighbouring maps."""
     import torch.nn.functional as F
 
-    from ago_export.graphs import CanvasLayout, canvas_coords, plane_canvas
+    from ago_train.model.tpv_canvas import CanvasLayout, canvas_coords, plane_canvas
 
     torch.manual_seed(0)
     hw = {"xy": (5, 7), "xz": (5, 3), "yz": (7, 3)}

@@ -236,6 +236,75 @@ def test_top_k_camera_atlas_equals_dense_cameras():
     assert outs[0].abs().max() > 0.1
 
 
+@pytest.mark.parametrize("k_top,k_side,offsets", [(2, 4, 1), (6, 6, 2), (3, 2, 2)])
+def test_canvas_layout_equals_reference_values_and_gradients(k_top, k_side, offsets):
+    """The canvas layout (tpv_canvas.py, the default training path and the export's), in its static
+    form (what the export traces) and its compact form (valid samples only: training), computes the
+    reference layout's planes and the same gradients for every parameter and the FPN maps, on a
+    batch of two frames with different rigs, with offsets large enough to leave the maps."""
+    torch.manual_seed(0)
+    cfg = ModelConfig.preset("tiny")
+    cfg.cameras_per_query, cfg.cameras_per_query_side, cfg.num_sampling_offsets = k_top, k_side, offsets
+    model = cfg.build()
+    with torch.no_grad():
+        for name, p in model.encoder.named_parameters():
+            if "sampling_offsets" in name:
+                p.normal_(0, 3.0, generator=torch.Generator().manual_seed(1))
+            elif "attention_weights" in name:
+                p.normal_(0, 0.5, generator=torch.Generator().manual_seed(2))
+    images, _ = _inputs(cfg, batch=2, seed=7)
+    rigs = [Rig.nuscenes_like(cfg.image_width, cfg.image_height), Rig.nuscenes_like(1600, 900)]
+    from ago_runtime.geometry.preprocess import Preprocess
+    ego2img = torch.stack([torch.from_numpy(rigs[0].ego2img()),
+                           torch.from_numpy(Preprocess(cfg.image_width, cfg.image_height).ego2img(rigs[1]))])
+    with torch.no_grad():
+        feats0 = model.fpn(model.backbone(images.flatten(0, 1)))
+    from ago_train.model.tpv_canvas import encode_frame
+
+    def canvas(feats, compact):   # TPVEncoder.forward_canvas with the compact choice forced
+        enc = model.encoder
+        frames = [encode_frame(enc, [f.view(2, 6, *f.shape[1:])[b] for f in feats], ego2img[b], compact)
+                  for b in range(2)]
+        return {p: torch.stack([q[p] for q in frames]).transpose(1, 2).reshape(2, -1, *enc.plane_hw[p])
+                for p in ("xy", "xz", "yz")}
+
+    results = {}
+    for layout in ("reference", "canvas", "canvas, static", "canvas, compact"):
+        model.cfg.tpv_layout = layout.split(",")[0]
+        model.zero_grad(set_to_none=True)
+        feats = [f.clone().requires_grad_(True) for f in feats0]
+        if layout == "canvas, static":
+            planes = canvas(feats, compact=False)
+        elif layout == "canvas, compact":
+            planes = canvas(feats, compact=True)
+        else:
+            planes = model.encoder(feats, ego2img)   # canvas: compact, as in training (no trace running)
+        g = torch.Generator().manual_seed(3)
+        loss = sum((planes[p] * torch.randn(planes[p].shape, generator=g)).sum() for p in ("xy", "xz", "yz"))
+        loss.backward()
+        grads = {n: p.grad.clone() for n, p in model.encoder.named_parameters() if p.grad is not None}
+        results[layout] = (planes, grads, [f.grad.clone() for f in feats])
+    pr, gr, fr = results["reference"]
+    for layout in ("canvas", "canvas, static", "canvas, compact"):
+        pc, gc, fc = results[layout]
+        for p in pr:
+            torch.testing.assert_close(pc[p], pr[p], rtol=1e-4, atol=2e-5)
+        assert set(gc) == set(gr) and len(gr) > 20
+        for n in gr:
+            torch.testing.assert_close(gc[n], gr[n], rtol=1e-3, atol=1e-4, msg=f"{layout}: {n}")
+        for a, b in zip(fc, fr):
+            torch.testing.assert_close(a, b, rtol=1e-3, atol=1e-4)
+    assert max(float(g.abs().max()) for n, g in gr.items() if "sampling_offsets" in n) > 1e-3
+    assert not torch.allclose(pr["xy"][0], pr["xy"][1])          # the two frames differ
+
+
+def test_tpv_layout_is_checked():
+    cfg = ModelConfig.preset("tiny")
+    cfg.tpv_layout = "fast"
+    with pytest.raises(AgoInputError, match="tpv_layout"):
+        cfg.validate()
+
+
 # ------------------------------------------------------------------ ONNX
 def test_onnx_export_parity_without_nonzero(tiny, tmp_path):
     onnx = pytest.importorskip("onnx")

@@ -23,6 +23,7 @@ from ago_runtime.errors import AgoInputError
 from ago_runtime.geometry.grid import Grid
 
 BACKBONES = ("efficientnet_lite0", "resnet101", "tiny_cnn")
+TPV_LAYOUTS = ("canvas", "reference")   # ago_train/model/tpv_canvas.py, tpv.py
 
 
 def _default_grid() -> dict:
@@ -54,6 +55,7 @@ class ModelConfig:
     num_self_points: int = 4             # points a query samples around itself in its own plane
     num_heads: int = 4
     num_layers: int = 2
+    tpv_layout: str = "canvas"           # how the TPV arithmetic runs (same function): "canvas" | "reference"
     ffn_dim: int = 128
     # --- decoder + adapter
     hidden_dim: int = 128      # Dh, decoder hidden width
@@ -78,6 +80,8 @@ class ModelConfig:
             raise AgoInputError(source, f"frozen_stages must be 0..3, got {self.frozen_stages}")
         if not 1 <= self.adapter_depth <= 4:
             raise AgoInputError(source, f"adapter_depth must be 1..4, got {self.adapter_depth}")
+        if self.tpv_layout not in TPV_LAYOUTS:
+            raise AgoInputError(source, f"unknown tpv_layout {self.tpv_layout!r}; expected one of {TPV_LAYOUTS}")
         if self.tpv_dim % self.num_heads:
             raise AgoInputError(source, f"tpv_dim {self.tpv_dim} is not divisible by num_heads {self.num_heads}")
         if self.image_width % 32 or self.image_height % 32:

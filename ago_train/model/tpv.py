@@ -40,11 +40,10 @@ from torch import nn
 
 from ago_runtime.geometry.grid import Grid
 
+from .tpv_canvas import PLANES, CanvasGeometry, encode_frame
+
 if TYPE_CHECKING:   # annotations only: ModelConfig.build() imports this module
     from .config import ModelConfig
-
-
-PLANES = ("xy", "xz", "yz")
 
 
 # --------------------------------------------------------------------------- geometry (numpy, constant)
@@ -351,9 +350,29 @@ class TPVEncoder(nn.Module):
         self.layers = nn.ModuleList(TPVLayer(cfg, levels) for _ in range(cfg.num_layers))
         self.cameras_per_query = {"xy": cfg.cameras_per_query, "xz": cfg.cameras_per_query_side,
                                   "yz": cfg.cameras_per_query_side}
+        points = {p: tuple(cfg.num_self_points if s == p else cfg.num_cross_view_points for s in PLANES)
+                  for p in PLANES}
+        # constant buffers of the canvas layout (tpv_canvas.py; used by the export whatever the layout)
+        self.canvas = CanvasGeometry(geo, self.plane_hw, self.cameras_per_query, points, cfg.num_cameras,
+                                     cfg.image_width, cfg.image_height)
 
     def forward(self, feats: list[torch.Tensor], ego2img: torch.Tensor) -> dict[str, torch.Tensor]:
-        """feats: per level (B*V, D, H_l, W_l); ego2img (B, V, 4, 4) -> {"xy"|"xz"|"yz": (B, D, rows, cols)}."""
+        """feats: per level (B*V, D, H_l, W_l); ego2img (B, V, 4, 4) -> {"xy"|"xz"|"yz": (B, D, rows, cols)}.
+        `cfg.tpv_layout` picks the arithmetic: "canvas" (tpv_canvas.py, frame by frame) or "reference"."""
+        if self.cfg.tpv_layout == "canvas":
+            return self.forward_canvas(feats, ego2img)
+        return self.forward_reference(feats, ego2img)
+
+    def forward_canvas(self, feats: list[torch.Tensor], ego2img: torch.Tensor) -> dict[str, torch.Tensor]:
+        B, V = ego2img.shape[:2]
+        frames = [encode_frame(self, [f.view(B, V, *f.shape[1:])[b] for f in feats], ego2img[b]) for b in range(B)]
+        out = {}
+        for p in PLANES:
+            rows, cols = self.plane_hw[p]
+            out[p] = torch.stack([q[p] for q in frames]).transpose(1, 2).reshape(B, -1, rows, cols)
+        return out
+
+    def forward_reference(self, feats: list[torch.Tensor], ego2img: torch.Tensor) -> dict[str, torch.Tensor]:
         B = ego2img.shape[0]
         cams = {}
         for p in PLANES:
