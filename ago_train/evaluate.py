@@ -74,10 +74,14 @@ def bank_for(ckpt: dict, label_space: LabelSpace) -> tuple[torch.Tensor, torch.T
     return torch.from_numpy(new.embeddings), torch.from_numpy(new.phrase_class)
 
 
-def default_identifier(label_space: LabelSpace) -> str:
-    """'min-entropy' when the label space has unknown (unseen) classes, else 'none' (closed world)."""
-    known = set(label_space.known)
-    return "min-entropy" if known and any(c not in known for c in label_space.class_names) else "none"
+def default_identifier(label_space: LabelSpace, trained_classes=None) -> str:
+    """'min-entropy' when the label space has classes unknown to the model (outside its `@known:` list,
+    or, without one, outside `trained_classes`), else 'none' (closed world): the runtime's rule
+    (ago_runtime.predict.heads.default_identifier), so `ago eval` and `ago infer` score alike."""
+    from ago_runtime.predict.heads import default_identifier as rule
+
+    trained = label_space.class_names if trained_classes is None else trained_classes
+    return rule(label_space.class_names, label_space.known, trained)
 
 
 @torch.no_grad()
@@ -131,7 +135,7 @@ def evaluate(ckpt_path: str | Path, data: str | Path, split: str = "val", prompt
     mcfg, model = load_model(ckpt, dev, ckpt_path)
     label_space = parse_prompt_file(prompts) if prompts else checkpoint_label_space(ckpt)
     K = label_space.num_classes
-    identifier = identifier or default_identifier(label_space)
+    identifier = identifier or default_identifier(label_space, checkpoint_label_space(ckpt).class_names)
     text, phrase_class = bank_for(ckpt, label_space)
     text, phrase_class = text.to(dev), phrase_class.to(dev)
 

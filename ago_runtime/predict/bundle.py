@@ -102,7 +102,19 @@ class Bundle:
 
     @property
     def identifier(self) -> str:
+        """The open-world identifier (bundle.json "identifier"), used for banks with unknown classes."""
         return self.meta.get("identifier", "min-entropy")
+
+    @property
+    def trained_classes(self) -> list[str]:
+        return [str(c["name"]) for c in self.label_space.get("classes", [])]
+
+    def identifier_for(self, bank) -> str:
+        """The default identifier for `bank` (ago_runtime.predict.heads.default_identifier): the
+        open-world one when the bank holds classes this bundle was not trained on, else "none"."""
+        from .heads import default_identifier
+
+        return default_identifier(bank.class_names, bank.known, self.trained_classes, self.identifier)
 
     @property
     def embed_dim(self) -> int:

@@ -192,7 +192,7 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
     chosen = choose_bank(b, prompts, bank)
     predictor = Predictor(b, int8=int8)
     folded = predictor.fold(chosen)   # checks the bank's encoder and width before any work
-    identifier = identifier or b.identifier
+    identifier = identifier or b.identifier_for(chosen)   # none for a closed-world bank
     frames = iter_frames(Path(images) if images else None, sample, Path(info) if info else None, b.rig)
     out = Path(out)
 
@@ -260,7 +260,7 @@ def register(app: typer.Typer) -> None:
         bank: Optional[str] = typer.Option(None, "--bank", help="a prompt bank .npz, or the name of a bank in the bundle"),
         bundle: Optional[Path] = typer.Option(None, "--bundle", help="bundle folder (default: $AGO_BUNDLE, then the shipped one)"),
         out: Path = typer.Option(Path("ago_out"), "--out", "-o", help="output folder"),
-        identifier: Optional[str] = typer.Option(None, "--identifier", help="min-entropy | max-conf | none (default: the bundle's)"),
+        identifier: Optional[str] = typer.Option(None, "--identifier", help="min-entropy | max-conf | none (default: the bundle's open-world identifier when the prompts hold classes it was not trained on, else none)"),
         save_volumes: bool = typer.Option(False, "--save-volumes", help="also save entropy, confidence, branch and the unexplained-obstacle score and mask (drawn in the PNG)"),
         sample: Optional[List[str]] = typer.Option(None, "--sample", help="a dataset's sample token or scene name "
                                                    "(repeatable: several frames, one bundle load)"),

@@ -36,6 +36,16 @@ import cv2
 import numpy as np
 
 IDENTIFIERS = ("min-entropy", "max-conf", "none", "adapted")
+
+
+def default_identifier(class_names, known, trained_classes, open_world: str = "min-entropy") -> str:
+    """The identifier a bank gets when none is asked for (`ago infer`, `ago eval`): `open_world` when
+    the bank holds a class unknown to the model - one the model was not trained on, or one outside the
+    bank's own known list (a prompt file's `@known:`; without one a parsed file calls every class
+    known) - and "none" (the grounded branch F_3D alone) for a closed-world bank: there the adapted
+    branch has nothing to add and only flips near-tied voxels (docs/results.md, Tab. 1)."""
+    seen = set(trained_classes) & set(known) if known else set(trained_classes)
+    return open_world if any(c not in seen for c in class_names) else "none"
 DEFAULT_CHUNK = 16384           # voxels per chunk for the unfolded helpers below
 SCORE_BUDGET_BYTES = 64 << 20   # FoldedHeads: a chunk's (P', n) score block stays under this
 

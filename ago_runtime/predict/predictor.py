@@ -183,10 +183,10 @@ class Predictor:
     def predict(self, images: dict[str, np.ndarray], rig: Rig, bank=None, identifier: str | None = None,
                 source=None, volumes: bool = False) -> Prediction:
         """Six images (dict camera -> RGB uint8) + their rig + a bank (default: the bundle's) -> Prediction."""
-        identifier = identifier or self.bundle.identifier
+        bank = bank if bank is not None else self.bundle.load_bank()
+        identifier = identifier or self.bundle.identifier_for(bank)
         if identifier not in IDENTIFIERS:
             raise AgoInputError(None, f"identifier must be one of {IDENTIFIERS}, got {identifier!r}")
-        bank = bank if bank is not None else self.bundle.load_bank()
         folded = self.fold_with_reference(bank) if volumes else self.fold(bank)
         t0 = time.perf_counter()
         x, m = self.prepare(images, rig, source)

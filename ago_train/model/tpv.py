@@ -26,6 +26,10 @@ a vertical pillar with at most 2 cameras and a side pillar with at most 4).
 Cross-view hybrid attention: a query samples its own plane at learned offsets around itself and
 each other plane at `num_cross_view_points` points along the shared axis (plus learned offsets),
 with one softmax over all sampled points per head.
+
+The classes here hold the parameters and compute this arithmetic plainly ("reference" layout, the
+oracle); `TPVEncoder` runs it by default in the "canvas" layout of tpv_canvas.py (the same function,
+restructured for a CPU, shared with `ago export`); `ModelConfig.tpv_layout` picks.
 """
 
 from __future__ import annotations
