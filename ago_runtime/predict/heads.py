@@ -37,6 +37,9 @@ import numpy as np
 
 IDENTIFIERS = ("min-entropy", "max-conf", "none", "adapted")
 
+DEFAULT_CHUNK = 16384           # voxels per chunk for the unfolded helpers below
+SCORE_BUDGET_BYTES = 64 << 20   # FoldedHeads: a chunk's (P', n) score block stays under this
+
 
 def default_identifier(class_names, known, trained_classes, open_world: str = "min-entropy") -> str:
     """The identifier a bank gets when none is asked for (`ago infer`, `ago eval`): `open_world` when
@@ -46,8 +49,6 @@ def default_identifier(class_names, known, trained_classes, open_world: str = "m
     branch has nothing to add and only flips near-tied voxels (docs/results.md, Tab. 1)."""
     seen = set(trained_classes) & set(known) if known else set(trained_classes)
     return open_world if any(c not in seen for c in class_names) else "none"
-DEFAULT_CHUNK = 16384           # voxels per chunk for the unfolded helpers below
-SCORE_BUDGET_BYTES = 64 << 20   # FoldedHeads: a chunk's (P', n) score block stays under this
 
 
 @dataclass
