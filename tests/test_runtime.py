@@ -263,8 +263,9 @@ def test_bank_scores_graph_is_the_generic_bank_product():
 
 def test_adapted_branch_runs_only_where_the_main_branch_sees_matter(bundle_dir, frame_dir, monkeypatch):
     """The adapter's stages and the adapted bank's product run only on the voxels the main branch calls
-    occupied (with volumes: on every voxel, for the unexplained-obstacle score), and every output equals
-    the full computation (adapted branch on every voxel) on every voxel."""
+    occupied (with volumes: on every voxel, for the unexplained-obstacle score, also with identifier
+    "none", whose labels never use it), and every output equals the full computation (adapted branch on
+    every voxel) on every voxel."""
     import ago_runtime.predict.encoder as enc
     from ago_runtime.formats.calibration import load_images_folder
     from ago_runtime.predict.heads import MainPart
@@ -287,7 +288,7 @@ def test_adapted_branch_runs_only_where_the_main_branch_sees_matter(bundle_dir, 
             adapter_rows = sum(rows)
             # the full computation: both branches' scores on every voxel, the adapted one used everywhere
             full = {k: [] for k in ("label", "entropy", "confidence", "branch", "unexplained", "occupancy", "need")}
-            for _a, _b, s_main, s_ad in p.encoder.score_chunks(x, m, folded, adapted=ident != "none"):
+            for _a, _b, s_main, s_ad in p.encoder.score_chunks(x, m, folded, adapted=ident != "none" or volumes):
                 part = folded.main_part(s_main, ident, volumes)
                 if part.need is not None:
                     full["need"].append(np.isin(np.arange(s_main.shape[1]), part.need))
@@ -306,7 +307,9 @@ def test_adapted_branch_runs_only_where_the_main_branch_sees_matter(bundle_dir, 
             np.testing.assert_allclose(got.confidence.reshape(-1), full["confidence"], atol=1e-5)
             occupied = got.semantics.reshape(-1) != K
             if ident == "none":
-                assert adapter_rows == 0                                 # no adapted branch at all
+                # labels from the main branch alone: the adapter runs only for the unexplained score
+                assert adapter_rows == (N if volumes else 0)
+                assert not got.branch.any()
             else:
                 need = full["need"]
                 assert 0.05 * N < occupied.sum() < 0.95 * N and np.all(need[occupied])
@@ -696,9 +699,9 @@ def test_infer_dataset_pipeline_outputs_pictures_and_errors(bundle_dir, tmp_path
 
 
 def test_unexplained_obstacle_score_on_hand_made_scores():
-    """score = 1 - best prompted-class confidence; occupancy = 1 - p(free): a voxel is flagged when the main
-    branch says occupied and no branch is sure of any prompted class; free voxels and voxels a branch
-    explains are not."""
+    """score = 1 - best prompted-class confidence over both branches (whatever the identifier);
+    occupancy = 1 - p(free): a voxel is flagged when the main branch says occupied and no branch is sure
+    of any prompted class; free voxels and voxels a branch explains are not."""
     from ago_runtime.predict.heads import FoldedHeads, HeadWeights
     from ago_runtime.predict.predictor import UNEXPLAINED_THRESHOLD
 
@@ -722,10 +725,9 @@ def test_unexplained_obstacle_score_on_hand_made_scores():
         assert occ[1] < 0.01 and occ[0] > 0.99 and occ[2] > 0.99
         assert u[0] < 0.01 and u[2] > 0.6
         assert not flagged[0] and not flagged[1] and flagged[2]
-        if ident == "min-entropy":
-            assert u[3] < 0.01 and label[3] == 1 and not flagged[3]
-        else:
-            assert u[3] > 0.6 and flagged[3]
+        # the adapted branch explains voxel 3 whatever the identifier; only min-entropy takes its label
+        assert u[3] < 0.01 and not flagged[3]
+        assert label[3] == (1 if ident == "min-entropy" else 0)
 
 
 def test_unexplained_score_sees_reference_classes_and_keeps_the_labels():

@@ -122,8 +122,8 @@ class MainPart:
     identifier: str
     main: BranchResult              # "none": softmax over [K + free]; else the scaled softmax over the K classes
     free: np.ndarray | None         # (n,) bool: the main argmax over [K + free] is free (None for "none")
-    need: np.ndarray | None         # (m,) intp: the voxels that need the adapted branch (None for "none"):
-                                    # the occupied ones, or all with volumes
+    need: np.ndarray | None         # (m,) intp: the voxels that need the adapted branch: the occupied ones,
+                                    # or all with volumes ("none": None, or all with volumes)
     p_occ: np.ndarray | None = None       # (n,) float32 with volumes: 1 - p(free) over [all classes + free]
     conf_main: np.ndarray | None = None   # (n,) float32 with volumes: the main branch's best user-class probability
 
@@ -272,7 +272,10 @@ class FoldedHeads:
             conf_main = self._user_confidence(z_all[:K_all], K, self.scale_main)
         z_main = z_all if K == K_all else np.concatenate([z_all[:K], z_all[K_all:]])   # user classes + free
         if identifier == "none":
-            return MainPart(identifier, self.softmax_stats(z_main), None, None, p_occ, conf_main)
+            # labels from the main branch alone; with volumes the adapted branch still runs on every voxel
+            # for the unexplained-obstacle score, which is the max over both branches whatever the identifier
+            need = np.arange(z_main.shape[1]) if volumes else None
+            return MainPart(identifier, self.softmax_stats(z_main), None, need, p_occ, conf_main)
         free = z_main[:K].max(axis=0) < z_main[K]
         main = self.softmax_stats(self._scaled(z_main[:K], self.scale_main))   # overwrites z_main[:K]
         need = np.arange(len(free)) if volumes else np.flatnonzero(~free)
@@ -288,16 +291,23 @@ class FoldedHeads:
         free voxels take the main branch's values. With `extras` (a dict), also puts there, per voxel (n,)
         float32, the UNEXPLAINED-OBSTACLE parts: "occupancy" p_occ (see `main_part`), and "unexplained" =
         1 - the largest probability a user class gets in a branch's calibrated softmax over all classes, the
-        max over both branches ("adapted": the adapted branch's; "none": the main branch's); `main_part`
-        with volumes puts every voxel in `need`, a voxel outside it would get the main branch's. "All
+        max over both branches ("adapted": the adapted branch's), also with "none", whose labels come from
+        the main branch alone; `main_part` with volumes puts every voxel in `need`, a voxel outside it
+        would get the main branch's. "All
         classes" = the user's K plus the reference classes (see __init__)."""
         main = part.main
         n = len(main.label)
+        K, K_all = self.num_classes, self.num_all
         if part.identifier == "none":
             if extras is not None:
-                extras["occupancy"], extras["unexplained"] = part.p_occ, (1.0 - part.conf_main).astype(np.float32)
+                best = part.conf_main
+                if part.need is not None and len(part.need):      # volumes: need = every voxel
+                    if s_ad is None or s_ad.shape[1] != len(part.need) or len(part.need) != n:
+                        raise ValueError("with volumes the adapted scores must cover every voxel")
+                    z_ad = self.class_scores(s_ad, "adapted")
+                    best = np.maximum(best, self._user_confidence(z_ad[:K_all], K, self.scale_adapted))
+                extras["occupancy"], extras["unexplained"] = part.p_occ, (1.0 - best).astype(np.float32)
             return main.label, main.entropy, main.confidence, np.zeros(n, np.uint8)
-        K, K_all = self.num_classes, self.num_all
         label, entropy, confidence = main.label, main.entropy, main.confidence   # owned by `part`: updated in place
         use_ad = np.zeros(n, bool)
         best = part.conf_main.copy() if extras is not None else None
