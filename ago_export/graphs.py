@@ -76,11 +76,8 @@ class ExportTPV(nn.Module):
     training runs): FPN maps per level (V, D, H_l, W_l), ego2img (V, 4, 4) -> queries
     {"xy" | "xz" | "yz": (Q_p, D)} after the last layer (C order over the plane's rows, cols)."""
 
-    def __init__(self, encoder, level_sizes: list[tuple[int, int]]):
-        super().__init__()
-        if [tuple(s) for s in level_sizes] != [tuple(s) for s in encoder.canvas.level_sizes]:
-            raise ValueError(f"FPN map sizes {level_sizes} differ from the encoder's canvas layout "
-                             f"{encoder.canvas.level_sizes}")
+    def __init__(self, encoder):
+        super().__init__()   # encode_frame checks the FPN map sizes against the encoder's canvas layout
         self.encoder = encoder
         self.plane_hw = dict(encoder.plane_hw)
 
@@ -98,12 +95,8 @@ class PlanesGraph(nn.Module):
 
     def __init__(self, model):
         super().__init__()
-        cfg = model.cfg
         self.backbone, self.fpn = model.backbone, model.fpn
-        with torch.no_grad():
-            dummy = torch.zeros(1, 3, cfg.image_height, cfg.image_width)
-            sizes = [tuple(int(s) for s in f.shape[-2:]) for f in model.fpn(model.backbone(dummy))]
-        self.tpv = ExportTPV(model.encoder, sizes)
+        self.tpv = ExportTPV(model.encoder)
         first = model.decoder.net[0]
         if not isinstance(first, nn.Linear):
             raise ValueError("the decoder must start with a linear layer")

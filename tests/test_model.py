@@ -259,24 +259,15 @@ def test_canvas_layout_equals_reference_values_and_gradients(k_top, k_side, offs
                            torch.from_numpy(Preprocess(cfg.image_width, cfg.image_height).ego2img(rigs[1]))])
     with torch.no_grad():
         feats0 = model.fpn(model.backbone(images.flatten(0, 1)))
-    from ago_train.model.tpv_canvas import encode_frame
-
-    def canvas(feats, compact):   # TPVEncoder.forward_canvas with the compact choice forced
-        enc = model.encoder
-        frames = [encode_frame(enc, [f.view(2, 6, *f.shape[1:])[b] for f in feats], ego2img[b], compact)
-                  for b in range(2)]
-        return {p: torch.stack([q[p] for q in frames]).transpose(1, 2).reshape(2, -1, *enc.plane_hw[p])
-                for p in ("xy", "xz", "yz")}
-
     results = {}
     for layout in ("reference", "canvas", "canvas, static", "canvas, compact"):
         model.cfg.tpv_layout = layout.split(",")[0]
         model.zero_grad(set_to_none=True)
         feats = [f.clone().requires_grad_(True) for f in feats0]
         if layout == "canvas, static":
-            planes = canvas(feats, compact=False)
+            planes = model.encoder.forward_canvas(feats, ego2img, compact=False)
         elif layout == "canvas, compact":
-            planes = canvas(feats, compact=True)
+            planes = model.encoder.forward_canvas(feats, ego2img, compact=True)
         else:
             planes = model.encoder(feats, ego2img)   # canvas: compact, as in training (no trace running)
         g = torch.Generator().manual_seed(3)

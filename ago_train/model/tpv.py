@@ -354,8 +354,7 @@ class TPVEncoder(nn.Module):
         self.layers = nn.ModuleList(TPVLayer(cfg, levels) for _ in range(cfg.num_layers))
         self.cameras_per_query = {"xy": cfg.cameras_per_query, "xz": cfg.cameras_per_query_side,
                                   "yz": cfg.cameras_per_query_side}
-        points = {p: tuple(cfg.num_self_points if s == p else cfg.num_cross_view_points for s in PLANES)
-                  for p in PLANES}
+        points = {p: self.layers[0].cross_view[p].points for p in PLANES}   # samples per source plane
         # constant buffers of the canvas layout (tpv_canvas.py; used by the export whatever the layout)
         self.canvas = CanvasGeometry(geo, self.plane_hw, self.cameras_per_query, points, cfg.num_cameras,
                                      cfg.image_width, cfg.image_height)
@@ -367,9 +366,12 @@ class TPVEncoder(nn.Module):
             return self.forward_canvas(feats, ego2img)
         return self.forward_reference(feats, ego2img)
 
-    def forward_canvas(self, feats: list[torch.Tensor], ego2img: torch.Tensor) -> dict[str, torch.Tensor]:
+    def forward_canvas(self, feats: list[torch.Tensor], ego2img: torch.Tensor,
+                       compact: bool | None = None) -> dict[str, torch.Tensor]:
+        """Frame by frame through tpv_canvas.encode_frame (compact: see there; None = unless tracing)."""
         B, V = ego2img.shape[:2]
-        frames = [encode_frame(self, [f.view(B, V, *f.shape[1:])[b] for f in feats], ego2img[b]) for b in range(B)]
+        frames = [encode_frame(self, [f.view(B, V, *f.shape[1:])[b] for f in feats], ego2img[b], compact)
+                  for b in range(B)]
         out = {}
         for p in PLANES:
             rows, cols = self.plane_hw[p]
