@@ -344,6 +344,36 @@ def test_requery_with_the_frames_planes_skips_the_planes_graph(bundle_dir, frame
     np.testing.assert_allclose(again.entropy, whole.entropy, atol=1e-6)
 
 
+def test_requery_with_frame_features_skips_planes_and_decoder(bundle_dir, frame_dir, tmp_path):
+    """FrameFeatures keeps the planes and every voxel's h: a re-query of the frame with another bank runs
+    neither planes.onnx nor the decoder's stages, and gives what a whole new prediction gives."""
+    from ago_runtime.formats.calibration import load_images_folder
+    from ago_runtime.predict.predictor import FrameFeatures, Predictor
+    from ago_runtime.vocab.bank import bank_for_prompts
+
+    p = Predictor(bundle_dir)
+    images, rig, _ = load_images_folder(frame_dir)
+    x, m = p.prepare(images, rig)
+    features = FrameFeatures()
+    first = p.predict_arrays(x, m, p.bundle.load_bank(), features=features)
+    n, dh = p.grid.num_voxels, p.encoder.widths["main"]
+    assert sum(len(h) for h in features.hidden.values()) == n
+    assert features.nbytes >= n * dh * 4
+    prompt = tmp_path / "street.txt"
+    prompt.write_text("fire hydrant: fire hydrant, hydrant\ncar: car\nroad [driveable_surface]: road\n")
+    bank = bank_for_prompts(prompt, cache_dir=tmp_path / "banks")
+    whole = p.predict_arrays(x, m, bank)
+    calls = []
+    run, hidden = p.encoder.planes.run, p.encoder.hidden_slab
+    p.encoder.planes = types.SimpleNamespace(run=lambda *a, **k: calls.append("planes") or run(*a, **k))
+    p.encoder.hidden_slab = lambda *a, **k: calls.append("decoder") or hidden(*a, **k)
+    again = p.predict_arrays(x, m, bank, features=features)
+    assert calls == []
+    np.testing.assert_array_equal(again.semantics, whole.semantics)
+    np.testing.assert_allclose(again.entropy, whole.entropy, atol=1e-6)
+    assert first.semantics.shape == again.semantics.shape
+
+
 def test_bank_swap_to_unseen_classes(bundle_dir, frame_dir, tmp_path):
     """Classes the model never saw ("fire hydrant", "mailbox") with no retraining and no re-export."""
     from ago_runtime.vocab.bank import bank_for_prompts

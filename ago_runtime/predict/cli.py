@@ -164,12 +164,14 @@ class _Writer(threading.Thread):
 
 
 def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, sample=None, info=None,
-              int8=False, picture: str = "full") -> list[Path]:
+              int8=False, picture: str = "full", warm_up: bool = True) -> list[Path]:
     """Predict every frame; three stages overlap (threads; numpy, OpenCV and onnxruntime release the GIL):
     a reader decodes and preprocesses frame i+1 and a writer writes frame i-1 (npz, PNG) while the
     main thread runs the graphs and heads of frame i. The first frame is read and checked before
     anything is written; an error in any stage ends the run with that error (the files written
-    before it are complete: every file is written atomically)."""
+    before it are complete: every file is written atomically). warm_up: run the graphs once on dummy inputs
+    before the first frame (off: the first frame pays onnxruntime's first-run allocations instead; over 12
+    frames no measurable difference, benchmarks/infer_warm_up.py, so on as for every Predictor)."""
     from ago_runtime.atomic import save_npz
     from ago_runtime.predict.bundle import Bundle, resolve_bundle
     from ago_runtime.progress import track
@@ -190,7 +192,7 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
     b = Bundle.load(resolve_bundle(bundle))
     typer.echo(card_line(b))   # stdout: information; stderr keeps only warnings and the one error line
     chosen = choose_bank(b, prompts, bank)
-    predictor = Predictor(b, int8=int8)
+    predictor = Predictor(b, int8=int8, warm_up=warm_up)
     folded = predictor.fold(chosen)   # checks the bank's encoder and width before any work
     identifier = identifier or b.identifier_for(chosen)   # none for a closed-world bank
     frames = iter_frames(Path(images) if images else None, sample, Path(info) if info else None, b.rig)

@@ -248,9 +248,10 @@ class SplitEncoder:
         return np.concatenate([p[2] for p in parts]), np.concatenate([p[3] for p in parts])
 
 
-def open_encoder(bundle, int8: bool = False, threads: int | None = None, slab_voxels: int = SLAB_VOXELS) -> "SplitEncoder":
-    """The encoder of a loaded `Bundle`; int8 picks the quantised graphs."""
+def open_encoder(bundle, int8: bool = False, threads: int | None = None, slab_voxels: int = SLAB_VOXELS,
+                 warm_up: bool = True) -> "SplitEncoder":
+    """The encoder of a loaded `Bundle`; int8 picks the quantised graphs; warm_up: see SplitEncoder."""
     paths = bundle.encoder_paths(int8)
     planes_sha = bundle.meta["files"]["planes_int8" if int8 else "planes"].get("sha256")
     return SplitEncoder(paths["planes"], paths["voxels"], bundle.grid, threads, slab_voxels,
-                        sha256={"planes": planes_sha})
+                        sha256={"planes": planes_sha}, warm_up=warm_up)

@@ -106,9 +106,12 @@ def bank_key(bank) -> str:
 
 class Predictor:
     def __init__(self, bundle: Bundle | str | Path, int8: bool = False, threads: int | None = None,
-                 chunk: int | None = None):
+                 chunk: int | None = None, warm_up: bool = True):
+        """warm_up: run each graph once on dummy inputs now, so that the first frame runs at the steady-state
+        speed (an interactive user's first frame); a batch over many frames (`ago infer`) passes False and
+        lets its first frame pay onnxruntime's first-run allocations instead of a dummy frame."""
         self.bundle = bundle if isinstance(bundle, Bundle) else Bundle.load(bundle)
-        self.encoder = open_encoder(self.bundle, int8, threads)
+        self.encoder = open_encoder(self.bundle, int8, threads, warm_up=warm_up)
         check_heads_fit_encoder(self.bundle, self.encoder)   # a bad heads.npz is named as such
         self.chunk = chunk   # voxels per head chunk in predict_hidden; None = FoldedHeads.default_chunk
         self._folded: dict[str, FoldedHeads] = {}
@@ -197,12 +200,15 @@ class Predictor:
 
     def predict_arrays(self, x: np.ndarray, m: np.ndarray, bank, identifier: str = "min-entropy",
                        folded: FoldedHeads | None = None, volumes: bool = False,
-                       planes: list[np.ndarray] | None = None) -> Prediction:
+                       planes: list[np.ndarray] | None = None, features: FrameFeatures | None = None) -> Prediction:
         """Preprocessed inputs -> Prediction, slab by slab: the main branch on every voxel, then the
         adapted branch only on the voxels that need it (`classify_slabs`).
 
         planes: this frame's `self.encoder.plane_maps(x, m)` when the caller already has them (re-querying
         the same frame with another bank skips the planes graph); None runs it.
+        features: a `FrameFeatures` of this frame, filled by the first call given it; later calls with it skip the
+        planes graph and the decoder's stages (a re-query with another bank: bank products, adapter on the
+        voxels that need it, heads).
         timings: "encoder" = the graphs (planes, voxel stages and the bank products) and the numpy glue
         between them (plane sums, softplus, gathers), "heads" = the numpy heads (class max, softmax,
         entropy, identifier)."""
@@ -210,7 +216,7 @@ class Predictor:
         folded = self.fold_with_reference(bank) if volumes else (folded or self.fold(bank))
         self._check_classes(bank)
         label_dtype = np.uint8 if bank.num_classes + 1 <= 255 else np.uint16
-        out, timings = classify_slabs(self.encoder, folded, x, m, identifier, volumes, label_dtype, planes)
+        out, timings = classify_slabs(self.encoder, folded, x, m, identifier, volumes, label_dtype, planes, features)
         pred = self._prediction(out, bank, identifier)
         pred.timings = timings
         return pred
@@ -241,8 +247,38 @@ class Predictor:
             occupancy=out["occupancy"].reshape(shape) if "occupancy" in out else None)
 
 
+class FrameFeatures:
+    """What a frame's prediction computes that no bank changes, kept to re-query that frame with other banks
+    (`Predictor.predict_arrays(..., features=...)`): the TPV planes (planes.onnx) and the decoder's h of every
+    voxel, slab by slab (the bank enters only after h: its products with h and g, the heads). A re-query then
+    runs only the bank products, the adapter's stages on the voxels that need them, and the heads.
+
+    Memory: h costs 4 * Dh bytes a voxel (100x100x8, Dh 128: 41 MB; 200x200x16: 328 MB); hold one only while
+    re-querying its frame. Filled by the first prediction that is given it; the frame's own inputs are not
+    checked (give it the same x, m each time)."""
+
+    def __init__(self, planes: list[np.ndarray] | None = None):
+        self.planes = planes
+        self.hidden: dict[tuple[int, int], np.ndarray] = {}   # (x0, x1) rows -> h (n, Dh)
+
+    def hidden_slab(self, encoder, x0: int, x1: int) -> np.ndarray:
+        """h of rows [x0, x1): sliced from a kept slab that covers them, else computed and kept."""
+        row = encoder.grid.shape[1] * encoder.grid.shape[2]
+        for (a, b), h in self.hidden.items():
+            if a <= x0 and x1 <= b:
+                return h[(x0 - a) * row:(x1 - a) * row]
+        h = encoder.hidden_slab(self.planes, x0, x1)
+        self.hidden[(x0, x1)] = h
+        return h
+
+    @property
+    def nbytes(self) -> int:
+        return sum(p.nbytes for p in self.planes or []) + sum(h.nbytes for h in self.hidden.values())
+
+
 def classify_slabs(encoder, folded: FoldedHeads, x: np.ndarray, m: np.ndarray, identifier: str = "min-entropy",
-                   volumes: bool = False, label_dtype=np.uint8, planes: list[np.ndarray] | None = None):
+                   volumes: bool = False, label_dtype=np.uint8, planes: list[np.ndarray] | None = None,
+                   features: FrameFeatures | None = None):
     """One frame through the encoder and the folded heads, slab by slab -> (out, timings): out = dict of
     (N,) arrays label, entropy, confidence, branch (+ unexplained, occupancy with volumes).
 
@@ -261,11 +297,15 @@ def classify_slabs(encoder, folded: FoldedHeads, x: np.ndarray, m: np.ndarray, i
     extras = {} if volumes else None
     t_enc = t_heads = 0.0
     t = time.perf_counter()
-    if planes is None:
+    if features is not None:
+        if features.planes is None:
+            features.planes = planes if planes is not None else encoder.plane_maps(x, m)
+        planes = features.planes
+    elif planes is None:
         planes = encoder.plane_maps(x, m)
     row = encoder.grid.shape[1] * encoder.grid.shape[2]
     for x0, x1 in encoder.slabs(encoder.slab_rows(folded)):
-        h = encoder.hidden_slab(planes, x0, x1)
+        h = features.hidden_slab(encoder, x0, x1) if features is not None else encoder.hidden_slab(planes, x0, x1)
         s_main = encoder.scores(folded.A_main_T, h)
         t2 = time.perf_counter()
         t_enc += t2 - t
