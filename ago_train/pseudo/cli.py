@@ -193,5 +193,6 @@ def register(app: typer.Typer) -> None:
         command = "ago " + " ".join(shlex.quote(a) for a in sys.argv[1:])
         result = generate(ds, indices, out, space, seg, emb, config, command=command)
         remade = f", {result['remade']} damaged ones remade" if result.get("remade") else ""
-        typer.echo(f"pseudo-labels: {result['written']} written, {result['skipped']} already there{remade} "
-                   f"({result['frames_per_s']} frames/s) -> {out}")
+        rate = f" ({result['frames_per_s']} frames/s)" if result.get("frames_per_s") else ""
+        typer.echo(f"pseudo-labels: {result['written']} written, {result['skipped']} already there{remade}"
+                   f"{rate} -> {out}")
