@@ -557,3 +557,68 @@ def test_label_map_files_give_the_same_pseudo_labels_as_the_truth(synth_root, tm
     from_truth = pseudo_sample(ds, 0, cw, SimulatedSegmenter(cw, SimSegmenterConfig.perfect()), None, cfg)
     assert np.array_equal(from_files.semantics, from_truth.semantics)
     assert (from_files.semantics < FREE).sum() > 20
+
+
+# ---------------------------------------------------------------------------------------------
+# seen-class GT mixed in (VEON's X/Y protocol, ago seen-gt)
+# ---------------------------------------------------------------------------------------------
+def test_mix_seen_gt_rules_on_a_hand_made_block():
+    from ago_train.pseudo.seen_gt import mix_seen_gt
+    seen = np.array([True, False, True])                    # classes 0, 2 seen; 1 unseen; free = 17
+    pseudo = np.array([[[1, 0, 2, 1, FREE, 255]]], np.uint8)            # (1, 1, 6) coarse voxels
+    gt = np.full((2, 2, 12), FREE, np.uint8)                            # factor 2 in every axis
+    gt[:, :, 0:2] = 0                      # voxel 0: GT block all class 0 (seen) -> 0 although pseudo says 1
+    gt[0, 0, 2] = 2                        # voxel 1: one GT voxel of class 2, pseudo 0 -> 2
+    gt[:, :, 4:6] = 1                      # voxel 2: GT only unseen class 1, pseudo says seen 2 -> ignored
+    gt[0, 0, 6], gt[1, 1, 6], gt[0, 1, 7] = 0, 2, 2   # voxel 3: two of class 2 beat one of class 0
+    gt[0, 0, 10] = 0                       # voxel 5: pseudo unlabelled, GT class 0 there -> 0
+    mixed = mix_seen_gt(pseudo, gt, seen)
+    assert mixed.tolist() == [[[0, 2, 255, 2, FREE, 0]]]
+    assert mix_seen_gt(pseudo, gt, np.zeros(3, bool)).tolist() == pseudo.tolist()   # X = 0: unchanged
+    with pytest.raises(ValueError):
+        mix_seen_gt(pseudo, gt[:, :, :11], seen)
+
+
+def test_cli_seen_gt_takes_the_seen_classes_from_gt(synth_root, tmp_path):
+    from typer.testing import CliRunner
+    from ago_runtime.cli import app
+    from ago_runtime.formats.nuscenes import NuScenesDataset
+    from ago_runtime.formats.occ3d import labels_path, load_semantics
+    from ago_runtime.vocab.prompts import parse_prompt_file, resolve_prompt_file
+    pl = tmp_path / "pl"
+    r = CliRunner().invoke(app, ["pseudo-labels", "--data", str(synth_root), "--out", str(pl), "--prompts", "cw",
+                                 "--segmenter", "sim", "--embedder", "sim", "--grid", "20x20x4", "--keyframes", "2",
+                                 "--split", "all"])
+    assert r.exit_code == 0, r.output
+    out = tmp_path / "mixed"
+    args = ["seen-gt", "--data", str(synth_root), "--pseudo", str(pl), "--prompts", "veon_9_8", "--out", str(out),
+            "--split", "all"]
+    r = CliRunner().invoke(app, args)
+    assert r.exit_code == 0, r.output
+    assert "2 written" in r.output
+    space = parse_prompt_file(resolve_prompt_file("veon_9_8"))
+    seen = space.known_mask()
+    ds = NuScenesDataset(synth_root, load_images=False)
+    d, src = PseudoLabelDir(out), PseudoLabelDir(pl)
+    assert d.meta["seen_gt"]["seen"] == [c for c, s in zip(space.class_names, seen) if s]
+    assert (out / "label_space.txt").is_file() and len(d.samples()) == 2
+    lut = space.gt_lut()
+    for scene, token in d.samples():
+        mixed, _, _ = d.labels(scene, token)
+        before, _, _ = src.labels(scene, token)
+        gt = lut[load_semantics(labels_path(ds.gts_root, scene, token))[0]]
+        gt_seen = (gt < len(seen)) & seen[np.minimum(gt, len(seen) - 1)]
+        assert np.array_equal(mixed[gt_seen], gt[gt_seen])                 # same grid here: GT where seen
+        labelled_seen = (mixed < len(seen)) & seen[np.minimum(mixed, len(seen) - 1)]
+        assert not (labelled_seen & ~gt_seen).any()                         # no seen class without GT
+        rest = ~gt_seen & ~((before < len(seen)) & seen[np.minimum(before, len(seen) - 1)])
+        assert np.array_equal(mixed[rest], before[rest])                    # unseen / free kept
+        assert (d.root / scene / token / "embeds.npz").is_file()
+    again = CliRunner().invoke(app, args)
+    assert again.exit_code == 0 and "0 written, 2 already there" in again.output
+    other = CliRunner().invoke(app, [a if a != "veon_9_8" else "veon_13_4" for a in args])
+    assert isinstance(other.exception, AgoInputError) and "other seen classes" in str(other.exception)
+    wrong = CliRunner().invoke(app, ["seen-gt", "--data", str(synth_root), "--pseudo", str(pl), "--prompts",
+                                     "ow_pretrain", "--out", str(tmp_path / "w"), "--split", "all"])
+    assert isinstance(wrong.exception, AgoInputError) and "classes" in str(wrong.exception)
+    assert not (tmp_path / "w").exists()                                    # checked before anything is written

@@ -196,3 +196,36 @@ def register(app: typer.Typer) -> None:
         rate = f" ({result['frames_per_s']} frames/s)" if result.get("frames_per_s") else ""
         typer.echo(f"pseudo-labels: {result['written']} written, {result['skipped']} already there{remade}"
                    f"{rate} -> {out}")
+
+    @app.command("seen-gt")
+    def seen_gt(
+        data: Path = typer.Option(..., "--data", help="the dataset the pseudo-labels were made from (with gts/)."),
+        pseudo: Path = typer.Option(..., "--pseudo", help="an `ago pseudo-labels` folder."),
+        prompts: str = typer.Option(..., "--prompts", help="prompt file whose @known classes are the SEEN ones "
+                                    "(e.g. veon_9_8); same classes as the pseudo-labels."),
+        out: Path = typer.Option(..., "--out", help="output pseudo-label folder (resumable)."),
+        split: str = typer.Option(None, "--split", help="train, val, ... or all (default: train when splits.json "
+                                  "exists)."),
+    ):
+        """Pseudo-labels with GT for the seen classes (VEON's X/Y protocol, the paper's Tab. F): a voxel whose GT
+        holds a seen class gets it, one the pseudo-labels call a seen class without GT support is ignored, the
+        rest stays (ago_train/pseudo/seen_gt.py)."""
+        from ago_runtime.formats.nuscenes import NuScenesDataset
+        from ago_runtime.outputs import check_output_dir
+        from ago_runtime.progress import track
+        from ago_runtime.vocab.prompts import parse_prompt_file, resolve_prompt_file
+
+        from .seen_gt import write_seen_gt_folder
+
+        check_output_dir(out, "--out")
+        space = parse_prompt_file(resolve_prompt_file(prompts))
+        ds = NuScenesDataset(data, load_images=False, load_extras=False)
+        indices, split_note = resolve_split(ds, split)
+        if split_note:
+            typer.echo(f"note: using {split_note}")
+        counts = write_seen_gt_folder(ds, pseudo, out, space, indices,
+                                      progress=lambda xs: track(xs, "mixing seen-class GT", total=len(xs)))
+        seen = sorted(space.known) if space.known else []
+        typer.echo(f"seen-gt: {counts['samples']} written, {counts['skipped']} already there; seen {len(seen)} "
+                   f"classes; {counts['from_gt']} voxels from GT, {counts['ignored']} ignored of {counts['voxels']} "
+                   f"-> {out}")
