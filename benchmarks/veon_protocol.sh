@@ -51,6 +51,12 @@ for split in ("0_17", "9_8", "13_4"):
     L.append(f"| {split.replace('_', '/')} | {r['mIoU']:.2f} | {f(seen)} | {f(unseen)} | {r['geometry_IoU']:.2f} | "
              f"{m['mIoU']:.2f} | {paper[split]:.2f} | {veon[split]:.2f} |")
 L.append(f"\nframes scored: {r['frames']}; subsets as `ago eval` names them (known = the prompt file's @known).")
+runs = {s: json.loads((work / f"train_{s}" / "eval-none" / "metrics.json").read_text())["metric"]
+        for s in ("0_17", "9_8", "13_4")}
+L += ["\n## Per-class IoU (identifier none)\n", "| class | 0/17 | 9/8 | 13/4 |", "|---|---:|---:|---:|"]
+for i, n in enumerate(runs["0_17"]["class_names"][:-1]):
+    L.append(f"| {n} | " + " | ".join(f"{(m['iou'][n] if isinstance(m['iou'], dict) else m['iou'][i]):.2f}"
+                                       for m in runs.values()) + " |")
 out = Path("benchmarks/results/veon_protocol.md")
 out.write_text("\n".join(L) + "\n")
 print("\n".join(L))
