@@ -80,6 +80,15 @@ def write_seen_gt_folder(ds, pseudo_dir: str | Path, out_dir: str | Path, label_
             raise AgoInputError(out / "meta.json", "this folder holds labels mixed with other seen classes or "
                                 "from other pseudo-labels; use another --out or delete it")
     out.mkdir(parents=True, exist_ok=True)
+    # meta.json first: a run killed half-way is resumed only with the same seen classes and source
+    meta = dict(src.meta)
+    meta["seen_gt"] = {"source": str(Path(pseudo_dir).resolve()),
+                       "seen": [c for c, s in zip(label_space.class_names, seen) if s],
+                       "prompt_file": str(label_space.source),
+                       "rule": "a coarse voxel whose GT block holds a seen class takes the most frequent one; "
+                               "pseudo seen-class voxels without GT support ignored; the rest the pseudo-labels'"}
+    write_text(out / "meta.json", json.dumps(meta, indent=1))
+    shutil.copyfile(src.label_space_path, out / "label_space.txt")
     counts = {"samples": 0, "skipped": 0, "from_gt": 0, "ignored": 0, "voxels": 0}
     todo = [i for i in indices if src.has(ds.scene_of(i), ds.sample_tokens[i])]
     it = progress(todo) if progress else todo
@@ -102,12 +111,4 @@ def write_seen_gt_folder(ds, pseudo_dir: str | Path, out_dir: str | Path, label_
             (d_out / "embeds.npz.tmp").replace(d_out / "embeds.npz")
         save_npz(d_out / "labels.npz", semantics=mixed, mask_lidar=ml, mask_camera=mc)   # last: marks it done
         counts["samples"] += 1
-    meta = dict(src.meta)
-    meta["seen_gt"] = {"source": str(Path(pseudo_dir).resolve()),
-                       "seen": [c for c, s in zip(label_space.class_names, seen) if s],
-                       "prompt_file": str(label_space.source),
-                       "rule": "seen class from the GT block's majority; pseudo seen-class voxels without GT "
-                               "support ignored; the rest the pseudo-labels'"}
-    write_text(out / "meta.json", json.dumps(meta, indent=1))
-    shutil.copyfile(src.label_space_path, out / "label_space.txt")
     return counts
