@@ -128,19 +128,14 @@ def loadavg() -> str:
 # ---------------------------------------------------------------------------- children (either tree)
 def child_export(config: str, out: str, parity: str) -> dict:
     """Random checkpoint of `config` -> bundle at `out` with this process's code (either tree)."""
-    from ago_export.export import export_bundle
     from ago_export.testing import random_checkpoint
 
-    out = Path(out)
-    ckpt = random_checkpoint(out.with_suffix(".pt"), model_config(config), prompts="cw", seed=0)
-    t = time.perf_counter()
-    meta = export_bundle(ckpt, out, bank_prompts=[], real_frame=parity == "real", parity=parity != "none",
-                         log=lambda s: None)
-    return {"export_s": time.perf_counter() - t, "parity": meta.get("parity", {})}
+    ckpt = random_checkpoint(Path(out).with_suffix(".pt"), model_config(config), prompts="cw", seed=0)
+    return child_export_ckpt(str(ckpt), out, parity)
 
 
 def child_export_ckpt(ckpt: str, out: str, parity: str) -> dict:
-    """A trained checkpoint -> bundle at `out` with this tree's code."""
+    """A checkpoint -> bundle at `out` with this process's code (either tree)."""
     from ago_export.export import export_bundle
 
     t = time.perf_counter()
@@ -213,7 +208,6 @@ def child_frame(bundle: str, reps: int, cache: str) -> dict:
         # planes are kept from its prediction (plane_maps), the rest (text encoder, fold, voxel stage, heads)
         # runs again
         pred_mod = tree_module("ago_runtime.predict.predictor", "ago_runtime.predictor")
-        kept = {}
         if hasattr(pred_mod, "FrameFeatures"):
             # the frame's features kept by its prediction (planes and every voxel's h)
             features = pred_mod.FrameFeatures()

@@ -225,7 +225,6 @@ def register(app: typer.Typer) -> None:
             typer.echo(f"note: using {split_note}")
         counts = write_seen_gt_folder(ds, pseudo, out, space, indices,
                                       progress=lambda xs: track(xs, "mixing seen-class GT", total=len(xs)))
-        seen = sorted(space.known) if space.known else []
-        typer.echo(f"seen-gt: {counts['samples']} written, {counts['skipped']} already there; seen {len(seen)} "
-                   f"classes; {counts['from_gt']} voxels from GT, {counts['ignored']} ignored of {counts['voxels']} "
+        typer.echo(f"seen-gt: {counts['samples']} written, {counts['skipped']} already there; seen "
+                   f"{len(counts['seen'])} classes; {counts['from_gt']} voxels from GT, {counts['ignored']} ignored of {counts['voxels']} "
                    f"-> {out}")

@@ -23,11 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ago_runtime.atomic import save_npz, write_text
+from ago_runtime.atomic import atomic_path, save_npz, write_text
+from ago_runtime.classes import IGNORE
 from ago_runtime.errors import AgoInputError
 from ago_runtime.formats.occ3d import labels_path, load_semantics
-
-from ago_runtime.classes import IGNORE
 
 from .generate import PseudoLabelDir, load_pseudo_labels, sample_dir
 
@@ -72,10 +71,11 @@ def write_seen_gt_folder(ds, pseudo_dir: str | Path, out_dir: str | Path, label_
     if ds.gts_root is None:
         raise AgoInputError(ds.root, "the dataset has no GT (gts/): seen classes need their annotations")
     seen = label_space.known_mask() if label_space.known else np.zeros(label_space.num_classes, bool)
+    seen_names = [c for c, s in zip(label_space.class_names, seen) if s]
     lut = label_space.gt_lut()
     if out.exists() and (out / "meta.json").is_file():
         old = json.loads((out / "meta.json").read_text())
-        if old.get("seen_gt", {}).get("seen") != [c for c, s in zip(label_space.class_names, seen) if s] or \
+        if old.get("seen_gt", {}).get("seen") != seen_names or \
                 old.get("seen_gt", {}).get("source") != str(Path(pseudo_dir).resolve()):
             raise AgoInputError(out / "meta.json", "this folder holds labels mixed with other seen classes or "
                                 "from other pseudo-labels; use another --out or delete it")
@@ -83,13 +83,13 @@ def write_seen_gt_folder(ds, pseudo_dir: str | Path, out_dir: str | Path, label_
     # meta.json first: a run killed half-way is resumed only with the same seen classes and source
     meta = dict(src.meta)
     meta["seen_gt"] = {"source": str(Path(pseudo_dir).resolve()),
-                       "seen": [c for c, s in zip(label_space.class_names, seen) if s],
+                       "seen": seen_names,
                        "prompt_file": str(label_space.source),
                        "rule": "a coarse voxel whose GT block holds a seen class takes the most frequent one; "
                                "pseudo seen-class voxels without GT support ignored; the rest the pseudo-labels'"}
     write_text(out / "meta.json", json.dumps(meta, indent=1))
     shutil.copyfile(src.label_space_path, out / "label_space.txt")
-    counts = {"samples": 0, "skipped": 0, "from_gt": 0, "ignored": 0, "voxels": 0}
+    counts = {"samples": 0, "skipped": 0, "from_gt": 0, "ignored": 0, "voxels": 0, "seen": seen_names}
     todo = [i for i in indices if src.has(ds.scene_of(i), ds.sample_tokens[i])]
     it = progress(todo) if progress else todo
     for i in it:
@@ -105,10 +105,9 @@ def write_seen_gt_folder(ds, pseudo_dir: str | Path, out_dir: str | Path, label_
         counts["ignored"] += int(((mixed == IGNORE) & (sem != IGNORE)).sum())
         counts["voxels"] += int(sem.size)
         emb = sample_dir(pseudo_dir, scene, token) / "embeds.npz"
-        d_out.mkdir(parents=True, exist_ok=True)
         if emb.is_file():
-            shutil.copyfile(emb, d_out / "embeds.npz.tmp")
-            (d_out / "embeds.npz.tmp").replace(d_out / "embeds.npz")
+            with atomic_path(d_out / "embeds.npz", suffix=".npz") as tmp:
+                shutil.copyfile(emb, tmp)
         save_npz(d_out / "labels.npz", semantics=mixed, mask_lidar=ml, mask_camera=mc)   # last: marks it done
         counts["samples"] += 1
     return counts
