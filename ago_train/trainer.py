@@ -101,7 +101,7 @@ class TrainStep(nn.Module):
 
     def forward(self, batch: dict, text: torch.Tensor, phrase_class: torch.Tensor,
                 noise: torch.Tensor | None, voxel_index: torch.Tensor | None = None,
-                voxel_weight: torch.Tensor | None = None) -> dict:
+                voxel_weight: torch.Tensor | None = None, class_weight: torch.Tensor | None = None) -> dict:
         from .losses import BankTensors, compute_losses
 
         prefix = None
@@ -111,7 +111,7 @@ class TrainStep(nn.Module):
         outputs = self.model(batch.get("images"), batch["ego2img"], voxel_index, prefix, adapted=False)
         bank = BankTensors(text, phrase_class, self.num_classes, noise)
         return compute_losses(outputs, batch, bank, self.loss_cfg, sample_weight=voxel_weight,
-                              adapter=self.model.adapt)
+                              adapter=self.model.adapt, class_weight=class_weight)
 
 
 def _to_device(batch: dict, device: torch.device) -> dict:
@@ -223,6 +223,26 @@ class Trainer:
         self.text = self.bank["embeddings"].to(info.device)
         self.phrase_class = self.bank["phrase_class"].to(info.device)
         self.align_center = self._align_center() if cfg.loss.align_center and cfg.loss.uses_align else None
+        self.class_weight = self._class_weight() if cfg.loss.class_balance > 0 and cfg.loss.uses_grounding else None
+
+    def _class_weight(self) -> torch.Tensor:
+        """(K + 1,) CE weights from the class counts of the training frames' pseudo-labels (training data
+        only; losses/class_balance.py); the counts and weights are written to <out>/class_weights.json."""
+        from .losses.class_balance import class_balance_weights, count_classes
+
+        frames = self.dataset.frames
+        labels = (self.pseudo.labels(frames[i].scene, frames[i].token) for i in range(len(frames)))
+        K = self.label_space.num_classes
+        counts = count_classes(labels, K)
+        weights = class_balance_weights(counts, float(self.cfg.loss.class_balance))
+        if self.info.is_main:
+            self.out.mkdir(parents=True, exist_ok=True)
+            names = list(self.label_space.class_names) + ["free"]
+            write_text(self.out / "class_weights.json", json.dumps(
+                {"class_balance": float(self.cfg.loss.class_balance), "frames": len(frames),
+                 "classes": {n: {"voxels": int(c), "weight": round(float(w), 4)}
+                             for n, c, w in zip(names, counts, weights)}}, indent=1) + "\n")
+        return torch.as_tensor(weights, device=self.info.device)
 
     def _align_center(self) -> torch.Tensor:
         """(C,) mean E_3D over every aligned voxel of the training frames (training data only)."""
@@ -349,7 +369,7 @@ class Trainer:
             batch["align_center"] = self.align_center
         noise = self.noise_for_step(self.step)
         index, weight = self.voxels_for_step(batch, self.step)
-        out = self.ddp(batch, self.text, self.phrase_class, noise, index, weight)
+        out = self.ddp(batch, self.text, self.phrase_class, noise, index, weight, self.class_weight)
         loss = out["total"]
         if not torch.isfinite(loss):
             raise FloatingPointError(f"loss is {loss.item()} at step {self.step}")

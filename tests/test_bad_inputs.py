@@ -275,6 +275,8 @@ ROWS = [
      ["learning_rate"], ["o"]),
     ("train --set device", lambda w: ["train", "--config", "tiny", "--set", 'device="tpu9"', "--out", "o"],
      ["tpu9"], ["o"]),
+    ("train --set loss.class_balance=5", lambda w: ["train", "--config", "tiny", "--set", "loss.class_balance=5",
+                                                    "--out", "o"], ["--set", "loss.class_balance"], ["o"]),
     ("train --config missing.json", lambda w: ["train", "--config", "missing.json"], ["missing.json"], []),
     ("train --bogus", lambda w: ["train", "--bogus"], ["--bogus"], []),
     ("eval --max-frames -1", lambda w: ["eval", "--ckpt", w.ckpt, "--data", w.data, "--split", "all",

@@ -109,6 +109,65 @@ def test_weighted_sample_losses_estimate_the_whole_labelled_grid():
     assert sum(occ) / len(occ) == pytest.approx(float(full["occ"]), rel=0.05)
 
 
+def test_class_balance_weights_follow_the_rule():
+    """Rare classes weigh more, the occupied classes keep their total mass (count-weighted mean 1), free
+    weighs 1, the cap holds, an absent class gets the cap, alpha 0 is uniform."""
+    import numpy as np
+
+    from ago_train.losses.class_balance import CAP, class_balance_weights, count_classes
+
+    sem = np.full((4, 4, 2), FREE, np.uint8)
+    sem.reshape(-1)[:20] = 0          # 20 voxels of class 0
+    sem.reshape(-1)[20:25] = 1        # 5 of class 1
+    sem.reshape(-1)[25] = IGNORE
+    counts = count_classes([sem, sem], 3)  # class 2 absent
+    assert counts.tolist() == [40, 10, 0, 2 * (32 - 26)]
+    w = class_balance_weights(counts, 0.5)
+    assert w[-1] == 1.0 and w[2] == CAP
+    assert w[1] / w[0] == pytest.approx(2.0, rel=1e-4)          # (40 / 10) ** 0.5
+    assert (counts[:2] * w[:2]).sum() == pytest.approx(counts[:2].sum(), rel=1e-4)
+    assert np.allclose(class_balance_weights(counts, 0.0), 1.0)
+    steep = class_balance_weights([10000, 1, 50], 1.0)          # inverse frequency: the rare class capped
+    assert steep[1] == pytest.approx(CAP) and steep[0] < steep[2] < CAP
+    assert (np.array([10000, 1]) * steep[:2]).sum() == pytest.approx(10001, rel=1e-4)
+    with pytest.raises(ValueError):
+        class_balance_weights(counts, -1.0)
+    with pytest.raises(ValueError):
+        LossConfig(class_balance=3.0)
+
+
+def test_class_weight_changes_only_the_cross_entropy():
+    """class_weight reweights the CE's voxels by their target class; Lovász and occupancy stay as they were;
+    all-ones weights change nothing."""
+    cfg, model, images, ego2img, batch, bank = _setup(seed=5)
+    model.eval()
+    K = bank.num_classes
+    with torch.no_grad():
+        out = model(images, ego2img)
+        plain = compute_losses(out, batch, bank, LossConfig(variant="grounding", use_noise=False))
+        ones = compute_losses(out, batch, bank, LossConfig(variant="grounding", use_noise=False),
+                              class_weight=torch.ones(K + 1))
+        heavy_free = torch.ones(K + 1)
+        heavy_free[K] = 5.0
+        moved = compute_losses(out, batch, bank, LossConfig(variant="grounding", use_noise=False),
+                               class_weight=heavy_free)
+        # by hand: free voxels' CE counted 5 times in the weighted mean
+        from ago_train.model.scoring import class_logits
+
+        logits = class_logits(out["feat"], bank.text, bank.phrase_class, K, out["free_embedding"], None)
+        tgt = semantics_to_targets(batch["semantics"].reshape(-1), K)
+        valid = tgt != IGNORE
+        ce = torch.nn.functional.cross_entropy(logits.reshape(-1, logits.shape[-1])[valid], tgt[valid],
+                                               reduction="none")
+        wv = torch.where(tgt[valid] == K, 5.0, 1.0)
+        expect = (ce * wv).sum() / wv.sum()
+    assert float(ones["grounding_ce"]) == pytest.approx(float(plain["grounding_ce"]), rel=1e-5)
+    assert float(moved["grounding_ce"]) == pytest.approx(float(expect), rel=1e-4)
+    assert float(moved["grounding_ce"]) != pytest.approx(float(plain["grounding_ce"]), rel=1e-3)
+    assert float(moved["grounding_lovasz"]) == pytest.approx(float(plain["grounding_lovasz"]), rel=1e-6)
+    assert float(moved["occ"]) == pytest.approx(float(plain["occ"]), rel=1e-6)
+
+
 def test_lovasz_ignore_and_present_classes():
     target = torch.tensor([0, 0, 1, IGNORE])
     prob = torch.tensor([[1.0, 0, 0], [1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]])  # wrong only on the ignored voxel

@@ -264,6 +264,35 @@ def test_overfit_three_frames_with_the_stratified_sample(tiny_data, tmp_path):
     assert 0.5 < pred_occ / true_occ < 2.0, (pred_occ, true_occ)
 
 
+def test_class_balance_counts_only_the_training_frames(tiny_data, tmp_path):
+    """loss.class_balance: the counts behind the CE weights are those of the run's own training frames
+    (max_frames=2 of 6), written to class_weights.json, and the weights change the step's CE."""
+    import json
+
+    from ago_train.losses.class_balance import class_balance_weights, count_classes
+    from ago_train.trainer import Trainer
+
+    kw = dict(max_steps=1, max_frames=2, noise_words=8, train_voxels=600)
+    cfg = tiny_config(tiny_data, tmp_path / "cb", loss={"class_balance": 0.5}, **kw)
+    t = Trainer(cfg, quiet=True)
+    t.setup()
+    frames = t.dataset.frames
+    assert len(frames) == 2
+    K = t.label_space.num_classes
+    expect = count_classes([t.pseudo.labels(frames[i].scene, frames[i].token) for i in range(2)], K)
+    record = json.loads((tmp_path / "cb" / "class_weights.json").read_text())
+    assert [v["voxels"] for v in record["classes"].values()] == expect.tolist()
+    assert np.allclose(t.class_weight.numpy(), class_balance_weights(expect, 0.5))
+    assert len(set(np.round(t.class_weight.numpy(), 4))) > 2   # not uniform on these frames
+    plain = Trainer(tiny_config(tiny_data, tmp_path / "plain", **kw), quiet=True)
+    plain.setup()
+    assert plain.class_weight is None
+    torch.manual_seed(0)
+    a = float(t.run()["losses"][0])
+    b = float(plain.run()["losses"][0])
+    assert a != pytest.approx(b, rel=1e-4)
+
+
 def _ddp_worker(rank: int, world: int, port: int, cfg_dict: dict, out: str) -> None:
     os.environ.update(RANK=str(rank), WORLD_SIZE=str(world), LOCAL_RANK=str(rank), MASTER_ADDR="127.0.0.1",
                       MASTER_PORT=str(port), AGO_NO_PROGRESS="1")

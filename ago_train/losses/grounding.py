@@ -37,15 +37,21 @@ def weighted_cross_entropy(logits: torch.Tensor, target: torch.Tensor, weight: t
 
 
 def grounding_loss(logits: torch.Tensor, target: torch.Tensor, num_classes: int, lovasz_only_present: bool = True,
-                   weight: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                   weight: torch.Tensor | None = None,
+                   class_weight: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """logits (B, N, K + 1 + Nn), target (B, N) from semantics_to_targets, weight (B, N) optional per-voxel
-    importance weights (a stratified sample's) -> (ce, lovasz) scalars.
+    importance weights (a stratified sample's), class_weight (K + 1,) optional CE weights of the classes
+    and free (losses/class_balance.py; the CE only) -> (ce, lovasz) scalars.
 
     Lovász is computed over the K classes + free (noise columns still share the softmax)."""
     flat = logits.reshape(-1, logits.shape[-1])
     tgt = target.reshape(-1)
     w = None if weight is None else weight.reshape(-1)
-    ce = weighted_cross_entropy(flat, tgt, w)
+    w_ce = w
+    if class_weight is not None:
+        cw = class_weight.to(flat.device, flat.dtype)[torch.where(tgt == IGNORE, torch.zeros_like(tgt), tgt)]
+        w_ce = cw if w is None else w.to(cw.dtype) * cw
+    ce = weighted_cross_entropy(flat, tgt, w_ce)
     lov = lovasz_softmax(torch.softmax(flat, -1), tgt, ignore_index=IGNORE, only_present=lovasz_only_present,
                          classes=num_classes + 1, weight=w)
     return ce, lov

@@ -8,6 +8,7 @@
   (b * N + voxel) and "align_embed" (Ma, C) their E_3D embeddings (visible occupied voxels).
 - bank: `BankTensors` (text (P, C), phrase_class (P,), num_classes K, noise (Nn, C) or None).
 - batch may hold "align_center" (C,): subtracted from E_3D before the alignment loss (LossConfig.align_center).
+- class_weight: (K + 1,) CE weights of the classes and free (LossConfig.class_balance), or None.
 - sample_weight: (B, M) importance weights of a stratified voxel sample (losses/sampling.py), or None:
   every loss is then the weighted mean over the sampled voxels (an estimate of its whole-grid value).
 Returns a dict of scalar tensors: "total" plus the parts that were computed
@@ -54,12 +55,18 @@ class LossConfig:
     # E_3D of the training frames. The simulated (and CLIP-like) image embeddings share one large
     # offset; under a cosine loss that offset dominates and the adapter learns little else.
     align_center: bool = False
+    # Departure from the paper (docs/training.md, "Class balance"): CE weights n_c ** -class_balance of the
+    # occupied classes' voxel counts in the training pseudo-labels (losses/class_balance.py); 0 = uniform.
+    class_balance: float = 0.0
 
     def __post_init__(self):
         if self.variant not in VARIANTS:
             raise ValueError(f"unknown loss variant {self.variant!r}; expected one of {VARIANTS}")
         if self.align_loss not in ALIGN_LOSSES:
             raise ValueError(f"unknown align loss {self.align_loss!r}; expected one of {ALIGN_LOSSES}")
+        if isinstance(self.class_balance, bool) or not isinstance(self.class_balance, (int, float)) \
+                or not 0.0 <= float(self.class_balance) <= 2.0:
+            raise ValueError(f"loss.class_balance must be a number in 0..2, got {self.class_balance!r}")
 
     @property
     def uses_grounding(self) -> bool:
@@ -144,11 +151,13 @@ def _align_rows(batch: dict, outputs: dict, num_voxels: int) -> tuple[torch.Tens
 
 def compute_losses(outputs: dict, batch: dict, bank: BankTensors, cfg: LossConfig,
                    free_embedding: torch.Tensor | None = None, num_voxels: int | None = None,
-                   sample_weight: torch.Tensor | None = None, adapter=None) -> dict:
+                   sample_weight: torch.Tensor | None = None, adapter=None,
+                   class_weight: torch.Tensor | None = None) -> dict:
     """See the module docstring. `num_voxels` (N of the grid) is needed only with a voxel sample
     ("voxel_index" in outputs) and align; by default it is read from batch["semantics"].
     `adapter` (F_3D rows -> F~_3D rows, e.g. AGOModel.adapt): when outputs hold no "feat_adapted", the
-    "ago" variant runs it on the align voxels only (the same values, fewer rows)."""
+    "ago" variant runs it on the align voxels only (the same values, fewer rows).
+    `class_weight` (K + 1,): the grounding CE's class weights (LossConfig.class_balance), or None."""
     feat = outputs["feat"]
     free = free_embedding if free_embedding is not None else outputs["free_embedding"]
     K = bank.num_classes
@@ -159,7 +168,7 @@ def compute_losses(outputs: dict, batch: dict, bank: BankTensors, cfg: LossConfi
         target = _flat_targets(batch, outputs, K)
         noise = bank.noise if cfg.use_noise else None
         logits = class_logits(feat, bank.text, bank.phrase_class, K, free, noise)
-        ce, lov = grounding_loss(logits, target, K, cfg.lovasz_only_present, weight=w)
+        ce, lov = grounding_loss(logits, target, K, cfg.lovasz_only_present, weight=w, class_weight=class_weight)
         losses["grounding_ce"], losses["grounding_lovasz"] = ce, lov
         total = total + cfg.w_ce * ce + cfg.w_lovasz * lov
         if cfg.use_occ:
