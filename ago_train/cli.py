@@ -89,9 +89,12 @@ def register(app: typer.Typer) -> None:
         max_frames: Optional[int] = typer.Option(None, "--max-frames", min=1,
                                                  help="score only the first N frames of the split (default: all)"),
         device: str = typer.Option("auto", "--device", help="auto | cpu | cuda | cuda:N"),
+        readout: str = typer.Option("model", "--readout", help="model: predict on the model grid, repeated up "
+                                    "to the GT grid (what a bundle does); gt: read the TPV planes at the GT "
+                                    "grid's voxel centres (finer surfaces, 8x the voxels)"),
     ):
         """Score a checkpoint against Occ3D GT (per-class IoU, mIoU, known/unknown mIoU)."""
-        from ago_runtime.errors import require_torch
+        from ago_runtime.errors import AgoInputError, require_torch
 
         require_torch("eval")
         from ago_runtime.outputs import check_output_dir
@@ -100,10 +103,14 @@ def register(app: typer.Typer) -> None:
         from .evaluate import evaluate
 
         check_device(device)
+        from .evaluate import READOUTS
+
+        if readout not in READOUTS:
+            raise AgoInputError("--readout", f"must be one of {', '.join(READOUTS)}, got {readout!r}")
         out = out if out is not None else Path(ckpt).parent / f"eval-{split}"
         check_output_dir(out, "--out")
         r = evaluate(ckpt, data, split=split, prompts=prompts, identifier=identifier, out=out, gts=gts,
-                     max_frames=max_frames, device=device)
+                     max_frames=max_frames, device=device, readout=readout)
         subs = ", ".join(f"{k} {v}" for k, v in r["subsets"].items())
         typer.echo(f"mIoU {r['mIoU']} (%){'; ' + subs if subs else ''}; written {out}/metrics.json, metrics.md")
 

@@ -33,6 +33,7 @@ from .dataset import FrameList, OccSampleDataset, collate
 from .distributed import pick_device
 
 IDENTIFIERS = ("min-entropy", "max-conf", "none")
+READOUTS = ("model", "gt")   # the grid the planes are read on (evaluate)
 
 
 def load_model(ckpt: dict, device: torch.device, path: str | Path | None = None):
@@ -99,11 +100,13 @@ def checkpoint_adapted_stats(ckpt: dict) -> dict | None:
 
 def predict_labels(model, images: torch.Tensor, ego2img: torch.Tensor, text: torch.Tensor,
                    phrase_class: torch.Tensor, num_classes: int, identifier: str,
-                   scales: tuple[float, float] = (1.0, 1.0), adapted_stats: dict | None = None) -> torch.Tensor:
-    """(B, N) int64 labels on the model grid: 0..K-1 class, K free."""
+                   scales: tuple[float, float] = (1.0, 1.0), adapted_stats: dict | None = None,
+                   grid_shape: tuple[int, int, int] | None = None) -> torch.Tensor:
+    """(B, N) int64 labels on the model grid (or on `grid_shape`, the read-out grid): 0..K-1 class, K free."""
     from .model.scoring import adapted_logits, class_logits, open_world_identify
 
-    out = model(images, ego2img, adapted=identifier != "none")   # F~_3D only when the identifier reads it
+    # F~_3D only when the identifier reads it
+    out = model(images, ego2img, adapted=identifier != "none", grid_shape=grid_shape)
     free = out.get("free_embedding", model.free_embedding)
     main = class_logits(out["feat"], text, phrase_class, num_classes, free, None)
     if identifier == "none":
@@ -124,10 +127,18 @@ def scored_subsets(label_space: LabelSpace) -> dict[str, list[str]]:
 
 def evaluate(ckpt_path: str | Path, data: str | Path, split: str = "val", prompts: str | None = None,
              identifier: str | None = None, out: str | Path | None = None, gts: str | None = None,
-             max_frames: int | None = None, device: str = "auto", quiet: bool = False) -> dict:
-    """Score a checkpoint; returns the results dict written to `<out>/metrics.json` (when `out`)."""
+             max_frames: int | None = None, device: str = "auto", quiet: bool = False,
+             readout: str = "model") -> dict:
+    """Score a checkpoint; returns the results dict written to `<out>/metrics.json` (when `out`).
+
+    readout: "model" predicts on the model's grid and repeats each voxel up to the GT grid (as the
+    runtime's bundle does); "gt" reads the TPV planes directly at the GT grid's voxel centres (same
+    weights, finer surfaces, 8x the voxels through the decoder at 100x100x8 -> 200x200x16;
+    benchmarks/results/fine_query.md)."""
     from .trainer import open_frames
 
+    if readout not in READOUTS:
+        raise AgoInputError("--readout", f"must be one of {', '.join(READOUTS)}, got {readout!r}")
     if identifier is not None and identifier not in IDENTIFIERS:
         raise AgoInputError(None, f"unknown identifier {identifier!r}; choose one of {list(IDENTIFIERS)}")
     dev = pick_device(device)
@@ -157,11 +168,12 @@ def evaluate(ckpt_path: str | Path, data: str | Path, split: str = "val", prompt
 
     iterator = loader if quiet else track(loader, description="eval", total=len(loader))
     for batch in iterator:
+        shape = tuple(batch["gt"][0].shape) if readout == "gt" else tuple(grid.shape)
         pred = predict_labels(model, batch["images"].to(dev), batch["ego2img"].to(dev), text, phrase_class,
                               K, identifier, checkpoint_scales(ckpt),
-                              checkpoint_adapted_stats(ckpt)).cpu().numpy()
+                              checkpoint_adapted_stats(ckpt), grid_shape=shape).cpu().numpy()
         for b in range(pred.shape[0]):
-            vol = pred[b].reshape(grid.shape).astype(np.uint8)
+            vol = pred[b].reshape(shape).astype(np.uint8)
             gt, mask = batch["gt"][b], batch["gt_mask"][b]
             vol = _to_gt_resolution(vol, gt.shape, f"{batch['scene'][b]}/{batch['token'][b]}")
             metric.update(vol, gt, mask)
@@ -171,7 +183,7 @@ def evaluate(ckpt_path: str | Path, data: str | Path, split: str = "val", prompt
     result = {
         "checkpoint": str(ckpt_path), "data": str(data), "split": split, "frames": len(indices),
         "label_space": label_space.name, "prompt_file": str(label_space.source) if label_space.source else None,
-        "identifier": identifier, "model_grid": list(grid.shape),
+        "identifier": identifier, "model_grid": list(grid.shape), "readout": readout,
         "mIoU": summary["mIoU"], "geometry_IoU": summary["geometry_IoU"],
         "subsets": {name: _pct(metric.miou(sub)) if sub else None for name, sub in subsets.items()},
         "metric": summary,
@@ -181,7 +193,8 @@ def evaluate(ckpt_path: str | Path, data: str | Path, split: str = "val", prompt
         write_json(out / "metrics.json", result)
         header = (f"# Evaluation: {Path(str(ckpt_path)).name} on {data} ({split}, {len(indices)} frames)\n\n"
                   f"Label space `{label_space.name}`, identifier `{identifier}`, model grid "
-                  f"{grid.shape}, scored over mask_camera at the GT resolution.\n\n")
+                  f"{grid.shape}, read out on the {'GT' if readout == 'gt' else 'model'} grid, scored over "
+                  f"mask_camera at the GT resolution.\n\n")
         write_text(out / "metrics.md", header + metric.to_markdown({k: v for k, v in subsets.items() if v}))
     return result
 

@@ -284,6 +284,8 @@ ROWS = [
     ("eval --device tpu9", lambda w: ["eval", "--ckpt", w.ckpt, "--data", w.data, "--split", "all", "--device",
                                       "tpu9", "--out", "o"], ["--device", "tpu9"], ["o"]),
     ("eval no --data", lambda w: ["eval", "--ckpt", w.ckpt], ["--data", "missing"], []),
+    ("eval --readout fine", lambda w: ["eval", "--ckpt", w.ckpt, "--data", w.data, "--split", "all", "--readout",
+                                       "fine", "--out", "o"], ["--readout", "fine"], ["o"]),
     ("calibrate not a run folder", lambda w: ["calibrate", w.data], ["not a finished"], []),
     ("calibrate missing folder", lambda w: ["calibrate", "no_such_run"], ["no_such_run"], []),
     ("open-world --k 0", lambda w: ["open-world", "--pseudo-pretrain", w.pseudo, "--k", "0", "--out", "o"],

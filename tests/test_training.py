@@ -225,6 +225,40 @@ def test_overfit_one_frame_then_eval(tiny_data, tmp_path):
     assert js["identifier"] == "none" and js["frames"] == 6 and js["metric"]["frames"] == 6
     assert "| car |" in md and "mIoU" in md
     assert js["mIoU"] == res["mIoU"]
+    assert js["readout"] == "model"
+
+    # the GT-grid read-out: same weights, the planes read at the GT voxel centres (finer than the model grid)
+    fine = evaluate(r["last"], tiny_data["data"], split="all", quiet=True, device="cpu", readout="gt")
+    assert fine["readout"] == "gt" and fine["model_grid"] == list(mcfg.grid_obj().shape)
+    assert fine["frames"] == res["frames"] and fine["metric"]["voxels"] == res["metric"]["voxels"]
+    assert fine["mIoU"] is not None
+
+
+def test_readout_grid_reads_the_same_planes_on_another_grid():
+    """forward(grid_shape=...) reads the TPV planes on another grid over the same range: on the model's own
+    grid it is the default forward; on a 2x grid it gives 8x the voxels, read bilinearly between the coarse
+    voxels (not copies of them, which is what repeating a coarse prediction does)."""
+    import torch
+
+    from ago_train.model.aggregate import planes_to_voxels
+    from ago_train.model.config import ModelConfig
+
+    cfg = ModelConfig.preset("tiny")
+    torch.manual_seed(0)
+    model = cfg.build().eval()
+    X, Y, Z = model.grid_shape
+    imgs = torch.randn(1, 6, 3, cfg.image_height, cfg.image_width)
+    e2i = torch.eye(4).repeat(1, 6, 1, 1)
+    with torch.no_grad():
+        base = model(imgs, e2i, adapted=False)["feat"]
+        same = model(imgs, e2i, adapted=False, grid_shape=(X, Y, Z))["feat"]
+        fine = model(imgs, e2i, adapted=False, grid_shape=(2 * X, 2 * Y, 2 * Z))["feat"]
+        planes = model.planes(imgs, e2i)
+        vf = planes_to_voxels(planes, (2 * X, 2 * Y, 2 * Z))
+    assert torch.equal(base, same)
+    assert fine.shape == (1, 8 * X * Y * Z, base.shape[-1])
+    assert not torch.allclose(vf.reshape(1, 2 * X, 2 * Y, 2 * Z, -1)[:, ::2, ::2, ::2].reshape(1, X * Y * Z, -1),
+                              planes_to_voxels(planes, (X, Y, Z)))
 
 
 def test_overfit_three_frames_with_the_stratified_sample(tiny_data, tmp_path):

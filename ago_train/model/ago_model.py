@@ -67,12 +67,16 @@ class AGOModel(nn.Module):
         return self.encoder(feats, ego2img)
 
     def voxel_features(self, images, ego2img, voxel_index: torch.Tensor | None = None,
-                       prefix: list[torch.Tensor] | None = None) -> torch.Tensor:
-        """(B, N, D) TPV features of every voxel, or (B, M, D) of the voxels `voxel_index` (B, M) only."""
+                       prefix: list[torch.Tensor] | None = None,
+                       grid_shape: tuple[int, int, int] | None = None) -> torch.Tensor:
+        """(B, N, D) TPV features of every voxel, or (B, M, D) of the voxels `voxel_index` (B, M) only.
+        `grid_shape`: read the planes on another grid over the same range (e.g. the GT's 200x200x16 for a
+        model trained on 100x100x8: the planes are upsampled bilinearly to it); default the model's grid."""
         planes = self.planes(images, ego2img, prefix)
+        shape = tuple(grid_shape) if grid_shape is not None else self.grid_shape
         if voxel_index is None:
-            return planes_to_voxels(planes, self.grid_shape)
-        return planes_at_voxels(planes, self.grid_shape, voxel_index)
+            return planes_to_voxels(planes, shape)
+        return planes_at_voxels(planes, shape, voxel_index)
 
     def forward_hidden(self, images: torch.Tensor, ego2img: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """-> h (B, N, Dh), g (B, N, Da): what the ONNX graph computes (last linears folded in later)."""
@@ -86,13 +90,15 @@ class AGOModel(nn.Module):
 
     def forward(self, images: torch.Tensor | None, ego2img: torch.Tensor,
                 voxel_index: torch.Tensor | None = None,
-                prefix: list[torch.Tensor] | None = None, adapted: bool = True) -> dict[str, torch.Tensor]:
+                prefix: list[torch.Tensor] | None = None, adapted: bool = True,
+                grid_shape: tuple[int, int, int] | None = None) -> dict[str, torch.Tensor]:
         """-> {"feat" (B, N, C), "feat_adapted" (B, N, C), "free_embedding" (C,)}.
 
         With `voxel_index` (B, M) int64 flat voxel indices (training on a voxel sample), the features
         are (B, M, C) for those voxels and the dict also holds "voxel_index". `adapted=False` leaves
-        "feat_adapted" out (training computes F~_3D only where the alignment loss needs it)."""
-        h = self.decoder(self.voxel_features(images, ego2img, voxel_index, prefix))
+        "feat_adapted" out (training computes F~_3D only where the alignment loss needs it).
+        `grid_shape`: the read-out grid (voxel_features); N is then its voxel count."""
+        h = self.decoder(self.voxel_features(images, ego2img, voxel_index, prefix, grid_shape))
         feat = self.decoder_out(h)
         out = {"feat": feat, "free_embedding": self.free_embedding}
         if adapted:
