@@ -94,7 +94,7 @@ def register(app: typer.Typer) -> None:
                                     "grid's voxel centres (finer surfaces, 8x the voxels)"),
     ):
         """Score a checkpoint against Occ3D GT (per-class IoU, mIoU, known/unknown mIoU)."""
-        from ago_runtime.errors import AgoInputError, require_torch
+        from ago_runtime.errors import require_torch
 
         require_torch("eval")
         from ago_runtime.outputs import check_output_dir
@@ -103,10 +103,6 @@ def register(app: typer.Typer) -> None:
         from .evaluate import evaluate
 
         check_device(device)
-        from .evaluate import READOUTS
-
-        if readout not in READOUTS:
-            raise AgoInputError("--readout", f"must be one of {', '.join(READOUTS)}, got {readout!r}")
         out = out if out is not None else Path(ckpt).parent / f"eval-{split}"
         check_output_dir(out, "--out")
         r = evaluate(ckpt, data, split=split, prompts=prompts, identifier=identifier, out=out, gts=gts,
