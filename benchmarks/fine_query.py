@@ -30,9 +30,7 @@ OBJECTS = ("car", "bus", "truck", "pedestrian", "barrier")
 def row(ckpt: str, result: dict) -> dict:
     m = result["metric"]
     c, f = np.asarray(m["confusion"]), m["free_index"]
-    iou = np.diag(c) / np.maximum(1, c.sum(0) + c.sum(1) - np.diag(c))
-    names = list(m["class_names"])
-    per_class = {n: round(100 * float(iou[names.index(n)]), 2) for n in OBJECTS if n in names}
+    per_class = {n: m["iou"][n] for n in OBJECTS if n in m["iou"]}     # per-class IoU (%) of the summary
     ratio = (c.sum(0).sum() - c.sum(0)[f]) / max(1, c.sum(1).sum() - c.sum(1)[f])
     return {"ckpt": ckpt, "read-out": result["readout"], "mIoU": result["mIoU"],
             "geometry_IoU": result["geometry_IoU"], "ratio": round(float(ratio), 2), **per_class}
