@@ -81,8 +81,10 @@ def describe_data(data: str | None, split: str | None) -> dict:
     return out
 
 
-def make_card(ckpt: dict, checkpoint_path: str | Path, note: str | None = None, extra: dict | None = None) -> dict:
-    """The card dict for a checkpoint (module docstring)."""
+def make_card(ckpt: dict, checkpoint_path: str | Path, note: str | None = None, extra: dict | None = None,
+              readout: tuple[list[int], list[int]] | None = None) -> dict:
+    """The card dict for a checkpoint (module docstring). readout: (the bundle's read-out grid shape, the
+    model's training grid shape), recorded as "readout" and named in the summary when they differ."""
     checkpoint_path = Path(checkpoint_path)
     tc = _plain(ckpt.get("train_config") or {})
     ls = ckpt.get("label_space") or {}
@@ -114,6 +116,7 @@ def make_card(ckpt: dict, checkpoint_path: str | Path, note: str | None = None, 
     if isinstance(metrics, dict) and metrics.get("mIoU") is not None:
         val = {"mIoU": metrics.get("mIoU"), "geometry_IoU": metrics.get("geometry_IoU"),
                "split": metrics.get("split", val_split), "frames": metrics.get("frames"),
+               "readout": metrics.get("readout", "model"),
                "source": str(checkpoint_path.parent / f"eval-{val_split}" / "metrics.json")}
     card = {
         "format": CARD_FORMAT, "version": CARD_VERSION,
@@ -127,6 +130,7 @@ def make_card(ckpt: dict, checkpoint_path: str | Path, note: str | None = None, 
         "label_space": {"name": ls.get("name"), "classes": list(ls.get("class_names") or []),
                         "known": list(ls.get("known") or [])},
         "val_scores": val,
+        "readout": None if readout is None else {"grid": list(readout[0]), "model_grid": list(readout[1])},
         "note": note,
     }
     if extra:
@@ -158,6 +162,10 @@ def summary(card: dict) -> str:
     val = card.get("val_scores") or {}
     if isinstance(val, dict) and val.get("mIoU") is not None:
         parts.append(f"val mIoU {val['mIoU']} %")
+    ro = card.get("readout") or {}
+    if ro.get("grid") and ro.get("model_grid") and list(ro["grid"]) != list(ro["model_grid"]):
+        parts.append("read out at {} (trained at {})".format("x".join(map(str, ro["grid"])),
+                                                             "x".join(map(str, ro["model_grid"]))))
     pl = card.get("pseudo_labels") or {}
     line = ", ".join(parts)
     if kind == "synthetic" or pl.get("segmenter") == "simulated":
@@ -176,8 +184,8 @@ def read_card_options(note: str | None, card_json: str | Path | None) -> dict:
 
 
 def write_card(bundle_dir: str | Path, ckpt: dict, checkpoint_path: str | Path, note: str | None = None,
-               extra: dict | None = None) -> Path:
+               extra: dict | None = None, readout: tuple[list[int], list[int]] | None = None) -> Path:
     """Write `card.json` into a bundle folder (the export's temporary folder); gives its path."""
     path = Path(bundle_dir) / CARD_FILE
-    write_json(path, make_card(ckpt, checkpoint_path, note=note, extra=extra))
+    write_json(path, make_card(ckpt, checkpoint_path, note=note, extra=extra, readout=readout))
     return path

@@ -1,5 +1,5 @@
 """`ago export model.ckpt -o BUNDLE [--int8] [--parity-frame DIR | --no-real-frame] [--card-note TEXT]
-[--card-json FILE]` (needs torch)."""
+[--card-json FILE] [--readout-grid XxYxZ]` (needs torch)."""
 
 from __future__ import annotations
 
@@ -27,6 +27,11 @@ def register(app: typer.Typer) -> None:
                                              help="ship only the training label space's bank"),
         card_note: Optional[str] = typer.Option(None, "--card-note",
                                                 help="one line added to the bundle card (card.json)"),
+        readout_grid: Optional[str] = typer.Option(
+            None, "--readout-grid",
+            help="XxYxZ grid the bundle predicts on, over the model's range (default: the model's training grid); "
+                 "e.g. 200x200x16 reads a 100x100x8 model's TPV planes at Occ3D's 0.4 m voxel centres "
+                 "(as `ago eval --readout gt`; docs/training.md)"),
         card_json: Optional[Path] = typer.Option(
             None, "--card-json", help='JSON object merged into the bundle card, e.g. {"val_scores": {"mIoU": 7.8}} '
                                       "(default: filled from the checkpoint, its log and <ckpt dir>/eval-val)"),
@@ -36,12 +41,14 @@ def register(app: typer.Typer) -> None:
 
         require_torch("export")
         from ago_runtime.errors import AgoInputError
+        from ago_runtime.geometry.grid import Grid
         from ago_runtime.outputs import check_output_dir
 
         from .card import read_card_options
         from .export import export_bundle
 
         card = read_card_options(card_note, card_json)
+        readout = None if readout_grid is None else Grid.parse(readout_grid, "--readout-grid")
         if not checkpoint.is_file():
             raise AgoInputError(checkpoint, "checkpoint not found")
         check_output_dir(out, "-o")
@@ -49,4 +56,4 @@ def register(app: typer.Typer) -> None:
         prompts = [] if train_bank_only else bank
         export_bundle(checkpoint, out, int8=int8, parity_frame_dir=parity_frame,
                       real_frame=not no_real_frame, bank_prompts=prompts,
-                      log=lambda s: typer.echo(s, err=True), card=card)
+                      log=lambda s: typer.echo(s, err=True), card=card, readout_grid=readout)

@@ -40,6 +40,7 @@ from ago_runtime.vocab.bank import PromptBank, load_prompt_bank
 from ago_runtime.predict.bundle import BUNDLE_FORMAT, BUNDLE_FORMAT_VERSION, BUNDLE_JSON, file_sha256
 from ago_runtime.formats.calibration import find_camera_images, load_images_folder
 from ago_runtime.geometry.camera import Rig
+from ago_runtime.geometry.grid import Grid
 from ago_runtime.predict.encoder import SplitEncoder
 from ago_runtime.errors import AgoInputError
 from ago_runtime.predict.heads import HeadWeights
@@ -106,15 +107,17 @@ def _finish_onnx(path: Path, metadata: dict[str, str], doc: str) -> None:
         raise AgoInputError(path, f"onnx.checker refused the exported graph: {str(e).splitlines()[0]}") from None
 
 
-def export_onnx(model: nn.Module, out_dir: Path, cfg, metadata: dict[str, str]) -> tuple[dict[str, str], list[dict]]:
+def export_onnx(model: nn.Module, out_dir: Path, cfg, metadata: dict[str, str],
+                grid_shape: tuple[int, int, int] | None = None) -> tuple[dict[str, str], list[dict]]:
     """Write planes.onnx and voxels_<i>.onnx (ago_export.graphs) into out_dir; returns ({key: file}, the
-    voxel stages' specs for bundle.json "voxel_stages", each with its file key)."""
+    voxel stages' specs for bundle.json "voxel_stages", each with its file key). grid_shape: the read-out
+    grid planes.onnx upsamples to (default the model's)."""
     images = torch.zeros(1, cfg.num_cameras, 3, cfg.image_height, cfg.image_width)
     ego2img = torch.eye(4).expand(1, cfg.num_cameras, 4, 4).contiguous()
     files, specs = {"planes": "planes.onnx"}, []
     with warnings.catch_warnings(), torch.no_grad():
         warnings.simplefilter("ignore")
-        torch.onnx.export(PlanesGraph(model).eval(), (images, ego2img), str(out_dir / "planes.onnx"), dynamo=False,
+        torch.onnx.export(PlanesGraph(model, grid_shape).eval(), (images, ego2img), str(out_dir / "planes.onnx"), dynamo=False,
                           opset_version=OPSET, input_names=["images", "ego2img"],
                           output_names=["plane_xy", "plane_xz", "plane_yz"], do_constant_folding=True)
         for i, stage in enumerate(voxel_stages(model)):
@@ -232,7 +235,7 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
                   parity_frame_dir: str | Path | None = None, real_frame: bool = True,
                   bank_prompts: list[str] | None = None, tolerance: Tolerance = FP32_TOLERANCE,
                   int8_tolerance: Tolerance = INT8_TOLERANCE, log=print, parity: bool = True,
-                  card: dict | None = None) -> dict:
+                  card: dict | None = None, readout_grid: Grid | None = None) -> dict:
     """Write a bundle for `checkpoint` at `out`; returns bundle.json's content.
 
     parity=False skips the ORT-vs-torch check (benchmarks only; not offered by the CLI);
@@ -242,6 +245,11 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
     shipped prompt file (skipped with a note when no text encoder is installed).
 
     card: {"note": str, "extra": dict} for the bundle card (ago_export/card.py).
+
+    readout_grid: the grid the bundle predicts on, over the model's range (`ago export --readout-grid`):
+    default the model's training grid; a finer one (e.g. Occ3D's 200x200x16 for a 100x100x8 model) reads
+    the same TPV planes at finer voxel centres (bilinear, as `ago eval --readout gt`). bundle.json "grid"
+    is then the read-out grid, "model_grid" the training grid, and the card says both.
     """
     checkpoint, out = Path(checkpoint), Path(out)
     model, ckpt, cfg = load_model(checkpoint)
@@ -250,7 +258,10 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
     heads = head_weights(model, ckpt.get("calibration"))
     if heads.embed_dim != bank.dim:
         raise AgoInputError(checkpoint, f"model embedding width {heads.embed_dim} differs from its bank's {bank.dim}")
-    grid = cfg.grid_obj()
+    model_grid = cfg.grid_obj()
+    grid = model_grid if readout_grid is None else readout_grid
+    if (tuple(grid.range_min), tuple(grid.range_max)) != (tuple(model_grid.range_min), tuple(model_grid.range_max)):
+        raise AgoInputError("--readout-grid", f"must cover the model's range {model_grid.range_min}-{model_grid.range_max}")
     pre = Preprocess(width=cfg.image_width, height=cfg.image_height)
     if "rig" in ckpt:
         rig, rig_source = Rig.from_dict(ckpt["rig"]), "checkpoint"
@@ -269,7 +280,7 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
                            "of the per-voxel MLP (y = x W^T + b) and the bank scores s = bank x^T (P', n) of h / g",
         }
         log(f"exporting the encoder to ONNX (opset {OPSET}) ...")
-        files, stages = export_onnx(model, tmp, cfg, metadata)
+        files, stages = export_onnx(model, tmp, cfg, metadata, grid.shape)
         np.savez(tmp / "heads.npz", **heads.to_arrays())
         (tmp / "banks").mkdir()
         bank.save(tmp / "banks" / "train.npz")
@@ -328,6 +339,7 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
             "model": {"config": cfg.to_dict(), "hidden_dim": heads.hidden_dim, "adapter_dim": heads.adapter_dim,
                       "embed_dim": heads.embed_dim, "num_voxels": grid.num_voxels, "opset": OPSET},
             "grid": grid.to_dict(),
+            "model_grid": model_grid.to_dict(),
             "preprocess": pre.to_dict(),
             "rig": rig.to_dict(),
             "rig_source": rig_source,
@@ -341,7 +353,7 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
             "voxel_stages": stages,
             "parity": report,
         }
-        write_card(tmp, ckpt, checkpoint, **(card or {}))   # card.json: what it was trained on (ago_export/card.py)
+        write_card(tmp, ckpt, checkpoint, readout=(list(grid.shape), list(model_grid.shape)), **(card or {}))   # card.json: what it was trained on (ago_export/card.py)
         write_json(tmp / BUNDLE_JSON, meta)
         for p in [tmp, *tmp.rglob("*")]:
             p.chmod(0o755 if p.is_dir() else 0o644)

@@ -93,7 +93,9 @@ class PlanesGraph(nn.Module):
     channels last. (Running the backbone one camera at a time instead of on the batch of six was
     measured and did not pay: docs/runtime.md.)"""
 
-    def __init__(self, model):
+    def __init__(self, model, grid_shape: tuple[int, int, int] | None = None):
+        """grid_shape: the read-out grid the planes are upsampled to (default the model's grid; a finer one
+        over the same range reads the same planes at finer voxel centres, as AGOModel.forward(grid_shape=))."""
         super().__init__()
         self.backbone, self.fpn = model.backbone, model.fpn
         self.tpv = ExportTPV(model.encoder)
@@ -101,7 +103,7 @@ class PlanesGraph(nn.Module):
         if not isinstance(first, nn.Linear):
             raise ValueError("the decoder must start with a linear layer")
         self.first = first
-        self.grid_shape = model.grid_shape
+        self.grid_shape = tuple(grid_shape) if grid_shape is not None else model.grid_shape
 
     def forward(self, images: torch.Tensor, ego2img: torch.Tensor):
         return self.from_features(self.fpn(self.backbone(images[0])), ego2img)

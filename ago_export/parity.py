@@ -88,10 +88,12 @@ def runtime_labels(encoder, folded: FoldedHeads, images: np.ndarray, ego2img: np
 
 def check_parity(model, encoder, heads: HeadWeights, bank, images: np.ndarray, ego2img: np.ndarray,
                  tolerance: Tolerance = FP32_TOLERANCE, frame: str = "") -> dict:
+    """The torch model read out on the encoder's grid (encoder.grid: the model's own or a finer read-out grid)
+    against the runtime's slab loop on the same frame."""
     import torch
 
     with torch.no_grad():
-        ref = model(torch.from_numpy(images), torch.from_numpy(ego2img))
+        ref = model(torch.from_numpy(images), torch.from_numpy(ego2img), grid_shape=tuple(encoder.grid.shape))
     feat_t = ref["feat"][0].numpy()
     feat_ad_t = ref["feat_adapted"][0].numpy()
     h, g = encoder.hidden(images, ego2img)

@@ -52,12 +52,23 @@ def write_json(path: str | os.PathLike, obj: Any) -> None:
     write_text(path, json.dumps(obj, indent=2, sort_keys=False) + "\n")
 
 
-def save_npz(path: str | os.PathLike, compressed: bool = True, **arrays: np.ndarray) -> None:
-    """np.savez(_compressed) written atomically. Never uses pickle (object arrays are refused)."""
+def save_npz(path: str | os.PathLike, compressed: bool = True, compresslevel: int | None = None,
+             **arrays: np.ndarray) -> None:
+    """np.savez(_compressed) written atomically. Never uses pickle (object arrays are refused).
+    compresslevel (1-9, with compressed): the deflate level instead of numpy's 6; `ago infer` writes with 1
+    (a 200x200x16 prediction: 14 -> 4 ms, 38 -> 73 kB); np.load reads either."""
     for k, v in arrays.items():
         if np.asarray(v).dtype == object:
             raise TypeError(f"array {k!r} has dtype object; npz files here never hold pickles")
     with atomic_path(path, suffix=".npz") as tmp:
+        if compressed and compresslevel is not None:
+            import zipfile
+
+            with zipfile.ZipFile(tmp, "w", zipfile.ZIP_DEFLATED, compresslevel=int(compresslevel)) as zf:
+                for k, v in arrays.items():
+                    with zf.open(f"{k}.npy", "w", force_zip64=True) as f:
+                        np.lib.format.write_array(f, np.asanyarray(v), allow_pickle=False)
+            return
         with open(tmp, "wb") as f:
             (np.savez_compressed if compressed else np.savez)(f, **arrays)
 

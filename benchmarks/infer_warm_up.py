@@ -78,7 +78,7 @@ def main() -> None:
     frames = res["on"][0]["frames"]
     L = ["# `ago infer`: warm-up run at session open, on / off\n",
          f"Command: `python benchmarks/infer_warm_up.py --dataset {args.dataset} --rounds {args.rounds} "
-         f"--picture {args.picture}`  ",
+         f"--picture {args.picture}" + (f" --bundle {args.bundle}" if args.bundle else "") + "`  ",
          f"Bundle: {args.bundle or 'the shipped default bundle'}; {frames} frames; load average at start {load0}, "
          f"at end {load1}.\n",
          "| warm-up | s per frame, min | median | whole run, min s |", "|---|---|---|---|"]

@@ -11,8 +11,10 @@ Configs:
 - "cpu": the default preset (100 x 100 x 8 grid, 352 x 192 images). Baseline bundle: the shipped
   format-2 default bundle of the baseline tree (`--baseline export`: the baseline code's export of
   the random checkpoint instead). New bundle: this tree's shipped bundle when it is format 3 at this
-  grid, else this tree's export of a random checkpoint of the preset (speed does not depend on the
-  weights; the export runs the parity check against torch on the real nuScenes frame).
+  grid, else this tree's export of `--ckpt-cpu` (a trained checkpoint, on its model grid), else of a
+  random checkpoint of the preset (the export runs the parity check against torch on the real nuScenes
+  frame). When the shipped bundle reads out on another grid (200x200x16), it is timed on its own
+  (new side only: frame, first frame, RSS, `ago infer`).
 - "cpu@200x200x16": the same network on the Occ3D grid (TPV planes 100 x 100); the baseline exports a
   random checkpoint (format 2 runs every branch on every voxel: its time does not depend on the weights);
   the new side exports the checkpoint of `--ckpt-200` (a model trained on that grid:
@@ -36,7 +38,8 @@ FLOP bound: matmul + conv FLOPs of one frame (torch.utils.flop_counter on the to
 exported: today's model forward + the bank's product, and this tree's PlanesGraph + VoxelsGraph) /
 this CPU's best measured fp32 rate (onnxruntime MatMul at 1024..3072 and a 3x3 Conv).
 
-    python benchmarks/runtime_speed.py --ckpt-200 work/s6/train200/last.pt   # writes benchmarks/results/runtime_speed.md
+    python benchmarks/runtime_speed.py --ckpt-200 work/s6/train200/last.pt --ckpt-cpu work/db24/train/last.pt
+        # writes benchmarks/results/runtime_speed.md
     python benchmarks/runtime_speed.py --configs cpu --reps 5 --rounds 2
 """
 
@@ -371,6 +374,32 @@ def make_dataset(work: Path, given: str | None) -> Path:
     return out
 
 
+def shipped_bundle_timing(work: Path, args, log) -> dict | None:
+    """The shipped default bundle when it reads out on another grid than the cpu config's 100x100x8 (no
+    format-2 baseline exists for it): its steady frame, first frame and RSS, and `ago infer` over the dataset
+    (--picture none), new side only."""
+    shipped = REPO / "ago_runtime" / "assets" / "default_bundle"
+    if not (shipped / "bundle.json").is_file():
+        return None
+    meta = json.loads((shipped / "bundle.json").read_text())
+    if meta["grid"]["shape"] == [100, 100, 8]:
+        return None
+    cache = str(work / "cache_shipped")
+    run_child(REPO, "frame", str(shipped), "1", cache)
+    frames = [run_child(REPO, "frame", str(shipped), str(args.reps), cache) for _ in range(args.rounds)]
+    out = {"grid": meta["grid"]["shape"], "model_grid": (meta.get("model_grid") or meta["grid"])["shape"]}
+    out.update({k: best_of(frames, k) for k in ("steady_s", "steady_default_s", "first_s", "open_s", "planes_s",
+                                                "voxels_s", "heads_s", "rss_mib")})
+    if not args.no_infer:
+        ds = make_dataset(work, args.dataset)
+        inf = [run_child(REPO, "infer", str(shipped), str(ds), str(work / f"inf_s{r}"), "none", cache)
+               for r in range(args.rounds)]
+        out["infer_per_frame_s"] = best_of(inf, "per_frame_s")
+        out["infer_frames"] = inf[0]["frames"]
+    log(f"shipped bundle: {out}")
+    return out
+
+
 def best_of(rounds: list[dict], key: str) -> float:
     return min(r[key] for r in rounds)
 
@@ -397,6 +426,12 @@ def bench_config(name: str, base: Path, work: Path, args, log) -> dict:
     if use_shipped:
         new_bundle = shipped_new
         res["new_bundle"] = "shipped default bundle of this tree (format 3, trained)"
+    elif name == "cpu" and args.ckpt_cpu:
+        new_bundle = work / f"new_{name}"
+        res["new_export"] = run_child(REPO, "export_ckpt", str(Path(args.ckpt_cpu).resolve()), str(new_bundle),
+                                      "real" if args.parity else "none")
+        res["new_bundle"] = (f"this tree's export of the trained cpu checkpoint ({res['new_export']['step']} steps; "
+                             "--ckpt-cpu) on its model grid (format 3)")
     elif name == "cpu@200x200x16" and args.ckpt_200:
         new_bundle = work / f"new_{name}"
         res["new_export"] = run_child(REPO, "export_ckpt", str(Path(args.ckpt_200).resolve()), str(new_bundle),
@@ -560,6 +595,21 @@ def write_report(res: dict, path: Path) -> str:
         L.append("\nPer frame: bundle load and sessions, JPEG decode, resize + normalise, graphs, heads, npz and PNG "
                  "written (the new run_infer overlaps reading and writing with inference in threads), divided by the "
                  "number of frames.\n")
+    sh = res.get("shipped")
+    if sh:
+        grid, mgrid = "x".join(map(str, sh["grid"])), "x".join(map(str, sh["model_grid"]))
+        L.append(f"## The shipped default bundle (model {mgrid}, read out at {grid}; no baseline)\n")
+        L.append("| steady frame s, min-entropy (planes + voxels + heads) | steady, default identifier | open s | "
+                 "first frame s (first / steady) | peak RSS MiB | `ago infer` s per frame (--picture none) |")
+        L.append("|---|---|---|---|---|---|")
+        inf_txt = (f"{sh['infer_per_frame_s']:.3f} ({sh['infer_per_frame_s'] / sh['steady_default_s']:.2f}x the steady "
+                   "default)" if "infer_per_frame_s" in sh else "–")
+        L.append(f"| {sh['steady_s']:.3f} ({sh['planes_s']:.3f} + {sh['voxels_s']:.3f} + {sh['heads_s']:.3f}) | "
+                 f"{sh['steady_default_s']:.3f} | {sh['open_s']:.2f} | {sh['first_s']:.3f} "
+                 f"({sh['first_s'] / sh['steady_s']:.2f}) | {sh['rss_mib']:.0f} | {inf_txt} |")
+        L.append("\nThe default bundle reads its 100x100x8 model's TPV planes at Occ3D's 0.4 m voxel centres "
+                 "(`ago export --readout-grid`, docs/training.md: +1.1-1.5 mIoU): 8x the voxels through the voxel "
+                 "stage. The cpu rows above time the same checkpoint exported on its model grid (--ckpt-cpu).\n")
     par = [c for c in res["configs"] if c.get("new_export", {}).get("parity")]
     if par:
         L.append("## Parity of the new export (ago_export.parity, torch vs onnxruntime)\n")
@@ -589,6 +639,9 @@ def main() -> None:
     ap.add_argument("--ckpt-200", default=None,
                     help="a trained cpu@200x200x16 checkpoint for the new side of that config (realistic occupied "
                          "share; the baseline's time does not depend on the weights), instead of random weights")
+    ap.add_argument("--ckpt-cpu", default=None,
+                    help="a trained cpu checkpoint for the new side of the cpu config when the shipped bundle is not on "
+                         "the 100x100x8 grid (it reads out on 200x200x16): exported on its model grid")
     ap.add_argument("--no-parity", dest="parity", action="store_false", help="skip the new export's torch parity check")
     ap.add_argument("--out", type=Path, default=RESULTS)
     ap.add_argument("--report-only", type=Path, default=None, help="rewrite the report from a results .json")
@@ -621,6 +674,7 @@ def main() -> None:
             configs.append(c)
             log(json.dumps({k: v for k, v in c.items() if k not in ("base_rounds", "new_rounds")}))
         shutil.rmtree(base, ignore_errors=True)
+        shipped = shipped_bundle_timing(work, args, log)
     cpu = platform.processor() or platform.machine()
     try:
         cpu = next(ln.split(":", 1)[1].strip() for ln in open("/proc/cpuinfo") if ln.startswith("model name"))
@@ -628,7 +682,7 @@ def main() -> None:
         pass
     res = {"command": "python " + " ".join([Path(sys.argv[0]).as_posix()] + sys.argv[1:]),
            "machine": f"{cpu}, {os.cpu_count()} cores", "load_start": load_start, "load_end": loadavg(),
-           "rates": rates, "configs": configs, "frame": configs[0]["frame"]}
+           "rates": rates, "configs": configs, "frame": configs[0]["frame"], "shipped": shipped}
     (args.out.with_suffix(".json")).write_text(json.dumps(res, indent=1, default=str))
     print(write_report(res, args.out))
 

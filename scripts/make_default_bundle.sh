@@ -2,8 +2,9 @@
 # Build the default bundle and demo frame that `ago demo` uses (the shipped ones were made by this
 # script with its defaults):
 #
-#   synthetic city -> pseudo-labels (simulated segmenter + embedder) -> train (cpu preset)
-#   -> ago eval (val split) -> ago export (parity-checked, with its bundle card)
+#   synthetic city -> pseudo-labels (simulated segmenter + embedder) -> train (cpu preset, 100x100x8)
+#   -> ago eval (val split, read out on the GT's 200x200x16) -> ago export (read out on 200x200x16,
+#   parity-checked, with its bundle card)
 #   -> ago_runtime/assets/default_bundle/ + assets/demo_frame/
 #
 # Needs the training extra (scripts/setup.sh). At most about 60 min on this 2-core CPU (each step's
@@ -23,6 +24,9 @@ IMAGE_SIZE="${IMAGE_SIZE:-704x396}"
 PROMPTS="${PROMPTS:-cw}"
 PRESET="${PRESET:-cpu}"
 GRID="${GRID:-100x100x8}"
+# the grid the bundle predicts on: the model's TPV planes read at Occ3D's 0.4 m voxel centres (the
+# synthetic GT's grid; `ago eval --readout gt`, docs/training.md). READOUT_GRID= (empty) keeps the model grid.
+READOUT_GRID="${READOUT_GRID-200x200x16}"
 JOBS="${JOBS:-2}"
 ASSETS="$REPO/ago_runtime/assets"
 AGO="python -m ago_runtime"
@@ -49,11 +53,14 @@ $AGO train --config "$PRESET" --data "$WORK/synth" --pseudo "$WORK/pseudo" --pro
 stamp
 
 echo "== 4/6 evaluate on the val split (the bundle card reports it)"
-$AGO eval --ckpt "$WORK/train/last.pt" --data "$WORK/synth" --split val --out "$WORK/train/eval-val"
+READOUT_EVAL="model"; READOUT_EXPORT=()
+[ -n "$READOUT_GRID" ] && { READOUT_EVAL="gt"; READOUT_EXPORT=(--readout-grid "$READOUT_GRID"); }
+$AGO eval --ckpt "$WORK/train/last.pt" --data "$WORK/synth" --split val --out "$WORK/train/eval-val" \
+    --readout "$READOUT_EVAL"
 stamp
 
 echo "== 5/6 export (parity-checked on the real nuScenes keyframe when ../shared is present)"
-$AGO export "$WORK/train/last.pt" -o "$WORK/bundle" \
+$AGO export "$WORK/train/last.pt" -o "$WORK/bundle" "${READOUT_EXPORT[@]}" \
     --card-note "a demonstration model trained by scripts/make_default_bundle.sh on the SYNTHETIC world only"
 stamp
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import cv2
 import numpy as np
 import pytest
 
@@ -100,6 +101,14 @@ def test_atomic_write_leaves_nothing_on_failure(tmp_path):
     assert target.read_text().strip().startswith("{")
     with pytest.raises(TypeError):
         save_npz(tmp_path / "x.npz", a=np.array([object()], dtype=object))
+    # a chosen deflate level (what `ago infer` writes) reads back with np.load, without pickles
+    sem = np.random.default_rng(0).integers(0, 18, (20, 20, 4), dtype=np.uint8)
+    save_npz(tmp_path / "fast.npz", compresslevel=1, semantics=sem, class_names=np.array(["car", "free"]),
+             free_index=np.array(1, np.int64))
+    with np.load(tmp_path / "fast.npz", allow_pickle=False) as z:
+        assert np.array_equal(z["semantics"], sem) and list(z["class_names"]) == ["car", "free"]
+        assert int(z["free_index"]) == 1
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
 
 
 def test_preprocess_shapes_normalisation_and_missing_camera():
@@ -108,6 +117,14 @@ def test_preprocess_shapes_normalisation_and_missing_camera():
     x = pre.images(imgs)
     assert x.shape == (6, 3, 32, 64) and x.dtype == np.float32
     assert x[0, 0, 0, 0] == pytest.approx((128 / 255 - 0.485) / 0.229, rel=1e-5)
+    # bit-equal to resizing, normalising (H, W, 3) and transposing, on varied pixels and per channel
+    rng = np.random.default_rng(1)
+    varied = {c: rng.integers(0, 256, (90, 160, 3), dtype=np.uint8) for c in CAMERA_NAMES}
+    mean = np.asarray(pre.mean, np.float32) * 255.0
+    inv_std = 1.0 / (np.asarray(pre.std, np.float32) * 255.0)
+    want = np.stack([((cv2.resize(varied[c], (64, 32), interpolation=cv2.INTER_AREA).astype(np.float32) - mean)
+                      * inv_std).transpose(2, 0, 1) for c in CAMERA_NAMES])
+    assert np.array_equal(pre.images(varied), want)
     del imgs["CAM_BACK"]
     with pytest.raises(AgoInputError, match="CAM_BACK"):
         pre.images(imgs, source="dir/")

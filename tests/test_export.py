@@ -171,6 +171,43 @@ def test_cli_export_synthetic_frame_and_bad_checkpoint(env, tmp_path):
     assert not (tmp_path / "x").exists()
 
 
+def test_export_on_a_finer_readout_grid(env, tmp_path):
+    """`ago export --readout-grid`: the bundle predicts on the finer grid, reading the model's planes at its
+    voxel centres exactly as AGOModel.forward(grid_shape=...) does (`ago eval --readout gt`)."""
+    out = tmp_path / "fine"
+    r = subprocess.run([sys.executable, "-m", "ago_runtime", "export", str(env["ckpt"]), "-o", str(out),
+                        "--no-real-frame", "--train-bank-only", "--readout-grid", "40x40x8"],
+                       capture_output=True, text=True, cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    meta = json.loads((out / "bundle.json").read_text())
+    assert meta["grid"]["shape"] == [40, 40, 8] and meta["model_grid"]["shape"] == [20, 20, 4]
+    assert meta["parity"]["fp32"]["ok"] and meta["parity"]["fp32"]["num_voxels"] == 40 * 40 * 8
+    card = json.loads((out / "card.json").read_text())
+    assert card["readout"] == {"grid": [40, 40, 8], "model_grid": [20, 20, 4]}
+    assert "read out at 40x40x8 (trained at 20x20x4)" in card["summary"]
+    model, _ckpt, _cfg = load_model(env["ckpt"])
+    b = Bundle.load(out)
+    pred = Predictor(b)
+    bank = b.load_bank()
+    rng = np.random.default_rng(3)
+    rig = b.rig.scaled(400, 225)
+    images = {c.name: rng.integers(0, 255, (225, 400, 3), dtype=np.uint8) for c in rig}
+    x, m = pred.prepare(images, rig)
+    with torch.no_grad():
+        ref = model(torch.from_numpy(x), torch.from_numpy(m), grid_shape=(40, 40, 8))
+    want = reference_labels(ref["feat"][0].numpy(), ref["feat_adapted"][0].numpy(), bank, b.heads.free_embedding)
+    got = pred.predict(images, rig, bank, "none").semantics
+    assert got.shape == (40, 40, 8)
+    assert np.mean(got.reshape(-1) == want["main"]) >= 0.999
+    # the default (no option) stays on the model's grid
+    assert env["meta"]["grid"]["shape"] == [20, 20, 4] == env["meta"]["model_grid"]["shape"]
+    for bad in ("40x40", "0x40x8", "fine"):
+        r = subprocess.run([sys.executable, "-m", "ago_runtime", "export", str(env["ckpt"]), "-o",
+                            str(tmp_path / "bad"), "--readout-grid", bad], capture_output=True, text=True, cwd=tmp_path)
+        assert r.returncode == 2 and r.stderr.strip().splitlines()[-1].startswith("error: --readout-grid")
+        assert not (tmp_path / "bad").exists()
+
+
 # ---------------------------------------------------------------------------- the restructured graphs
 def _tpv_model(k: int, offsets: int, seed: int = 0):
     """A tiny model whose TPV offsets and attention weights are far from their zero init, so samples

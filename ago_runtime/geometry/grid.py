@@ -29,6 +29,19 @@ class Grid:
         size = tuple(float((b - a) / n) for a, b, n in zip(range_min, range_max, shape))
         return cls(tuple(map(float, range_min)), tuple(map(float, range_max)), size)
 
+    @classmethod
+    def parse(cls, text: str, option: str = "--grid") -> "Grid":
+        """'100x100x8' -> Grid.with_shape((100, 100, 8)); anything else is one AgoInputError naming `option`."""
+        from ago_runtime.errors import AgoInputError
+
+        try:
+            shape = tuple(int(p) for p in str(text).lower().split("x"))
+        except ValueError:
+            shape = ()
+        if len(shape) != 3 or min(shape) <= 0 or max(shape) > 4096:
+            raise AgoInputError(option, f"expected XxYxZ voxel counts like 100x100x8, got {text!r}")
+        return cls.with_shape(shape)
+
     @property
     def shape(self) -> tuple[int, int, int]:
         return tuple(

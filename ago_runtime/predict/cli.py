@@ -164,18 +164,19 @@ class _Writer(threading.Thread):
 
 
 def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, sample=None, info=None,
-              int8=False, picture: str = "full", warm_up: bool = True) -> list[Path]:
+              int8=False, picture: str = "full", warm_up: bool = False) -> list[Path]:
     """Predict every frame; three stages overlap (threads; numpy, OpenCV and onnxruntime release the GIL):
     a reader decodes and preprocesses frame i+1 and a writer writes frame i-1 (npz, PNG) while the
     main thread runs the graphs and heads of frame i. The first frame is read and checked before
-    anything is written; an error in any stage ends the run with that error (the files written
-    before it are complete: every file is written atomically). warm_up: run the graphs once on dummy inputs
-    before the first frame (off: the first frame pays onnxruntime's first-run allocations instead; over 12
-    frames no measurable difference, benchmarks/infer_warm_up.py, so on as for every Predictor)."""
+    anything is written, while the onnxruntime sessions open in another thread; an error in any stage ends
+    the run with that error (the files written before it are complete: every file is written atomically).
+    warm_up: run the graphs once on dummy inputs before the first frame; off by default here: the dummy frame
+    costs a whole frame (~0.2 s) to save the first real frame ~0.04 s of first-run allocations (measured on a
+    quiet machine, benchmarks/infer_warm_up.py); an interactive Predictor keeps it on."""
     from ago_runtime.atomic import save_npz
     from ago_runtime.predict.bundle import Bundle, resolve_bundle
     from ago_runtime.progress import track
-    from ago_runtime.predict.predictor import Predictor
+    from ago_runtime.predict.predictor import Predictor, prepare_inputs
     from ago_runtime.pictures.render import save_png
 
     from ago_runtime.predict.bundle import card_line
@@ -192,22 +193,32 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
     b = Bundle.load(resolve_bundle(bundle))
     typer.echo(card_line(b))   # stdout: information; stderr keeps only warnings and the one error line
     chosen = choose_bank(b, prompts, bank)
-    predictor = Predictor(b, int8=int8, warm_up=warm_up)
-    folded = predictor.fold(chosen)   # checks the bank's encoder and width before any work
+    chosen.check_compatible(b.text_encoder["id"], int(b.text_encoder["dim"]), b.root)   # before any work
     identifier = identifier or b.identifier_for(chosen)   # none for a closed-world bank
     frames = iter_frames(Path(images) if images else None, sample, Path(info) if info else None, b.rig)
     out = Path(out)
+    opened: dict = {}
+
+    def open_predictor():
+        try:
+            opened["predictor"] = Predictor(b, int8=int8, warm_up=warm_up)
+            opened["folded"] = opened["predictor"].fold(chosen)
+        except BaseException as e:   # re-raised by the main thread
+            opened["error"] = e
+
+    opener = threading.Thread(target=open_predictor, daemon=True)
+    opener.start()
 
     def read(frame):
         name, imgs, rig, source = frame
         t = time.perf_counter()
-        x, m = predictor.prepare(imgs, rig, source)
+        x, m = prepare_inputs(b, imgs, rig, source)
         return name, imgs, x, m, time.perf_counter() - t
 
     def write(item):
         name, imgs, pred = item
         npz = out / f"{name}.npz"
-        save_npz(npz, **pred.output_arrays(volumes=save_volumes))
+        save_npz(npz, compresslevel=1, **pred.output_arrays(volumes=save_volumes))
         files = [npz]
         if picture != "none":
             files.append(save_png(out / f"{name}.png", prediction_picture(pred, imgs, name, picture)))
@@ -216,7 +227,13 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
                    f"{t['encoder']:.2f} s, heads {t['heads']:.2f} s)", err=True)
         return files
 
-    first = read(next(frames))      # reads and checks the first frame before anything is written
+    try:
+        first = read(next(frames))      # reads and checks the first frame before anything is written
+    finally:
+        opener.join()
+    if "error" in opened:
+        raise opened["error"]
+    predictor, folded = opened["predictor"], opened["folded"]
     prepared: queue.Queue = queue.Queue(maxsize=2)
     to_write: queue.Queue = queue.Queue(maxsize=2)
     stop = threading.Event()

@@ -104,6 +104,19 @@ def bank_key(bank) -> str:
     return h.hexdigest()
 
 
+def prepare_inputs(bundle: Bundle, images: dict[str, np.ndarray], rig: Rig, source=None) -> tuple[np.ndarray, np.ndarray]:
+    """Six images + their rig -> a bundle's model inputs: images (1, 6, 3, H, W) float32, ego2img (1, 6, 4, 4)
+    float32 (needs the bundle only, no sessions: `ago infer` reads its first frame while they open)."""
+    rig.validate(source)
+    rig = fit_rig_to_images(rig, images)
+    pre = bundle.preprocess
+    x = pre.images(images, source)[None]
+    m = pre.ego2img(rig)[None]
+    if not np.isfinite(m).all():
+        raise AgoInputError(source, "calibration gives non-finite projection matrices")
+    return x, m
+
+
 class Predictor:
     def __init__(self, bundle: Bundle | str | Path, int8: bool = False, threads: int | None = None,
                  chunk: int | None = None, warm_up: bool = True):
@@ -164,14 +177,7 @@ class Predictor:
     # ---- encoder ---------------------------------------------------------------------------
     def prepare(self, images: dict[str, np.ndarray], rig: Rig, source=None) -> tuple[np.ndarray, np.ndarray]:
         """-> model inputs: images (1, 6, 3, H, W) float32, ego2img (1, 6, 4, 4) float32."""
-        rig.validate(source)
-        rig = fit_rig_to_images(rig, images)
-        pre = self.bundle.preprocess
-        x = pre.images(images, source)[None]
-        m = pre.ego2img(rig)[None]
-        if not np.isfinite(m).all():
-            raise AgoInputError(source, "calibration gives non-finite projection matrices")
-        return x, m
+        return prepare_inputs(self.bundle, images, rig, source)
 
     def encode(self, images: dict[str, np.ndarray], rig: Rig, source=None) -> tuple[np.ndarray, np.ndarray]:
         """-> hidden features h (N, Dh), g (N, Da) float32."""

@@ -21,17 +21,9 @@ import typer
 
 
 def parse_grid(text: str):
-    from ago_runtime.errors import AgoInputError
     from ago_runtime.geometry.grid import Grid
 
-    parts = str(text).lower().split("x")
-    try:
-        shape = tuple(int(p) for p in parts)
-    except ValueError:
-        shape = ()
-    if len(shape) != 3 or min(shape) <= 0:
-        raise AgoInputError("--grid", f"expected XxYxZ voxel counts like 100x100x8, got {text!r}")
-    return Grid.with_shape(shape)
+    return Grid.parse(text, "--grid")
 
 
 def build_backends(prompts: str, segmenter: str, masks: Path | None, embedder: str, feats: Path | None,
