@@ -227,6 +227,8 @@ ROWS = [
      ["--save-volumes"], []),
     ("infer --identifier", lambda w: ["infer", "--images", w.frame, "--bundle", w.bundle, "--identifier", "vote",
                                       "--out", "o"], ["identifier", "vote"], ["o"]),
+    ("infer --workers 0", lambda w: ["infer", "--images", w.frame, "--bundle", w.bundle, "--workers", "0",
+                                     "--out", "o"], ["--workers", "between 1 and 64"], ["o"]),
     ("demo --bogus", lambda w: ["demo", "--bogus"], ["--bogus"], []),
     ("retrieve no --phrase", lambda w: ["retrieve", "--images", w.frame], ["--phrase", "missing"], []),
     ("retrieve empty phrase", lambda w: ["retrieve", "--images", w.frame, "--phrase", " ", "--bundle", w.bundle,

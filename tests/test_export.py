@@ -185,6 +185,12 @@ def test_export_on_a_finer_readout_grid(env, tmp_path):
     card = json.loads((out / "card.json").read_text())
     assert card["readout"] == {"grid": [40, 40, 8], "model_grid": [20, 20, 4]}
     assert "read out at 40x40x8 (trained at 20x20x4)" in card["summary"]
+    # scores of `ago eval --readout gt` are flagged on a card whose bundle stays on the model grid
+    from ago_export.card import summary
+
+    base = {"trained_on": {"kind": "synthetic"}, "val_scores": {"mIoU": 15.0, "readout": "gt"}}
+    assert "not this bundle's" in summary({**base, "readout": {"grid": [20, 20, 4], "model_grid": [20, 20, 4]}})
+    assert "not this bundle's" not in summary({**base, "readout": card["readout"]})
     model, _ckpt, _cfg = load_model(env["ckpt"])
     b = Bundle.load(out)
     pred = Predictor(b)

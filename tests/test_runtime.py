@@ -706,6 +706,16 @@ def test_infer_dataset_pipeline_outputs_pictures_and_errors(bundle_dir, tmp_path
         f = ds[i]
         with np.load(out / f"{f.token}.npz", allow_pickle=False) as z:
             assert np.array_equal(z["bank_semantics"], p.predict(f.images, f.rig).semantics)
+    # a dataset runs two frames at once by default (auto_workers); one at a time gives the same files' arrays
+    from ago_runtime.predict.cli import auto_workers
+
+    assert auto_workers(1) == 1 and auto_workers(len(tokens)) == (2 if (os.cpu_count() or 1) >= 2 else 1)
+    one = tmp_path / "one_worker"
+    r = _infer(bundle_dir, ds_root, one, "--picture", "none", "--workers", "1")
+    assert r.returncode == 0, r.stderr
+    for t in tokens:
+        with np.load(out / f"{t}.npz", allow_pickle=False) as a, np.load(one / f"{t}.npz", allow_pickle=False) as b:
+            assert a.files == b.files and all(np.array_equal(a[k], b[k]) for k in a.files)
     for kind in ("bev", "full"):
         r = _infer(bundle_dir, ds_root, tmp_path / kind, "--picture", kind)
         assert r.returncode == 0, r.stderr

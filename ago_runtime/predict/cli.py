@@ -17,6 +17,8 @@ BEV and legend; none: no PNG). Reading, inference and writing overlap (run_infer
 
 from __future__ import annotations
 
+import collections
+import os
 import queue
 import threading
 import time
@@ -62,6 +64,12 @@ def choose_bank(bundle, prompts: Optional[str], bank: Optional[str]):
 def iter_frames(images: Path, sample, info: Optional[Path], fallback_rig) -> Iterator[tuple]:
     """Yields (name, images dict, rig, source) per frame. `sample`: None (every frame), or sample tokens
     and/or scene names (a str or a list; each scene gives its keyframes in time order)."""
+    return open_frames(images, sample, info, fallback_rig)[1]
+
+
+def open_frames(images: Path, sample, info: Optional[Path], fallback_rig) -> tuple[int, Iterator[tuple]]:
+    """(number of frames, iter_frames' iterator): the count is known before any image is decoded; bad
+    arguments (a missing folder, an unknown sample) raise here."""
     from ago_runtime.formats.calibration import find_camera_images, load_images_folder
 
     wanted = [sample] if isinstance(sample, str) else list(sample or [])
@@ -74,9 +82,7 @@ def iter_frames(images: Path, sample, info: Optional[Path], fallback_rig) -> Ite
             if unknown:
                 raise AgoInputError(info, f"no sample or scene {', '.join(map(repr, unknown))}")
             frames = [f for w in wanted for f in frames if w in (f.token, f.scene)]
-        for f in frames:
-            yield f.token, f.images, f.rig, str(info)
-        return
+        return len(frames), ((f.token, f.images, f.rig, str(info)) for f in frames)
     if images is None:
         raise AgoInputError(None, "give --images DIR (or --info PKL)")
     images = Path(images)
@@ -86,16 +92,21 @@ def iter_frames(images: Path, sample, info: Optional[Path], fallback_rig) -> Ite
         from ago_runtime.formats.nuscenes import NuScenesDataset
 
         ds = NuScenesDataset(images, load_extras=False)
-        indices = ds.indices_of(wanted) if wanted else range(len(ds))
-        for i in indices:
-            f = ds[i]
-            yield f.token, f.images, f.rig, str(images)
-        return
+        indices = list(ds.indices_of(wanted) if wanted else range(len(ds)))
+
+        def dataset_frames():
+            for i in indices:
+                f = ds[i]
+                yield f.token, f.images, f.rig, str(images)
+        return len(indices), dataset_frames()
     if wanted:
         raise AgoInputError("--sample", f"{images} is an images folder (one frame), not a dataset")
     find_camera_images(images)
-    imgs, rig, _ = load_images_folder(images, fallback_rig=fallback_rig)
-    yield images.resolve().name, imgs, rig, str(images)
+
+    def folder_frame():
+        imgs, rig, _ = load_images_folder(images, fallback_rig=fallback_rig)
+        yield images.resolve().name, imgs, rig, str(images)
+    return 1, folder_frame()
 
 
 PICTURES = ("full", "bev", "none")
@@ -163,11 +174,19 @@ class _Writer(threading.Thread):
                     self.error = e
 
 
+def auto_workers(frames: int) -> int:
+    """Frames predicted at once by `ago infer`: 2 over a dataset on a multi-core CPU (each with half the
+    cores' onnxruntime threads: two one-thread frames at once beat one two-thread frame, measured 0.172 ->
+    0.125 s a frame on 2 cores, docs/runtime.md), 1 for a single frame (which then gets every core)."""
+    return 2 if frames > 1 and (os.cpu_count() or 1) >= 2 else 1
+
+
 def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, sample=None, info=None,
-              int8=False, picture: str = "full", warm_up: bool = False) -> list[Path]:
+              int8=False, picture: str = "full", warm_up: bool = False, workers: int | None = None) -> list[Path]:
     """Predict every frame; three stages overlap (threads; numpy, OpenCV and onnxruntime release the GIL):
-    a reader decodes and preprocesses frame i+1 and a writer writes frame i-1 (npz, PNG) while the
-    main thread runs the graphs and heads of frame i. The first frame is read and checked before
+    a reader decodes and preprocesses the next frames and a writer writes the previous ones (npz, PNG, in
+    frame order) while `workers` threads run the graphs and heads of the current ones (one Predictor, its
+    sessions with cpu_count // workers threads each; None = auto_workers). The first frame is read and checked before
     anything is written, while the onnxruntime sessions open in another thread; an error in any stage ends
     the run with that error (the files written before it are complete: every file is written atomically).
     warm_up: run the graphs once on dummy inputs before the first frame; off by default here: the dummy frame
@@ -176,6 +195,8 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
     from ago_runtime.atomic import save_npz
     from ago_runtime.predict.bundle import Bundle, resolve_bundle
     from ago_runtime.progress import track
+    from concurrent.futures import ThreadPoolExecutor
+
     from ago_runtime.predict.predictor import Predictor, prepare_inputs
     from ago_runtime.pictures.render import save_png
 
@@ -189,19 +210,23 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
         raise AgoInputError("--identifier", f"must be one of {', '.join(IDENTIFIERS)}, got {identifier!r}")
     if picture not in PICTURES:
         raise AgoInputError("--picture", f"must be one of {', '.join(PICTURES)}, got {picture!r}")
+    if workers is not None and not 1 <= int(workers) <= 64:
+        raise AgoInputError("--workers", f"must be between 1 and 64, got {workers}")
     check_output_dir(out, "--out")   # before any work
     b = Bundle.load(resolve_bundle(bundle))
     typer.echo(card_line(b))   # stdout: information; stderr keeps only warnings and the one error line
     chosen = choose_bank(b, prompts, bank)
     chosen.check_compatible(b.text_encoder["id"], int(b.text_encoder["dim"]), b.root)   # before any work
     identifier = identifier or b.identifier_for(chosen)   # none for a closed-world bank
-    frames = iter_frames(Path(images) if images else None, sample, Path(info) if info else None, b.rig)
+    count, frames = open_frames(Path(images) if images else None, sample, Path(info) if info else None, b.rig)
+    workers = int(workers) if workers is not None else auto_workers(count)
+    threads = max(1, (os.cpu_count() or 1) // workers) if workers > 1 else None
     out = Path(out)
     opened: dict = {}
 
     def open_predictor():
         try:
-            opened["predictor"] = Predictor(b, int8=int8, warm_up=warm_up)
+            opened["predictor"] = Predictor(b, int8=int8, threads=threads, warm_up=warm_up)
             opened["folded"] = opened["predictor"].fold(chosen)
         except BaseException as e:   # re-raised by the main thread
             opened["error"] = e
@@ -234,8 +259,8 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
     if "error" in opened:
         raise opened["error"]
     predictor, folded = opened["predictor"], opened["folded"]
-    prepared: queue.Queue = queue.Queue(maxsize=2)
-    to_write: queue.Queue = queue.Queue(maxsize=2)
+    prepared: queue.Queue = queue.Queue(maxsize=workers + 1)
+    to_write: queue.Queue = queue.Queue(maxsize=workers + 1)
     stop = threading.Event()
     written: list[Path] = []
     reader = threading.Thread(target=_read_ahead, args=(frames, read, prepared, stop), daemon=True)
@@ -250,14 +275,36 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
                 raise item
             yield item
 
+    def predict(item):
+        name, imgs, x, m, t_pre = item
+        pred = predictor.predict_arrays(x, m, chosen, identifier, folded, volumes=save_volumes)
+        pred.timings = {"preprocess": t_pre, **pred.timings}
+        return name, imgs, pred
+
+    pool = ThreadPoolExecutor(workers, thread_name_prefix="ago-infer") if workers > 1 else None
+    in_flight: collections.deque = collections.deque()   # futures in frame order
     try:
-        for name, imgs, x, m, t_pre in track(stream(), "predicting"):
+        for item in track(stream(), "predicting", total=count):
             if writer.error is not None:
                 break
-            pred = predictor.predict_arrays(x, m, chosen, identifier, folded, volumes=save_volumes)
-            pred.timings = {"preprocess": t_pre, **pred.timings}
-            to_write.put((name, imgs, pred))
+            if pool is None:
+                to_write.put(predict(item))
+                continue
+            in_flight.append(pool.submit(predict, item))
+            if len(in_flight) >= workers:
+                to_write.put(in_flight.popleft().result())
+        while in_flight and writer.error is None:
+            to_write.put(in_flight.popleft().result())
     finally:
+        if pool is not None:   # frames already submitted are finished and written, in order, before any error
+            while in_flight and writer.error is None:
+                try:
+                    to_write.put(in_flight.popleft().result())
+                except BaseException:
+                    break
+            for fut in in_flight:
+                fut.cancel()
+            pool.shutdown(wait=True)
         stop.set()
         while reader.is_alive():           # unblock a reader waiting on a full queue
             try:
@@ -288,9 +335,13 @@ def register(app: typer.Typer) -> None:
                                   "with `ago export --int8`; faster, less exact: docs/runtime.md)"),
         picture: str = typer.Option("full", "--picture", help="PNG per frame: full (BEVs, legend, cameras), "
                                     "bev (class BEV + legend, cheap) or none"),
+        workers: Optional[int] = typer.Option(None, "--workers", help="frames predicted at once (default: 2 over "
+                                              "a dataset on a multi-core CPU, else 1; each worker holds a frame's "
+                                              "activations)"),
     ) -> None:
         """Predict 3D occupancy for camera images with an exported bundle (numpy + onnxruntime)."""
-        run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, sample, info, int8, picture)
+        run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, sample, info, int8, picture,
+                  workers=workers)
 
     @app.command("demo")
     def demo_cmd(
