@@ -191,7 +191,7 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
     the run with that error (the files written before it are complete: every file is written atomically).
     warm_up: run the graphs once on dummy inputs before the first frame; off by default here: the dummy frame
     costs a whole frame (~0.2 s) to save the first real frame ~0.04 s of first-run allocations (measured on a
-    quiet machine, benchmarks/infer_warm_up.py); an interactive Predictor keeps it on."""
+    quiet machine, benchmarks/infer_ab.py --vary warm_up); an interactive Predictor keeps it on."""
     from ago_runtime.atomic import save_npz
     from ago_runtime.predict.bundle import Bundle, resolve_bundle
     from ago_runtime.progress import track
