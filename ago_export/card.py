@@ -161,12 +161,12 @@ def summary(card: dict) -> str:
         parts.append(f"label space {ls['name']}" + (f" ({len(ls['classes'])} classes)" if ls.get("classes") else ""))
     val = card.get("val_scores") or {}
     ro = card.get("readout") or {}
+    fine = bool(ro.get("grid") and ro.get("model_grid")) and list(ro["grid"]) != list(ro["model_grid"])
     if isinstance(val, dict) and val.get("mIoU") is not None:
-        fine_bundle = bool(ro.get("grid")) and list(ro.get("grid")) != list(ro.get("model_grid") or [])
         # scores of `ago eval --readout gt` describe a bundle read out on the GT grid, not one on the model grid
-        other = val.get("readout") == "gt" and not fine_bundle
+        other = val.get("readout") == "gt" and not fine
         parts.append(f"val mIoU {val['mIoU']} %" + (" (of the read-out on the GT grid, not this bundle's)" if other else ""))
-    if ro.get("grid") and ro.get("model_grid") and list(ro["grid"]) != list(ro["model_grid"]):
+    if fine:
         parts.append("read out at {} (trained at {})".format("x".join(map(str, ro["grid"])),
                                                              "x".join(map(str, ro["model_grid"]))))
     pl = card.get("pseudo_labels") or {}

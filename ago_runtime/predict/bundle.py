@@ -109,6 +109,11 @@ class Bundle:
     def trained_classes(self) -> list[str]:
         return [str(c["name"]) for c in self.label_space.get("classes", [])]
 
+    def check_bank(self, bank, source=None) -> None:
+        """A bank made by another text encoder or of another width than this bundle's: AgoInputError."""
+        te = self.text_encoder
+        bank.check_compatible(te["id"], int(te["dim"]), source or self.root)
+
     def identifier_for(self, bank) -> str:
         """The default identifier for `bank` (ago_runtime.predict.heads.default_identifier): the
         open-world one when the bank holds classes this bundle was not trained on, else "none"."""

@@ -216,7 +216,7 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
     b = Bundle.load(resolve_bundle(bundle))
     typer.echo(card_line(b))   # stdout: information; stderr keeps only warnings and the one error line
     chosen = choose_bank(b, prompts, bank)
-    chosen.check_compatible(b.text_encoder["id"], int(b.text_encoder["dim"]), b.root)   # before any work
+    b.check_bank(chosen)   # the bank's text encoder and width, before any work
     identifier = identifier or b.identifier_for(chosen)   # none for a closed-world bank
     count, frames = open_frames(Path(images) if images else None, sample, Path(info) if info else None, b.rig)
     workers = int(workers) if workers is not None else auto_workers(count)
@@ -293,10 +293,10 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
             in_flight.append(pool.submit(predict, item))
             if len(in_flight) >= workers:
                 to_write.put(in_flight.popleft().result())
-        while in_flight and writer.error is None:
+        while in_flight and writer.error is None:      # the last frames; their errors propagate
             to_write.put(in_flight.popleft().result())
     finally:
-        if pool is not None:   # frames already submitted are finished and written, in order, before any error
+        if pool is not None:   # on an error: the frames already submitted are finished and written, in order
             while in_flight and writer.error is None:
                 try:
                     to_write.put(in_flight.popleft().result())

@@ -135,8 +135,7 @@ class Predictor:
 
     # ---- banks -----------------------------------------------------------------------------
     def check_bank(self, bank, source=None) -> None:
-        te = self.bundle.text_encoder
-        bank.check_compatible(te["id"], int(te["dim"]), source or self.bundle.root)
+        self.bundle.check_bank(bank, source)
 
     def fold(self, bank) -> FoldedHeads:
         """The bank folded into the heads (cached per bank content)."""
