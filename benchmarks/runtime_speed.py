@@ -426,18 +426,15 @@ def bench_config(name: str, base: Path, work: Path, args, log) -> dict:
     if use_shipped:
         new_bundle = shipped_new
         res["new_bundle"] = "shipped default bundle of this tree (format 3, trained)"
-    elif name == "cpu" and args.ckpt_cpu:
+    elif {"cpu": args.ckpt_cpu, "cpu@200x200x16": args.ckpt_200}.get(name):
+        ckpt = args.ckpt_cpu if name == "cpu" else args.ckpt_200
         new_bundle = work / f"new_{name}"
-        res["new_export"] = run_child(REPO, "export_ckpt", str(Path(args.ckpt_cpu).resolve()), str(new_bundle),
+        res["new_export"] = run_child(REPO, "export_ckpt", str(Path(ckpt).resolve()), str(new_bundle),
                                       "real" if args.parity else "none")
-        res["new_bundle"] = (f"this tree's export of the trained cpu checkpoint ({res['new_export']['step']} steps; "
-                             "--ckpt-cpu) on its model grid (format 3)")
-    elif name == "cpu@200x200x16" and args.ckpt_200:
-        new_bundle = work / f"new_{name}"
-        res["new_export"] = run_child(REPO, "export_ckpt", str(Path(args.ckpt_200).resolve()), str(new_bundle),
-                                      "real" if args.parity else "none")
-        res["new_bundle"] = (f"this tree's export of a 200x200x16 model trained {res['new_export']['step']} steps on "
-                             "the synthetic world (format 3; --ckpt-200)")
+        steps = res["new_export"]["step"]
+        res["new_bundle"] = (f"this tree's export of the trained cpu checkpoint ({steps} steps; --ckpt-cpu) on its model "
+                             "grid (format 3)" if name == "cpu" else f"this tree's export of a 200x200x16 model trained "
+                             f"{steps} steps on the synthetic world (format 3; --ckpt-200)")
     else:
         new_bundle = work / f"new_{name}"
         res["new_export"] = run_child(REPO, "export", name, str(new_bundle), "real" if args.parity else "none")

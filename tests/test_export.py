@@ -107,20 +107,26 @@ def test_parity_report_within_tolerance(env):
     assert all((env["bundle"] / f"{k}.int8.onnx").is_file() for k in ("planes", "voxels_0", "voxels_1"))
 
 
-def test_runtime_matches_torch_on_another_frame(env):
-    """Independent of the exporter's own check: torch forward vs Predictor on a different frame."""
-    model, ckpt, cfg = load_model(env["ckpt"])
-    b = Bundle.load(env["bundle"])
+def _torch_labels_on_random_frame(ckpt, bundle_dir, seed: int, grid_shape=None):
+    """A random frame at 400x225 -> (Predictor of the bundle, its bank, images, rig, the torch model's reference
+    labels read out on `grid_shape`)."""
+    model, _ckpt, _cfg = load_model(ckpt)
+    b = Bundle.load(bundle_dir)
     pred = Predictor(b)
     bank = b.load_bank()
-    rng = np.random.default_rng(7)
+    rng = np.random.default_rng(seed)
     rig = b.rig.scaled(400, 225)
     images = {c.name: rng.integers(0, 255, (225, 400, 3), dtype=np.uint8) for c in rig}
     x, m = pred.prepare(images, rig)
     with torch.no_grad():
-        out = model(torch.from_numpy(x), torch.from_numpy(m))
-    want = reference_labels(out["feat"][0].numpy(), out["feat_adapted"][0].numpy(), bank,
-                            b.heads.free_embedding)
+        out = model(torch.from_numpy(x), torch.from_numpy(m), grid_shape=grid_shape)
+    want = reference_labels(out["feat"][0].numpy(), out["feat_adapted"][0].numpy(), bank, b.heads.free_embedding)
+    return pred, bank, images, rig, want
+
+
+def test_runtime_matches_torch_on_another_frame(env):
+    """Independent of the exporter's own check: torch forward vs Predictor on a different frame."""
+    pred, bank, images, rig, want = _torch_labels_on_random_frame(env["ckpt"], env["bundle"], 7)
     for ident, key in (("none", "main"), ("min-entropy", "identifier")):
         got = pred.predict(images, rig, bank, ident).semantics.reshape(-1)
         assert np.mean(got == want[key]) >= 0.999
@@ -191,17 +197,7 @@ def test_export_on_a_finer_readout_grid(env, tmp_path):
     base = {"trained_on": {"kind": "synthetic"}, "val_scores": {"mIoU": 15.0, "readout": "gt"}}
     assert "not this bundle's" in summary({**base, "readout": {"grid": [20, 20, 4], "model_grid": [20, 20, 4]}})
     assert "not this bundle's" not in summary({**base, "readout": card["readout"]})
-    model, _ckpt, _cfg = load_model(env["ckpt"])
-    b = Bundle.load(out)
-    pred = Predictor(b)
-    bank = b.load_bank()
-    rng = np.random.default_rng(3)
-    rig = b.rig.scaled(400, 225)
-    images = {c.name: rng.integers(0, 255, (225, 400, 3), dtype=np.uint8) for c in rig}
-    x, m = pred.prepare(images, rig)
-    with torch.no_grad():
-        ref = model(torch.from_numpy(x), torch.from_numpy(m), grid_shape=(40, 40, 8))
-    want = reference_labels(ref["feat"][0].numpy(), ref["feat_adapted"][0].numpy(), bank, b.heads.free_embedding)
+    pred, bank, images, rig, want = _torch_labels_on_random_frame(env["ckpt"], out, 3, grid_shape=(40, 40, 8))
     got = pred.predict(images, rig, bank, "none").semantics
     assert got.shape == (40, 40, 8)
     assert np.mean(got.reshape(-1) == want["main"]) >= 0.999
