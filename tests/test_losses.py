@@ -311,3 +311,82 @@ def test_hit_but_unlabelled_voxels_count_as_occupied_for_occupancy_only():
         b = compute_losses(model(images, ego2img), marked, bank, LossConfig(variant="grounding"))
     assert float(a["grounding_ce"]) == pytest.approx(float(b["grounding_ce"]))   # grounding ignores them
     assert float(a["occ"]) != pytest.approx(float(b["occ"]))                      # occupancy counts them
+
+
+def test_unlabelled_uniform_loss_reads_only_hit_unlabelled_voxels_and_never_the_free_column():
+    """loss.w_unlabelled_uniform: 0 at a uniform softmax over classes + noise words, grows as one column
+    dominates, ignores labelled / free / unknown voxels and the free column, follows sample weights."""
+    from ago_runtime.classes import OCCUPIED_UNLABELLED
+    from ago_train.losses.total import unlabelled_uniform_loss
+
+    K, Nn = 3, 4
+    logits = torch.zeros(1, 4, K + 1 + Nn)
+    sem = torch.tensor([[OCCUPIED_UNLABELLED, 0, FREE, IGNORE]])
+    assert float(unlabelled_uniform_loss(logits, sem, K)) == pytest.approx(0.0, abs=1e-6)
+    logits[0, 0, K] = 30.0                               # the free column: not part of the loss
+    logits[0, 1:, 0] = 30.0                              # labelled, free, unknown voxels: not part of it
+    assert float(unlabelled_uniform_loss(logits, sem, K)) == pytest.approx(0.0, abs=1e-6)
+    logits[0, 0, 1] = 5.0                                # a class column dominates on the unlabelled voxel
+    peaked = float(unlabelled_uniform_loss(logits, sem, K))
+    logits[0, 0, 1] = 0.0
+    logits[0, 0, K + 2] = 5.0                            # ... or a noise word does
+    assert peaked > 0.5 and float(unlabelled_uniform_loss(logits, sem, K)) == pytest.approx(peaked, rel=1e-5)
+    assert float(unlabelled_uniform_loss(logits, torch.tensor([[0, 0, FREE, IGNORE]]), K)) == 0.0
+    # weighted mean over the selected voxels
+    two = torch.zeros(1, 2, K + 1 + Nn)
+    two[0, 0, 0] = 5.0
+    sem2 = torch.tensor([[OCCUPIED_UNLABELLED, OCCUPIED_UNLABELLED]])
+    one = float(unlabelled_uniform_loss(two[:, :1], sem2[:, :1], K))
+    w = torch.tensor([[3.0, 1.0]])
+    assert float(unlabelled_uniform_loss(two, sem2, K, w)) == pytest.approx(0.75 * one, rel=1e-5)
+    # in compute_losses: off by default, on with a weight, and its gradient reaches F_3D
+    cfg, model, images, ego2img, batch, bank = _setup(seed=3)
+    marked = dict(batch)
+    sem3 = batch["semantics"].clone()
+    sem3[0, :, :2, 3] = OCCUPIED_UNLABELLED
+    marked["semantics"] = sem3
+    assert "unlabelled_uniform" not in compute_losses(model(images, ego2img), marked, bank, LossConfig())
+    on = compute_losses(model(images, ego2img), marked, bank, LossConfig(w_unlabelled_uniform=0.5))
+    assert float(on["unlabelled_uniform"]) > 0
+    model.zero_grad()
+    on["unlabelled_uniform"].backward()
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.parameters())
+    with pytest.raises(ValueError):
+        LossConfig(w_unlabelled_uniform=-1.0)
+
+
+def test_occupancy_weight_of_hit_but_unlabelled_voxels():
+    """loss.occ_unlabelled_weight multiplies the occupancy loss's weight of OCCUPIED_UNLABELLED voxels
+    only: equal losses at 1.0, a larger share for them above it, the other losses untouched."""
+    from ago_runtime.classes import OCCUPIED_UNLABELLED
+
+    cfg, model, images, ego2img, batch, bank = _setup(seed=4)
+    model.eval()
+    marked = dict(batch)
+    sem = batch["semantics"].clone()
+    sem[0, :, :2, 3] = OCCUPIED_UNLABELLED
+    marked["semantics"] = sem
+    with torch.no_grad():
+        out = model(images, ego2img)
+        base = compute_losses(out, marked, bank, LossConfig(variant="grounding"))
+        same = compute_losses(out, marked, bank, LossConfig(variant="grounding", occ_unlabelled_weight=1.0))
+        up = compute_losses(out, marked, bank, LossConfig(variant="grounding", occ_unlabelled_weight=4.0))
+        plain = compute_losses(out, batch, bank, LossConfig(variant="grounding", occ_unlabelled_weight=4.0))
+        plain1 = compute_losses(out, batch, bank, LossConfig(variant="grounding"))
+    assert float(same["occ"]) == pytest.approx(float(base["occ"]))
+    assert float(up["occ"]) != pytest.approx(float(base["occ"]))
+    assert float(up["grounding_ce"]) == pytest.approx(float(base["grounding_ce"]))
+    assert float(plain["occ"]) == pytest.approx(float(plain1["occ"]))     # no such voxel: no change
+    # by hand: the weighted mean with the unlabelled voxels' weight x4
+    from ago_train.losses.occupancy import occupancy_binary, occupancy_logits
+    from ago_train.model.scoring import class_logits
+    K = bank.num_classes
+    logits = class_logits(out["feat"], bank.text, bank.phrase_class, K, out["free_embedding"], bank.noise)[0]
+    s = sem.reshape(-1)
+    t = occupancy_binary(s, K)
+    ce = torch.nn.functional.cross_entropy(occupancy_logits(logits, K), torch.where(t == IGNORE, 0, t),
+                                           reduction="none")
+    w = torch.where(t == IGNORE, 0.0, torch.where(s == OCCUPIED_UNLABELLED, 4.0, 1.0))
+    assert float(up["occ"]) == pytest.approx(float((ce * w).sum() / w.sum()), rel=1e-4)
+    with pytest.raises(ValueError):
+        LossConfig(occ_unlabelled_weight=0.0)

@@ -12,7 +12,7 @@
 - sample_weight: (B, M) importance weights of a stratified voxel sample (losses/sampling.py), or None:
   every loss is then the weighted mean over the sampled voxels (an estimate of its whole-grid value).
 Returns a dict of scalar tensors: "total" plus the parts that were computed
-("grounding_ce", "grounding_lovasz", "occ", "align").
+("grounding_ce", "grounding_lovasz", "occ", "align", "unlabelled_uniform").
 
 Variants (`LossConfig.variant`):
 - "align":            align(F_3D, E_3D) (+ occ) (no adapter, no grounding): the POP-3D-like baseline.
@@ -58,12 +58,31 @@ class LossConfig:
     # Departure from the paper (docs/training.md, "Class balance"): CE weights n_c ** -class_balance of the
     # occupied classes' voxel counts in the training pseudo-labels (losses/class_balance.py); 0 = uniform.
     class_balance: float = 0.0
+    # Departure from the paper (docs/training.md, "open world"): on voxels the LiDAR hit that no mask of
+    # the label space labelled (OCCUPIED_UNLABELLED: matter of no training class, or a missed instance),
+    # push F_3D's softmax over [the K class texts + the noise words] towards uniform (cross-entropy to the
+    # uniform distribution, as outlier exposure does). The grounded branch then stays unsure on matter
+    # of no training class, and the min-entropy identifier can hand those voxels to F~_3D. 0 = off.
+    # Uses no class label: only "hit, and no training class's mask covers it".
+    w_unlabelled_uniform: float = 0.0
+    # Departure from the paper (docs/training.md, "open world"): the occupancy loss of those voxels
+    # (OCCUPIED_UNLABELLED) weighs this many times a labelled voxel's. A labelled occupied voxel is told
+    # "occupied" by three losses (CE, Lovász, occupancy), a hit-unlabelled one by the occupancy loss alone,
+    # and with a small label space most occupied matter is unlabelled: at 1.0 the open-world pretraining
+    # learnt to call it free (docs/results.md). 1.0 = the paper's.
+    occ_unlabelled_weight: float = 1.0
 
     def __post_init__(self):
         if self.variant not in VARIANTS:
             raise ValueError(f"unknown loss variant {self.variant!r}; expected one of {VARIANTS}")
         if self.align_loss not in ALIGN_LOSSES:
             raise ValueError(f"unknown align loss {self.align_loss!r}; expected one of {ALIGN_LOSSES}")
+        if isinstance(self.w_unlabelled_uniform, bool) or not isinstance(self.w_unlabelled_uniform, (int, float)) \
+                or float(self.w_unlabelled_uniform) < 0:
+            raise ValueError(f"loss.w_unlabelled_uniform must be a number >= 0, got {self.w_unlabelled_uniform!r}")
+        if isinstance(self.occ_unlabelled_weight, bool) or not isinstance(self.occ_unlabelled_weight, (int, float)) \
+                or float(self.occ_unlabelled_weight) <= 0:
+            raise ValueError(f"loss.occ_unlabelled_weight must be a number > 0, got {self.occ_unlabelled_weight!r}")
         if isinstance(self.class_balance, bool) or not isinstance(self.class_balance, (int, float)) \
                 or not 0.0 <= float(self.class_balance) <= 2.0:
             raise ValueError(f"loss.class_balance must be a number in 0..2, got {self.class_balance!r}")
@@ -117,6 +136,40 @@ def _flat_targets(batch: dict, outputs: dict, num_classes: int) -> torch.Tensor:
     return target
 
 
+def _flat_semantics(batch: dict, outputs: dict) -> torch.Tensor:
+    """(B, N|M) raw pseudo semantics of the voxels the losses see."""
+    sem = batch["semantics"]
+    B = outputs["feat"].shape[0]
+    sem = sem.reshape(B, -1).to(outputs["feat"].device).long()
+    if "voxel_index" in outputs:
+        vi = outputs["voxel_index"]
+        if vi.dim() == 1:
+            vi = vi.unsqueeze(0).expand(B, -1)
+        sem = torch.gather(sem, 1, vi)
+    return sem
+
+
+def unlabelled_uniform_loss(logits: torch.Tensor, semantics: torch.Tensor, num_classes: int,
+                            weight: torch.Tensor | None = None) -> torch.Tensor:
+    """Cross-entropy between the uniform distribution and softmax over the class and noise columns of
+    `logits` (.., K + 1 + Nn) (the free column K is left out: occupancy has its own loss), averaged over
+    the voxels whose pseudo semantics are OCCUPIED_UNLABELLED (weighted by `weight` when given), minus
+    its minimum log(K + Nn), so 0 means "uniform". 0 when there is no such voxel."""
+    from ago_runtime.classes import OCCUPIED_UNLABELLED
+
+    K = num_classes
+    cols = torch.cat([logits[..., :K], logits[..., K + 1:]], -1).float()
+    sel = semantics == OCCUPIED_UNLABELLED
+    if not bool(sel.any()):
+        return logits.sum() * 0.0
+    logp = torch.log_softmax(cols[sel], -1)
+    per_voxel = -logp.mean(-1) - torch.log(torch.tensor(float(cols.shape[-1]), device=logp.device))
+    if weight is None:
+        return per_voxel.mean()
+    w = weight[sel].float()
+    return (w * per_voxel).sum() / w.sum().clamp_min(1e-12)
+
+
 def _flat_occupancy(batch: dict, outputs: dict, num_classes: int) -> torch.Tensor:
     """(B, N|M) 0 occupied / 1 free / IGNORE from the pseudo semantics (hit-unlabelled voxels occupied)."""
     sem = batch["semantics"]
@@ -149,6 +202,18 @@ def _align_rows(batch: dict, outputs: dict, num_voxels: int) -> tuple[torch.Tens
     return rows[keep], emb[keep]
 
 
+def _occupancy_weight(w: torch.Tensor | None, batch: dict, outputs: dict, cfg: LossConfig) -> torch.Tensor | None:
+    """The occupancy loss's per-voxel weights: the sample weights, times cfg.occ_unlabelled_weight on
+    OCCUPIED_UNLABELLED voxels."""
+    if cfg.occ_unlabelled_weight == 1.0:
+        return w
+    from ago_runtime.classes import OCCUPIED_UNLABELLED
+
+    sem = _flat_semantics(batch, outputs)
+    factor = torch.where(sem == OCCUPIED_UNLABELLED, float(cfg.occ_unlabelled_weight), 1.0).to(outputs["feat"].dtype)
+    return factor if w is None else w * factor
+
+
 def compute_losses(outputs: dict, batch: dict, bank: BankTensors, cfg: LossConfig,
                    free_embedding: torch.Tensor | None = None, num_voxels: int | None = None,
                    sample_weight: torch.Tensor | None = None, adapter=None,
@@ -172,12 +237,17 @@ def compute_losses(outputs: dict, batch: dict, bank: BankTensors, cfg: LossConfi
         losses["grounding_ce"], losses["grounding_lovasz"] = ce, lov
         total = total + cfg.w_ce * ce + cfg.w_lovasz * lov
         if cfg.use_occ:
-            losses["occ"] = occupancy_loss(logits, target, K, weight=w, binary=_flat_occupancy(batch, outputs, K))
+            losses["occ"] = occupancy_loss(logits, target, K, weight=_occupancy_weight(w, batch, outputs, cfg),
+                                           binary=_flat_occupancy(batch, outputs, K))
             total = total + cfg.w_occ * losses["occ"]
+        if cfg.w_unlabelled_uniform > 0:
+            losses["unlabelled_uniform"] = unlabelled_uniform_loss(logits, _flat_semantics(batch, outputs), K, w)
+            total = total + cfg.w_unlabelled_uniform * losses["unlabelled_uniform"]
     if not cfg.uses_grounding and cfg.use_occ:
         target = _flat_targets(batch, outputs, K)
         logits = class_logits(feat, bank.text, bank.phrase_class, K, free, None)
-        losses["occ"] = occupancy_loss(logits, target, K, weight=w, binary=_flat_occupancy(batch, outputs, K))
+        losses["occ"] = occupancy_loss(logits, target, K, weight=_occupancy_weight(w, batch, outputs, cfg),
+                                       binary=_flat_occupancy(batch, outputs, K))
         total = total + cfg.w_occ * losses["occ"]
     if cfg.uses_align:
         if num_voxels is None:
