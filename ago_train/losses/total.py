@@ -124,29 +124,26 @@ class BankTensors:
                            None if self.noise is None else self.noise.to(device))
 
 
+def _sampled(values: torch.Tensor, outputs: dict) -> torch.Tensor:
+    """(B, N) per-voxel values -> (B, N|M): those of the voxels the losses see (the voxel sample, if any)."""
+    if "voxel_index" not in outputs:
+        return values
+    vi = outputs["voxel_index"]
+    if vi.dim() == 1:
+        vi = vi.unsqueeze(0).expand(values.shape[0], -1)
+    return torch.gather(values, 1, vi)
+
+
 def _flat_targets(batch: dict, outputs: dict, num_classes: int) -> torch.Tensor:
-    sem = batch["semantics"]
     B = outputs["feat"].shape[0]
-    target = semantics_to_targets(sem.reshape(B, -1), num_classes).to(outputs["feat"].device)
-    if "voxel_index" in outputs:
-        vi = outputs["voxel_index"]
-        if vi.dim() == 1:
-            vi = vi.unsqueeze(0).expand(B, -1)
-        target = torch.gather(target, 1, vi)
-    return target
+    sem = batch["semantics"].reshape(B, -1)
+    return _sampled(semantics_to_targets(sem, num_classes).to(outputs["feat"].device), outputs)
 
 
 def _flat_semantics(batch: dict, outputs: dict) -> torch.Tensor:
     """(B, N|M) raw pseudo semantics of the voxels the losses see."""
-    sem = batch["semantics"]
     B = outputs["feat"].shape[0]
-    sem = sem.reshape(B, -1).to(outputs["feat"].device).long()
-    if "voxel_index" in outputs:
-        vi = outputs["voxel_index"]
-        if vi.dim() == 1:
-            vi = vi.unsqueeze(0).expand(B, -1)
-        sem = torch.gather(sem, 1, vi)
-    return sem
+    return _sampled(batch["semantics"].reshape(B, -1).to(outputs["feat"].device).long(), outputs)
 
 
 def unlabelled_uniform_loss(logits: torch.Tensor, semantics: torch.Tensor, num_classes: int,
@@ -172,15 +169,9 @@ def unlabelled_uniform_loss(logits: torch.Tensor, semantics: torch.Tensor, num_c
 
 def _flat_occupancy(batch: dict, outputs: dict, num_classes: int) -> torch.Tensor:
     """(B, N|M) 0 occupied / 1 free / IGNORE from the pseudo semantics (hit-unlabelled voxels occupied)."""
-    sem = batch["semantics"]
     B = outputs["feat"].shape[0]
-    binary = occupancy_binary(sem.reshape(B, -1), num_classes).to(outputs["feat"].device)
-    if "voxel_index" in outputs:
-        vi = outputs["voxel_index"]
-        if vi.dim() == 1:
-            vi = vi.unsqueeze(0).expand(B, -1)
-        binary = torch.gather(binary, 1, vi)
-    return binary
+    binary = occupancy_binary(batch["semantics"].reshape(B, -1), num_classes).to(outputs["feat"].device)
+    return _sampled(binary, outputs)
 
 
 def _align_rows(batch: dict, outputs: dict, num_voxels: int) -> tuple[torch.Tensor, torch.Tensor]:
