@@ -31,6 +31,7 @@ from dataclasses import asdict, dataclass
 
 import torch
 
+from ago_runtime.classes import OCCUPIED_UNLABELLED
 from ago_train.model.scoring import class_logits
 
 from .align import ALIGN_LOSSES, align_loss
@@ -152,8 +153,6 @@ def unlabelled_uniform_loss(logits: torch.Tensor, semantics: torch.Tensor, num_c
     `logits` (.., K + 1 + Nn) (the free column K is left out: occupancy has its own loss), averaged over
     the voxels whose pseudo semantics are OCCUPIED_UNLABELLED (weighted by `weight` when given), minus
     its minimum log(K + Nn), so 0 means "uniform". 0 when there is no such voxel."""
-    from ago_runtime.classes import OCCUPIED_UNLABELLED
-
     K = num_classes
     cols = torch.cat([logits[..., :K], logits[..., K + 1:]], -1).float()
     sel = semantics == OCCUPIED_UNLABELLED
@@ -198,8 +197,6 @@ def _occupancy_weight(w: torch.Tensor | None, batch: dict, outputs: dict, cfg: L
     OCCUPIED_UNLABELLED voxels."""
     if cfg.occ_unlabelled_weight == 1.0:
         return w
-    from ago_runtime.classes import OCCUPIED_UNLABELLED
-
     sem = _flat_semantics(batch, outputs)
     factor = torch.where(sem == OCCUPIED_UNLABELLED, float(cfg.occ_unlabelled_weight), 1.0).to(outputs["feat"].dtype)
     return factor if w is None else w * factor
