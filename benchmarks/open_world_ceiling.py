@@ -83,7 +83,7 @@ def score_run(ckpt_path: Path, data: str, prompts: str, max_frames: int | None) 
         lab = {v: up(open_world_identify(main, adap, v, K, *scales)[0]) for v in ("none", "min-entropy", "adapted")}
         gt_unknown = (gt < K) & unknown[np.minimum(gt, K - 1)]
         lab["oracle"] = np.where(gt_unknown, lab["adapted"], lab["none"])
-        adapted_class = up(torch.softmax(scales[1] * adap[:, :K].float(), -1).argmax(-1))
+        adapted_class = up(adap[:, :K].argmax(-1))     # F~_3D's class everywhere (a positive scale keeps the argmax)
         lab["oracle occupancy"] = np.where(gt_unknown, adapted_class, lab["none"])
         for v in VIEWS:
             metrics[v].update(lab[v], gt, mask)
