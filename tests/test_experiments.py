@@ -37,12 +37,51 @@ def test_plan_names_every_run_once_and_views_match_the_method():
     assert "cw/ago" in names and "ow/ago-adapter3" in names and "fewshot/grounding/seed1" in names
     assert cw_run("ago", use_noise=False, use_occ=False).name == "cw/ago-no-noise-no-occ"
     assert ow_run("ago", adapter_depth=2).name == "ow/ago" and ow_run("ago", align_loss="l1").name == "ow/ago-l1"
-    assert fewshot_run("align", 1).init_from == "ow/align"
+    # seeds: every cw / ow run once per seed (seed 0 keeps the plain name), few-shot s starts from pretraining s
+    assert fewshot_run("align", 0).init_from == "ow/align" and fewshot_run("align", 1).init_from == "ow/align-seed1"
+    assert {"cw/ago", "cw/ago-seed1", "ow/ago-adapter3-seed1", "cw/ago-no-noise-no-occ-seed1"} <= set(names)
+    assert cw_run("ago", seed=1).seed == 1 and ow_run("ago", seed=1).name == "ow/ago-seed1"
+    assert len(set(names)) == 38 and p.seeds == (0, 1)
     # the closed-world classifier is the grounding run scored without the unknown classes' phrases
     assert any(v.closed_set for v in views_for(ow_run("grounding"), "ow.txt"))
     assert {v.identifier for v in views_for(ow_run("ago"), "ow.txt")} == {"none", "max-conf", "min-entropy", "adapted"}
     with pytest.raises(AgoInputError):
         runs_for("tab9", p)
+
+
+def test_seed_means_keep_each_value_and_the_spread_note_says_what_is_apart(tmp_path):
+    from ago_train.experiments.report import SeedMean, _fmt, _views, spread_note
+    from ago_runtime.atomic import write_json
+
+    for name, known in (("ow/ago", 10.0), ("ow/ago-seed1", 12.0)):
+        write_json(tmp_path / "runs" / name / "views.json",
+                   {"views": {"ow-none": {"mIoU": known, "subsets": {"known": known, "unknown": None}}},
+                    "stats": {"classes": ["a"]}})
+    missing = []
+    v = _views(tmp_path, "ow/ago", (0, 1, 2), missing)
+    m = v["views"]["ow-none"]["mIoU"]
+    assert isinstance(m, SeedMean) and m == 11.0 and m.values == [10.0, 12.0]
+    assert missing == ["ow/ago-seed2"] and v["views"]["ow-none"]["subsets"]["unknown"] is None
+    assert _fmt(m) == "11.00 (10.00, 12.00)" and _fmt(None) == "–" and _fmt(3.0) == "3.00"
+    rows = [{"n": "ref", "x": SeedMean([10.0, 11.0])}, {"n": "far", "x": SeedMean([13.0, 14.0])},
+            {"n": "near", "x": SeedMean([10.5, 12.0])}]
+    note = " ".join(spread_note(rows, "x", lambda r: r["n"], rows[0], "mIoU"))
+    assert "above the spread (the seeds' ranges do not overlap): far +3.00" in note
+    assert "Within the spread: near +0.75" in note
+    assert spread_note([{"n": "a", "x": 1.0}], "x", lambda r: r["n"], {"n": "a", "x": 1.0}, "m") == []
+
+
+def test_open_world_runs_get_the_open_world_recipe_and_closed_world_runs_do_not(tmp_path):
+    from ago_train.experiments.plan import OW_RECIPE
+
+    runner = ExperimentRunner(ExperimentProfile.preset("cpu"), tmp_path, quiet=True)
+    ow = runner.train_config(ow_run("ago", seed=1))
+    assert ow.loss.w_unlabelled_uniform == 0.5 and ow.loss.occ_unlabelled_weight == 4.0 and ow.loss.align_center
+    assert ow.seed == 1 and ow.max_steps == 1000
+    cw = runner.train_config(cw_run("ago"))
+    assert cw.loss.w_unlabelled_uniform == 0.0 and cw.loss.occ_unlabelled_weight == 1.0
+    full = ExperimentProfile.preset("full")
+    assert full.ow_loss == {} and OW_RECIPE["w_unlabelled_uniform"] == 0.5   # the paper's losses on GPU
 
 
 def test_tiny_profile_end_to_end(tiny_experiments):
@@ -72,6 +111,11 @@ def test_tiny_profile_end_to_end(tiny_experiments):
         assert (out / "figures" / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     md = (out / "results.md").read_text()
     assert "Tab. 4" in md and "min entropy" in md
+    # two seeds: each run twice, cells "mean (a, b)", results.json keeps both values, a seed-spread line
+    assert (out / "runs" / "cw" / "ago-seed1" / "done.json").is_file()
+    row = t["tab3"]["rows"][0]
+    assert len(row["per_seed"]["cw_mIoU"]) == 2 and abs(np.mean(row["per_seed"]["cw_mIoU"]) - row["cw_mIoU"]) < 1e-6
+    assert "Seed spread (closed-world mIoU" in md
 
 
 def test_second_run_reuses_everything_and_a_half_run_resumes(tiny_experiments):

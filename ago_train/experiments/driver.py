@@ -40,21 +40,25 @@ EXPERIMENTS = ("tab1", "tab2", "tab3", "tab4", "tab5", "supp", "figures")
 # ---------------------------------------------------------------------------------------------
 # which runs and which views each experiment needs
 def runs_for(experiment: str, profile: ExperimentProfile) -> list[RunSpec]:
+    """The runs `experiment` needs: each closed-/open-world run once per seed of the profile, the few-shot
+    runs one per seed (plan.py); the figures use seed 0's runs."""
+    seeds = profile.seeds
     if experiment == "tab1":
-        return [cw_run("ago")]
+        return [cw_run("ago", seed=s) for s in seeds]
     if experiment == "tab2":
-        return [ow_run(v) for v in FEWSHOT_VARIANTS] + [fewshot_run(v, s) for v in FEWSHOT_VARIANTS
-                                                        for s in profile.seeds]
+        return ([ow_run(v, seed=s) for v in FEWSHOT_VARIANTS for s in seeds]
+                + [fewshot_run(v, s) for v in FEWSHOT_VARIANTS for s in seeds])
     if experiment == "tab3":
-        return [cw_run(v) for v in PARADIGMS] + [ow_run(v) for v in PARADIGMS]
+        return [cw_run(v, seed=s) for v in PARADIGMS for s in seeds] + [ow_run(v, seed=s) for v in PARADIGMS
+                                                                       for s in seeds]
     if experiment == "tab4":
-        return [ow_run("ago")] + [fewshot_run("ago", s) for s in profile.seeds]
+        return [ow_run("ago", seed=s) for s in seeds] + [fewshot_run("ago", s) for s in seeds]
     if experiment == "tab5":
-        return [cw_run("ago"), cw_run("ago", use_noise=False), cw_run("ago", use_occ=False),
-                cw_run("ago", use_noise=False, use_occ=False)]
+        return [cw_run("ago", seed=s, **loss) for loss in ({}, {"use_noise": False}, {"use_occ": False},
+                                                           {"use_noise": False, "use_occ": False}) for s in seeds]
     if experiment == "supp":
-        return ([ow_run("ago", adapter_depth=d) for d in (1, 2, 3, 4)]
-                + [ow_run("ago", align_loss=a) for a in ("mse", "l1")])
+        return ([ow_run("ago", adapter_depth=d, seed=s) for d in (1, 2, 3, 4) for s in seeds]
+                + [ow_run("ago", align_loss=a, seed=s) for a in ("mse", "l1") for s in seeds])
     if experiment == "figures":
         return [cw_run("ago"), ow_run("ago")]
     raise AgoInputError(None, f"unknown experiment {experiment!r}; choose from {list(EXPERIMENTS)}")
@@ -223,7 +227,8 @@ class ExperimentRunner:
         cfg = TrainConfig.preset(p.train_preset)
         if p.train_set:
             cfg = TrainConfig.from_dict({**cfg.to_dict(), **p.train_set})
-        loss = LossConfig(**{**cfg.loss.to_dict(), **dict(spec.loss)})
+        ow_loss = p.ow_loss if spec.setting in ("ow", "fewshot") else {}
+        loss = LossConfig(**{**cfg.loss.to_dict(), **ow_loss, **dict(spec.loss)})
         model = ModelConfig.from_dict({**cfg.model.to_dict(), **dict(spec.model)})
         space = {"cw": "cw", "ow": "ow_pretrain", "fewshot": "ow"}[spec.setting]
         changes = dict(data=str(self.data), pseudo=str(self.pseudo(space)), prompts=spec.prompts,
@@ -269,7 +274,7 @@ class ExperimentRunner:
         if self.is_trained(spec):
             return
         if spec.init_from:
-            self.ensure_trained(RunSpec(spec.init_from, "ow", spec.loss, spec.model))
+            self.ensure_trained(RunSpec(spec.init_from, "ow", spec.loss, spec.model, seed=spec.seed))
         cfg = self.train_config(spec)
         resume = (self.run_dir(spec.name) / "last.pt").is_file()
         self.log(f"train {spec.name}{' (resume)' if resume else ''}")

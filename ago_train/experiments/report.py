@@ -23,20 +23,63 @@ from ago_runtime.atomic import write_json, write_text
 from ago_runtime.classes import OCC3D_CLASSES
 from ago_runtime.readers import read_json
 
-from .plan import ADAPTED_SCALES, FEWSHOT_VARIANTS, PARADIGMS, ExperimentProfile, cw_run, fewshot_run, ow_run
+from .plan import (ADAPTED_SCALES, FEWSHOT_VARIANTS, PARADIGMS, ExperimentProfile, cw_run, fewshot_run, ow_run,
+                   seeded)
 
 PAPER_TABLES = Path(__file__).with_name("paper_tables.json")
 PAPER_NAMES = {"align": "POP-3D-like align", "grounding": "grounding only", "grounding+align": "grounding + align",
                "ago": "AGO (adaptive grounding)", "closed": "closed-world classifier (SelfOcc-like)"}
 
 
-def _views(out: Path, name: str) -> dict | None:
-    p = out / "runs" / name / "views.json"
-    return read_json(p) if p.is_file() else None
+class SeedMean(float):
+    """A mean over training seeds that keeps each seed's value; printed as 'mean (a, b)'."""
+
+    values: list
+
+    def __new__(cls, values):
+        obj = super().__new__(cls, float(np.mean(values)))
+        obj.values = [float(v) for v in values]
+        return obj
+
+
+def _merge(items: list):
+    """Several seeds' views.json trees -> one tree whose numbers are SeedMeans (lists and text: seed 0's)."""
+    first = items[0]
+    if isinstance(first, dict):
+        return {k: _merge([it[k] for it in items if isinstance(it, dict) and k in it]) for k in first}
+    if isinstance(first, (int, float)) and not isinstance(first, bool):
+        vals = [x for x in items if isinstance(x, (int, float)) and not isinstance(x, bool)]
+        return SeedMean(vals) if len(items) > 1 else first
+    return first
+
+
+def _views_of(out: Path, names: list[str], missing: list | None = None) -> dict | None:
+    """The views.json of the runs `names` (one per seed) merged into means; absent runs go to `missing`."""
+    got = []
+    for name in names:
+        p = out / "runs" / name / "views.json"
+        if p.is_file():
+            got.append(read_json(p))
+        elif missing is not None:
+            missing.append(name)
+    return _merge(got) if got else None
+
+
+def _views(out: Path, name: str, seeds=(0,), missing: list | None = None) -> dict | None:
+    return _views_of(out, [seeded(name, s) for s in seeds], missing)
 
 
 def _fmt(v) -> str:
-    return "–" if v is None else f"{v:.2f}"
+    if v is None:
+        return "–"
+    if isinstance(v, SeedMean) and len(v.values) > 1:
+        return f"{v:.2f} ({', '.join(f'{x:.2f}' for x in v.values)})"
+    return f"{v:.2f}"
+
+
+def _plain(v):
+    """A seed mean printed without its seed values (the per-class columns)."""
+    return None if v is None else float(v)
 
 
 def _row(view: dict | None) -> dict:
@@ -46,20 +89,47 @@ def _row(view: dict | None) -> dict:
     return {"known": sub.get("known"), "unknown": sub.get("unknown"), "all": view["mIoU"]}
 
 
-def _mean(rows: list[dict]) -> dict:
-    out = {}
-    for k in rows[0] if rows else []:
-        vals = [r[k] for r in rows if r.get(k) is not None]
-        out[k] = round(float(np.mean(vals)), 2) if vals else None
-    return out
+def _separated(a, b) -> bool:
+    """True when two seed means' ranges of values do not overlap (the difference is above the seed spread)."""
+    return min(a.values) > max(b.values) or max(a.values) < min(b.values)
+
+
+def spread_note(rows: list[dict], key: str, label, ref: dict, what: str) -> list[str]:
+    """One sentence: which rows differ from `ref` in `key` by more than the seed spread (ranges apart)."""
+    r0 = ref.get(key)
+    if not isinstance(r0, SeedMean) or len(r0.values) < 2:
+        return []
+    above, within = [], []
+    for r in rows:
+        v = r.get(key)
+        if r is ref or not isinstance(v, SeedMean) or len(v.values) < 2:
+            continue
+        (above if _separated(v, r0) else within).append(f"{label(r)} {v - r0:+.2f}")
+    if not above and not within:
+        return []
+    return ["", f"Seed spread ({what}, against {label(ref)}): above the spread (the seeds' ranges do not "
+                f"overlap): {'; '.join(above) or 'none'}. Within the spread: {'; '.join(within) or 'none'}."]
+
+
+def _per_seed(tables: dict) -> dict:
+    """results.json keeps every seed's value: rows gain 'per_seed' {key: [values]} for their seed means."""
+    for t in tables.values():
+        if not isinstance(t, dict):
+            continue
+        for rows in (t.get("rows"), t.get("depth"), t.get("loss")):
+            for r in rows or []:
+                ps = {k: v.values for k, v in r.items() if isinstance(v, SeedMean) and len(v.values) > 1}
+                if ps:
+                    r["per_seed"] = ps
+    return tables
 
 
 # ---------------------------------------------------------------------------------------------
-def table1(out: Path, pseudo_score: dict | None) -> dict:
-    v = _views(out, cw_run("ago").name)
-    t = {"title": "Tab. 1 — closed world, self-supervised (cw label space, val split)", "rows": []}
+# every number below is the mean over the profile's seeds (a SeedMean that keeps each seed's value)
+def table1(out: Path, pseudo_score: dict | None, profile: ExperimentProfile) -> dict:
+    t = {"title": "Tab. 1 — closed world, self-supervised (cw label space, val split)", "rows": [], "missing": []}
+    v = _views(out, cw_run("ago").name, profile.seeds, t["missing"])
     if v is None:
-        t["missing"] = [cw_run("ago").name]
         return t
     view = v["views"]["cw"]
     t["rows"].append({"method": "ago (F_3D, no identifier)", "mIoU": view["mIoU"], "mIoU_star": view["mIoU_star"],
@@ -75,41 +145,28 @@ def table1(out: Path, pseudo_score: dict | None) -> dict:
 
 def table2(out: Path, profile: ExperimentProfile) -> dict:
     t = {"title": "Tab. 2 — open world: pretrain on 5 classes, zero-shot and few-shot on 15 "
-                  f"(known / unknown / all mIoU; few-shot k={profile.k}, mean of seeds {list(profile.seeds)})",
+                  f"(known / unknown / all mIoU; few-shot k={profile.k}; mean of seeds {list(profile.seeds)})",
          "rows": [], "missing": []}
-    cl = _views(out, ow_run("grounding").name)
+    cl = _views(out, ow_run("grounding").name, profile.seeds)
     if cl and "ow-closed" in cl["views"]:
         t["rows"].append({"method": PAPER_NAMES["closed"], "stage": "zero-shot", **_row(cl["views"]["ow-closed"])})
     for variant in FEWSHOT_VARIANTS:
-        spec = ow_run(variant)
         view = "ow-min-entropy" if variant == "ago" else "ow-none"
-        v = _views(out, spec.name)
-        if v is None:
-            t["missing"].append(spec.name)
-        else:
+        v = _views(out, ow_run(variant).name, profile.seeds, t["missing"])
+        if v is not None:
             t["rows"].append({"method": PAPER_NAMES[variant], "stage": "zero-shot", **_row(v["views"][view])})
-        seeds = []
-        for s in profile.seeds:
-            f = _views(out, fewshot_run(variant, s).name)
-            if f is None:
-                t["missing"].append(fewshot_run(variant, s).name)
-            else:
-                seeds.append(_row(f["views"][view]))
-        if seeds:
-            t["rows"].append({"method": PAPER_NAMES[variant], "stage": f"{profile.k}-shot ({len(seeds)} seeds)",
-                              **_mean(seeds), "per_seed": seeds})
+        f = _views_of(out, [fewshot_run(variant, s).name for s in profile.seeds], t["missing"])
+        if f is not None:
+            t["rows"].append({"method": PAPER_NAMES[variant], "stage": f"{profile.k}-shot", **_row(f["views"][view])})
     return t
 
 
-def table3(out: Path) -> dict:
+def table3(out: Path, profile: ExperimentProfile) -> dict:
     t = {"title": "Tab. 3 — training paradigm: self-supervised (cw mIoU) and open world (zero-shot, known / "
                   "unknown / all)", "rows": [], "missing": []}
     for variant in PARADIGMS:
-        cw, ow = _views(out, cw_run(variant).name), _views(out, ow_run(variant).name)
-        if cw is None:
-            t["missing"].append(cw_run(variant).name)
-        if ow is None:
-            t["missing"].append(ow_run(variant).name)
+        cw = _views(out, cw_run(variant).name, profile.seeds, t["missing"])
+        ow = _views(out, ow_run(variant).name, profile.seeds, t["missing"])
         ow_view = "ow-min-entropy" if variant == "ago" else "ow-none"
         t["rows"].append({"paradigm": PAPER_NAMES[variant],
                           "cw_mIoU": cw["views"]["cw"]["mIoU"] if cw else None,
@@ -120,12 +177,10 @@ def table3(out: Path) -> dict:
 
 def table4(out: Path, profile: ExperimentProfile) -> dict:
     t = {"title": "Tab. 4 — open-world identifier (ago; known / unknown / all mIoU)", "rows": [], "missing": []}
-    zs = _views(out, ow_run("ago").name)
-    fs = [_views(out, fewshot_run("ago", s).name) for s in profile.seeds]
+    zs = _views(out, ow_run("ago").name, profile.seeds, t["missing"])
+    fs = _views_of(out, [fewshot_run("ago", s).name for s in profile.seeds], t["missing"])
     names = {"ow-none": "none (F_3D only)", "ow-max-conf": "max confidence", "ow-min-entropy": "min entropy (AGO)",
              "ow-adapted": "adapted F~_3D only"}
-    if zs is None:
-        t["missing"].append(ow_run("ago").name)
     names.update({f"ow-min-entropy-x{s:g}": f"min entropy, adapted logits x{s:g} (diagnostic, chosen on val)"
                   for s in ADAPTED_SCALES})
     for key, label in names.items():
@@ -134,14 +189,13 @@ def table4(out: Path, profile: ExperimentProfile) -> dict:
         row = {"identifier": label}
         if zs:
             row.update({f"zs_{k}": x for k, x in _row(zs["views"].get(key)).items()})
-        got = [f for f in fs if f is not None]
-        if got:
-            row.update({f"fs_{k}": x for k, x in _mean([_row(f["views"].get(key)) for f in got]).items()})
+        if fs:
+            row.update({f"fs_{k}": x for k, x in _row(fs["views"].get(key)).items()})
         t["rows"].append(row)
     return t
 
 
-def table5(out: Path) -> dict:
+def table5(out: Path, profile: ExperimentProfile) -> dict:
     t = {"title": "Tab. 5 — components (closed world): noise prompts and L_occ", "rows": [], "missing": []}
     for noise, occ in ((False, False), (True, False), (False, True), (True, True)):
         loss = {}
@@ -149,30 +203,27 @@ def table5(out: Path) -> dict:
             loss["use_noise"] = False
         if not occ:
             loss["use_occ"] = False
-        spec = cw_run("ago", **loss)
-        v = _views(out, spec.name)
-        if v is None:
-            t["missing"].append(spec.name)
+        v = _views(out, cw_run("ago", **loss).name, profile.seeds, t["missing"])
         view = v["views"]["cw"] if v else None
         t["rows"].append({"noise_prompts": noise, "L_occ": occ, "geometry_IoU": view["geometry_IoU"] if view else None,
                           "mIoU": view["mIoU"] if view else None})
     return t
 
 
-def table_supp(out: Path) -> dict:
+def table_supp(out: Path, profile: ExperimentProfile) -> dict:
     t = {"title": "Supplementary — adapter depth and alignment loss (ago, open world zero-shot, min-entropy)",
          "depth": [], "loss": [], "missing": []}
 
     def row(spec) -> dict:
-        v = _views(out, spec.name)
+        v = _views(out, spec.name, profile.seeds, t["missing"])
         if v is None:
-            t["missing"].append(spec.name)
             return {**_row(None), "unknown_adapted_only": None}
         return {**_row(v["views"]["ow-min-entropy"]),
                 "unknown_adapted_only": (v["views"]["ow-adapted"]["subsets"] or {}).get("unknown")}
 
     t["depth"] = [{"adapter_layers": d, **row(ow_run("ago", adapter_depth=d))} for d in (1, 2, 3, 4)]
     t["loss"] = [{"align_loss": a, **row(ow_run("ago", align_loss=a))} for a in ("cosine", "mse", "l1")]
+    t["missing"] = sorted(set(t["missing"]))   # depth 2 and cosine are the same runs
     return t
 
 
@@ -317,24 +368,38 @@ def paper_markdown(paper: dict | None, ours: str) -> list[str]:
     return lines
 
 
-def markdown(tables: dict, profile: ExperimentProfile, steps: dict, paper: dict | None = None) -> str:
+def _fmt_s(v) -> str:
+    return "–" if v is None else f"{v:.0f}"
+
+
+def markdown(tables: dict, profile: ExperimentProfile, steps: dict, paper: dict | None = None,
+             times: dict | None = None) -> str:
     L = [f"# Experiments (profile `{profile.name}`)", "",
          "Synthetic world, simulated VLM backends (see docs/synth.md, docs/vlm_files.md); numbers in % over "
          "the val split's camera-visible voxels at the GT resolution. Made by `ago experiments run --profile "
-         f"{profile.name}`; see docs/results.md for the reading beside the paper.", ""]
+         f"{profile.name}`; see docs/results.md for the reading beside the paper. Every run is trained with "
+         f"the seeds {list(profile.seeds)}: a cell is the mean, each seed's value in brackets; under each "
+         "table a line says which differences are above the seed spread (the seeds' ranges do not overlap).", ""]
     t1 = tables["tab1"]
     L += [f"## {t1['title']}", ""]
     if t1["rows"]:
         classes = [c for c in OCC3D_CLASSES]
         L += _md_table(["method", "mIoU", "mIoU*", "geo IoU"] + classes,
-                       [[r["method"], r["mIoU"], r["mIoU_star"], r["geometry_IoU"]] + [r["iou"].get(c) for c in classes]
+                       [[r["method"], r["mIoU"], r["mIoU_star"], r["geometry_IoU"]]
+                        + [_plain(r["iou"].get(c)) for c in classes]
                         for r in t1["rows"]])
+    L += spread_note(t1["rows"][:2], "mIoU", lambda r: r["method"], t1["rows"][0], "mIoU") if t1["rows"] else []
     L += _missing(t1)
     L += paper_markdown(paper, "tab1")
     t2 = tables["tab2"]
     L += ["", f"## {t2['title']}", ""]
     L += _md_table(["method", "stage", "known", "unknown", "all"],
                    [[r["method"], r["stage"], r["known"], r["unknown"], r["all"]] for r in t2["rows"]])
+    for stage in dict.fromkeys(r["stage"] for r in t2["rows"]):
+        rows = [r for r in t2["rows"] if r["stage"] == stage]
+        ref = [r for r in rows if r["method"] == PAPER_NAMES["ago"]]
+        if ref:
+            L += spread_note(rows, "unknown", lambda r: r["method"], ref[0], f"{stage}, unknown mIoU")
     L += _missing(t2)
     L += paper_markdown(paper, "tab2")
     t3 = tables["tab3"]
@@ -342,6 +407,9 @@ def markdown(tables: dict, profile: ExperimentProfile, steps: dict, paper: dict 
     L += _md_table(["paradigm", "cw mIoU", "cw geo IoU", "ow known", "ow unknown", "ow all"],
                    [[r["paradigm"], r["cw_mIoU"], r["cw_geometry_IoU"], r["ow_known"], r["ow_unknown"], r["ow_all"]]
                     for r in t3["rows"]])
+    ref = [r for r in t3["rows"] if r["paradigm"] == PAPER_NAMES["ago"]]
+    for key, what in (("cw_mIoU", "closed-world mIoU"), ("ow_unknown", "zero-shot unknown mIoU")):
+        L += spread_note(t3["rows"], key, lambda r: r["paradigm"], ref[0], what) if ref else []
     L += _missing(t3)
     L += paper_markdown(paper, "tab3")
     t4 = tables["tab4"]
@@ -350,6 +418,9 @@ def markdown(tables: dict, profile: ExperimentProfile, steps: dict, paper: dict 
                     "few-shot unknown", "few-shot all"],
                    [[r["identifier"], r.get("zs_known"), r.get("zs_unknown"), r.get("zs_all"), r.get("fs_known"),
                      r.get("fs_unknown"), r.get("fs_all")] for r in t4["rows"]])
+    ref = [r for r in t4["rows"] if r["identifier"] == "min entropy (AGO)"]
+    for key, what in (("zs_unknown", "zero-shot unknown mIoU"), ("fs_unknown", "few-shot unknown mIoU")):
+        L += spread_note(t4["rows"], key, lambda r: r["identifier"], ref[0], what) if ref else []
     L += _missing(t4)
     L += paper_markdown(paper, "tab4")
     t5 = tables["tab5"]
@@ -357,6 +428,9 @@ def markdown(tables: dict, profile: ExperimentProfile, steps: dict, paper: dict 
     L += _md_table(["noise prompts", "L_occ", "geometry IoU", "mIoU"],
                    [["yes" if r["noise_prompts"] else "no", "yes" if r["L_occ"] else "no", r["geometry_IoU"], r["mIoU"]]
                     for r in t5["rows"]])
+    name5 = lambda r: f"noise {'yes' if r['noise_prompts'] else 'no'}, L_occ {'yes' if r['L_occ'] else 'no'}"  # noqa: E731
+    for key, what in (("mIoU", "mIoU"), ("geometry_IoU", "geometry IoU")):
+        L += spread_note(t5["rows"], key, name5, t5["rows"][-1], what) if t5["rows"] else []
     L += _missing(t5)
     L += paper_markdown(paper, "tab5")
     ts = tables["supp"]
@@ -367,10 +441,21 @@ def markdown(tables: dict, profile: ExperimentProfile, steps: dict, paper: dict 
     L += [""]
     L += _md_table(["align loss", "known", "unknown", "all", "unknown (F~ only)"],
                    [[r["align_loss"], r["known"], r["unknown"], r["all"], r["unknown_adapted_only"]] for r in ts["loss"]])
+    if ts["depth"]:
+        L += spread_note(ts["depth"], "unknown", lambda r: f"{r['adapter_layers']} layers", ts["depth"][1],
+                         "unknown mIoU")
+        L += spread_note(ts["loss"], "unknown", lambda r: r["align_loss"], ts["loss"][0], "unknown mIoU")
     L += _missing(ts)
     L += paper_markdown(paper, "supp")
-    L += ["", "## Runs", "", "| run | optimiser steps |", "|---|---|"]
-    L += [f"| {k} | {v} |" for k, v in sorted(steps.items())]
+    times = times or {}
+    L += ["", "## Runs", "", "| run | optimiser steps | training wall s (its last session) | scoring wall s |",
+          "|---|---|---|---|"]
+    L += [f"| {k} | {v} | {_fmt_s(times.get(k, {}).get('train_s'))} | {_fmt_s(times.get(k, {}).get('eval_s'))} |"
+          for k, v in sorted(steps.items())]
+    total = sum((t.get("train_s") or 0) + (t.get("eval_s") or 0) for t in times.values())
+    if total:
+        L += ["", f"Whole set: {total / 3600:.2f} h of wall-clock time in training and scoring ({len(steps)} runs; "
+                  "data making not included)."]
     L += ["", "Figures: " + ", ".join(f"`figures/{p}`" for p in tables.get("figures", [])), ""]
     return "\n".join(L) + "\n"
 
@@ -550,13 +635,21 @@ def render_frames(out: Path, profile: ExperimentProfile) -> list[np.ndarray]:
 def write_report(out: str | Path, profile: ExperimentProfile) -> dict:
     out = Path(out)
     extra = read_json(out / "data_scores.json") if (out / "data_scores.json").is_file() else {}
-    tables = {"tab1": table1(out, extra.get("pseudo_cw_val")), "tab2": table2(out, profile), "tab3": table3(out),
-              "tab4": table4(out, profile), "tab5": table5(out), "supp": table_supp(out)}
+    tables = {"tab1": table1(out, extra.get("pseudo_cw_val"), profile), "tab2": table2(out, profile),
+              "tab3": table3(out, profile), "tab4": table4(out, profile), "tab5": table5(out, profile),
+              "supp": table_supp(out, profile)}
     tables["figures"] = figures(out, profile, extra.get("gap_e3d"))
     steps = {p.parent.relative_to(out / "runs").as_posix(): read_json(p).get("steps")
              for p in sorted((out / "runs").glob("**/done.json"))} if (out / "runs").is_dir() else {}
+    times = {}
+    for name in steps:
+        done, views = out / "runs" / name / "done.json", out / "runs" / name / "views.json"
+        times[name] = {"train_s": read_json(done).get("wall_s_last_session"),
+                       "eval_s": read_json(views).get("eval_s") if views.is_file() else None}
     paper = read_paper_tables()
-    result = {"profile": profile.to_dict(), "tables": tables, "steps": steps, "paper": paper}
+    md = markdown(tables, profile, steps, paper, times)
+    result = {"profile": profile.to_dict(), "tables": _per_seed(tables), "steps": steps, "times": times,
+              "paper": paper}
     write_json(out / "results.json", result)
-    write_text(out / "results.md", markdown(tables, profile, steps, paper))
+    write_text(out / "results.md", md)
     return result
