@@ -201,3 +201,21 @@ def test_parallel_scenes_write_the_same_dataset(tmp_path):
                                      if p.is_file())
     _, mismatch, errors = filecmp.cmpfiles(tmp_path / "one", tmp_path / "two", [str(f) for f in files], shallow=False)
     assert not mismatch and not errors
+
+
+def test_barriers_stand_by_the_ego_road_not_only_around_construction_sites():
+    """Road-edge barriers (road works and a closed-off row of 4-6) near the ego route in every scene: a
+    town whose barriers are all construction-site fences teaches a model nothing about nuScenes-like
+    lane-side barriers (issue "The model must see": barrier IoU on fresh towns)."""
+    from ago_train.synth.world import build_world
+
+    for seed, scene in ((0, 1), (7, 0)):
+        w = build_world(SynthConfig(seed=seed), scene)
+        ego_road = min((r for r in w.roads if r.axis == 0), key=lambda r: abs(r.pos))   # the ego drives y = 0
+        barriers = np.array([w.obj_pos0[i] for i, c in enumerate(w.obj_category) if c == "movable_object.barrier"])
+        hw = ego_road.half_width
+        on_road = barriers[np.abs(barriers[:, 1]) < hw]
+        assert len(on_road) >= 6, (seed, scene, len(on_road))
+        # the row: at least 4 barriers 2.2 m apart along one road edge
+        ys = np.round(on_road[:, 1], 2)
+        assert max(np.sum(ys == y) for y in np.unique(ys)) >= 4

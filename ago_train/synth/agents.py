@@ -252,8 +252,8 @@ def add_points_of_interest(b: Builder, road: Road, yroads, x_start, travel):
     rng = b.rng
     hw = road.half_width
     blocked = [(r.pos - r.half_width - 5.5, r.pos + r.half_width + 5.5) for r in yroads]
-    lengths = {"truck_trailer": 24.0, "bus_stop": 14.0, "road_works": 12.0, "motorcycles": 10.0, "bicycles": 6.0,
-               "bins": 5.0}
+    lengths = {"truck_trailer": 24.0, "barrier_row": 14.0, "bus_stop": 14.0, "road_works": 12.0, "motorcycles": 10.0,
+               "bicycles": 6.0, "bins": 5.0}
     # free stretches of each side of the ego road near the start, away from intersections
     lo_w, hi_w = x_start - 38.0, x_start + 46.0
     free = {}
@@ -296,12 +296,17 @@ def add_points_of_interest(b: Builder, road: Road, yroads, x_start, travel):
             for k in range(4):
                 cat, size, parts = make_small(b, "cone")
                 b.obj(cat, road.point(s - 5 + k * 2.5, side * (hw - road.park_w + 0.5)), 0.0, size, parts)
-            for k in range(2):
+            for k in range(int(rng.integers(2, 5))):
                 cat, size, parts = make_small(b, "barrier")
                 b.obj(cat, road.point(s - 3 + k * 2.2, side * (hw - 0.5)), 0.0, size, parts)
             size, parts = make_vehicle(b, "vehicle.construction")
             p = road.point(s + 1, side * (hw + 4.0 + size[0] / 2))
             b.obj("vehicle.construction", p, yaw_fwd, (size[0], size[1], size[2] + SLAB_HEIGHT), raised(parts))
+        elif kind == "barrier_row":  # a closed-off road edge: a line of 4-6 barriers (as nuScenes' lane-side barriers)
+            n = int(rng.integers(4, 7))
+            for k in range(n):
+                cat, size, parts = make_small(b, "barrier")
+                b.obj(cat, road.point(s + (k - (n - 1) / 2) * 2.2, side * (hw - 0.5)), 0.0, size, parts)
         elif kind == "truck_trailer":
             size, parts = make_vehicle(b, "vehicle.truck")
             b.obj("vehicle.truck", road.point(s - 0.5 - size[1] / 2, qpark), 0.0, size, parts)
