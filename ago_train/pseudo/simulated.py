@@ -178,16 +178,20 @@ class SimulatedSegmenter:
         cfg = self.config
         h, w = lab.shape
         valid = (depth > 0).ravel()
+        depth_of_valid = np.where(valid, depth.ravel(), 0.0)   # the same for every class: made once
         out = lab.copy()
+        out_flat = out.reshape(-1)
         for c in np.unique(lab):
             if c == NO_LABEL:
                 continue
-            n, comp, stats, _ = cv2.connectedComponentsWithStats((lab == c).astype(np.uint8), connectivity=8)
+            is_c = lab == c
+            n, comp, stats, _ = cv2.connectedComponentsWithStats(is_c.view(np.uint8), connectivity=8)
             if n <= 1:
                 continue
-            flat = comp.ravel()
-            dsum = np.bincount(flat, weights=np.where(valid, depth.ravel(), 0.0), minlength=n)
-            dcnt = np.bincount(flat, weights=valid.astype(np.float64), minlength=n)
+            pix = np.flatnonzero(is_c)          # only this class's pixels: component 0 (the rest) is not needed
+            comp_of_pix = comp.reshape(-1)[pix]
+            dsum = np.bincount(comp_of_pix, weights=depth_of_valid[pix], minlength=n)
+            dcnt = np.bincount(comp_of_pix, weights=valid[pix].astype(np.float64), minlength=n)
             mean_depth = np.where(dcnt > 0, dsum / np.maximum(dcnt, 1), 0.0)[1:]
             area = stats[1:, cv2.CC_STAT_AREA]
             p = (cfg.miss_object if self.is_object[c] else cfg.miss_surface) \
@@ -195,7 +199,7 @@ class SimulatedSegmenter:
                 + cfg.miss_far_per_m * np.maximum(mean_depth - cfg.far_start_m, 0.0)
             drop = rng.random(n - 1) < np.minimum(p, cfg.miss_max)
             if drop.any():
-                out[np.r_[False, drop][comp]] = NO_LABEL
+                out_flat[pix[np.r_[False, drop][comp_of_pix]]] = NO_LABEL
         return out
 
     def _boundaries(self, lab: np.ndarray, rng: np.random.Generator) -> np.ndarray:
