@@ -11,7 +11,7 @@ from torch import nn
 from ago_runtime.geometry.camera import Rig
 from ago_runtime.errors import AgoInputError
 from ago_train.model.config import ModelConfig
-from ago_train.model.scoring import NO_PHRASE_SCORE, class_logits, open_world_identify, phrase_to_class_index
+from ago_train.model.scoring import NO_PHRASE_SCORE, class_logits, open_world_identify
 from ago_train.model.tpv import ImageCrossAttention, project_to_cameras
 
 # static shapes are read as Python ints on purpose while tracing (fixed-size ONNX graph)
@@ -331,12 +331,8 @@ def test_onnx_export_parity_without_nonzero(tiny, tmp_path):
 
 
 # ------------------------------------------------------------------ scoring
-def test_phrase_index_and_class_logits_order():
+def test_class_logits_order_and_max_over_phrases():
     phrase_class = torch.tensor([2, 0, 2, 1, 2])
-    index, mask = phrase_to_class_index(phrase_class, 4)
-    assert index.shape == (4, 3)
-    assert index[0, mask[0]].tolist() == [1] and index[1, mask[1]].tolist() == [3]
-    assert index[2, mask[2]].tolist() == [0, 2, 4] and not mask[3].any()
     g = torch.Generator().manual_seed(0)
     feat = torch.randn(2, 7, 8, generator=g)
     text = torch.randn(5, 8, generator=g)

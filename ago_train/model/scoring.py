@@ -5,7 +5,6 @@ Column order of every logits tensor here:
 A label class scores the MAX of the dot products with its phrases (prompts); the free column is the
 dot product with the learnable free embedding; noise words are negatives seen in training only.
 
-- phrase_to_class_index(phrase_class (P,), K) -> index (K, Pmax) int64, mask (K, Pmax) bool
 - class_logits(feat (B, N, C), text (P, C), phrase_class (P,), K, free_embedding (C,), noise (Nn, C) | None)
     -> (B, N, K + 1 + Nn)
 - open_world_identify(logits_main, logits_adapted, mode, num_classes, scale_main, scale_adapted)
@@ -19,40 +18,23 @@ import torch
 NO_PHRASE_SCORE = -1e4  # a class without any phrase scores this (finite, so CE/softmax stay defined)
 
 
-def phrase_to_class_index(phrase_class: torch.Tensor, num_classes: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """phrase_class (P,) int64 class id of each phrase (0..K-1) -> (index (K, Pmax), mask (K, Pmax)).
-
-    Row k lists the phrase indices of class k, padded with 0 where mask is False. Pmax >= 1."""
-    phrase_class = phrase_class.long().reshape(-1)
-    if phrase_class.numel() and (phrase_class.min() < 0 or phrase_class.max() >= num_classes):
-        raise ValueError(f"phrase classes must lie in 0..{num_classes - 1}")
-    onehot = torch.nn.functional.one_hot(phrase_class, num_classes).T.bool()     # (K, P)
-    counts = onehot.sum(1)
-    pmax = max(int(counts.max()) if counts.numel() else 0, 1)
-    # stable sort puts each class's phrases first (in their original order), then the rest
-    order = torch.argsort((~onehot).to(torch.int8), dim=1, stable=True)[:, :pmax] if phrase_class.numel() \
-        else torch.zeros(num_classes, 1, dtype=torch.long)
-    mask = torch.arange(pmax)[None, :] < counts[:, None]
-    index = torch.where(mask, order, torch.zeros_like(order))
-    return index, mask
-
-
 def class_logits(feat: torch.Tensor, text: torch.Tensor, phrase_class: torch.Tensor, num_classes: int,
                  free_embedding: torch.Tensor, noise: torch.Tensor | None = None,
                  phrase_bias: torch.Tensor | None = None) -> torch.Tensor:
     """feat (B, N, C) -> logits (B, N, K + 1 + Nn) in the column order of this module.
     `phrase_bias` (P,) is added to each phrase's dot product (the adapted branch's standardisation)."""
-    index, mask = phrase_to_class_index(phrase_class.cpu(), num_classes)
-    index, mask = index.to(feat.device), mask.to(feat.device)
-    K, pmax = index.shape
+    phrase_class = phrase_class.reshape(-1).to(feat.device, torch.long)
+    if phrase_class.numel() and (phrase_class.min() < 0 or phrase_class.max() >= num_classes):
+        raise ValueError(f"phrase classes must lie in 0..{num_classes - 1}")
     phrase_scores = feat @ text.to(feat.dtype).T                                  # (B, N, P)
     if phrase_bias is not None:
         phrase_scores = phrase_scores + phrase_bias.to(feat.device, feat.dtype)
-    B, N, _ = phrase_scores.shape
-    gathered = phrase_scores[..., index.reshape(-1)].reshape(B, N, K, pmax)
-    gathered = gathered.masked_fill(~mask, float("-inf"))
-    cls = gathered.amax(-1)                                                       # (B, N, K)
-    has_phrase = mask.any(1)
+    B, N, P = phrase_scores.shape
+    # each class: the max over its phrases, one scatter over the P columns (no (N, K, Pmax) gather)
+    cls = phrase_scores.new_full((B, N, num_classes), float("-inf")).scatter_reduce(
+        -1, phrase_class.view(1, 1, P).expand(B, N, P), phrase_scores, reduce="amax", include_self=True)
+    has_phrase = torch.zeros(num_classes, dtype=torch.bool, device=feat.device)
+    has_phrase[phrase_class] = True
     cls = torch.where(has_phrase, cls, torch.full_like(cls, NO_PHRASE_SCORE))
     cols = [cls, (feat @ free_embedding.to(feat.dtype)).unsqueeze(-1)]
     if noise is not None and noise.shape[0] > 0:
