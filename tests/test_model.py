@@ -348,6 +348,14 @@ def test_class_logits_order_and_max_over_phrases():
     torch.testing.assert_close(logits[..., 4], feat @ free)
     torch.testing.assert_close(logits[..., 5:], feat @ noise.T)
     assert class_logits(feat, text, phrase_class, 4, free, None).shape[-1] == 5
+    # the gradient of a class column reaches only the phrase that is its max, voxel by voxel
+    text_g = text.clone().requires_grad_(True)
+    class_logits(feat, text_g, phrase_class, 4, free, None)[..., 2].sum().backward()
+    winner = torch.stack([s[..., 0], s[..., 2], s[..., 4]], -1).argmax(-1)          # (2, 7) in 0..2
+    expected = torch.zeros_like(text)
+    for j, p in enumerate([0, 2, 4]):
+        expected[p] = (feat * (winner == j)[..., None]).sum((0, 1))
+    torch.testing.assert_close(text_g.grad, expected)
 
 
 def test_open_world_identify_modes():
