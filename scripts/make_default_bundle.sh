@@ -19,7 +19,7 @@ REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 WORK="${1:-$REPO/work/default_bundle}"
 SCENES="${SCENES:-24}"
 FRAMES="${FRAMES:-16}"
-# 5000 steps, the cpu preset's (6000 gained +0.4 val mIoU, within the run-to-run spread, and ~9 min:
+# 5000 steps, the cpu preset's (6000 gained +0.4 val mIoU, about the run-to-run spread, and cost ~9 min:
 # benchmarks/results/training_cpu.md)
 STEPS="${STEPS:-5000}"
 SNAPSHOTS="${SNAPSHOTS:-[250,500,1000,2000,3000,4000,5000]}"
