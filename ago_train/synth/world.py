@@ -13,8 +13,8 @@ furniture along every sidewalk (street lights, trees, signs, traffic lights, bin
 parked vehicles in the parking strips; vehicles driving along lanes and pedestrians walking on
 sidewalks and zebra crossings (constant velocity); a row of "points of interest" next to the ego
 road (bus stop, road works, a row of barriers closing the road edge, truck + trailer, motorcycles,
-bicycles, bins ...) so that every class appears near the ego in every scene. The ego drives the inner lane of the road y = 0 in +x at a
-constant speed and may turn at one intersection.
+bicycles, bins ...) so that every class appears near the ego in every scene. The ego drives the
+inner lane of the road y = 0 in +x at a constant speed and may turn at one intersection.
 
 What builds what: builder.py (surface codes, materials, the Builder), roads.py (road network,
 markings, ego route), blocks.py (city blocks), buildings.py, vegetation.py, furniture.py (street
