@@ -101,12 +101,15 @@ def checkpoint_adapted_stats(ckpt: dict) -> dict | None:
 def predict_labels(model, images: torch.Tensor, ego2img: torch.Tensor, text: torch.Tensor,
                    phrase_class: torch.Tensor, num_classes: int, identifier: str,
                    scales: tuple[float, float] = (1.0, 1.0), adapted_stats: dict | None = None,
-                   grid_shape: tuple[int, int, int] | None = None) -> torch.Tensor:
-    """(B, N) int64 labels on the model grid (or on `grid_shape`, the read-out grid): 0..K-1 class, K free."""
+                   grid_shape: tuple[int, int, int] | None = None,
+                   voxel_index: torch.Tensor | None = None) -> torch.Tensor:
+    """(B, N) int64 labels on the model grid (or on `grid_shape`, the read-out grid): 0..K-1 class, K free.
+    voxel_index (B, M) int64 flat indices into that grid: (B, M) labels of those voxels only (the same
+    values as the full grid's at those indices: every step after the TPV planes is per voxel)."""
     from .model.scoring import adapted_logits, class_logits, open_world_identify
 
     # F~_3D only when the identifier reads it
-    out = model(images, ego2img, adapted=identifier != "none", grid_shape=grid_shape)
+    out = model(images, ego2img, voxel_index=voxel_index, adapted=identifier != "none", grid_shape=grid_shape)
     free = out.get("free_embedding", model.free_embedding)
     main = class_logits(out["feat"], text, phrase_class, num_classes, free, None)
     if identifier == "none":
@@ -167,16 +170,20 @@ def evaluate(ckpt_path: str | Path, data: str | Path, split: str = "val", prompt
     from ago_runtime.progress import track
 
     iterator = loader if quiet else track(loader, description="eval", total=len(loader))
-    for batch in iterator:
-        shape = tuple(batch["gt"][0].shape) if readout == "gt" else tuple(grid.shape)
-        pred = predict_labels(model, batch["images"].to(dev), batch["ego2img"].to(dev), text, phrase_class,
-                              K, identifier, checkpoint_scales(ckpt),
-                              checkpoint_adapted_stats(ckpt), grid_shape=shape).cpu().numpy()
-        for b in range(pred.shape[0]):
-            vol = pred[b].reshape(shape).astype(np.uint8)
-            gt, mask = batch["gt"][b], batch["gt_mask"][b]
-            vol = _to_gt_resolution(vol, gt.shape, f"{batch['scene'][b]}/{batch['token'][b]}")
-            metric.update(vol, gt, mask)
+    for batch in iterator:   # batch_size 1
+        gt, mask = batch["gt"][0], batch["gt_mask"][0]
+        source = f"{batch['scene'][0]}/{batch['token'][0]}"
+        shape = tuple(gt.shape) if readout == "gt" else tuple(grid.shape)
+        # only the voxels the metric scores (mask_camera, ~1/3 of the grid) go through the decoder
+        scored = np.flatnonzero(scored_voxels(np.asarray(mask, bool), shape, source))
+        vol = np.full(int(np.prod(shape)), K, np.uint8)    # unscored voxels: free (the metric skips them)
+        if scored.size:
+            vol[scored] = predict_labels(model, batch["images"].to(dev), batch["ego2img"].to(dev), text,
+                                         phrase_class, K, identifier, checkpoint_scales(ckpt),
+                                         checkpoint_adapted_stats(ckpt), grid_shape=shape,
+                                         voxel_index=torch.from_numpy(scored)[None].to(dev))[0].cpu().numpy()
+        vol = _to_gt_resolution(vol.reshape(shape), gt.shape, source)
+        metric.update(vol, gt, mask)
 
     subsets = scored_subsets(label_space)
     summary = metric.summary()
@@ -201,6 +208,19 @@ def evaluate(ckpt_path: str | Path, data: str | Path, split: str = "val", prompt
 
 def _pct(x: float) -> float | None:
     return None if x is None or not np.isfinite(x) else round(float(x) * 100.0, 2)
+
+
+def scored_voxels(mask: np.ndarray, shape: tuple, source: str) -> np.ndarray:
+    """The GT's camera mask (at the GT resolution) -> a bool volume of `shape` (the prediction grid):
+    a voxel is scored when any GT voxel it covers is (equal to `mask` when the shapes agree)."""
+    if tuple(mask.shape) == tuple(shape):
+        return mask
+    factors = [g / v for g, v in zip(mask.shape, shape)]
+    if any(f < 1 or abs(f - round(f)) > 1e-9 for f in factors):
+        raise AgoInputError(source, f"GT grid {tuple(mask.shape)} is not an integer multiple of the model grid "
+                            f"{tuple(shape)}")
+    (X, Y, Z), (fx, fy, fz) = shape, (int(round(f)) for f in factors)
+    return mask.reshape(X, fx, Y, fy, Z, fz).any(axis=(1, 3, 5))
 
 
 def _to_gt_resolution(vol: np.ndarray, gt_shape: tuple, source: str) -> np.ndarray:

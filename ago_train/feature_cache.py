@@ -121,45 +121,59 @@ class FeatureCache:
         return maps
 
     @torch.no_grad()
-    def _compute(self, images: dict[str, np.ndarray], source: str, flip: bool = False) -> list[np.ndarray]:
-        """(6 cameras) -> per level (6, C, H, W) float16 (of the images flipped left-right with `flip`)."""
-        x = self.preprocess.images(images, source=source)
+    def _compute(self, x: np.ndarray, flip: bool = False) -> list[np.ndarray]:
+        """Preprocessed (6, 3, H, W) images -> per level (6, C, H, W) float16 (of the images flipped
+        left-right with `flip`). The input goes in channels-last (the convolutions follow it: 1.3x faster
+        on a CPU; the maps agree with the NCHW run to ~1e-6 relative, far below float16's resolution)."""
         if flip:
-            x = np.ascontiguousarray(x[..., ::-1])
-        x = torch.from_numpy(x)
+            x = x[..., ::-1]
+        x = torch.from_numpy(np.ascontiguousarray(x))
         backbone = self.model.backbone
         was = backbone.training
         backbone.eval()
         device = next(self.model.parameters()).device
-        maps = backbone.frozen_prefix(x.to(device))
+        maps = backbone.frozen_prefix(x.to(device).contiguous(memory_format=torch.channels_last))
         backbone.train(was)
-        return [m.cpu().numpy().astype(np.float16) for m in maps]
+        return [m.cpu().contiguous().numpy().astype(np.float16) for m in maps]
 
     # ------------------------------------------------------------------ one frame
     def frame_prefix(self, image_paths: dict[str, str], source: str = "", flip: bool = False) -> list[np.ndarray]:
         """The frozen prefix of a frame's six images: per level (6, C_l, H_l, W_l) float16."""
+        return self.frame_prefixes(image_paths, source, (flip,))[0]
+
+    def frame_prefixes(self, image_paths: dict[str, str], source: str = "",
+                       flips: tuple[bool, ...] = (False,)) -> list[list[np.ndarray]]:
+        """`frame_prefix` for each of `flips`; the six JPEGs are hashed, decoded and preprocessed once."""
         missing = [c for c in CAMERA_NAMES if c not in image_paths]
         if missing:
             raise AgoInputError(source or None, f"cameras {missing} have no image file")
-        keys = tuple(image_key(image_paths[c]) + ("-flip" if flip else "") for c in CAMERA_NAMES)
-        if keys in self._memory:
-            self._memory.move_to_end(keys)
-            self.stats["memory"] += 1
-            return self._memory[keys]
-        per_cam = [self._read(k) for k in keys]
-        todo = [i for i, m in enumerate(per_cam) if m is None]
-        if todo:
-            images = {c: read_jpeg_rgb(image_paths[c]) for c in CAMERA_NAMES}
-            computed = self._compute(images, source, flip)
-            for i in todo:
-                per_cam[i] = [m[i] for m in computed]
-                save_npz(self._path(keys[i]), compressed=False,
-                         **{f"l{j}": np.ascontiguousarray(m[i]) for j, m in enumerate(computed)})
-            self.stats["computed"] += len(todo)
-        self.stats["read"] += 6 - len(todo)
-        maps = [np.stack([per_cam[i][j] for i in range(6)]) for j in range(len(self.shapes))]
-        self._remember(keys, maps)
-        return maps
+        base = [image_key(image_paths[c]) for c in CAMERA_NAMES]
+        x = None   # the preprocessed images, decoded on the first miss
+        out = []
+        for flip in flips:
+            keys = tuple(k + ("-flip" if flip else "") for k in base)
+            if keys in self._memory:
+                self._memory.move_to_end(keys)
+                self.stats["memory"] += 1
+                out.append(self._memory[keys])
+                continue
+            per_cam = [self._read(k) for k in keys]
+            todo = [i for i, m in enumerate(per_cam) if m is None]
+            if todo:
+                if x is None:
+                    x = self.preprocess.images({c: read_jpeg_rgb(image_paths[c]) for c in CAMERA_NAMES},
+                                               source=source)
+                computed = self._compute(x, flip)
+                for i in todo:
+                    per_cam[i] = [m[i] for m in computed]
+                    save_npz(self._path(keys[i]), compressed=False,
+                             **{f"l{j}": np.ascontiguousarray(m[i]) for j, m in enumerate(computed)})
+                self.stats["computed"] += len(todo)
+            self.stats["read"] += 6 - len(todo)
+            maps = [np.stack([per_cam[i][j] for i in range(6)]) for j in range(len(self.shapes))]
+            self._remember(keys, maps)
+            out.append(maps)
+        return out
 
     def _remember(self, keys: tuple, maps: list[np.ndarray]) -> None:
         size = sum(m.nbytes for m in maps)
@@ -180,6 +194,5 @@ class FeatureCache:
         it = track(items, "caching frozen backbone features", total=len(frames)) if progress else items
         for i in it:
             f = frames[i]
-            for flip in flips:
-                self.frame_prefix(f.image_paths, f"{f.scene}/{f.token}", flip=flip)
+            self.frame_prefixes(f.image_paths, f"{f.scene}/{f.token}", tuple(flips))
         return dict(self.stats)

@@ -45,7 +45,7 @@ stamp
 
 echo "== 2/6 pseudo-labels ($PROMPTS, grid $GRID, train split) -> $WORK/pseudo"
 $AGO pseudo-labels --data "$WORK/synth" --out "$WORK/pseudo" --prompts "$PROMPTS" --grid "$GRID" --split train \
-    --segmenter sim --embedder sim --keyframes 10 --interval 1
+    --segmenter sim --embedder sim --keyframes 10 --interval 1 --jobs "$JOBS"
 stamp
 
 echo "== 3/6 train ($PRESET preset, $STEPS steps) -> $WORK/train"

@@ -622,3 +622,23 @@ def test_cli_seen_gt_takes_the_seen_classes_from_gt(synth_root, tmp_path):
                                      "ow_pretrain", "--out", str(tmp_path / "w"), "--split", "all"])
     assert isinstance(wrong.exception, AgoInputError) and "classes" in str(wrong.exception)
     assert not (tmp_path / "w").exists()                                    # checked before anything is written
+
+
+def test_pseudo_labels_in_worker_processes_are_the_same(tmp_path_factory, tmp_path):
+    """--jobs 2 labels scenes in two worker processes: the same files as one process, byte for byte."""
+    from typer.testing import CliRunner
+    from ago_runtime.cli import app
+    root = tmp_path_factory.mktemp("synth2") / "data"
+    r = CliRunner().invoke(app, ["synth", "--out", str(root), "--scenes", "3", "--frames", "2",
+                                 "--image-size", "96x54", "--grid", "20x20x4", "--val-fraction", "0"])
+    assert r.exit_code == 0, r.output
+    files = {}
+    for jobs in (1, 2):
+        out = tmp_path / f"pl{jobs}"
+        res = CliRunner().invoke(app, ["pseudo-labels", "--data", str(root), "--out", str(out), "--prompts", "cw",
+                                       "--segmenter", "sim", "--embedder", "sim", "--grid", "20x20x4",
+                                       "--keyframes", "2", "--split", "all", "--jobs", str(jobs)])
+        assert res.exit_code == 0, res.output
+        assert "6 written" in res.output
+        files[jobs] = {p.relative_to(out): p.read_bytes() for p in sorted(out.glob("*/*/*.npz"))}
+    assert len(files[1]) == 12 and files[1] == files[2]     # labels.npz + embeds.npz per sample

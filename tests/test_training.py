@@ -261,6 +261,39 @@ def test_readout_grid_reads_the_same_planes_on_another_grid():
                               planes_to_voxels(planes, (X, Y, Z)))
 
 
+def test_eval_decodes_only_the_scored_voxels_with_the_same_labels():
+    """`ago eval` runs the decoder on the camera-mask voxels only: predict_labels(voxel_index=...) gives the
+    full grid's labels at those voxels, and a GT-resolution mask maps to a coarser prediction grid by "any"."""
+    import torch
+
+    from ago_train.evaluate import predict_labels, scored_voxels
+    from ago_train.model.config import ModelConfig
+
+    cfg = ModelConfig.preset("tiny")
+    torch.manual_seed(0)
+    model = cfg.build().eval()
+    X, Y, Z = model.grid_shape
+    imgs = torch.randn(1, 6, 3, cfg.image_height, cfg.image_width)
+    e2i = torch.eye(4).repeat(1, 6, 1, 1)
+    text = torch.nn.functional.normalize(torch.randn(7, cfg.embed_dim), dim=-1)
+    phrase_class = torch.tensor([0, 0, 1, 2, 3, 3, 4])
+    idx = torch.randperm(X * Y * Z)[: X * Y * Z // 3].sort().values
+    for identifier in ("none", "min-entropy"):
+        with torch.no_grad():
+            full = predict_labels(model, imgs, e2i, text, phrase_class, 5, identifier)
+            part = predict_labels(model, imgs, e2i, text, phrase_class, 5, identifier, voxel_index=idx[None])
+        assert part.shape == (1, len(idx)) and torch.equal(part[0], full[0, idx])
+        assert len(torch.unique(full)) > 1
+
+    mask = np.zeros((4, 4, 2), bool)
+    mask[3, 0, 1] = True                      # one fine voxel -> its coarse voxel (1, 0, 0)
+    coarse = scored_voxels(mask, (2, 2, 1), "t")
+    assert coarse.sum() == 1 and coarse[1, 0, 0]
+    assert scored_voxels(mask, (4, 4, 2), "t") is mask
+    with pytest.raises(AgoInputError):
+        scored_voxels(mask, (3, 4, 2), "t")
+
+
 def test_overfit_three_frames_with_the_stratified_sample(tiny_data, tmp_path):
     """The cpu preset's sampling rule on a few frames: the loss falls, the frames' pseudo-labels are fitted
     (mIoU > 0.5) and the amount of predicted matter matches theirs (0.5-2x the occupied labelled voxels):

@@ -160,6 +160,8 @@ def register(app: typer.Typer) -> None:
         raycast: bool = typer.Option(True, "--raycast/--no-raycast", help="Free space from LiDAR rays (else: every empty voxel is free)."),
         seed: int = typer.Option(0, "--seed", min=0, help="Seed of the simulated backends."),
         limit: int = typer.Option(0, "--limit", min=0, help="Only the first N samples of the split (0 = all)."),
+        jobs: int = typer.Option(1, "--jobs", min=1, max=64, help="Worker processes labelling scenes in parallel "
+                                 "(the same pseudo-labels for any value)."),
     ):
         """Lift 2-D masks (and image features) into 3-D pseudo-labels with the LiDAR (keyframes + non-key sweeps)."""
         from ago_runtime.formats.nuscenes import NuScenesDataset
@@ -183,7 +185,7 @@ def register(app: typer.Typer) -> None:
         config = PseudoLabelConfig(grid=pgrid, num_keyframes=keyframes, interval=interval, nonkey_sweeps=nonkey,
                                    raycast=raycast)
         command = "ago " + " ".join(shlex.quote(a) for a in sys.argv[1:])
-        result = generate(ds, indices, out, space, seg, emb, config, command=command)
+        result = generate(ds, indices, out, space, seg, emb, config, command=command, jobs=jobs)
         remade = f", {result['remade']} damaged ones remade" if result.get("remade") else ""
         rate = f" ({result['frames_per_s']} frames/s)" if result.get("frames_per_s") else ""
         typer.echo(f"pseudo-labels: {result['written']} written, {result['skipped']} already there{remade}"

@@ -389,9 +389,51 @@ def pseudo_sample(ds, i: int, label_space, segmenter, embedder, config: PseudoLa
     return build_sample(pairs[0][0], lifted, label_space.num_classes, config)
 
 
+def _cache_for(ds, segmenter, config: PseudoLabelConfig) -> LiftCache:
+    """A LiftCache spanning the window of keyframes one sample aggregates (capped in memory)."""
+    return LiftCache(ds, segmenter, config.ego_box,
+                     min(config.num_keyframes * config.interval + config.interval + 1, 64), config.nonkey_sweeps)
+
+
+def _label_and_save(job: dict, indices: list[int], cache: LiftCache) -> int:
+    for i in indices:
+        sample = pseudo_sample(job["ds"], i, job["label_space"], job["segmenter"], job["embedder"], job["config"],
+                               cache)
+        save_sample(job["out"], job["ds"].scene_of(i), job["ds"].sample_tokens[i], sample)
+    return len(indices)
+
+
+_WORKER_JOB: dict | None = None   # set once per worker process by _init_worker
+
+
+def _init_worker(job: dict) -> None:
+    global _WORKER_JOB
+    _WORKER_JOB = job
+
+
+def _label_scene(indices: list[int]) -> int:
+    """One scene's samples in a worker process (its own cache: scenes share no frames)."""
+    job = _WORKER_JOB
+    return _label_and_save(job, indices, _cache_for(job["ds"], job["segmenter"], job["config"]))
+
+
+def scene_groups(ds, indices: list[int]) -> list[list[int]]:
+    """Dataset indices (sorted) -> runs of consecutive indices of one scene, in order."""
+    groups: list[list[int]] = []
+    for i in indices:
+        if groups and ds.scene_of(groups[-1][-1]) == ds.scene_of(i):
+            groups[-1].append(i)
+        else:
+            groups.append([i])
+    return groups
+
+
 def generate(ds, indices: list[int], out_dir: str | Path, label_space, segmenter, embedder,
-             config: PseudoLabelConfig, command: str = "", progress: bool = True) -> dict:
+             config: PseudoLabelConfig, command: str = "", progress: bool = True, jobs: int = 1) -> dict:
     """Write pseudo-labels for dataset `indices` into out_dir; resumable. Gives counts and timing.
+
+    jobs > 1 labels whole scenes in that many worker processes (the samples are the same for any
+    value: every random draw of the simulated backends is seeded per image, not per run).
 
     A new folder gets nothing (no meta.json) until the first sample has been computed in memory: bad
     settings (a simulated segmenter on real images, a missing mask file, ...) fail with nothing written.
@@ -429,15 +471,30 @@ def generate(ds, indices: list[int], out_dir: str | Path, label_space, segmenter
         write_json(meta_path, meta)
     folder = PseudoLabelDir(out)
 
-    # neighbouring keyframes share lifted frames: process in dataset (scene, time) order
-    cache = LiftCache(ds, segmenter, config.ego_box,
-                      min(config.num_keyframes * config.interval + config.interval + 1, 64), config.nonkey_sweeps)
     t0 = time.perf_counter()
-    items = track(todo, "pseudo-labels", total=len(todo)) if progress else todo
-    for i in items:
-        sample = first if (first is not None and i == todo[0]) else \
-            pseudo_sample(ds, i, label_space, segmenter, embedder, config, cache)
-        save_sample(out, ds.scene_of(i), ds.sample_tokens[i], sample)
+    rest = list(todo)
+    if first is not None:
+        save_sample(out, ds.scene_of(rest[0]), ds.sample_tokens[rest[0]], first)
+        rest = rest[1:]
+    job = {"ds": ds, "label_space": label_space, "segmenter": segmenter, "embedder": embedder, "config": config,
+           "out": str(out)}
+    # neighbouring keyframes share lifted frames: process in dataset (scene, time) order
+    groups = scene_groups(ds, rest)
+    if jobs > 1 and len(groups) > 1:
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor, as_completed
+
+        with ProcessPoolExecutor(max_workers=min(jobs, len(groups)), mp_context=mp.get_context("spawn"),
+                                 initializer=_init_worker, initargs=(job,)) as ex:
+            futures = [ex.submit(_label_scene, g) for g in groups]
+            done = as_completed(futures)
+            for fut in (track(done, "pseudo-labels (scenes)", total=len(futures)) if progress else done):
+                fut.result()
+    else:
+        cache = _cache_for(ds, segmenter, config)
+        items = track(rest, "pseudo-labels", total=len(rest)) if progress else rest
+        for i in items:
+            _label_and_save(job, [i], cache)
     seconds = time.perf_counter() - t0
     channels = getattr(embedder, "channels", None)
     if embedder is not None and channels is not None and folder.meta.get("embedder", {}).get("channels") is None:
