@@ -7,9 +7,9 @@
 #   parity-checked, with its bundle card)
 #   -> ago_runtime/assets/default_bundle/ + assets/demo_frame/
 #
-# Needs the training extra (scripts/setup.sh). 67 min on the slow day of this 2-core CPU that timed it
-# (benchmarks/results/training_cpu.md; the target is 60; each step's time is printed); every step
-# resumes or reuses what an interrupted run left. Usage:
+# Needs the training extra (scripts/setup.sh). ~67 min on a fresh machine on the slow days of this 2-core
+# CPU that timed it, by stage (benchmarks/results/training_cpu.md; the target is 60; each step's time is
+# printed); every step resumes or reuses what an interrupted run left. Usage:
 #   bash scripts/make_default_bundle.sh [WORK_DIR]
 # The training run keeps snapshots for the learning curve:
 #   python benchmarks/learning_curve.py --run WORK_DIR/train --data WORK_DIR/synth --fresh FRESH_TOWN
