@@ -38,7 +38,7 @@ from ago_runtime.vocab.prompts import LabelSpace, parse_prompt_file
 from ..checkpoint import load_checkpoint
 from ..dataset import FrameList, OccSampleDataset, collate
 from ..evaluate import (_pct, _to_gt_resolution, bank_for, checkpoint_adapted_stats, checkpoint_scales, load_model,
-                        scored_subsets)
+                        scored_subsets, scored_voxels)
 from ..model.scoring import adapted_logits, class_logits, entropy, open_world_identify
 
 IDENTIFIERS = ("none", "max-conf", "min-entropy", "adapted")
@@ -155,11 +155,28 @@ def evaluate_views(ckpt_path: str | Path, data: str | Path, views: list[View], s
     loader = torch.utils.data.DataLoader(dataset, batch_size=1, shuffle=False, collate_fn=collate)
     it = loader if quiet else track(loader, description=f"eval {Path(str(ckpt_path)).parent.name}",
                                     total=len(loader))
+    num_voxels = int(np.prod(grid.shape))
     for n_frame, batch in enumerate(it):
-        out = model(batch["images"], batch["ego2img"])
-        free = out.get("free_embedding", model.free_embedding)
         gt_occ = np.asarray(batch["gt"][0]).astype(np.uint8)
         mask = np.asarray(batch["gt_mask"][0])
+        # the decoder runs on the voxels the metric scores (as `ago eval`), except for the frames kept for
+        # pictures, which need every voxel; per voxel the labels are those of a whole-grid pass
+        sel = None
+        if n_frame >= keep_frames:
+            sel = np.flatnonzero(scored_voxels(mask.astype(bool), tuple(grid.shape), str(batch["token"][0])))
+            sel = sel if sel.size else None
+        out = model(batch["images"], batch["ego2img"],
+                    voxel_index=None if sel is None else torch.from_numpy(sel)[None])
+        free = out.get("free_embedding", model.free_embedding)
+
+        def on_grid(a: np.ndarray, fill) -> np.ndarray:
+            """Per decoded voxel values -> the whole model grid (C order), `fill` elsewhere."""
+            if sel is None:
+                return a
+            full = np.full((num_voxels,) + a.shape[1:], fill, a.dtype)
+            full[sel] = a
+            return full
+
         for v in views:
             b = banks[v.name]
             K = b.space.num_classes
@@ -167,7 +184,8 @@ def evaluate_views(ckpt_path: str | Path, data: str | Path, views: list[View], s
             adapted = (adapted_logits(out["feat_adapted"], b.text, b.phrase_class, K, free, adapted_stats)[0]
                        * v.adapted_scale
                        if v.identifier != "none" or v.name == stats_view else None)
-            labels = _labels(main, adapted, v.identifier, K, scales).numpy().reshape(grid.shape).astype(np.uint8)
+            labels = on_grid(_labels(main, adapted, v.identifier, K, scales).numpy().astype(np.uint8), K)
+            labels = labels.reshape(grid.shape)
             gt = luts[v.name][gt_occ]
             metrics[v.name].update(_to_gt_resolution(labels, gt.shape, str(batch["token"][0])), gt, mask)
             if n_frame < keep_frames:
@@ -178,8 +196,10 @@ def evaluate_views(ckpt_path: str | Path, data: str | Path, views: list[View], s
                 h_adap = entropy(torch.softmax(scales[1] * adapted[:, :K], -1)).numpy()
                 f = torch.nn.functional.normalize(out["feat"][0], dim=-1)
                 fa = torch.nn.functional.normalize(out["feat_adapted"][0], dim=-1)
-                stats.update(_decimate(gt, grid.shape), _decimate(mask, grid.shape), h_main, h_adap,
-                             (f @ b.class_text.T).numpy(), (fa @ b.class_text.T).numpy())
+                # the decimated mask's voxels (first sub-voxel) are among the decoded ones
+                stats.update(_decimate(gt, grid.shape), _decimate(mask, grid.shape), on_grid(h_main, 0.0),
+                             on_grid(h_adap, 0.0), on_grid((f @ b.class_text.T).numpy(), 0.0),
+                             on_grid((fa @ b.class_text.T).numpy(), 0.0))
     results = {}
     for v in views:
         m, space = metrics[v.name], banks[v.name].space
