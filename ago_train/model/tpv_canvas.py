@@ -238,20 +238,32 @@ def image_attention(attn, q: torch.Tensor, canvas: torch.Tensor, geo: dict, layo
     off_x, off_y, logits = o.view(3, n, Q).unbind(0)
     off_x, off_y = off_x.view(h, L, 1, P, S, Q), off_y.view(h, L, 1, P, S, Q)
     w = torch.softmax(logits.view(h, points, Q), 1).view(h, L, 1, P, S, Q)
-    grid = canvas_coords(geo["ref_x"] + off_x, geo["ref_y"] + off_y, -0.5, geo["hi_x"], -0.5, geo["hi_y"],
-                         geo["base_x"], geo["base_y"], layout)                 # (h, L, k, P, S, Q, 2)
     if compact:
+        # the valid (camera, pillar point, query) entries are selected BEFORE the offsets are broadcast
+        # over the k cameras: the sample positions are computed for those entries only (the same
+        # arithmetic per entry as the static form below)
         k = geo["weight"].shape[2]
         valid = (geo["weight"] > 0).reshape(-1)                               # over (k, P, Q)
         sel = valid.nonzero().squeeze(1)
-        w = w * geo["weight"]                                                  # (h, L, k, P, S, Q)
-        # (h, L, k, P, S, Q) -> (h, L*S, k*P*Q): the selected entries along the last axis
-        w = w.permute(0, 1, 4, 2, 3, 5).reshape(h, L * S, -1).index_select(2, sel)
-        grid = grid.permute(0, 1, 4, 2, 3, 5, 6).reshape(h, L * S, k * P * Q, 2).index_select(2, sel)
+        pq = sel % (P * Q)                                                     # its (pillar point, query)
+
+        def per_entry(t: torch.Tensor) -> torch.Tensor:   # (1, L, k|1, P|1, 1, Q|1) geometry -> (1, L, 1, n)
+            return t.expand(1, L, k, P, 1, Q).reshape(L, k * P * Q).index_select(1, sel).view(1, L, 1, -1)
+
+        def per_offset(t: torch.Tensor) -> torch.Tensor:  # (h, L, 1, P, S, Q) -> (h, L, S, n)
+            return t.squeeze(2).permute(0, 1, 3, 2, 4).reshape(h, L, S, P * Q).index_select(3, pq)
+
+        grid = canvas_coords(per_entry(geo["ref_x"]) + per_offset(off_x), per_entry(geo["ref_y"]) + per_offset(off_y),
+                             -0.5, geo["hi_x"].view(1, L, 1, 1), -0.5, geo["hi_y"].view(1, L, 1, 1),
+                             per_entry(geo["base_x"]), geo["base_y"].view(1, L, 1, 1), layout)   # (h, L, S, n, 2)
+        grid = grid.view(h, L * S, -1, 2)
+        w = (per_offset(w) * geo["weight"].reshape(-1).index_select(0, sel)).view(h, L * S, -1)
         sampled = F.grid_sample(canvas, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
         part = (sampled * w.unsqueeze(1)).sum(2)                                # (h, D/h, n_valid)
         out = part.new_zeros(h, part.shape[1], Q).index_add(2, sel % Q, part)   # (h, D/h, Q)
     else:
+        grid = canvas_coords(geo["ref_x"] + off_x, geo["ref_y"] + off_y, -0.5, geo["hi_x"], -0.5, geo["hi_y"],
+                             geo["base_x"], geo["base_y"], layout)             # (h, L, k, P, S, Q, 2)
         w = (w * geo["weight"]).reshape(h, 1, -1, Q)                           # (h, 1, L*k*P*S, Q)
         grid = grid.reshape(h, -1, Q, 2)
         sampled = F.grid_sample(canvas, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
