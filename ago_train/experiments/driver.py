@@ -18,6 +18,7 @@ tab4 (identifier), tab5 (noise prompts, L_occ), supp (adapter depth, align loss)
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import time
@@ -150,11 +151,13 @@ class ExperimentRunner:
                     raise AgoInputError(need, f"profile {p.name!r} uses external data: make this folder first "
                                         "(docs/experiments.md)")
             return
+        # worker processes for synth and pseudo-labels: the data is the same for any number
+        jobs = str(max(1, min(os.cpu_count() or 1, 8)))
         if not (self.data / "synth.done").is_file():
             args = ["synth", "--out", str(self.data)]
             for k, v in p.synth.items():
                 args += [f"--{k}", str(v)]
-            self._ago(*args)
+            self._ago(*args, "--jobs", jobs)
         (self.data / "synth.done").write_text("done\n")
         for space in sorted(spaces):
             done = self.pseudo(space) / "complete.json"
@@ -163,7 +166,7 @@ class ExperimentRunner:
             split = "all" if space == "cw" else p.train_split   # cw pseudo-labels on val too: their own mIoU
             self._ago("pseudo-labels", "--data", str(self.data), "--out", str(self.pseudo(space)), "--prompts", space,
                       "--segmenter", "sim", "--embedder", "sim", "--grid", p.pseudo_grid, "--keyframes", str(p.sweeps),
-                      "--interval", str(p.interval), "--split", split)
+                      "--interval", str(p.interval), "--split", split, "--jobs", jobs)
             write_json(done, {"split": split})
 
     def ensure_data_scores(self) -> dict:
