@@ -234,21 +234,25 @@ def test_overfit_one_frame_then_eval(tiny_data, tmp_path):
     assert fine["mIoU"] is not None
 
 
-def test_readout_grid_reads_the_same_planes_on_another_grid():
-    """forward(grid_shape=...) reads the TPV planes on another grid over the same range: on the model's own
-    grid it is the default forward; on a 2x grid it gives 8x the voxels, read bilinearly between the coarse
-    voxels (not copies of them, which is what repeating a coarse prediction does)."""
-    import torch
-
-    from ago_train.model.aggregate import planes_to_voxels
+def _tiny_model_and_frame():
+    """The tiny preset's model (seed 0, eval mode) and one random frame: (cfg, model, images, ego2img)."""
     from ago_train.model.config import ModelConfig
 
     cfg = ModelConfig.preset("tiny")
     torch.manual_seed(0)
     model = cfg.build().eval()
-    X, Y, Z = model.grid_shape
     imgs = torch.randn(1, 6, 3, cfg.image_height, cfg.image_width)
-    e2i = torch.eye(4).repeat(1, 6, 1, 1)
+    return cfg, model, imgs, torch.eye(4).repeat(1, 6, 1, 1)
+
+
+def test_readout_grid_reads_the_same_planes_on_another_grid():
+    """forward(grid_shape=...) reads the TPV planes on another grid over the same range: on the model's own
+    grid it is the default forward; on a 2x grid it gives 8x the voxels, read bilinearly between the coarse
+    voxels (not copies of them, which is what repeating a coarse prediction does)."""
+    from ago_train.model.aggregate import planes_to_voxels
+
+    cfg, model, imgs, e2i = _tiny_model_and_frame()
+    X, Y, Z = model.grid_shape
     with torch.no_grad():
         base = model(imgs, e2i, adapted=False)["feat"]
         same = model(imgs, e2i, adapted=False, grid_shape=(X, Y, Z))["feat"]
@@ -264,17 +268,10 @@ def test_readout_grid_reads_the_same_planes_on_another_grid():
 def test_eval_decodes_only_the_scored_voxels_with_the_same_labels():
     """`ago eval` runs the decoder on the camera-mask voxels only: predict_labels(voxel_index=...) gives the
     full grid's labels at those voxels, and a GT-resolution mask maps to a coarser prediction grid by "any"."""
-    import torch
-
     from ago_train.evaluate import predict_labels, scored_voxels
-    from ago_train.model.config import ModelConfig
 
-    cfg = ModelConfig.preset("tiny")
-    torch.manual_seed(0)
-    model = cfg.build().eval()
+    cfg, model, imgs, e2i = _tiny_model_and_frame()
     X, Y, Z = model.grid_shape
-    imgs = torch.randn(1, 6, 3, cfg.image_height, cfg.image_width)
-    e2i = torch.eye(4).repeat(1, 6, 1, 1)
     text = torch.nn.functional.normalize(torch.randn(7, cfg.embed_dim), dim=-1)
     phrase_class = torch.tensor([0, 0, 1, 2, 3, 3, 4])
     idx = torch.randperm(X * Y * Z)[: X * Y * Z // 3].sort().values
