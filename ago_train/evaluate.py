@@ -215,19 +215,20 @@ def scored_voxels(mask: np.ndarray, shape: tuple, source: str) -> np.ndarray:
     a voxel is scored when any GT voxel it covers is (equal to `mask` when the shapes agree)."""
     if tuple(mask.shape) == tuple(shape):
         return mask
-    factors = [g / v for g, v in zip(mask.shape, shape)]
-    if any(f < 1 or abs(f - round(f)) > 1e-9 for f in factors):
-        raise AgoInputError(source, f"GT grid {tuple(mask.shape)} is not an integer multiple of the model grid "
-                            f"{tuple(shape)}")
-    (X, Y, Z), (fx, fy, fz) = shape, (int(round(f)) for f in factors)
+    (X, Y, Z), (fx, fy, fz) = shape, _grid_factors(mask.shape, shape, source)
     return mask.reshape(X, fx, Y, fy, Z, fz).any(axis=(1, 3, 5))
+
+
+def _grid_factors(gt_shape: tuple, shape: tuple, source: str) -> tuple[int, int, int]:
+    """Per axis how many GT voxels one voxel of `shape` covers (an AgoInputError unless whole numbers)."""
+    factors = [g / v for g, v in zip(gt_shape, shape)]
+    if any(f < 1 or abs(f - round(f)) > 1e-9 for f in factors):
+        raise AgoInputError(source, f"GT grid {tuple(gt_shape)} is not an integer multiple of the model grid "
+                            f"{tuple(shape)}")
+    return tuple(int(round(f)) for f in factors)
 
 
 def _to_gt_resolution(vol: np.ndarray, gt_shape: tuple, source: str) -> np.ndarray:
     if tuple(vol.shape) == tuple(gt_shape):
         return vol
-    factors = [g / v for g, v in zip(gt_shape, vol.shape)]
-    if any(f < 1 or abs(f - round(f)) > 1e-9 for f in factors):
-        raise AgoInputError(source, f"GT grid {tuple(gt_shape)} is not an integer multiple of the model grid "
-                            f"{tuple(vol.shape)}")
-    return upsample_nearest(vol, tuple(int(round(f)) for f in factors))
+    return upsample_nearest(vol, _grid_factors(gt_shape, vol.shape, source))
