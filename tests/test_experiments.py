@@ -140,3 +140,55 @@ def test_another_profile_in_the_same_folder_is_refused(tiny_experiments):
     p.steps = 3
     with pytest.raises(AgoInputError, match="another profile"):
         ExperimentRunner(p, tiny_experiments, quiet=True).run(["tab1"])
+
+
+def test_run_records_carry_finished_runs_to_another_folder_and_a_changed_recipe_retrains(tiny_experiments, tmp_path):
+    import shutil
+
+    out, rec = tiny_experiments, tmp_path / "records"
+    tiny = ExperimentProfile.preset("tiny")
+    ExperimentRunner(tiny, out, quiet=True, records=rec).run(["tab5"])     # all reused; records written
+    names = [s.name for s in runs_for("tab5", tiny)]
+    assert all((rec / "runs" / n / "views.json").is_file() and (rec / "runs" / n / "recipe.json").is_file()
+               for n in names)
+    assert not any(p.name.startswith(".") for p in (rec / "runs" / "cw").iterdir())   # no half-written record
+
+    def fresh_folder(name: str) -> Path:   # another machine: same profile and data, no runs, no checkpoints
+        new = tmp_path / name
+        new.mkdir()
+        for d in ("synth", "pseudo_cw"):
+            shutil.copytree(out / d, new / d)
+        shutil.copyfile(out / "profile.json", new / "profile.json")
+        return new
+
+    other = fresh_folder("other")
+    ExperimentRunner(tiny, other, quiet=True, records=rec).run(["tab5"])
+    log = (other / "driver.log").read_text()
+    assert f"reused {len(names)} run record(s)" in log and " train " not in log, log
+    for n in names:
+        assert json.loads((other / "runs" / n / "views.json").read_text()) == \
+            json.loads((out / "runs" / n / "views.json").read_text())
+    assert not (other / "runs" / "cw" / "ago" / "last.pt").exists()
+    assert "Tab. 5" in (other / "results.md").read_text()
+
+    # a record whose recipe is not today's is not reused: that run trains again (and its record is replaced)
+    r = json.loads((rec / "runs" / "cw" / "ago" / "recipe.json").read_text())
+    r["lr"] = r["lr"] * 2
+    (rec / "runs" / "cw" / "ago" / "recipe.json").write_text(json.dumps(r))
+    third = fresh_folder("third")
+    ExperimentRunner(tiny, third, quiet=True, records=rec).run(["tab5"])
+    log = (third / "driver.log").read_text()
+    assert "record cw/ago not reused: its recipe differs in ['lr']" in log and "train cw/ago\n" in log + "\n"
+    assert f"reused {len(names) - 1} run record(s)" in log
+    assert json.loads((rec / "runs" / "cw" / "ago" / "recipe.json").read_text())["lr"] == r["lr"] / 2
+
+    # records of another profile are refused before any work; records of other data once the data is there
+    steps3 = ExperimentProfile.preset("tiny")
+    steps3.steps = 3
+    with pytest.raises(AgoInputError, match="another profile"):
+        ExperimentRunner(steps3, tmp_path / "never", quiet=True, records=rec).run(["tab5"])
+    assert not (tmp_path / "never" / "synth").exists()
+    head = json.loads((rec / "records.json").read_text())
+    (rec / "records.json").write_text(json.dumps({**head, "data": "0" * 64}))
+    with pytest.raises(AgoInputError, match="other data"):
+        ExperimentRunner(tiny, fresh_folder("fourth"), quiet=True, records=rec).run(["tab5"])

@@ -1,6 +1,7 @@
 """CLI verb `ago experiments`: the paper's tables on the synthetic benchmark (ago_train/experiments/).
 
     ago experiments run [tab1 tab2 tab3 tab4 tab5 supp figures | all] [--profile cpu] [--out runs/experiments]
+                        [--records DIR]     (run records reused on another machine: records.py)
     ago experiments report [--profile cpu] [--out runs/experiments]
     ago experiments list [--profile cpu]
 """
@@ -33,6 +34,8 @@ def register(app: typer.Typer) -> None:
         names: Optional[List[str]] = typer.Argument(None, help="experiments to run (default: all)"),
         profile: str = typer.Option("cpu", "--profile", help="tiny | cpu | full (docs/experiments.md)"),
         out: Path = typer.Option(Path("runs/experiments"), "--out", help="experiments folder (cache; resumable)"),
+        records: Optional[Path] = typer.Option(None, "--records", help="folder of run records (scores, no "
+                                               "checkpoints) kept up to date and reused, also on another machine"),
     ):
         """Make or reuse the data, train or reuse the runs, score them, write results.md + figures."""
         from ago_runtime.errors import require_torch
@@ -49,7 +52,9 @@ def register(app: typer.Typer) -> None:
             raise AgoInputError("NAMES", f"unknown experiment(s) {unknown}; choose from {', '.join(EXPERIMENTS)} or all")
         prof = _profile(profile)
         check_output_dir(out, "--out")
-        ExperimentRunner(prof, out).run(chosen)
+        if records is not None:
+            check_output_dir(records, "--records")
+        ExperimentRunner(prof, out, records=records).run(chosen)
         typer.echo(f"written {out}/results.md, {out}/results.json, {out}/figures/")
 
     @exp.command("report")

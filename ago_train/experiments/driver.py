@@ -31,6 +31,7 @@ from ago_runtime.atomic import write_json
 from ago_runtime.errors import AgoInputError
 from ago_runtime.readers import read_json
 
+from . import records
 from .plan import (ADAPTED_SCALES, FEWSHOT_VARIANTS, PARADIGMS, ExperimentProfile, RunSpec, cw_run, fewshot_run,
                    ow_run)
 from .scoring import View
@@ -94,10 +95,12 @@ def main_view(spec: RunSpec) -> str:
 
 # ---------------------------------------------------------------------------------------------
 class ExperimentRunner:
-    def __init__(self, profile: ExperimentProfile, out: str | Path, quiet: bool = False):
+    def __init__(self, profile: ExperimentProfile, out: str | Path, quiet: bool = False,
+                 records: str | Path | None = None):
         self.profile = profile
         self.out = Path(out)
         self.quiet = quiet
+        self.records = Path(records) if records is not None else None   # run records (records.py)
         self.log_path = self.out / "driver.log"
 
     # ---- bookkeeping -------------------------------------------------------------------
@@ -332,6 +335,8 @@ class ExperimentRunner:
             if e not in EXPERIMENTS:
                 raise AgoInputError(None, f"unknown experiment {e!r}; choose from {list(EXPERIMENTS)}")
         self.check_profile()
+        if self.records is not None:
+            records.check_profile(self, self.records)
         specs: dict[str, RunSpec] = {}
         for e in experiments:
             for s in runs_for(e, self.profile):
@@ -344,12 +349,23 @@ class ExperimentRunner:
         self.ensure_data(spaces)
         if "cw" in spaces and not self.profile.external_data:
             self.ensure_data_scores()
-        # in the order the experiments were named (a few-shot run trains its pretraining run first)
-        order = list(specs.values())
+        if self.records is not None:
+            records.check_data(self, self.records)
+            records.import_records(self, self.records, specs.values())
+        # in the order the experiments were named, each few-shot run right after its pretraining run (whose
+        # checkpoint it starts from: a machine that stops between the two does not have to retrain it)
+        order = []
+        for s in specs.values():
+            if s.setting == "fewshot" and s.init_from in specs:
+                continue                                    # placed right after its pretraining run
+            order.append(s)
+            order += [f for f in specs.values() if f.setting == "fewshot" and f.init_from == s.name]
         from ago_runtime.progress import track
 
         for spec in (order if self.quiet else track(order, description="experiment runs", total=len(order))):
             self.ensure_scored(spec)
+            if self.records is not None:
+                records.save_record(self, self.records, spec)
         from .report import write_report
 
         write_report(self.out, self.profile)
