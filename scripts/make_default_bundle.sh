@@ -7,7 +7,7 @@
 #   parity-checked, with its bundle card)
 #   -> ago_runtime/assets/default_bundle/ + assets/demo_frame/
 #
-# Needs the training extra (scripts/setup.sh). ~66 min on a fresh machine on the slow days of this 2-core
+# Needs the training extra (scripts/setup.sh). ~66 min (~95 on the slowest day seen) on a fresh machine on the slow days of this 2-core
 # CPU that timed it, by stage (benchmarks/results/training_cpu.md; the target is 60; each step's time is
 # printed); every step resumes or reuses what an interrupted run left. Usage:
 #   bash scripts/make_default_bundle.sh [WORK_DIR]
