@@ -116,6 +116,10 @@ def test_tiny_profile_end_to_end(tiny_experiments):
     row = t["tab3"]["rows"][0]
     assert len(row["per_seed"]["cw_mIoU"]) == 2 and abs(np.mean(row["per_seed"]["cw_mIoU"]) - row["cw_mIoU"]) < 1e-6
     assert "Seed spread (closed-world mIoU" in md
+    # each few-shot run trains right after its pretraining run (whose checkpoint it starts from)
+    trained = [ln.split(" train ", 1)[1] for ln in (out / "driver.log").read_text().splitlines() if " train " in ln]
+    assert trained.index("fewshot/align/seed0") == trained.index("ow/align") + 1
+    assert trained.index("fewshot/ago/seed1") == trained.index("ow/ago-seed1") + 1
 
 
 def test_second_run_reuses_everything_and_a_half_run_resumes(tiny_experiments):
