@@ -11,7 +11,7 @@ are missing.
 What a reuse checks:
 - `DIR/records.json` names the profile and a fingerprint of the generated data (the dataset's metadata
   tables: scenes, sample tokens, poses, calibration); another profile or other data is refused.
-- each run's `recipe.json` (its full training config, with the folder's own paths written as `<out>`)
+- each run's `recipe.json` (its full training config, with the machine's own paths written as names)
   must equal the recipe this code builds for that run now; a run whose recipe changed is trained again.
 """
 
@@ -42,12 +42,18 @@ def data_fingerprint(data: Path) -> str:
 
 
 def recipe(runner, spec) -> dict:
-    """The run's training config as a dict, with the experiments folder's path written as `<out>`."""
-    out = str(runner.out)
+    """The run's training config as a dict, with the machine's own paths written as names: the experiments
+    folder as `<out>`, the dataset as `<data>`, each pseudo-label folder as `<pseudo:SPACE>`."""
+    places = {str(runner.out): "<out>", str(runner.data): "<data>"}
+    places.update({str(runner.pseudo(space)): f"<pseudo:{space}>" for space in runner.profile.pseudo})
+    longest_first = sorted(places, key=len, reverse=True)
 
     def rel(v):
-        if isinstance(v, str) and v.startswith(out):
-            return "<out>" + v[len(out):]
+        if isinstance(v, str):
+            for place in longest_first:
+                if v == place or v.startswith(place + "/"):
+                    return places[place] + v[len(place):]
+            return v
         if isinstance(v, dict):
             return {k: rel(x) for k, x in v.items()}
         if isinstance(v, list):
