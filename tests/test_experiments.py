@@ -111,6 +111,14 @@ def test_tiny_profile_end_to_end(tiny_experiments):
         assert (out / "figures" / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     md = (out / "results.md").read_text()
     assert "Tab. 4" in md and "min entropy" in md
+    # Tab. I: per-class rows for 4 paradigms zero-shot (+2 more identifiers for ago) and 3 variants few-shot
+    ti = t["tabI"]
+    assert not ti["missing"] and len(ti["rows"]) == 6 + 5
+    assert {r["stage"] for r in ti["rows"]} == {"zero-shot", "1-shot"}
+    ago_zs = [r for r in ti["rows"] if r["stage"] == "zero-shot" and r["paper_method"] == "AGO (Tab. 2)"][0]
+    tab2_ago = [r for r in t["tab2"]["rows"] if r["stage"] == "zero-shot" and r["method"].startswith("AGO")][0]
+    assert ago_zs["unknown"] == tab2_ago["unknown"] and len(ago_zs["iou"]) == 16   # 15 classes + free
+    assert "## Tab. I" in md and "tab:detailed_open_world_exp" in md
     # two seeds: each run twice, cells "mean (a, b)", results.json keeps both values, a seed-spread line
     assert (out / "runs" / "cw" / "ago-seed1" / "done.json").is_file()
     row = t["tab3"]["rows"][0]

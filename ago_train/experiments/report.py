@@ -227,6 +227,36 @@ def table_supp(out: Path, profile: ExperimentProfile) -> dict:
     return t
 
 
+# Tab. I of the paper's supplement: per-class IoU of the open-world runs. Our method -> (view, paper's name)
+TAB_I_METHODS = {"align": [("ow-none", "Align")], "grounding": [("ow-none", "Gro.")],
+                 "grounding+align": [("ow-none", "Gro. + Align")],
+                 "ago": [("ow-none", "AGO w/o OWI"), ("ow-max-conf", "AGO w/ Max Confi."), ("ow-min-entropy", "AGO (Tab. 2)")]}
+TAB_I_AGO_VIEWS = {"ow-none": "AGO, no identifier (F_3D)", "ow-max-conf": "AGO, max confidence",
+                   "ow-min-entropy": "AGO, min entropy"}
+
+
+def table_i(out: Path, profile: ExperimentProfile) -> dict:
+    """Per-class IoU over the 15 open-world classes, zero-shot and few-shot, for every paradigm and identifier."""
+    t = {"title": "Tab. I — detailed open-world results: per-class IoU on the 15 ow classes (mean of seeds "
+                  f"{list(profile.seeds)})", "rows": [], "missing": []}
+    stages = [("zero-shot", lambda v: _views(out, ow_run(v).name, profile.seeds, t["missing"]), PARADIGMS),
+              (f"{profile.k}-shot", lambda v: _views_of(out, [fewshot_run(v, s).name for s in profile.seeds],
+                                                         t["missing"]), FEWSHOT_VARIANTS)]
+    for stage, load, variants in stages:
+        for variant in variants:
+            v = load(variant)
+            if v is None:
+                continue
+            for view, paper_name in TAB_I_METHODS[variant]:
+                w = v["views"].get(view)
+                if w is not None:
+                    method = PAPER_NAMES[variant] if variant != "ago" else TAB_I_AGO_VIEWS[view]
+                    t["rows"].append({"stage": stage, "method": method,
+                                      "paper_method": paper_name, "iou": w["metric"]["iou"], **_row(w)})
+    t["missing"] = sorted(set(t["missing"]))
+    return t
+
+
 # ---------------------------------------------------------------------------------------------
 def _md_table(header: list[str], rows: list[list]) -> list[str]:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
@@ -328,6 +358,14 @@ def paper_columns(key: str) -> list[tuple[str, object]]:
             ("align loss", _num("align_loss"))
         return [first, ("pretraining", _triple("open_world_pretraining")),
                 ("zero-shot", _triple("open_world_zero_shot")), ("few-shot", _triple("open_world_few_shot"))]
+    if key == "supp_i_open_world_detailed":
+        known, unknown = ow_split()
+        return ([("stage", _num("stage")), ("method", _num("method"))]
+                + [(c, _num(f"iou.{c}")) for c in ["vehicle", "cycle"] + known + unknown]
+                + [("k. mIoU", _num("known_mIoU")), ("u. mIoU", _num("unknown_mIoU")), ("mIoU", _num("mIoU")),
+                   (f"known, our split ({len(known)})", _regrouped(known)),
+                   (f"unknown, our split ({len(unknown)})", _regrouped(unknown)),
+                   (f"all ({len(known) + len(unknown)})", _regrouped(known + unknown))])
     raise KeyError(key)
 
 
@@ -342,6 +380,10 @@ PAPER_BESIDE = {
     "tab3": [("tab3_paradigm", "Each open-world cell is known / unknown / mIoU, on the paper's split (see Tab. 2).")],
     "tab4": [("tab4_identifier", "Each cell is known / unknown / mIoU, on the paper's split (see Tab. 2).")],
     "tab5": [("tab5_components", "Gains in brackets are over the row above, as printed.")],
+    "tabI": [("supp_i_open_world_detailed", "The paper's rows are its ablations (its full AGO rows are Tab. 2's); "
+                                            "k. / u. mIoU on its 3 / 12 split, the last three columns over ours. "
+                                            "Pretraining rows score 5 classes (vehicle and cycle, not their "
+                                            "refinements).")],
     "supp": [("supp_e_adapter_depth", "Each cell is known / unknown / mIoU, on the paper's split (see Tab. 2)."),
              ("supp_d_align_loss", "")],
 }
@@ -447,6 +489,16 @@ def markdown(tables: dict, profile: ExperimentProfile, steps: dict, paper: dict 
         L += spread_note(ts["loss"], "unknown", lambda r: r["align_loss"], ts["loss"][0], "unknown mIoU")
     L += _missing(ts)
     L += paper_markdown(paper, "supp")
+    ti = tables.get("tabI")
+    if ti is not None:
+        known, unknown = ow_split()
+        L += ["", f"## {ti['title']}", ""]
+        L += _md_table(["stage", "method", "paper's row"] + known + unknown + ["known", "unknown", "all"],
+                       [[r["stage"], r["method"], r["paper_method"]] + [_plain(r["iou"].get(c)) for c in known + unknown]
+                        + [r["known"], r["unknown"], r["all"]] for r in ti["rows"]])
+        L += ["", "Known classes first (" + ", ".join(known) + "), then the unknown ones."]
+        L += _missing(ti)
+        L += paper_markdown(paper, "tabI")
     times = times or {}
     L += ["", "## Runs", "", "| run | optimiser steps | training wall s (its last session) | scoring wall s |",
           "|---|---|---|---|"]
@@ -637,7 +689,7 @@ def write_report(out: str | Path, profile: ExperimentProfile) -> dict:
     extra = read_json(out / "data_scores.json") if (out / "data_scores.json").is_file() else {}
     tables = {"tab1": table1(out, extra.get("pseudo_cw_val"), profile), "tab2": table2(out, profile),
               "tab3": table3(out, profile), "tab4": table4(out, profile), "tab5": table5(out, profile),
-              "supp": table_supp(out, profile)}
+              "supp": table_supp(out, profile), "tabI": table_i(out, profile)}
     tables["figures"] = figures(out, profile, extra.get("gap_e3d"))
     steps = {p.parent.relative_to(out / "runs").as_posix(): read_json(p).get("steps")
              for p in sorted((out / "runs").glob("**/done.json"))} if (out / "runs").is_dir() else {}
