@@ -552,7 +552,7 @@ def bar_chart(title: str, labels: list[str], series: list[tuple[str, list[float]
     for j, (name, _vals, col) in enumerate(series):
         cv2.rectangle(img, (x + 170 * j, 34), (x + 170 * j + 12, 46), col, -1)
         cv2.putText(img, name, (x + 170 * j + 16, 45), FONT, 0.42, BLACK, 1, cv2.LINE_AA)
-    cv2.putText(img, "blue labels: unknown classes", (left, img.shape[0] - 8), FONT, 0.4, (200, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(img, "red labels: unknown classes", (left, img.shape[0] - 8), FONT, 0.4, (200, 0, 0), 1, cv2.LINE_AA)
     return img
 
 
