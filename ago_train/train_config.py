@@ -100,11 +100,11 @@ class TrainConfig:
         if name == "cpu":
             # The recipe measured in docs/training.md ("The cpu recipe"): the whole ImageNet backbone
             # frozen and its maps cached, a stratified 4000-voxel sample with importance weights, mirror /
-            # half-turn augmentation, 5000 steps (26-45 min on this 2-core CPU for 304 frames, by the
-            # machine's speed of the day; benchmarks/results/training_cpu.md).
+            # half-turn augmentation, 4000 steps (~33 min on this 2-core CPU for 304 frames on 2026-12-05,
+            # 20-40 by the machine's speed of the day; benchmarks/results/training_cpu.md).
             model = ModelConfig.preset("cpu")
             model.frozen_stages = 3
-            return cls(name="cpu", model=model, epochs=1000, max_steps=5000, batch_size=1, max_frames=None,
+            return cls(name="cpu", model=model, epochs=1000, max_steps=4000, batch_size=1, max_frames=None,
                        train_voxels=4000, voxel_sampling="stratified", occupied_share=0.5, feature_cache="auto",
                        item_memory_mb=3072, augment="flip+rot180",
                        warmup_steps=500, log_every=10, ckpt_every=250, noise_words=100,

@@ -7,9 +7,9 @@
 #   parity-checked, with its bundle card)
 #   -> ago_runtime/assets/default_bundle/ + assets/demo_frame/
 #
-# Needs the training extra (scripts/setup.sh). ~66 min (~95 on the slowest day seen) on a fresh machine on the slow days of this 2-core
-# CPU that timed it, by stage (benchmarks/results/training_cpu.md; the target is 60; each step's time is
-# printed); every step resumes or reuses what an interrupted run left. Usage:
+# Needs the training extra (scripts/setup.sh). 51 min on a fresh machine (2026-12-05, this 2-core CPU, by
+# stage in benchmarks/results/training_cpu.md; the target is 60; each step's time is printed); every step
+# resumes or reuses what an interrupted run left. Usage:
 #   bash scripts/make_default_bundle.sh [WORK_DIR]
 # The training run keeps snapshots for the learning curve:
 #   python benchmarks/learning_curve.py --run WORK_DIR/train --data WORK_DIR/synth --fresh FRESH_TOWN
@@ -19,11 +19,13 @@ REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 WORK="${1:-$REPO/work/default_bundle}"
 SCENES="${SCENES:-24}"
 FRAMES="${FRAMES:-16}"
-# 5000 steps, the cpu preset's (6000 gained +0.4 val mIoU, about the run-to-run spread, and cost ~9 min:
-# benchmarks/results/training_cpu.md)
-STEPS="${STEPS:-5000}"
-SNAPSHOTS="${SNAPSHOTS:-[250,500,1000,2000,3000,4000,5000]}"
-IMAGE_SIZE="${IMAGE_SIZE:-704x396}"
+# 4000 steps, the cpu preset's (with the 352x198 town: the chain in 51 min, not ~67; the 5000-step 704x396
+# bundle scored 0.8 mIoU more on four towns it never saw: benchmarks/results/training_cpu.md)
+STEPS="${STEPS:-4000}"
+SNAPSHOTS="${SNAPSHOTS:-[250,500,1000,2000,3000,4000]}"
+# the training town is rendered at half of 704x396: the model reads 352x192 anyway, and synth costs ~0.54x,
+# the per-pixel pseudo-labels less too (the towns it is scored on are rendered at 704x396)
+IMAGE_SIZE="${IMAGE_SIZE:-352x198}"
 PROMPTS="${PROMPTS:-cw}"
 PRESET="${PRESET:-cpu}"
 GRID="${GRID:-100x100x8}"

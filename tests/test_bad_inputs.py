@@ -551,6 +551,9 @@ def test_card_from_a_training_run(tmp_path):
          {"token": "s2", "name": "b", "description": "ago synth seed 0 scene 1"}]))
     (data / "v1.0-trainval" / "sample.json").write_text(json.dumps(
         [{"token": f"t{i}", "scene_token": "s1" if i < 3 else "s2"} for i in range(5)]))
+    (data / "v1.0-trainval" / "sample_data.json").write_text(json.dumps(
+        [{"token": "l0", "fileformat": "pcd", "width": 0, "height": 0},
+         {"token": "c0", "fileformat": "jpg", "width": 352, "height": 198}]))
     (data / "splits.json").write_text(json.dumps({"train": ["a"], "val": ["b"]}))
     run = tmp_path / "run"
     (run / "eval-val").mkdir(parents=True)
@@ -560,7 +563,8 @@ def test_card_from_a_training_run(tmp_path):
             "label_space": {"name": "cw", "class_names": ["car", "road"]}}
     card = make_card(ckpt, run / "last.pt", note="demo only", extra={"val_scores": {"mIoU": 8.0}})
     assert card["trained_on"]["kind"] == "synthetic" and card["trained_on"]["frames"] == 3
+    assert card["trained_on"]["image_size"] == [352, 198]   # the first camera record's, not the LiDAR's
     assert card["val_scores"]["mIoU"] == 8.0 and card["val_scores"]["split"] == "val"
     s = card["summary"]
-    assert "SYNTHETIC" in s and "3 frames" in s and "384 steps" in s and "val mIoU 8.0 %" in s
+    assert "SYNTHETIC" in s and "3 frames of 352x198" in s and "384 steps" in s and "val mIoU 8.0 %" in s
     assert s.endswith("not a nuScenes model; demo only")
