@@ -78,6 +78,13 @@ def describe_data(data: str | None, split: str | None) -> dict:
     used = [s for s in samples if isinstance(s, dict) and (wanted is None or names.get(s.get("scene_token")) in wanted)]
     out["frames"] = len(used)
     out["scenes"] = len({s.get("scene_token") for s in used})
+    if split in ("train", "val") and splits is None and not (root / "splits.json").is_file():
+        from ago_runtime.formats.nuscenes import default_split_positions   # the reader's default split
+
+        per_scene: dict = {}
+        for s in used:
+            per_scene[s.get("scene_token")] = per_scene.get(s.get("scene_token"), 0) + 1
+        out["frames"] = sum(len(default_split_positions(n, split)) for n in per_scene.values())
     # the camera images' size (width, height) as rendered or recorded: the first camera record that has one
     # (read only from a table small enough to parse in a moment: nuScenes trainval's is ~0.5 GB)
     sd = tables[0] / "sample_data.json"
@@ -181,6 +188,10 @@ def summary(card: dict) -> str:
                                                              "x".join(map(str, ro["model_grid"]))))
     pl = card.get("pseudo_labels") or {}
     line = ", ".join(parts)
+    if pl.get("segmenter") == "boxes":
+        line += "; labels from dataset boxes (projected 3D boxes + LiDAR ground, no VLM)"
+    if card.get("pseudo_labels") and not pl.get("embedder"):
+        line += "; modality adapter never aligned (pseudo-labels without image embeddings: --embedder none)"
     if kind == "synthetic" or pl.get("segmenter") == "simulated":
         line += " - not a nuScenes model"
     if card.get("note"):

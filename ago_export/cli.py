@@ -17,8 +17,9 @@ def register(app: typer.Typer) -> None:
         int8: bool = typer.Option(False, "--int8", help="also write a dynamically quantised int8 encoder"),
         parity_frame: Optional[Path] = typer.Option(
             None, "--parity-frame",
-            help="frame for the ORT-vs-torch parity check: an images folder (CAM_*.jpg + calib.json) or a "
-                 "folder with mmdet3d_info.pkl; default: the real nuScenes keyframe in ../shared when present"),
+            help="frame for the ORT-vs-torch parity check: an images folder (CAM_*.jpg + calib.json), a "
+                 "folder with mmdet3d_info.pkl, or a nuScenes dataroot (its first keyframe); default: the real "
+                 "nuScenes keyframe in ../shared when present (printed as a note)"),
         no_real_frame: bool = typer.Option(False, "--no-real-frame", help="check parity on a synthetic frame"),
         bank: Optional[list[str]] = typer.Option(
             None, "--bank-prompts",
@@ -51,6 +52,20 @@ def register(app: typer.Typer) -> None:
         readout = None if readout_grid is None else Grid.parse(readout_grid, "--readout-grid")
         if not checkpoint.is_file():
             raise AgoInputError(checkpoint, "checkpoint not found")
+        if parity_frame is not None and no_real_frame:
+            raise AgoInputError("--parity-frame", "and --no-real-frame ask for two parity frames; give one")
+        if parity_frame is not None and not parity_frame.is_dir():   # before any export work
+            raise AgoInputError("--parity-frame", f"{parity_frame}: folder not found (an images folder, a folder "
+                                "with mmdet3d_info.pkl, or a nuScenes dataroot)")
+        if bank and train_bank_only:
+            raise AgoInputError("--bank-prompts", "and --train-bank-only contradict each other; give one")
+        for name in bank or []:   # every prompt file named must exist and parse, before the export
+            from ago_runtime.vocab.prompts import parse_prompt_file
+
+            try:
+                parse_prompt_file(name)
+            except AgoInputError as e:
+                raise AgoInputError("--bank-prompts", str(e)) from None
         check_output_dir(out, "-o")
         check_output_dir(out.parent, "-o (the bundle is built beside it)")
         prompts = [] if train_bank_only else bank

@@ -66,7 +66,7 @@ def load_model(checkpoint: str | Path):
         cfg = ModelConfig.from_dict(dict(ckpt["model_config"]))
     except (TypeError, AgoInputError) as e:
         raise AgoInputError(checkpoint, f"bad model_config ({e})") from None
-    model = cfg.build()
+    model = cfg.build(load_weights=False)   # every weight comes from the checkpoint (no backbone_weights file read)
     try:
         model.load_state_dict(ckpt["model"], strict=True)
     except RuntimeError as e:
@@ -84,6 +84,8 @@ def head_weights(model, calibration: dict | None = None) -> HeadWeights:
     scales = np.array([cal.get("scale_main", 1.0), cal.get("scale_adapted", 1.0)], np.float32)
     heads = HeadWeights(f(model.decoder_out.weight), f(model.decoder_out.bias), f(model.adapter_out.weight),
                         f(model.adapter_out.bias), f(model.free_embedding), scales)
+    if getattr(model, "free_bias", None) is not None:
+        heads.free_bias = float(model.free_bias.detach())
     if "adapted_mean" in cal:   # the adapted branch's phrase standardisation (ago_train/calibrate.py)
         heads.adapted_mean = np.asarray(cal["adapted_mean"], dtype=np.float32)
         heads.adapted_cov = np.asarray(cal["adapted_cov"], dtype=np.float32)
@@ -201,13 +203,21 @@ def synthetic_frame(rig: Rig, seed: int = 0) -> tuple[dict[str, np.ndarray], Rig
 
 
 def parity_frame(spec: str | Path | None, real_frame: bool, rig: Rig) -> tuple[dict[str, np.ndarray], Rig, str]:
-    """The frame parity runs on: an images folder or a folder with an mmdet3d_info.pkl; by default
-    the real nuScenes keyframe next to the repo when present, else a synthetic frame."""
+    """The frame parity runs on: an images folder, a folder with an mmdet3d_info.pkl or a nuScenes dataroot (its
+    first keyframe); by default the real nuScenes keyframe next to the repo when present, else a synthetic frame."""
     if spec is None and real_frame and (DEFAULT_REAL_FRAME / "mmdet3d_info.pkl").is_file():
         spec = DEFAULT_REAL_FRAME
     if spec is None:
         return synthetic_frame(rig)
     spec = Path(spec)
+    if not spec.is_dir():
+        raise AgoInputError("--parity-frame", f"{spec}: folder not found (an images folder, a folder with "
+                            "mmdet3d_info.pkl, or a nuScenes dataroot)")
+    if any(p.is_dir() and p.name.startswith("v1.0") for p in spec.iterdir()):   # a nuScenes dataroot: its first keyframe
+        from ago_runtime.formats.nuscenes import NuScenesDataset
+
+        frame = NuScenesDataset(spec, load_extras=False)[0]
+        return frame.images, frame.rig, f"{spec} (sample {frame.token})"
     if (spec / "mmdet3d_info.pkl").is_file():
         from ago_runtime.formats.mmdet3d_info import load_mmdet3d_info
 
@@ -262,6 +272,9 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
     grid = model_grid if readout_grid is None else readout_grid
     if (tuple(grid.range_min), tuple(grid.range_max)) != (tuple(model_grid.range_min), tuple(model_grid.range_max)):
         raise AgoInputError("--readout-grid", f"must cover the model's range {model_grid.range_min}-{model_grid.range_max}")
+    if any(r < m for r, m in zip(grid.shape, model_grid.shape)):
+        raise AgoInputError("--readout-grid", f"{'x'.join(map(str, grid.shape))} is coarser than the model's grid "
+                            f"{'x'.join(map(str, model_grid.shape))} along an axis (a read-out grid may only be finer)")
     pre = Preprocess(width=cfg.image_width, height=cfg.image_height)
     if "rig" in ckpt:
         rig, rig_source = Rig.from_dict(ckpt["rig"]), "checkpoint"
@@ -269,6 +282,9 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
         rig, rig_source = Rig.nuscenes_like(1600, 900), "Rig.nuscenes_like(1600, 900) (checkpoint has no rig)"
     text_encoder = {"id": bank.encoder_id, "hash": bank.encoder_hash, "dim": int(bank.dim),
                     "variant": bank.encoder_variant}
+    images, frame_rig, frame_name = parity_frame(parity_frame_dir, real_frame, rig)   # checked before any work
+    if parity_frame_dir is None:
+        log(f"note: using parity frame {frame_name} (--parity-frame DIR chooses one, --no-real-frame a synthetic one)")
     tmp = temp_dir_beside(out)   # removes the temp folders of killed exports first
     try:
         metadata = {
@@ -298,7 +314,6 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
             b.save(tmp / "banks" / f"{key}.npz")
             banks[key] = f"banks/{key}.npz"
 
-        images, frame_rig, frame_name = parity_frame(parity_frame_dir, real_frame, rig)
         x = pre.images(images, frame_name)[None]
         m = pre.ego2img(frame_rig)[None]
         report: dict = {}

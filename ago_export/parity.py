@@ -37,8 +37,8 @@ INT8_TOLERANCE = Tolerance(0.25, 0.85)
 
 
 def reference_labels(feat: np.ndarray, feat_ad: np.ndarray, bank, free: np.ndarray,
-                     scales: tuple[float, float] = (1.0, 1.0), adapted_stats: tuple | None = None
-                     ) -> dict[str, np.ndarray]:
+                     scales: tuple[float, float] = (1.0, 1.0), adapted_stats: tuple | None = None,
+                     free_bias: float = 0.0) -> dict[str, np.ndarray]:
     """Unfolded float64 reference: per-voxel argmax (K classes + free) per branch, and the min-entropy
     identifier's labels by the rule of ago_train.model.scoring.open_world_identify (occupancy from the
     main branch, class from the branch whose scaled class distribution has the lower entropy).
@@ -52,6 +52,8 @@ def reference_labels(feat: np.ndarray, feat_ad: np.ndarray, bank, free: np.ndarr
             P = T.shape[0] - 1
             sd = np.sqrt(np.einsum("pc,cd,pd->p", T[:P], S, T[:P]))
             s[:, :P] = (s[:, :P] - T[:P] @ m) / sd
+        if name == "main":
+            s[:, -1] += free_bias
         z = np.concatenate([bank.class_scores(s[:, :-1]), s[:, -1:]], axis=1)   # (N, K+1)
         out[name] = z.argmax(axis=1)
         zs[name] = z
@@ -104,7 +106,7 @@ def check_parity(model, encoder, heads: HeadWeights, bank, images: np.ndarray, e
         return float(np.abs(a - b).max() / max(float(np.abs(b).max()), 1e-12))
 
     stats = None if heads.adapted_mean is None else (heads.adapted_mean, heads.adapted_cov)
-    want = reference_labels(feat_t, feat_ad_t, bank, heads.free_embedding, heads.scales, stats)
+    want = reference_labels(feat_t, feat_ad_t, bank, heads.free_embedding, heads.scales, stats, heads.free_bias)
     folded = FoldedHeads(heads, bank.embeddings, bank.phrase_class, bank.num_classes)
     got = runtime_labels(encoder, folded, images, ego2img)
     report = {

@@ -178,11 +178,41 @@ def exit_code_for(e: BaseException) -> int:
     raise e
 
 
+def empty_option(args: list[str]) -> str | None:
+    """The first option of `args` given an empty (or all-blank) value, e.g. `--out ''` (which would mean the
+    working folder), else None. Found on the verb's click command: options that take a value (not flags)."""
+    import typer.main
+
+    cmd = typer.main.get_command(app)
+    i = 0
+    while i < len(args) and args[i] in (getattr(cmd, "commands", None) or {}):
+        cmd = cmd.commands[args[i]]
+        i += 1
+    takes_value = {o: not p.is_flag for p in getattr(cmd, "params", []) if p.param_type_name == "option"
+                   for o in list(p.opts) + list(p.secondary_opts)}
+    while i < len(args):
+        a = args[i]
+        if a == "--":
+            break
+        name, value = a.split("=", 1) if a.startswith("--") and "=" in a else (a, None)
+        if takes_value.get(name):
+            if value is None:
+                i += 1
+                value = args[i] if i < len(args) else None
+            if value is not None and not value.strip():
+                return name
+        i += 1
+    return None
+
+
 def run(argv: list[str] | None = None) -> int:
     """Run `ago` with `argv` (default sys.argv[1:]); gives the exit code (errors already printed)."""
     one_line_warnings()
     args = list(sys.argv[1:] if argv is None else argv)
     try:
+        empty = empty_option(args)
+        if empty is not None:   # `--out ''` would write into the working folder: refused for every option
+            raise AgoInputError(empty, "is empty")
         rc = app(args=args, prog_name="ago", standalone_mode=False)
     except SystemExit:
         raise

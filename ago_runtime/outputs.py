@@ -61,7 +61,30 @@ def check_output_file(path: str | os.PathLike, option: str | None = None) -> Pat
         raise AgoInputError(path, f"is a folder{f'; {option} needs a file name' if option else '; give a file name'}")
     if str(path).endswith(os.sep) or path.name in ("", ".", ".."):
         raise AgoInputError(path, "is not a file name")
+    if path.is_symlink() and not path.exists():
+        raise AgoInputError(path, "is a broken symbolic link")
     if path.exists() and not path.is_file():   # a device, a pipe, a socket: never renamed over
         raise AgoInputError(path, "exists and is not a regular file")
     _probe(_nearest_existing(path.parent), path)
+    return path
+
+
+def check_distinct_outputs(*named) -> None:
+    """(option, path or None) pairs: refuse two options naming one file (`--json x.json --md x.json`)."""
+    seen: dict[str, str] = {}
+    for option, path in named:
+        if path is None:
+            continue
+        key = os.path.realpath(path)
+        if key in seen:
+            raise AgoInputError(path, f"{seen[key]} and {option} name the same file; give each its own")
+        seen[key] = option
+
+
+def check_suffix(path: str | os.PathLike, suffixes: tuple[str, ...], option: str) -> Path:
+    """`path` when it ends in one of `suffixes` (what the verb writes: a PNG under a .jpg name is refused)."""
+    path = Path(path)
+    if path.suffix.lower() not in suffixes:
+        raise AgoInputError(option, f"{path}: writes {' or '.join(suffixes)} files; give a name ending in "
+                                    f"{suffixes[0]}")
     return path

@@ -94,6 +94,11 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     for key in ("model", "model_config", "label_space", "bank"):
         if key not in ckpt:
             raise AgoInputError(path, f"checkpoint lacks {key!r}")
+    if not isinstance(ckpt["model"], dict):
+        raise AgoInputError(path, "checkpoint 'model' is not a state dict of tensors")
+    for name, t in ckpt["model"].items():   # NaN / inf weights predict nothing: refused before any work
+        if isinstance(t, torch.Tensor) and t.is_floating_point() and not bool(torch.isfinite(t).all()):
+            raise AgoInputError(path, f"weight {name!r} holds NaN or inf")
     return ckpt
 
 

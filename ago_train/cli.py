@@ -97,12 +97,15 @@ def register(app: typer.Typer) -> None:
         from ago_runtime.errors import require_torch
 
         require_torch("eval")
+        from ago_runtime.errors import AgoInputError
         from ago_runtime.outputs import check_output_dir
 
         from .config_checks import check_device
         from .evaluate import evaluate
 
         check_device(device)
+        if gts is not None and not Path(gts).is_dir():   # before the frames are predicted, not after
+            raise AgoInputError("--gts", f"{gts}: Occ3D gts folder not found")
         out = out if out is not None else Path(ckpt).parent / f"eval-{split}"
         check_output_dir(out, "--out")
         r = evaluate(ckpt, data, split=split, prompts=prompts, identifier=identifier, out=out, gts=gts,
@@ -143,15 +146,18 @@ def register(app: typer.Typer) -> None:
         if identifier not in IDENTIFIERS:
             raise AgoInputError("--identifier", f"must be one of {', '.join(IDENTIFIERS)}, got {identifier!r}")
         check_output_dir(out, "--out")
-        base = _config(config, sets, None, data)
-        if stage in ("fewshot", "all") and pseudo_full is None:
-            raise AgoInputError("--pseudo-full", "is needed for the few-shot stage (--stage fewshot or all)")
-        try:
+        try:   # each option's own problem first: --seeds, the folders, then what the stage needs
             seed_list = tuple(int(s) for s in seeds.split(",") if s.strip())
         except ValueError:
             raise AgoInputError("--seeds", f"must be comma-separated integers, got {seeds!r}") from None
         if not seed_list or min(seed_list) < 0:
             raise AgoInputError("--seeds", f"needs one or more integers >= 0, got {seeds!r}")
+        for option, folder in (("--pseudo-pretrain", pseudo_pretrain), ("--pseudo-full", pseudo_full)):
+            if folder is not None and not Path(folder).is_dir():
+                raise AgoInputError(option, f"{folder}: pseudo-label folder not found")
+        base = _config(config, sets, None, data)
+        if stage in ("fewshot", "all") and pseudo_full is None:
+            raise AgoInputError("--pseudo-full", "is needed for the few-shot stage (--stage fewshot or all)")
         ow = OpenWorldConfig(base=base, pseudo_pretrain=str(pseudo_pretrain),
                              pseudo_full=str(pseudo_full) if pseudo_full else "", out=str(out), k=k,
                              seeds=seed_list, eval_split=eval_split, identifier=identifier,

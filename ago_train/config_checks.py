@@ -25,7 +25,8 @@ DEVICE_RE = re.compile(r"^(auto|cpu|cuda(:\d+)?)$")
 _INT_MIN = {"epochs": 1, "batch_size": 1, "log_every": 1, "ckpt_every": 1, "warmup_steps": 0,
             "noise_words": 0, "train_voxels": 0, "num_workers": 0, "seed": 0, "item_memory_mb": 0}
 _OPTIONAL_INT_MIN = {"max_steps": 1, "max_frames": 1}
-_FLOAT_MIN = {"weight_decay": 0.0, "warmup_lr": 0.0, "min_lr": 0.0, "grad_clip": 0.0}
+_FLOAT_MIN = {"weight_decay": 0.0, "warmup_lr": 0.0, "min_lr": 0.0, "grad_clip": 0.0, "backbone_lr_mult": 0.0,
+              "fpn_lr_mult": 0.0}
 _MODEL_POSITIVE = ("image_width", "image_height", "num_cameras", "tpv_dim", "num_heads", "num_layers",
                    "ffn_dim", "hidden_dim", "decoder_layers", "embed_dim", "adapter_depth", "adapter_hidden",
                    "num_points_in_pillar", "num_points_in_pillar_side", "num_sampling_offsets",
@@ -67,6 +68,33 @@ def _num(cfg, key: str, lo: float, source, strict: bool = False, hi: float | Non
         raise AgoInputError(source, f"{key} must be a number {rng}, got {v!r}")
 
 
+MAX_MODEL_VOXELS = 1 << 25      # a model grid of more voxels than this is refused (Occ3D: 640 k)
+
+
+def check_grid_dict(grid, source, key: str = "model.grid") -> None:
+    """A grid section (ago_runtime.geometry.grid.Grid.to_dict: range_min, range_max, voxel_size, [shape]) that
+    makes a grid of 1 .. MAX_MODEL_VOXELS voxels, with a stated shape that agrees; else AgoInputError naming key."""
+    from ago_runtime.geometry.grid import Grid
+
+    need = ("range_min", "range_max", "voxel_size")
+    if not isinstance(grid, dict) or any(k not in grid for k in need):
+        raise AgoInputError(source, f"{key} needs {', '.join(need)} (3 numbers each), got {str(grid)[:120]}")
+    try:
+        values = [[float(v) for v in grid[k]] for k in need]
+        if any(len(v) != 3 or not all(math.isfinite(x) for x in v) for v in values):
+            raise ValueError
+    except (TypeError, ValueError):
+        raise AgoInputError(source, f"{key}: {', '.join(need)} must be 3 finite numbers each") from None
+    lo, hi, size = values
+    if min(size) <= 0 or any(b <= a for a, b in zip(lo, hi)):
+        raise AgoInputError(source, f"{key}: voxel sizes must be > 0 and range_max above range_min")
+    shape = Grid(tuple(lo), tuple(hi), tuple(size)).shape
+    if min(shape) < 1 or math.prod(shape) > MAX_MODEL_VOXELS:
+        raise AgoInputError(source, f"{key}: {list(shape)} voxels (1 to {MAX_MODEL_VOXELS} in all)")
+    if grid.get("shape") is not None and list(grid["shape"]) != list(shape):
+        raise AgoInputError(source, f"{key}: shape {grid['shape']} does not match range and voxel size ({list(shape)})")
+
+
 def check_model_config(model, source) -> None:
     for key in _MODEL_POSITIVE:
         v = getattr(model, key, 1)
@@ -76,7 +104,7 @@ def check_model_config(model, source) -> None:
         v = getattr(model, key, None)
         if v is not None and (not _is_int(v) or v < 1):
             raise AgoInputError(source, f"model.{key} must be an integer >= 1 or null, got {v!r}")
-    for key in ("pretrained",):
+    for key in ("pretrained", "query_pos", "free_bias"):
         if not isinstance(getattr(model, key, True), bool):
             raise AgoInputError(source, f"model.{key} must be true or false, got {getattr(model, key)!r}")
 

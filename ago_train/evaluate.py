@@ -46,7 +46,7 @@ def load_model(ckpt: dict, device: torch.device, path: str | Path | None = None)
     if not isinstance(ckpt.get("model_config"), dict):
         raise AgoInputError(source, "checkpoint has no model_config")
     cfg = ModelConfig.from_dict(dict(ckpt["model_config"]), source=f"{source} (model_config)")
-    model = cfg.build()
+    model = cfg.build(load_weights=False)   # every weight comes from the checkpoint (no backbone_weights file read)
     load_model_weights(model, ckpt, source, what="its own model_config")
     return cfg, model.to(device).eval()
 
@@ -111,7 +111,7 @@ def predict_labels(model, images: torch.Tensor, ego2img: torch.Tensor, text: tor
     # F~_3D only when the identifier reads it
     out = model(images, ego2img, voxel_index=voxel_index, adapted=identifier != "none", grid_shape=grid_shape)
     free = out.get("free_embedding", model.free_embedding)
-    main = class_logits(out["feat"], text, phrase_class, num_classes, free, None)
+    main = class_logits(out["feat"], text, phrase_class, num_classes, free, None, free_bias=out.get("free_bias"))
     if identifier == "none":
         return main.argmax(dim=-1)
     adapted = adapted_logits(out["feat_adapted"], text, phrase_class, num_classes, free, adapted_stats)
@@ -126,6 +126,22 @@ def scored_subsets(label_space: LabelSpace) -> dict[str, list[str]]:
     if not known or all(c in known for c in label_space.class_names):
         return {}
     return {"known": [c for c in scored if c in known], "unknown": [c for c in scored if c not in known]}
+
+
+NO_GT_FIX = ("to score without Occ3D labels: `ago export` the checkpoint, `ago infer --images DATA --bundle B "
+             "--out P`, then `ago metric --pred P --lidar DATA` (docs/metric_and_pictures.md)")
+
+
+def check_has_gt(ds, indices: list[int], data) -> None:
+    """Every frame to score has an Occ3D labels.npz; otherwise one error naming the first missing file and the fix."""
+    from ago_runtime.formats.occ3d import labels_path
+
+    if ds.gts_root is None:
+        raise AgoInputError(data, f"no Occ3D ground truth (no gts/ folder; --gts DIR names another); {NO_GT_FIX}")
+    for i in indices:
+        path = labels_path(ds.gts_root, ds.scene_of(i), ds.sample_tokens[i])
+        if not path.is_file():
+            raise AgoInputError(path, f"no Occ3D ground truth for this frame; {NO_GT_FIX}")
 
 
 def evaluate(ckpt_path: str | Path, data: str | Path, split: str = "val", prompts: str | None = None,
@@ -160,6 +176,7 @@ def evaluate(ckpt_path: str | Path, data: str | Path, split: str = "val", prompt
         indices = indices[:max_frames]
     if not indices:
         raise AgoInputError(data, f"no frames in split {split!r}")
+    check_has_gt(ds, indices, data)   # before any work
     grid = mcfg.grid_obj()
     pre = Preprocess(mcfg.image_width, mcfg.image_height)
     dataset = OccSampleDataset(FrameList(ds, indices), None, K, grid, pre,

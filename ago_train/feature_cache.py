@@ -9,7 +9,9 @@ reads it instead of decoding six JPEGs and running those stages at every step.
   be served a stale entry.
 - Folder: `<root>/<fingerprint>/`, where the fingerprint hashes the frozen stages' parameters and
   buffers, the backbone name, `frozen_stages`, the preprocessing (`Preprocess.to_dict()`) and
-  FORMAT_VERSION: new weights or a new image size go to a fresh folder.
+  FORMAT_VERSION, plus for a ResNet the sha256 of its `backbone_weights` file and a non-default
+  `backbone_style`: new weights (another weights file even with equal frozen stages) or a new image
+  size go to a fresh folder.
 - Entry: `<fingerprint>/<key[:2]>/<key>.npz` holding arrays `l0`, `l1`, ... ((C_l, H_l, W_l) float16,
   the maps of `backbone.frozen_prefix`), written atomically; on read the shapes and dtype are checked
   against the backbone's and the values must be finite, else the entry is recomputed.
@@ -59,9 +61,14 @@ def backbone_fingerprint(model, preprocess: Preprocess) -> str:
     """sha256 (hex) of everything the frozen prefix depends on (weights, stages, preprocessing)."""
     backbone = model.backbone
     h = hashlib.sha256()
-    h.update(json.dumps({"format": FORMAT_VERSION, "backbone": model.cfg.backbone,
-                         "frozen_stages": int(backbone.frozen_stages),
-                         "preprocess": preprocess.to_dict()}, sort_keys=True).encode())
+    head = {"format": FORMAT_VERSION, "backbone": model.cfg.backbone, "frozen_stages": int(backbone.frozen_stages),
+            "preprocess": preprocess.to_dict()}
+    # a ResNet's user weights file and style (only when set, so EfficientNet fingerprints stay as they were)
+    if getattr(backbone, "weights_sha256", None):
+        head["weights_sha256"] = backbone.weights_sha256
+    if getattr(backbone, "style", "pytorch") != "pytorch":
+        head["style"] = backbone.style
+    h.update(json.dumps(head, sort_keys=True).encode())
     for name, t in sorted(backbone.frozen_state().items()):
         h.update(name.encode())
         h.update(t.detach().cpu().contiguous().numpy().tobytes())

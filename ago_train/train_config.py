@@ -72,6 +72,8 @@ class TrainConfig:
     max_steps: int | None = None      # stop after this many optimiser steps (None = epochs * steps/epoch)
     batch_size: int = 1               # per process
     lr: float = 1e-3
+    backbone_lr_mult: float = 1.0     # the image backbone's learning rate = lr x this (TPVFormer: 0.1)
+    fpn_lr_mult: float = 1.0          # the FPN's learning rate = lr x this
     weight_decay: float = 0.01
     warmup_lr: float = 1e-5
     warmup_steps: int = 500
@@ -136,6 +138,10 @@ class TrainConfig:
         if "model" in kw and not isinstance(kw["model"], ModelConfig):
             if not isinstance(kw["model"], dict):
                 raise AgoInputError(source, f"model must be an object of model settings, got {kw['model']!r}")
+            from .config_checks import check_grid_dict
+
+            if "grid" in kw["model"]:
+                check_grid_dict(kw["model"]["grid"], source)   # before any grid is built from it
             kw["model"] = ModelConfig.from_dict(kw["model"], source)
         if "loss" in kw and not isinstance(kw["loss"], LossConfig):
             if not isinstance(kw["loss"], dict):
@@ -177,10 +183,14 @@ class TrainConfig:
             if "=" not in a:
                 raise AgoInputError(None, f"--set needs key=value, got {a!r}")
             key, raw = a.split("=", 1)
+            if len(raw) > 100_000:
+                raise AgoInputError("--set", f"{key.strip()}: value of {len(raw)} characters (at most 100000)")
             try:
                 value: Any = json.loads(raw)
             except json.JSONDecodeError:
                 value = raw
+            except RecursionError:
+                raise AgoInputError("--set", f"{key.strip()}: value nested too deeply") from None
             target = d
             parts = key.strip().split(".")
             for p in parts[:-1]:
@@ -201,6 +211,24 @@ class TrainConfig:
 
     def prompt_path(self) -> Path:
         return resolve_prompt_file(self.prompts)
+
+    def run_length(self, steps_per_epoch: int) -> tuple[int, str | None]:
+        """(optimiser steps of the run, a `note:` line or None). The run stops at whichever of `epochs` x
+        `steps_per_epoch` and `max_steps` comes first, and the schedule (warm-up, cosine) is sized to that
+        length. The note says which limit wins when both are set and they disagree, so a run is never
+        silently shorter (or longer) than the number a user typed."""
+        by_epochs = self.epochs * steps_per_epoch
+        if self.max_steps is None or self.max_steps == by_epochs:
+            return by_epochs, None
+        if by_epochs < self.max_steps:
+            return by_epochs, (f"note: epochs={self.epochs} x {steps_per_epoch} steps per epoch = {by_epochs} steps "
+                               f"comes before max_steps={self.max_steps}: the run and its learning-rate schedule "
+                               f"are {by_epochs} steps (raise epochs, e.g. --set epochs="
+                               f"{math.ceil(self.max_steps / max(steps_per_epoch, 1))}, to train {self.max_steps})")
+        return self.max_steps, (f"note: max_steps={self.max_steps} comes before epochs={self.epochs} x "
+                                f"{steps_per_epoch} steps per epoch = {by_epochs}: the run and its learning-rate "
+                                f"schedule are {self.max_steps} steps "
+                                f"({self.max_steps / max(steps_per_epoch, 1):.1f} epochs)")
 
     def effective_warmup(self, total_steps: int) -> int:
         """Warm-up steps actually used: `warmup_steps`, capped at `warmup_max_fraction` of the run."""

@@ -49,6 +49,8 @@ def open_frames(data: str | Path, gts: str | None, split: str, load_images: bool
         raise AgoInputError(root, "dataset root not found (make a synthetic one with `ago synth`)")
     ds = NuScenesDataset(root, gts_root=gts, load_images=load_images, load_extras=False)
     indices = ds.split(split)
+    if ds.split_note(split):   # no splits.json: say which default split is used
+        print(f"note: using {ds.split_note(split)}", file=__import__("sys").stderr, flush=True)
     return ds, list(indices)
 
 
@@ -101,7 +103,10 @@ class TrainStep(nn.Module):
 
     def forward(self, batch: dict, text: torch.Tensor, phrase_class: torch.Tensor,
                 noise: torch.Tensor | None, voxel_index: torch.Tensor | None = None,
-                voxel_weight: torch.Tensor | None = None, class_weight: torch.Tensor | None = None) -> dict:
+                voxel_weight: torch.Tensor | None = None, class_weight: torch.Tensor | None = None,
+                diagnose: bool = False) -> dict:
+        """The loss parts; with `diagnose`, also "feat_spread" and "free_share" of the voxels the losses
+        saw (ago_train/fit_diagnostics.py; no gradients)."""
         from .losses import BankTensors, compute_losses
 
         prefix = None
@@ -110,8 +115,34 @@ class TrainStep(nn.Module):
         # F~_3D only where the alignment loss reads it (compute_losses runs the adapter on those rows)
         outputs = self.model(batch.get("images"), batch["ego2img"], voxel_index, prefix, adapted=False)
         bank = BankTensors(text, phrase_class, self.num_classes, noise)
-        return compute_losses(outputs, batch, bank, self.loss_cfg, sample_weight=voxel_weight,
-                              adapter=self.model.adapt, class_weight=class_weight)
+        losses = compute_losses(outputs, batch, bank, self.loss_cfg, sample_weight=voxel_weight,
+                                adapter=self.model.adapt, class_weight=class_weight)
+        if diagnose:
+            from .fit_diagnostics import feature_spread, free_share
+            from .model.scoring import class_logits
+
+            with torch.no_grad():
+                logits = class_logits(outputs["feat"], text, phrase_class, self.num_classes,
+                                      outputs["free_embedding"], free_bias=outputs.get("free_bias"))
+            losses["feat_spread"] = torch.tensor(feature_spread(outputs["feat"]))
+            losses["free_share"] = torch.tensor(free_share(logits, self.num_classes))
+        return losses
+
+
+def parameter_groups(model: nn.Module, cfg: TrainConfig) -> list[dict]:
+    """AdamW parameter groups: the image backbone at `backbone_lr_mult` x the learning rate, the FPN at
+    `fpn_lr_mult` x, everything else at 1x (TPVFormer trains its image backbone at 0.1x). Each group's
+    rate follows the same schedule (LambdaLR scales every group's initial rate). Frozen parameters and
+    empty groups are left out; with both multipliers at 1 there is one group (as in runs made before the
+    multipliers existed, so their checkpoints resume)."""
+    if cfg.backbone_lr_mult == 1.0 and cfg.fpn_lr_mult == 1.0:
+        return [{"params": [p for p in model.parameters() if p.requires_grad], "lr": cfg.lr, "name": "all"}]
+    groups = {"backbone": [], "fpn": [], "rest": []}
+    for name, param in model.named_parameters():
+        if param.requires_grad:
+            groups[name.split(".")[0] if name.split(".")[0] in ("backbone", "fpn") else "rest"].append(param)
+    mult = {"backbone": cfg.backbone_lr_mult, "fpn": cfg.fpn_lr_mult, "rest": 1.0}
+    return [{"params": ps, "lr": cfg.lr * mult[k], "name": k} for k, ps in groups.items() if ps]
 
 
 def _to_device(batch: dict, device: torch.device) -> dict:
@@ -179,8 +210,7 @@ class Trainer:
         self.sampler = DistributedSampler(self.dataset, num_replicas=info.world_size, rank=info.rank,
                                           shuffle=True, seed=cfg.seed, drop_last=False)
         self.steps_per_epoch = math.ceil(len(self.sampler) / cfg.batch_size)
-        total = cfg.epochs * self.steps_per_epoch
-        self.total_steps = min(total, cfg.max_steps) if cfg.max_steps is not None else total
+        self.total_steps, note = cfg.run_length(self.steps_per_epoch)   # printed once the inputs are checked
 
         # frozen text side: the label-space bank (encoded once) and the noise-word bank
         self.bank = build_text_bank(self.label_space)
@@ -199,19 +229,26 @@ class Trainer:
         if cfg.init_from:
             init = load_checkpoint(cfg.init_from)
             load_model_weights(self.model, init, cfg.init_from, cfg.model.to_dict(), what="this run's model (init_from)")
+        if self.model.free_bias is not None and not cfg.init_from:   # a resumed run loads its own below
+            with torch.no_grad():
+                self.model.free_bias.fill_(self._free_prior_logit())
         if use_cache:  # after init_from: the cache is keyed by the frozen weights the run really uses
             self.dataset.feature_cache = self._feature_cache()
         self.step_module = TrainStep(self.model, cfg.loss, K).to(info.device)
-        params = [p for p in self.model.parameters() if p.requires_grad]
-        # fused AdamW: the same update, one kernel per group of tensors (optimiser step 17 -> 8 ms on the cpu preset)
+        # fused AdamW: the same update, one kernel per group of tensors
         fused = torch.device(info.device).type in ("cpu", "cuda")
-        self.optimizer = torch.optim.AdamW(params, lr=cfg.lr, weight_decay=cfg.weight_decay, fused=fused)
+        self.optimizer = torch.optim.AdamW(parameter_groups(self.model, cfg), lr=cfg.lr,
+                                           weight_decay=cfg.weight_decay, fused=fused)
         total_steps = self.total_steps
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(
             self.optimizer, lambda s: cfg.lr_at(s, total_steps) / cfg.lr)
         self.step = 0
         if self.resume:
             self._load_resume()
+        if note and info.is_main and not self.quiet:   # after init_from / resume checks: an error stays one line
+            import sys
+
+            print(note, file=sys.stderr, flush=True)
         if info.distributed:
             self.ddp = torch.nn.parallel.DistributedDataParallel(
                 self.step_module, device_ids=[info.device.index] if info.device.type == "cuda" else None,
@@ -244,6 +281,23 @@ class Trainer:
                              for n, c, w in zip(names, counts, weights)}}, indent=1) + "\n")
         return torch.as_tensor(weights, device=self.info.device)
 
+    def _free_prior_logit(self) -> float:
+        """The free score's starting bias: the prior log-odds of free among the labelled voxels of the training
+        frames' pseudo-labels, plus log(K + noise words) so that with every other score ~0 the softmax gives
+        free its prior probability. The model then starts at the loss of the class prior instead of
+        reaching it by moving every voxel's embedding towards the free embedding (a common shift that
+        erases their differences: docs/training.md, "Does it learn?")."""
+        from .losses.class_balance import count_classes
+
+        frames = self.dataset.frames
+        K = self.label_space.num_classes
+        counts = count_classes((self.pseudo.labels(frames[i].scene, frames[i].token) for i in range(len(frames))), K)
+        free, occupied = float(counts[K]), float(counts[:K].sum())
+        if free == 0 or occupied == 0:
+            return 0.0
+        noise = self.cfg.noise_words if getattr(self.cfg.loss, "use_noise", True) else 0
+        return float(np.log(free / occupied) + np.log(K + noise))
+
     def _align_center(self) -> torch.Tensor:
         """(C,) mean E_3D over every aligned voxel of the training frames (training data only)."""
         total, count = None, 0
@@ -264,6 +318,9 @@ class Trainer:
 
         root = None if self.cfg.feature_cache == "auto" else self.cfg.feature_cache
         cache = FeatureCache(self.model, self.preprocess, root)
+        if self.info.is_main and not self.quiet:
+            print(f"note: using feature cache {cache.dir} (frozen backbone maps of the training frames; "
+                  "--set feature_cache=DIR moves it, $AGO_CACHE_DIR too)", file=__import__("sys").stderr, flush=True)
         if self.info.is_main:
             flips = (False, True) if self.cfg.augment != "none" else (False,)
             cache.fill(self.dataset.frames, progress=not self.quiet, flips=flips)
@@ -369,7 +426,8 @@ class Trainer:
             batch["align_center"] = self.align_center
         noise = self.noise_for_step(self.step)
         index, weight = self.voxels_for_step(batch, self.step)
-        out = self.ddp(batch, self.text, self.phrase_class, noise, index, weight, self.class_weight)
+        diagnose = (self.step + 1) % cfg.log_every == 0   # the step whose loss parts are logged
+        out = self.ddp(batch, self.text, self.phrase_class, noise, index, weight, self.class_weight, diagnose)
         loss = out["total"]
         if not torch.isfinite(loss):
             raise FloatingPointError(f"loss is {loss.item()} at step {self.step}")
@@ -416,7 +474,7 @@ class Trainer:
                 for batch in loader:
                     if self.step >= stop:
                         break
-                    lr_now = self.scheduler.get_last_lr()[0]  # the rate this step uses
+                    lr_now = self.scheduler.get_last_lr()[-1]  # the rate this step uses (the last group: 1x)
                     out = self.train_step(batch)
                     value = float(out["total"].detach())
                     losses.append(value)

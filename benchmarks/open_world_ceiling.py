@@ -71,7 +71,7 @@ def score_run(ckpt_path: Path, data: str, prompts: str, max_frames: int | None) 
     for batch in track(loader, description=f"ceiling {ckpt_path.parent.name}", total=len(loader)):
         out = model(batch["images"], batch["ego2img"])
         free = out.get("free_embedding", model.free_embedding)
-        main = class_logits(out["feat"], bank.text, bank.phrase_class, K, free, None)[0]
+        main = class_logits(out["feat"], bank.text, bank.phrase_class, K, free, None, free_bias=out.get("free_bias"))[0]
         adap = adapted_logits(out["feat_adapted"], bank.text, bank.phrase_class, K, free, stats)[0]
         tok = str(batch["token"][0])
         gt = lut[np.asarray(batch["gt"][0]).astype(np.uint8)]
@@ -135,7 +135,8 @@ def training_occupancy(ckpt_path: Path, data: str, pseudo: str, frames: int) -> 
     for i in range(len(dataset)):
         b = collate([dataset[i]])
         out = model(b["images"], b["ego2img"])
-        lg = class_logits(out["feat"], text.float(), pc.long(), K, out.get("free_embedding", model.free_embedding))[0]
+        lg = class_logits(out["feat"], text.float(), pc.long(), K, out.get("free_embedding", model.free_embedding),
+                          free_bias=out.get("free_bias"))[0]
         occ = lg[:, : K + 1].argmax(-1) != K
         sem = b["semantics"][0]
         for name, sel in (("labelled", sem < K), ("hit, unlabelled", sem == OCCUPIED_UNLABELLED),

@@ -568,3 +568,251 @@ def test_card_from_a_training_run(tmp_path):
     s = card["summary"]
     assert "SYNTHETIC" in s and "3 frames of 352x198" in s and "384 steps" in s and "val mIoU 8.0 %" in s
     assert s.endswith("not a nuScenes model; demo only")
+
+
+# ------------------------------------------------------------------------------------ round two (issue 36)
+@pytest.fixture(scope="module")
+def h(w, tmp_path_factory):
+    """Inputs of issue 36's cases: deep and empty info files and calibrations, files outside the data root,
+    huge prompt lines, a dataset whose sample_data.json names files outside it."""
+    root = tmp_path_factory.mktemp("hostile2")
+    x = types.SimpleNamespace(root=root, w=w)
+    x.outside = root / "outside"                       # a valid JPEG outside every data root
+    x.outside.mkdir()
+    shutil.copy(w.frame / "CAM_FRONT.jpg", x.outside / "CAM_FRONT.jpg")
+    x.info_root = root / "info_root"
+    x.info_root.mkdir()
+
+    def info(name, change):
+        rig = Rig.nuscenes_like(400, 225)
+        sample = {"token": "t0", "timestamp": 0.0, "ego2global": np.eye(4).tolist(), "images": {},
+                  "lidar_points": {"lidar_path": "x.bin", "lidar2ego": np.eye(4).tolist(), "num_pts_feats": 5}}
+        for cam in rig:
+            sample["images"][cam.name] = {"img_path": f"{cam.name}.jpg", "cam2img": cam.intrinsics.tolist(),
+                                          "cam2ego": cam.cam2ego.tolist()}
+        d = {"metainfo": {}, "data_list": [sample]}
+        change(d, sample)
+        p = root / name
+        p.write_bytes(pickle.dumps(d, protocol=4))
+        return p
+
+    def passwd(d, s):
+        s["images"]["CAM_FRONT"]["img_path"] = "../../../../etc/passwd"
+        s["lidar_points"]["lidar_path"] = "/etc/hostname"
+
+    x.info_passwd = info("passwd.pkl", passwd)
+    x.info_outside = info("outside.pkl", lambda d, s: s["images"]["CAM_FRONT"].update(
+        img_path=str(x.outside / "CAM_FRONT.jpg")))
+    x.info_empty = info("empty.pkl", lambda d, s: d.update(data_list=[]))
+    x.info_deep = root / "deep.pkl"     # {"data_list": [[[...]]]} 3000 deep, by opcodes (EMPTY_LIST, APPEND)
+    x.info_deep.write_bytes(b"\x80\x02}X\x09\x00\x00\x00data_list" + b"]" * 3000 + b"a" * 2999 + b"s.")
+    x.deep_calib = shutil.copytree(w.frame, root / "deep_calib")
+    (x.deep_calib / "calib.json").write_text("[" * 100000 + "]" * 100000)
+    x.far_calib = shutil.copytree(w.frame, root / "far_calib")
+    calib = json.loads((x.far_calib / "calib.json").read_text())
+    calib["cameras"]["CAM_BACK"]["cam2ego"][0][3] = 1e308
+    (x.far_calib / "calib.json").write_text(json.dumps(calib))
+    x.long_line = root / "long_line.txt"
+    x.long_line.write_text("car: " + " ".join(["word"] * 200000) + "\n")
+    x.nul_prompts = root / "nul.txt"
+    x.nul_prompts.write_bytes(b"car: car\x00boat\n")
+    x.outside_data = shutil.copytree(w.data, root / "outside_data")     # sample_data names ../outside/CAM_FRONT.jpg
+    table = next(x.outside_data.glob("v1.0-*")) / "sample_data.json"
+    records = json.loads(table.read_text())
+    for r in records:
+        if r["filename"].startswith("samples/CAM_FRONT/"):
+            r["filename"] = "../outside/CAM_FRONT.jpg"
+    table.write_text(json.dumps(records))
+    return x
+
+
+ROWS2 = [
+    # 1. tracebacks
+    ("synth --scenes 10^20", lambda h: ["synth", "--scenes", "99999999999999999999", "--out", "o"], ["--scenes"], ["o"]),
+    ("synth --image-size 100000x100000", lambda h: ["synth", "--image-size", "100000x100000", "--out", "o"],
+     ["--image-size", "4096"], ["o"]),
+    ("synth --grid 100000x100000x100", lambda h: ["synth", "--grid", "100000x100000x100", "--out", "o"],
+     ["--grid"], ["o"]),
+    ("synth --scenes 100000 --frames 100000", lambda h: ["synth", "--scenes", "100000", "--frames", "100000",
+                                                         "--out", "o"], ["--scenes"], ["o"]),
+    ("synth --frames 100000", lambda h: ["synth", "--frames", "100000", "--out", "o"], ["--frames"], ["o"]),
+    ("train --set model.grid shape 0", lambda h: ["train", "--config", "tiny", "--set",
+                                                   'model.grid={"shape":[0,0,0]}', "--out", "o"],
+     ["--set", "model.grid"], ["o"]),
+    ("train --set model.grid of 0 m voxels", lambda h: [
+        "train", "--config", "tiny", "--set",
+        'model.grid={"range_min":[-40,-40,-1],"range_max":[40,40,5.4],"voxel_size":[0,0,0]}', "--out", "o"],
+     ["--set", "model.grid", "voxel sizes"], ["o"]),
+    ("train --set deeply nested value", lambda h: ["train", "--config", "tiny", "--set",
+                                                   "epochs=" + "[" * 30000 + "]" * 30000, "--out", "o"],
+     ["--set", "epochs", "nested"], ["o"]),
+    ("infer --info with an empty data_list", lambda h: ["infer", "--info", h.info_empty, "--bundle", h.w.bundle,
+                                                        "--out", "o"], ["empty.pkl", "data_list is empty"], ["o"]),
+    ("infer --info of a pickle nested 3000 deep", lambda h: ["infer", "--info", h.info_deep, "--bundle", h.w.bundle,
+                                                             "--out", "o"], ["deep.pkl", "nested"], ["o"]),
+    ("calib.json of 100000 nested [", lambda h: ["infer", "--images", h.deep_calib, "--bundle", h.w.bundle,
+                                                 "--out", "o"], ["calib.json", "nested"], ["o"]),
+    # 2. a hang
+    ("prompt line of 200000 words", lambda h: ["infer", "--images", h.w.frame, "--bundle", h.w.bundle, "--prompts",
+                                               h.long_line, "--out", "o"], ["long_line.txt", "characters"], ["o"]),
+    ("--phrase of 1 MB", lambda h: ["retrieve", "--images", h.w.frame, "--bundle", h.w.bundle, "--phrase",
+                                    "cone " * 200000, "--out", "o"], ["--phrase", "characters"], ["o"]),
+    # 3. paths outside the data
+    ("info naming /etc/passwd and /etc/hostname", lambda h: ["infer", "--info", h.info_passwd, "--images", h.info_root,
+                                                             "--bundle", h.w.bundle, "--out", "o"],
+     ["passwd.pkl", "outside the data root"], ["o"]),
+    ("info naming a valid JPEG outside the root", lambda h: ["infer", "--info", h.info_outside, "--images",
+                                                             h.info_root, "--bundle", h.w.bundle, "--out", "o"],
+     ["outside.pkl", "CAM_FRONT.img_path", "absolute"], ["o"]),
+    ("sample_data naming a valid JPEG outside", lambda h: ["infer", "--images", h.outside_data, "--bundle",
+                                                           h.w.bundle, "--out", "o"],
+     ["sample_data.json", "outside the data root"], ["o"]),
+    ("show of a dataset naming files outside", lambda h: ["show", h.outside_data, "--index", "0", "--out", "o.png"],
+     ["sample_data.json", "outside the data root"], ["o.png"]),
+    # 4. one line, before the work
+    ("eval --gts missing", lambda h: ["eval", "--ckpt", h.w.ckpt, "--data", h.w.data, "--split", "all", "--gts",
+                                      "nogts", "--out", "o"], ["--gts", "nogts"], ["o"]),
+    ("export --parity-frame missing", lambda h: ["export", h.w.ckpt, "-o", "b", "--parity-frame", "noframe"],
+     ["--parity-frame", "noframe"], ["b"]),
+    ("calibration translation 1e308", lambda h: ["infer", "--images", h.far_calib, "--bundle", h.w.bundle,
+                                                 "--out", "o"], ["calib.json", "CAM_BACK"], ["o"]),
+    # 5. the right option named
+    ("open-world --seeds a,b", lambda h: ["open-world", "--pseudo-pretrain", h.w.pseudo, "--seeds", "a,b",
+                                          "--out", "o"], ["--seeds"], ["o"]),
+    ("open-world --seeds ''", lambda h: ["open-world", "--pseudo-pretrain", h.w.pseudo, "--seeds", "", "--out", "o"],
+     ["--seeds"], ["o"]),
+    ("open-world --pseudo-pretrain missing", lambda h: ["open-world", "--pseudo-pretrain", "nope", "--out", "o"],
+     ["--pseudo-pretrain", "nope"], ["o"]),
+    ("prompts build --template with two {}", lambda h: ["prompts", "build", "cw", "-o", "b.npz", "--template",
+                                                        "a {} {}"], ["--template"], ["b.npz"]),
+    # 6. bad input accepted before
+    ("synth --out ''", lambda h: ["synth", "--out", "", "--scenes", "1", "--frames", "1"], ["--out", "empty"], []),
+    ("export --bank-prompts missing", lambda h: ["export", h.w.ckpt, "-o", "b", "--no-real-frame", "--bank-prompts",
+                                                 "nofile.txt"], ["--bank-prompts", "nofile.txt"], ["b"]),
+    ("export --readout-grid coarser", lambda h: ["export", h.w.ckpt, "-o", "b", "--no-real-frame", "--readout-grid",
+                                                 "10x10x4"], ["--readout-grid", "coarser"], ["b"]),
+    ("export --parity-frame with --no-real-frame", lambda h: ["export", h.w.ckpt, "-o", "b", "--no-real-frame",
+                                                              "--parity-frame", h.w.frame], ["--parity-frame"], ["b"]),
+    ("metric --json and --md on one path", lambda h: ["metric", "--pred", h.w.data / "gts", "--gt", h.w.data / "gts",
+                                                      "--json", "x.json", "--md", "x.json"], ["x.json", "--md"],
+     ["x.json"]),
+    ("show --out o.jpg", lambda h: ["show", h.w.gt, "--out", "o.jpg"], ["--out", "o.jpg", ".png"], ["o.jpg"]),
+    ("retrieve --phrase a,b", lambda h: ["retrieve", "--images", h.w.frame, "--bundle", h.w.bundle, "--phrase", "a,b",
+                                         "--out", "o"], ["--phrase", "commas"], ["o"]),
+    ("retrieve --phrase with control characters", lambda h: ["retrieve", "--images", h.w.frame, "--bundle",
+                                                             h.w.bundle, "--phrase", "cone\x1b[2J", "--out", "o"],
+     ["--phrase", "control character"], ["o"]),
+    ("prompt file with a NUL byte", lambda h: ["infer", "--images", h.w.frame, "--bundle", h.w.bundle, "--prompts",
+                                               h.nul_prompts, "--out", "o"], ["nul.txt", "NUL"], ["o"]),
+    # 8. no silent fallback
+    ("--prompts in a missing folder", lambda h: ["infer", "--images", h.w.frame, "--bundle", h.w.bundle, "--prompts",
+                                                 "no/such/dir/ow.txt", "--out", "o"], ["no/such/dir/ow.txt"], ["o"]),
+]
+
+
+@pytest.mark.parametrize("row", ROWS2, ids=[r[0] for r in ROWS2])
+def test_bad_input_row_round_two(h, row, tmp_path):
+    _, make_args, needles, outputs = row
+    cwd = tmp_path / "cwd"
+    cwd.mkdir()
+    before = snapshot(h.w.root), snapshot(h.root)
+    r = run_ago(make_args(h), cwd)
+    assert_one_error_line(r, *[str(n) for n in needles])
+    assert not any(cwd.iterdir()), f"written into the working directory: {sorted(os.listdir(cwd))}"
+    for rel in outputs:
+        assert not (cwd / rel).exists()
+    assert (snapshot(h.w.root), snapshot(h.root)) == before, "an input changed"
+
+
+def test_the_path_rule_allows_outside_only_when_asked(h, tmp_path):
+    """The one path rule (ago_runtime.paths.inside_root): relative names stay, `..` and absolute names are
+    refused; `--allow-outside-root` lets the valid JPEG outside the data root be read (the run then fails
+    later only for the LiDAR file the info names, which does not exist)."""
+    from ago_runtime.errors import AgoInputError
+    from ago_runtime.paths import inside_root
+
+    assert inside_root(tmp_path, "samples/CAM_FRONT/a.jpg", "t.json") == tmp_path / "samples/CAM_FRONT/a.jpg"
+    for bad in ("../a.jpg", "samples/../../a.jpg", "/etc/passwd", "C:\\x.jpg", "..\\a.jpg", "a\x00b", "", 5):
+        with pytest.raises(AgoInputError, match="t.json"):
+            inside_root(tmp_path, bad, "t.json")
+    assert inside_root(tmp_path, "/etc/hostname", "t.json", allow_outside=True) == Path("/etc/hostname")
+    r = run_ago(["infer", "--info", h.info_outside, "--images", h.info_root, "--bundle", h.w.bundle, "--out", "o",
+                 "--allow-outside-root"], tmp_path)
+    line = assert_one_error_line(r)
+    assert "outside" not in line and "CAM_FRONT_RIGHT.jpg" in line       # CAM_FRONT (outside) was accepted
+
+
+def test_prompts_fallback_names_the_file_taken(h, tmp_path):
+    """`--prompts prompts/ow.txt` from another folder takes the shipped file and says so (one warning line)."""
+    r = run_ago(["infer", "--images", h.w.frame, "--bundle", h.w.bundle, "--prompts", "prompts/cw.txt", "--out", "o",
+                 "--picture", "none"], tmp_path)
+    assert r.code == 0, r.stderr
+    warns = [ln for ln in r.stderr.splitlines() if ln.startswith("warning: ")]
+    assert any("--prompts prompts/cw.txt" in ln and "shipped" in ln for ln in warns), r.stderr
+
+
+def test_infer_over_a_dataset_resumes_whole_frames_only(h, tmp_path):
+    """Frames whose npz and PNG are whole and of the same settings are skipped (checked: every array read, the
+    PNG decoded); a truncated npz or a missing PNG is made again; other settings remake every frame."""
+    w = h.w
+    args = ["infer", "--images", w.data, "--bundle", w.bundle, "--out", "out", "--picture", "bev", "--workers", "1"]
+    r = run_ago(args, tmp_path)
+    assert r.code == 0, r.stderr
+    out = tmp_path / "out"
+    npzs = sorted(out.glob("*.npz"))
+    assert len(npzs) == 2 and len(list(out.glob("*.png"))) == 2
+    stamp = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
+    r = run_ago(args, tmp_path)
+    assert r.code == 0 and "resuming: 2 frames already whole" in r.stdout, r.stdout + r.stderr
+    assert {p.name: p.stat().st_mtime_ns for p in out.iterdir()} == stamp       # nothing rewritten
+
+    first, second = npzs
+    data = first.read_bytes()
+    first.write_bytes(data[: len(data) // 2])                                  # a torn npz
+    second.with_suffix(".png").unlink()                                        # an npz without its PNG
+    r = run_ago(args, tmp_path)
+    assert r.code == 0 and "to predict" not in r.stdout, r.stdout + r.stderr   # neither frame was whole
+    assert first.read_bytes() != data[: len(data) // 2] and second.with_suffix(".png").is_file()
+    from ago_runtime.predict.cli import frame_is_whole
+
+    with np.load(first) as z:
+        key = str(z["run_key"])
+    assert all(frame_is_whole(out, p.stem, key, (20, 20, 4), "bev") for p in npzs)
+    r = run_ago([*args, "--identifier", "max-conf"], tmp_path)                 # other settings: all remade
+    assert r.code == 0 and "resuming" not in r.stdout
+    r = run_ago([*args, "--no-resume"], tmp_path)
+    assert r.code == 0 and "resuming" not in r.stdout
+
+
+def test_kill_9_during_infer_leaves_only_whole_files(h, tmp_path):
+    """`ago infer` over a dataset killed with SIGKILL mid-run: every npz / PNG left under its own name is whole
+    (files are written to a hidden temp name and renamed), and the re-run completes the rest."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    w = h.w
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "ago_runtime.cli", "infer", "--images", str(w.data), "--bundle", str(w.bundle),
+           "--out", str(out), "--picture", "full", "--workers", "1"]
+    env = {**os.environ, "AGO_NO_PROGRESS": "1"}
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    deadline = time.time() + 60
+    while time.time() < deadline and proc.poll() is None and not any(out.glob("*.png")):
+        time.sleep(0.005)
+    if proc.poll() is None:
+        os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    from ago_runtime.formats.occ3d import load_semantics
+
+    for p in out.glob("*.npz") if out.is_dir() else []:
+        if not p.name.startswith("."):
+            load_semantics(p)                                                  # whole, or this raises
+    for p in out.glob("*.png") if out.is_dir() else []:
+        if not p.name.startswith("."):
+            assert cv2.imread(str(p)) is not None
+    r = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert len([p for p in out.glob("*.npz") if not p.name.startswith(".")]) == 2
+    assert not [p.name for p in out.iterdir() if p.name.startswith(".") and ".tmp" in p.name]   # temp files gone

@@ -120,7 +120,8 @@ def _torch_labels_on_random_frame(ckpt, bundle_dir, seed: int, grid_shape=None):
     x, m = pred.prepare(images, rig)
     with torch.no_grad():
         out = model(torch.from_numpy(x), torch.from_numpy(m), grid_shape=grid_shape)
-    want = reference_labels(out["feat"][0].numpy(), out["feat_adapted"][0].numpy(), bank, b.heads.free_embedding)
+    want = reference_labels(out["feat"][0].numpy(), out["feat_adapted"][0].numpy(), bank, b.heads.free_embedding,
+                            free_bias=b.heads.free_bias)
     return pred, bank, images, rig, want
 
 
@@ -314,3 +315,34 @@ def test_deeper_model_exports_and_keeps_parity(tmp_path):
     assert [st["bank"] for st in meta["voxel_stages"]] == [None, "main", None, "adapted"]
     p = meta["parity"]["fp32"]
     assert p["ok"] and min(p["agreement_main"], p["agreement_adapted"], p["agreement_identifier"]) >= 0.999
+
+
+@pytest.mark.parametrize("bias", [-2.0, 2.0])
+def test_free_bias_is_exported_and_applied(tmp_path, bias):
+    """A model with a learnt free bias (ModelConfig.free_bias): the bundle carries it, the runtime adds it to
+    the free score, and its labels equal torch's (class_logits with the bias) on a random frame."""
+    from ago_train.checkpoint import load_checkpoint, save_checkpoint
+    from ago_train.model import ModelConfig
+    from ago_train.model.scoring import class_logits
+
+    cfg = ModelConfig.preset("tiny")
+    cfg.pretrained, cfg.free_bias = False, True
+    ckpt = random_checkpoint(tmp_path / "fb.pt", cfg, prompts="cw", seed=5)
+    state = load_checkpoint(ckpt)
+    state["model"]["free_bias"] = torch.tensor(bias)
+    save_checkpoint(ckpt, state)
+    export_bundle(ckpt, tmp_path / "b", bank_prompts=[], real_frame=False, log=lambda s: None)
+    b = Bundle.load(tmp_path / "b")
+    assert b.heads.free_bias == pytest.approx(bias)
+    pred, bank, images, rig, want = _torch_labels_on_random_frame(ckpt, tmp_path / "b", 3)
+    got = pred.predict(images, rig, bank, "none").semantics.reshape(-1)
+    assert np.mean(got == want["main"]) >= 0.999
+    model, _c, _cfg = load_model(ckpt)
+    x, m = pred.prepare(images, rig)
+    with torch.no_grad():
+        out = model(torch.from_numpy(x), torch.from_numpy(m))
+        torch_labels = class_logits(out["feat"], torch.from_numpy(bank.embeddings), torch.from_numpy(bank.phrase_class),
+                                    bank.num_classes, out["free_embedding"], free_bias=out["free_bias"])[0].argmax(-1)
+    assert np.mean(torch_labels.numpy() == got) >= 0.999
+    free_share = np.mean(got == bank.num_classes)
+    assert free_share > 0.9 if bias > 0 else free_share < 0.1     # the bias really moves the decision

@@ -382,7 +382,7 @@ def test_broken_records(copy_of):
     path.write_text(json.dumps(samples))
     with pytest.raises(AgoInputError) as e:
         NuScenesDataset(copy_of)
-    assert e.value.path == str(copy_of / VERSION) and "timestamp" in e.value.problem
+    assert e.value.path == str(copy_of / VERSION / "sample.json") and "timestamp" in e.value.problem
     path.write_text("[{]")
     with pytest.raises(AgoInputError, match="not valid JSON"):
         NuScenesDataset(copy_of)

@@ -153,7 +153,8 @@ def test_a_failed_run_writes_nothing_and_the_fixed_command_runs(real_like, tmp_p
 
 
 def test_split_given_without_splits_json_is_refused(real_like, tmp_path):
-    r = _run(["pseudo-labels", "--data", real_like, "--out", tmp_path / "pl", "--split", "train",
+    # train / val have a documented default without splits.json (issue 35); any other name is refused
+    r = _run(["pseudo-labels", "--data", real_like, "--out", tmp_path / "pl", "--split", "test",
               "--grid", "20x20x4"], tmp_path)
     assert r.code == 2 and "splits.json" in r.stderr and not (tmp_path / "pl").exists()
 

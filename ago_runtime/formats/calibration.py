@@ -136,6 +136,9 @@ def find_camera_images(folder: str | Path) -> dict[str, Path]:
         raise AgoInputError(folder, f"more than one image for a camera: {dups}")
     missing = [n for n in CAMERA_NAMES if n not in found]
     if missing:
+        parent = folder.resolve().parent
+        if any(p.is_dir() and p.name.startswith("v1.0") for p in parent.iterdir()):   # e.g. DATAROOT/samples
+            raise AgoInputError(folder, f"is inside a nuScenes dataroot: pass the dataroot itself, {parent}")
         raise AgoInputError(folder, f"missing camera image(s) {missing} (expected files like CAM_FRONT.jpg)")
     return {n: found[n][0] for n in CAMERA_NAMES}
 

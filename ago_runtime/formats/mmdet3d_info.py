@@ -40,6 +40,7 @@ from ago_runtime.readers import read_json
 from ago_runtime.formats.frame import Frame, LidarSweep
 from ago_runtime.formats.nuscenes import read_jpeg_rgb, read_lidar_bin
 from ago_runtime.formats.nuscenes_schema import check_rigid
+from ago_runtime.paths import inside_root
 
 # (module, name) pairs a mmdetection3d info pickle may reference; nothing else is ever imported.
 _NUMPY_GLOBALS = {
@@ -58,6 +59,7 @@ _BUILTINS = {"list", "dict", "tuple", "set", "frozenset", "int", "float", "compl
 MAX_INFO_BYTES = 2 << 30          # an info .pkl larger than 2 GiB is refused ($AGO_MAX_INFO_BYTES)
 MAX_SIZED_ALLOC = 1 << 20         # bytes(n) / bytearray(n) from an integer n: at most 1 MiB
 PLAIN_NODES_PER_BYTE = 8          # to_plain may make at most this many values per byte of the file (+ 200 000)
+MAX_INFO_DEPTH = 32               # containers nested deeper than this are refused (an info file nests ~5 deep)
 
 
 def _np_core(submodule: str):
@@ -148,24 +150,31 @@ def safe_load_pickle(path: str | Path):
         raise AgoInputError(path, f"not a readable pickle ({e.__class__.__name__}: {str(e)[:200]})") from None
 
 
-def to_plain(obj, budget: list[int] | None = None, source=None):
+def to_plain(obj, budget: list[int] | None = None, source=None, depth: int = 0):
     """numpy arrays/scalars inside dicts/lists -> lists/floats/ints/bools (JSON-able).
 
     `budget` = [values left]: a pickle can reference one list from many places (memo), which this
-    copy would expand; past the budget an AgoInputError naming `source` is raised."""
+    copy would expand; past the budget an AgoInputError naming `source` is raised, as it is for
+    containers nested deeper than MAX_INFO_DEPTH."""
+    if depth > MAX_INFO_DEPTH:
+        raise AgoInputError(source, f"refusing an info file nested more than {MAX_INFO_DEPTH} containers deep")
     if budget is not None:
         budget[0] -= 1
         if budget[0] < 0:
             raise AgoInputError(source, "refusing an info file whose objects expand to more values than "
                                         "the file could hold (repeated references)")
     if isinstance(obj, dict):
-        return {str(k): to_plain(v, budget, source) for k, v in obj.items()}
+        return {str(k): to_plain(v, budget, source, depth + 1) for k, v in obj.items()}
     if isinstance(obj, (list, tuple, set, frozenset)):
-        return [to_plain(v, budget, source) for v in obj]
+        return [to_plain(v, budget, source, depth + 1) for v in obj]
     if isinstance(obj, np.ndarray):
         if budget is not None:
             budget[0] -= int(obj.size)
-        return to_plain(obj.tolist(), budget, source)
+            if budget[0] < 0:
+                raise AgoInputError(source, "refusing an info file whose arrays hold more values than ago reads")
+        if obj.ndim > MAX_INFO_DEPTH:
+            raise AgoInputError(source, f"refusing an array of {obj.ndim} dimensions")
+        return to_plain(obj.tolist(), budget, source, depth)
     if isinstance(obj, np.generic):
         return obj.item()
     if isinstance(obj, (bytes, bytearray)):
@@ -184,6 +193,8 @@ def read_mmdet3d_info(pkl_path: str | Path) -> dict:
 def _check_info(info, source) -> None:
     if not isinstance(info, dict) or not isinstance(info.get("data_list"), list):
         raise AgoInputError(source, "not an mmdetection3d info (v1.1) file: no 'data_list' list")
+    if not info["data_list"]:
+        raise AgoInputError(source, "data_list is empty: the info file lists no frames")
 
 
 def convert_mmdet3d_info_to_json(pkl_path: str | Path, json_out: str | Path) -> None:
@@ -192,22 +203,22 @@ def convert_mmdet3d_info_to_json(pkl_path: str | Path, json_out: str | Path) -> 
 
 
 def load_info_json(json_path: str | Path, data_root: str | Path | None = None,
-                   compensate_ego_motion: bool = True) -> list[Frame]:
+                   compensate_ego_motion: bool = True, allow_outside_root: bool = False) -> list[Frame]:
     """Frames from a JSON written by `convert_mmdet3d_info_to_json` (data_root default: the JSON's folder)."""
     json_path = Path(json_path)
     info = read_json(json_path, missing="info JSON not found")
     _check_info(info, json_path)
     return frames_from_info(info, data_root if data_root is not None else json_path.parent, json_path,
-                            compensate_ego_motion=compensate_ego_motion)
+                            compensate_ego_motion=compensate_ego_motion, allow_outside_root=allow_outside_root)
 
 
 def load_mmdet3d_info(pkl_path: str | Path, data_root: str | Path | None = None,
-                      compensate_ego_motion: bool = True) -> list[Frame]:
+                      compensate_ego_motion: bool = True, allow_outside_root: bool = False) -> list[Frame]:
     """Frames (images, rig, keyframe LiDAR, poses) from an info .pkl (data_root default: the .pkl's folder)."""
     pkl_path = Path(pkl_path)
     info = read_mmdet3d_info(pkl_path)
     return frames_from_info(info, data_root if data_root is not None else pkl_path.parent, pkl_path,
-                            compensate_ego_motion=compensate_ego_motion)
+                            compensate_ego_motion=compensate_ego_motion, allow_outside_root=allow_outside_root)
 
 
 def _matrix(value, shape, source, what) -> np.ndarray:
@@ -225,18 +236,29 @@ def _rigid(value, source, what) -> np.ndarray:
     return m
 
 
-def _data_file(data_root: Path, folder: str, name: str) -> Path:
-    """mmdet3d 1.1 stores bare file names (joined with samples/<sensor>/); older infos relative paths."""
-    name = str(name)
-    if "/" in name:
-        return data_root / name
-    return data_root / "samples" / folder / name
+def _data_file(data_root: Path, folder: str, name, source, what: str, allow_outside: bool = False) -> Path:
+    """mmdet3d 1.1 stores bare file names (joined with samples/<sensor>/); older infos relative paths. Either
+    stays under data_root (ago_runtime.paths.inside_root), unless `allow_outside`."""
+    if isinstance(name, str) and "/" not in name and "\\" not in name:
+        return inside_root(data_root / "samples" / folder, name, source, what, allow_outside)
+    return inside_root(data_root, name, source, what, allow_outside)
 
 
 def frames_from_info(info: dict, data_root: str | Path, source: str | Path | None = None,
-                     load_images: bool = True, compensate_ego_motion: bool = True) -> list[Frame]:
-    """Plain info dict -> Frames. Timestamps become microseconds; cam2img keeps its top-left 3x3."""
+                     load_images: bool = True, compensate_ego_motion: bool = True,
+                     allow_outside_root: bool = False) -> list[Frame]:
+    """Plain info dict -> Frames. Timestamps become microseconds; cam2img keeps its top-left 3x3. Every file
+    name is checked (under data_root, ago_runtime.paths) before any file is read."""
     data_root = Path(data_root)
+    for n, sample in enumerate(info["data_list"]):    # names first: nothing is opened before all are checked
+        try:
+            _data_file(data_root, "LIDAR_TOP", sample["lidar_points"]["lidar_path"], source,
+                       f"data_list[{n}].lidar_points.lidar_path", allow_outside_root)
+            for cam in CAMERA_NAMES:
+                _data_file(data_root, cam, sample["images"][cam]["img_path"], source,
+                           f"data_list[{n}].images.{cam}.img_path", allow_outside_root)
+        except (KeyError, TypeError) as e:
+            raise AgoInputError(source, f"data_list[{n}] misses a field ({e})") from None
     frames = []
     for n, sample in enumerate(info["data_list"]):
         where = f"data_list[{n}]"
@@ -247,7 +269,8 @@ def frames_from_info(info: dict, data_root: str | Path, source: str | Path | Non
             timestamp = int(round(float(sample.get("timestamp", 0.0)) * 1e6))
             ego2global = _rigid(sample["ego2global"], source, f"{where}.ego2global")
             lidar2ego = _rigid(lidar_info["lidar2ego"], source, f"{where}.lidar_points.lidar2ego")
-            lidar_path = _data_file(data_root, "LIDAR_TOP", lidar_info["lidar_path"])
+            lidar_path = _data_file(data_root, "LIDAR_TOP", lidar_info["lidar_path"], source,
+                                    f"{where}.lidar_points.lidar_path", allow_outside_root)
         except (KeyError, TypeError) as e:
             raise AgoInputError(source, f"{where} misses a field ({e})") from None
         if int(lidar_info.get("num_pts_feats", 5)) != 5:
@@ -267,7 +290,8 @@ def frames_from_info(info: dict, data_root: str | Path, source: str | Path | Non
                 cam2ego = lidar2ego @ np.linalg.inv(lidar2cam)
             else:
                 cam2ego = _rigid(cam_info.get("cam2ego"), source, f"{where}.images.{cam}.cam2ego")
-            path = _data_file(data_root, cam, cam_info["img_path"])
+            path = _data_file(data_root, cam, cam_info["img_path"], source, f"{where}.images.{cam}.img_path",
+                              allow_outside_root)
             paths[cam] = str(path)
             if load_images:
                 images[cam] = read_jpeg_rgb(path)

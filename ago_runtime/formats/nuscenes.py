@@ -40,7 +40,6 @@ file whose size is not a multiple of 20 bytes, a labels.npz with the wrong shape
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import cv2
@@ -49,15 +48,25 @@ import numpy as np
 from ago_runtime.geometry.camera import CAMERA_NAMES, Camera, Rig
 from ago_runtime.errors import AgoInputError
 from ago_runtime.formats.image_files import decode_image
-from ago_runtime.readers import read_json
+from ago_runtime.readers import max_array_bytes, read_json
 from ago_runtime.formats.frame import Frame, LidarSweep
 from ago_runtime.geometry.grid import Grid
-from ago_runtime.formats.nuscenes_schema import LIDAR_CHANNEL, record_to_matrix
+from ago_runtime.formats.nuscenes_schema import LIDAR_CHANNEL, check_table, record_to_matrix
+from ago_runtime.paths import inside_root
 from ago_runtime.formats.occ3d import Occ3DLabels, labels_path
 
 POINT_BYTES = 5 * 4  # float32 x, y, z, intensity, ring
 # The tables the reader needs (the other seven of nuScenes' thirteen may be absent).
 READ_TABLES = ("sensor", "calibrated_sensor", "ego_pose", "scene", "sample", "sample_data")
+# Without splits.json: this fraction of each scene's first keyframes is "train", the rest "val".
+DEFAULT_TRAIN_SHARE = (3, 4)
+
+
+def default_split_positions(n: int, name: str) -> range:
+    """Without splits.json: the positions (in time order) of a scene of n keyframes in split "train" (the
+    first n * 3 // 4) or "val" (the rest)."""
+    cut = n * DEFAULT_TRAIN_SHARE[0] // DEFAULT_TRAIN_SHARE[1]
+    return range(0, cut) if name == "train" else range(cut, n)
 
 
 # ---------------------------------------------------------------------------- file readers
@@ -86,6 +95,9 @@ def read_lidar_bin(path: str | Path) -> np.ndarray:
     if not path.is_file():
         raise AgoInputError(path, "LiDAR file not found")
     size = path.stat().st_size
+    if size > max_array_bytes():   # a real sweep is ~2 MB; refused by size before a byte is read
+        raise AgoInputError(path, f"LiDAR file of {size} bytes, more than ago reads ({max_array_bytes()}; "
+                                  "$AGO_MAX_ARRAY_BYTES sets the limit)")
     if size % POINT_BYTES:
         raise AgoInputError(path, f"size {size} bytes is not a multiple of {POINT_BYTES} "
                                   "(float32 x, y, z, intensity, ring per point)")
@@ -113,15 +125,11 @@ def read_png(path: str | Path, dtype: type, hw: tuple[int, int] | None = None) -
 
 def load_table(table_dir: Path, name: str) -> list[dict]:
     path = Path(table_dir) / f"{name}.json"
-    if not path.is_file():
-        raise AgoInputError(path, "missing nuScenes table")
-    try:
-        with open(path, encoding="utf-8") as f:
-            table = json.load(f)
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise AgoInputError(path, f"not valid JSON ({e})") from None
-    if not isinstance(table, list) or not all(isinstance(r, dict) and "token" in r for r in table):
-        raise AgoInputError(path, "a nuScenes table must be a JSON list of records with a 'token'")
+    table = read_json(path, missing="missing nuScenes table")   # bounded size and nesting
+    if not isinstance(table, list) or not all(isinstance(r, dict) and isinstance(r.get("token"), str)
+                                              for r in table):
+        raise AgoInputError(path, "a nuScenes table must be a JSON list of records with a 'token' string")
+    check_table(name, table, path)   # the field types the reader relies on (nuscenes_schema)
     return table
 
 
@@ -141,8 +149,9 @@ class NuScenesDataset:
 
     def __init__(self, root: str | Path, version: str | None = None, gts_root: str | Path | None = None,
                  load_images: bool = True, load_extras: bool = True, num_sweeps: int = 0,
-                 grid: Grid | None = None, compensate_ego_motion: bool = True):
+                 grid: Grid | None = None, compensate_ego_motion: bool = True, allow_outside_root: bool = False):
         self.root = Path(root)
+        self.allow_outside_root = allow_outside_root   # file names leaving the root (ago_runtime.paths)
         if not self.root.is_dir():
             raise AgoInputError(self.root, "dataset folder not found")
         self.version = version or find_version(self.root)
@@ -170,6 +179,9 @@ class NuScenesDataset:
             raise AgoInputError(self.table_dir, f"missing nuScenes tables {', '.join(f'{m}.json' for m in missing)} "
                                 f"(ago reads {', '.join(READ_TABLES)})")
         t = {name: {r["token"]: r for r in load_table(self.table_dir, name)} for name in READ_TABLES}
+        if not allow_outside_root:   # every file name stays under the root (ago_runtime.paths), checked before work
+            for rec in t["sample_data"].values():
+                inside_root(self.root, rec["filename"], self.table_dir / "sample_data.json", "file name")
         try:
             self._build_index(t)
         except (KeyError, TypeError, ValueError) as e:
@@ -268,11 +280,18 @@ class NuScenesDataset:
         return list(dict.fromkeys(self._scene_names))
 
     def split(self, name: str) -> list[int]:
-        """Indices of the samples of the scenes listed under `name` in root/splits.json ("all": every one)."""
+        """Indices of the samples of the scenes listed under `name` in root/splits.json ("all": every one).
+
+        Without splits.json (real nuScenes has none), "train" is the first 3/4 of each scene's keyframes
+        (rounded down) and "val" the rest (`split_note` says so); any other name is refused, naming the fix."""
         if name == "all":
             return list(range(len(self)))
         path = self.root / "splits.json"
-        splits = read_json(path, missing=f"no splits.json, so no split {name!r} (only 'all')")
+        if not path.is_file() and name in ("train", "val"):
+            return self._default_split(name)
+        splits = read_json(path, missing=f"no splits.json, so no split {name!r}: use 'all', 'train' or 'val' (without "
+                           "splits.json: the first 3/4 / last 1/4 of each scene's keyframes), or write splits.json "
+                           '{"train": [scene names], "val": [...]} (docs/dataset_format.md)')
         if not isinstance(splits, dict) or name not in splits:
             names = sorted(splits) if isinstance(splits, dict) else []
             raise AgoInputError(path, f"no split {name!r}; it has {names} (and 'all')")
@@ -281,6 +300,21 @@ class NuScenesDataset:
         if unknown:
             raise AgoInputError(path, f"split {name!r} names scenes not in the dataset: {unknown[:10]}")
         return [i for i, s in enumerate(self._scene_names) if s in wanted]
+
+    def _default_split(self, name: str) -> list[int]:
+        """No splits.json: per scene, keyframes [0, n * 3 // 4) are "train", the rest "val"."""
+        out = []
+        for start, end in dict.fromkeys(self._scene_span):
+            out += [start + k for k in default_split_positions(end - start, name)]
+        return out
+
+    def split_note(self, name: str) -> str | None:
+        """What a split defaults to when splits.json is absent (None when it is read from the file or is 'all')."""
+        if name not in ("train", "val") or (self.root / "splits.json").is_file():
+            return None
+        part = "first 3/4" if name == "train" else "last 1/4"
+        return (f"split {name!r} = the {part} of each scene's keyframes ({len(self.split(name))} of {len(self)}; "
+                f"{self.root / 'splits.json'} not found)")
 
     def neighbours(self, i: int, count: int, interval: int) -> list[int]:
         """Up to `count` keyframe indices of i's scene at offsets +interval*k, -interval*k (k = 1, 2, ...),
@@ -332,12 +366,16 @@ class NuScenesDataset:
         for i in range(len(self)):
             recs = self.nonkey_sweep_records(i, 1)
             if recs:
-                return (self.root / recs[0]["filename"]).is_file()
+                return self._file_path(recs[0]).is_file()
         return False
 
     # ------------------------------------------------------------------ frames
+    def _file_path(self, record: dict) -> Path:
+        return inside_root(self.root, record["filename"], self.table_dir / "sample_data.json", "file name",
+                           self.allow_outside_root)
+
     def _file(self, record: dict) -> Path:
-        path = self.root / record["filename"]
+        path = self._file_path(record)
         if not path.is_file():
             raise AgoInputError(path, f"file listed in sample_data.json (token {record['token']}) is missing")
         return path

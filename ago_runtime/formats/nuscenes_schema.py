@@ -9,7 +9,11 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+
+from ago_runtime.errors import AgoInputError
 
 TABLE_NAMES: tuple[str, ...] = (
     "attribute", "calibrated_sensor", "category", "ego_pose", "instance", "log", "map",
@@ -132,9 +136,70 @@ def check_rigid(m: np.ndarray, tol: float = 1e-4) -> str | None:
         return f"expected a 4x4 matrix, got shape {m.shape}"
     if not np.all(np.isfinite(m)):
         return "contains NaN or inf"
+    if np.abs(m[:3, 3]).max() > MAX_POSE_METRES:
+        return f"its translation is beyond {MAX_POSE_METRES:g} m"
     r = m[:3, :3]
     if not np.allclose(r @ r.T, np.eye(3), atol=tol) or np.linalg.det(r) < 0:
         return "its 3x3 part is not a rotation"
     if not np.allclose(m[3], [0, 0, 0, 1], atol=1e-9):
         return "its last row is not [0, 0, 0, 1]"
     return None
+
+
+# ---------------------------------------------------------------------------- record checks
+MAX_POSE_METRES = 1e7       # |translation| of a pose record (global coordinates: a city is ~1e4 m)
+# table -> {field: kind}: the fields the reader uses, checked when a table is read (kinds below)
+TABLE_FIELDS: dict[str, dict[str, str]] = {
+    "sensor": {"channel": "str"},
+    "calibrated_sensor": {"sensor_token": "str", "translation": "vec3", "rotation": "quat",
+                          "camera_intrinsic": "intrinsic"},
+    "ego_pose": {"translation": "vec3", "rotation": "quat", "timestamp": "int?"},
+    "scene": {"name": "str"},
+    "sample": {"scene_token": "str", "timestamp": "int"},
+    "sample_data": {"sample_token": "str", "calibrated_sensor_token": "str", "ego_pose_token": "str",
+                    "filename": "str", "timestamp": "int", "is_key_frame": "bool?", "prev": "str?"},
+}
+
+
+def _finite_numbers(value, n: int) -> bool:
+    return (isinstance(value, list) and len(value) == n
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value))
+
+
+def _field_problem(kind: str, value) -> str | None:
+    optional = kind.endswith("?")
+    kind = kind.rstrip("?")
+    if value is None or (optional and value == ""):
+        return None if optional else "is missing"
+    if kind == "str":
+        return None if isinstance(value, str) else f"must be a string, got {type(value).__name__}"
+    if kind == "int":
+        return None if isinstance(value, int) and not isinstance(value, bool) else \
+            f"must be an integer, got {type(value).__name__}"
+    if kind == "bool":
+        return None if isinstance(value, bool) else f"must be true or false, got {type(value).__name__}"
+    if kind == "vec3":
+        if not _finite_numbers(value, 3):
+            return "must be 3 finite numbers"
+        return None if max(abs(v) for v in value) <= MAX_POSE_METRES else f"is beyond {MAX_POSE_METRES:g} m"
+    if kind == "quat":
+        if not _finite_numbers(value, 4) or not 1e-6 < math.sqrt(sum(v * v for v in value)) < 1e6:
+            return "must be 4 finite numbers of a non-zero norm ([w, x, y, z])"
+        return None
+    if kind == "intrinsic":   # [] for a LiDAR or radar, else 3x3
+        if value == []:
+            return None
+        ok = isinstance(value, list) and len(value) == 3 and all(_finite_numbers(row, 3) for row in value)
+        return None if ok else "must be [] or a 3x3 matrix of finite numbers"
+    raise ValueError(kind)
+
+
+def check_table(name: str, records: list, path) -> None:
+    """Refuse (AgoInputError naming `path`) a record of table `name` whose fields the reader uses have the
+    wrong type or an absurd value (TABLE_FIELDS): the first such record is named, by token and field."""
+    fields = TABLE_FIELDS.get(name, {})
+    for rec in records:
+        for field, kind in fields.items():
+            problem = _field_problem(kind, rec.get(field))
+            if problem:
+                raise AgoInputError(path, f"record {str(rec.get('token'))[:40]!r}: {field} {problem}")

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ago_runtime.atomic import save_npz
-from ago_runtime.readers import read_npz
+from ago_runtime.readers import check_npz, read_npz
 from ago_runtime.errors import AgoInputError
 
 KEYS = ("semantics", "mask_lidar", "mask_camera")
@@ -61,6 +61,7 @@ def load_semantics(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
         raise AgoInputError(path, "file not found")
     try:
         with np.load(path, allow_pickle=False) as z:
+            check_npz(path, z)
             if "semantics" not in z.files:
                 raise AgoInputError(path, f"no 'semantics' array (found {sorted(z.files)})")
             sem = np.asarray(z["semantics"])

@@ -20,6 +20,7 @@ from ago_runtime.errors import AgoInputError
 
 # cam2ego rotations may come rounded (calib.json files with 4 decimals): tolerance on R R^T = I.
 ROTATION_TOLERANCE = 1e-2
+MAX_CAMERA_OFFSET_M = 1e3   # a camera (cam2ego translation) farther than this from the ego origin is refused
 
 CAMERA_NAMES: tuple[str, ...] = (
     "CAM_FRONT",
@@ -49,6 +50,9 @@ class Camera:
         for what, m in (("intrinsics", self.intrinsics), ("cam2ego", self.cam2ego)):
             if not np.all(np.isfinite(m)):
                 raise AgoInputError(source, f"{self.name} {what} contains NaN or inf")
+        if np.abs(self.cam2ego[:3, 3]).max() > MAX_CAMERA_OFFSET_M:   # before any arithmetic that would overflow
+            raise AgoInputError(source, f"{self.name} cam2ego: translation {self.cam2ego[:3, 3].tolist()} is more "
+                                        f"than {MAX_CAMERA_OFFSET_M:g} m from the ego origin")
         if abs(np.linalg.det(self.intrinsics)) < 1e-9 or abs(np.linalg.det(self.cam2ego[:3, :3])) < 1e-6:
             raise AgoInputError(source, f"{self.name} calibration is singular")
         fx, fy = float(self.intrinsics[0, 0]), float(self.intrinsics[1, 1])

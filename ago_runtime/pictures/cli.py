@@ -37,13 +37,14 @@ def register(app: typer.Typer) -> None:
         """Draw an occupancy grid (BEV and/or 3-D voxels) or a sample's six camera images as a PNG."""
         from ago_runtime.pictures import render
 
-        from ago_runtime.outputs import check_output_file
+        from ago_runtime.outputs import check_output_file, check_suffix
 
         if view not in ("bev", "voxels", "both"):
             raise AgoInputError("--view", f"must be bev, voxels or both, got {view!r}")
         if not path.exists():
             raise AgoInputError(path, "not found (give a labels .npz or a dataset folder)")
         check_output_file(out, "--out")
+        check_suffix(out, (".png",), "--out")   # the picture is a PNG
         if path.is_dir():
             image = _rig_picture(path, sample, index)
         else:

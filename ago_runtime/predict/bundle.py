@@ -14,7 +14,8 @@ camera rig it was trained with. Layout (see docs/runtime.md):
                          "voxel_stages"; ago_runtime/predict/encoder.py)
       planes.int8.onnx, voxels_<i>.int8.onnx   optional: dynamically quantised (`ago export --int8`)
       heads.npz          W_dec (C,Dh), b_dec (C,), W_ad (C,Da), b_ad (C,), free_embedding (C,),
-                         branch_scales (2,) the identifier's logit scales (main, adapted; absent = 1, 1)
+                         branch_scales (2,) the identifier's logit scales (main, adapted; absent = 1, 1),
+                         free_bias (1,) added to the main branch's free score (absent = 0)
       banks/<name>.npz   prompt banks (ago_runtime.vocab.bank.PromptBank files); "train" = the
                          training label space's embeddings stored in the checkpoint
 
@@ -41,7 +42,8 @@ import numpy as np
 
 from ago_runtime.geometry.camera import Rig
 from ago_runtime.errors import AgoInputError
-from ago_runtime.readers import read_json
+from ago_runtime.paths import inside_root
+from ago_runtime.readers import check_npz, read_json
 from ago_runtime.geometry.grid import Grid
 from ago_runtime.predict.heads import HeadWeights
 from ago_runtime.geometry.preprocess import Preprocess
@@ -92,7 +94,7 @@ class Bundle:
                 raise AgoInputError(self.root, "bundle has no int8 encoder (export with `ago export --int8`)")
             return self.root / entry["path"]
 
-        return {"planes": path("planes"),
+        return {"planes": path("planes"),   # paths checked under the root by Bundle.load
                 "voxels": [{**st, "path": path(st["file"]), "sha256": files[st["file"] + suffix].get("sha256")}
                            for st in self.meta["voxel_stages"]]}
 
@@ -162,13 +164,19 @@ class Bundle:
             label_space = meta["label_space"]
             text_encoder = meta["text_encoder"]
             files = meta["files"]
-            for key in ENCODER_FILES + ("heads",) + tuple(st["file"] for st in meta["voxel_stages"]):
+            stages = meta["voxel_stages"]
+            if not isinstance(stages, list) or not 1 <= len(stages) <= MAX_VOXEL_STAGES:
+                raise ValueError(f"voxel_stages must list 1 to {MAX_VOXEL_STAGES} stages")
+            for key in ENCODER_FILES + ("heads",) + tuple(st["file"] for st in stages):
                 files[key]["path"]
-        except (KeyError, TypeError, ValueError, AgoInputError) as e:
+            if not isinstance(files, dict) or not all(isinstance(e, dict) for e in files.values()):
+                raise TypeError("files must map names to {path, sha256, size}")
+        except (KeyError, TypeError, ValueError, AttributeError, AgoInputError) as e:
             raise AgoInputError(meta_path, f"bundle metadata incomplete or malformed ({e.__class__.__name__}: {e})") from None
+        _check_meta_sizes(meta, grid, meta_path)
         rig.validate(str(meta_path))
         for key, entry in files.items():
-            p = root / entry["path"]
+            p = inside_root(root, entry["path"], meta_path, f"bundle file {key!r}")
             if not p.is_file():
                 raise AgoInputError(p, f"bundle file {key!r} is missing")
             if "size" in entry and p.stat().st_size != int(entry["size"]):
@@ -177,20 +185,56 @@ class Bundle:
             if verify_hashes and "sha256" in entry and file_sha256(p) != entry["sha256"]:
                 raise AgoInputError(p, "sha256 differs from bundle.json (corrupt or replaced; re-export the bundle)")
         heads = _load_heads(root / files["heads"]["path"], int(text_encoder["dim"]))
-        banks = {name: root / rel for name, rel in meta.get("banks", {}).items()}
+        if not isinstance(meta.get("banks", {}), dict):
+            raise AgoInputError(meta_path, "banks must map bank names to files")
+        banks = {name: inside_root(root, rel, meta_path, f"bank {name!r}") for name, rel in meta.get("banks", {}).items()}
         for name, p in banks.items():
             if not p.is_file():
                 raise AgoInputError(p, f"bundle bank {name!r} is missing")
         card = read_json(root / CARD_FILE, expect=dict) if (root / CARD_FILE).is_file() else None
-        return cls(root, meta, grid, pre, rig, heads, label_space, text_encoder, banks, card)
+        bundle = cls(root, meta, grid, pre, rig, heads, label_space, text_encoder, banks, card)
+        if "train" in banks:   # the label space bundle.json states is the training bank's
+            names = bundle.load_bank("train").class_names
+            if names != bundle.trained_classes:
+                raise AgoInputError(meta_path, f"label_space lists {len(bundle.trained_classes)} classes "
+                                    f"{bundle.trained_classes[:5]}..., its train bank {len(names)} {names[:5]}...")
+        return bundle
+
+
+MAX_VOXEL_STAGES = 16           # an exported decoder has 2-4
+MAX_BUNDLE_VOXELS = 1 << 25     # 33 M voxels (Occ3D's 200x200x16 is 640 k)
+
+
+def _check_meta_sizes(meta: dict, grid: Grid, meta_path: Path) -> None:
+    """Refuse, before any array is made, sizes in bundle.json that do not agree or could not be allocated:
+    the grid (its shape against range / voxel size, its voxel count), the class list, the embedding width."""
+    stated = meta["grid"].get("shape")
+    shape = grid.shape
+    if min(grid.voxel_size) <= 0 or min(shape) <= 0:
+        raise AgoInputError(meta_path, f"grid has {shape} voxels of {grid.voxel_size} m")
+    if stated is not None and list(stated) != list(shape):
+        raise AgoInputError(meta_path, f"grid shape {stated} does not match its range / voxel size ({list(shape)})")
+    if grid.num_voxels > MAX_BUNDLE_VOXELS:
+        raise AgoInputError(meta_path, f"grid of {grid.num_voxels} voxels, more than ago predicts ({MAX_BUNDLE_VOXELS})")
+    from ago_runtime.vocab.bank import MAX_INFER_CLASSES
+
+    classes = meta["label_space"].get("classes") if isinstance(meta["label_space"], dict) else None
+    if (not isinstance(classes, list) or not 1 <= len(classes) <= MAX_INFER_CLASSES
+            or not all(isinstance(c, dict) and isinstance(c.get("name"), str) for c in classes)):
+        raise AgoInputError(meta_path, f"label_space.classes must list 1 to {MAX_INFER_CLASSES} classes with names")
+    dim = meta["text_encoder"].get("dim") if isinstance(meta["text_encoder"], dict) else None
+    if not isinstance(dim, int) or not 1 <= dim <= 8192:
+        raise AgoInputError(meta_path, f"text_encoder.dim must be an integer 1..8192, got {dim!r}")
 
 
 def _load_heads(path: Path, dim: int) -> HeadWeights:
     try:
         with np.load(path, allow_pickle=False) as z:
+            check_npz(path, z)
             arrays = {k: np.asarray(z[k], dtype=np.float32) for k in HeadWeights.KEYS}
             scales = np.asarray(z["branch_scales"], dtype=np.float32) if "branch_scales" in z.files else None
             stats = {k: np.asarray(z[k], dtype=np.float32) for k in ("adapted_mean", "adapted_cov") if k in z.files}
+            free_bias = np.asarray(z["free_bias"], dtype=np.float32) if "free_bias" in z.files else None
     except KeyError as e:
         raise AgoInputError(path, f"heads file lacks array {e}") from None
     except (ValueError, OSError, zipfile.BadZipFile, EOFError) as e:
@@ -207,6 +251,10 @@ def _load_heads(path: Path, dim: int) -> HeadWeights:
         if scales.shape != (2,) or not np.all(np.isfinite(scales)) or not np.all(scales > 0):
             raise AgoInputError(path, f"branch_scales must be two positive numbers, got {scales.tolist()}")
         w.branch_scales = scales
+    if free_bias is not None:
+        if free_bias.size != 1 or not np.isfinite(free_bias).all():
+            raise AgoInputError(path, f"free_bias must be one finite number, got shape {free_bias.shape}")
+        w.free_bias = float(free_bias.reshape(-1)[0])
     if stats:
         m, S = stats.get("adapted_mean"), stats.get("adapted_cov")
         if m is None or S is None or m.shape != (C,) or S.shape != (C, C):

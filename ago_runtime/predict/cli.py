@@ -12,12 +12,16 @@ uint8 with free = 17 when every class is one Occ3D class, else bank class indice
 `class_names`, `free_index`; with --save-volumes also `entropy`, `confidence`, `branch` and the
 unexplained-obstacle volumes `unexplained` (score), `unexplained_mask`, `unexplained_threshold`) and
 `<name>.png` (--picture full: BEV of the classes, entropy BEV, camera mosaic, legend; bev: the class
-BEV and legend; none: no PNG). Reading, inference and writing overlap (run_infer).
+BEV and legend; none: no PNG). Reading, inference and writing overlap (run_infer). Over a dataset or an
+info file a re-run resumes: frames whose outputs are whole and of the same settings are skipped
+(frame_is_whole; docs/bad_inputs.md). File names in the data files stay under the data root
+(ago_runtime.paths) unless --allow-outside-root.
 """
 
 from __future__ import annotations
 
 import collections
+import glob
 import os
 import queue
 import threading
@@ -32,14 +36,21 @@ from ago_runtime.errors import AgoInputError, one_line_warnings
 
 
 def resolve_prompts(path: str) -> Path:
-    """A prompt file relative to the cwd, else in the installed `prompts` package (by name or file name)."""
+    """A prompt file relative to the cwd; else a shipped one by name ("ow", "ow.txt"), or as the README
+    spells it (`prompts/ow.txt`, run from another folder: the shipped file is taken with a warning that names
+    it). Any other path that does not exist is refused: no silent fallback."""
+    import warnings
+
     from ago_runtime.vocab.prompts import PROMPTS_DIR, resolve_prompt_file
 
     p = Path(path)
     if p.is_file():
         return p
-    if (PROMPTS_DIR / p.name).is_file():
+    if p.parent == Path("prompts") and (PROMPTS_DIR / p.name).is_file():
+        warnings.warn(f"--prompts {path}: not found here; using the shipped {PROMPTS_DIR / p.name}", stacklevel=2)
         return PROMPTS_DIR / p.name
+    if p.parent != Path("."):
+        raise AgoInputError(path, "prompt file not found (--prompts)")
     return resolve_prompt_file(path)   # shipped name ("ow") or a clear error
 
 
@@ -67,21 +78,29 @@ def iter_frames(images: Path, sample, info: Optional[Path], fallback_rig) -> Ite
     return open_frames(images, sample, info, fallback_rig)[1]
 
 
-def open_frames(images: Path, sample, info: Optional[Path], fallback_rig) -> tuple[int, Iterator[tuple]]:
+def open_frames(images: Path, sample, info: Optional[Path], fallback_rig, skip=None,
+                allow_outside_root: bool = False, shard=None) -> tuple[int, Iterator[tuple]]:
     """(number of frames, iter_frames' iterator): the count is known before any image is decoded; bad
-    arguments (a missing folder, an unknown sample) raise here."""
+    arguments (a missing folder, an unknown sample) raise here. `skip(name)` True: a frame of a dataset or
+    info file left out before its images are read (a resumed run); an images folder is never skipped.
+    `allow_outside_root`: file names in the data files may leave the data root (ago_runtime.paths).
+    `shard`: (K, N) from `--shard K/N`, the K-th of N contiguous runs of a dataset's frames (ago_runtime.shards)."""
     from ago_runtime.formats.calibration import find_camera_images, load_images_folder
+    from ago_runtime.shards import shard_indices
 
     wanted = [sample] if isinstance(sample, str) else list(sample or [])
     if info is not None:
         from ago_runtime.formats.mmdet3d_info import load_mmdet3d_info
 
-        frames = load_mmdet3d_info(info, images if images is not None else info.parent)
+        frames = load_mmdet3d_info(info, images if images is not None else info.parent,
+                                   allow_outside_root=allow_outside_root)
         if wanted:
             unknown = [w for w in wanted if not any(w in (f.token, f.scene) for f in frames)]
             if unknown:
                 raise AgoInputError(info, f"no sample or scene {', '.join(map(repr, unknown))}")
             frames = [f for w in wanted for f in frames if w in (f.token, f.scene)]
+        frames = shard_indices(frames, shard)
+        frames = [f for f in frames if skip is None or not skip(f.token)]
         return len(frames), ((f.token, f.images, f.rig, str(info)) for f in frames)
     if images is None:
         raise AgoInputError(None, "give --images DIR (or --info PKL)")
@@ -91,17 +110,20 @@ def open_frames(images: Path, sample, info: Optional[Path], fallback_rig) -> tup
     if any(p.is_dir() and p.name.startswith("v1.0") for p in images.iterdir()):
         from ago_runtime.formats.nuscenes import NuScenesDataset
 
-        ds = NuScenesDataset(images, load_extras=False)
+        ds = NuScenesDataset(images, load_extras=False, allow_outside_root=allow_outside_root)
         indices = list(ds.indices_of(wanted) if wanted else range(len(ds)))
+        indices = shard_indices(indices, shard)   # --shard K/N: before resume's skip, so shards never change
+        indices = [i for i in indices if skip is None or not skip(ds.sample_tokens[i])]
 
         def dataset_frames():
             for i in indices:
                 f = ds[i]
                 yield f.token, f.images, f.rig, str(images)
         return len(indices), dataset_frames()
-    if wanted:
-        raise AgoInputError("--sample", f"{images} is an images folder (one frame), not a dataset")
-    find_camera_images(images)
+    if wanted or shard is not None:
+        raise AgoInputError("--sample" if wanted else "--shard", f"{images} is an images folder (one frame), "
+                                                                "not a dataset")
+    find_camera_images(images)   # a folder inside a nuScenes dataroot: the error names the dataroot
 
     def folder_frame():
         imgs, rig, _ = load_images_folder(images, fallback_rig=fallback_rig)
@@ -110,6 +132,52 @@ def open_frames(images: Path, sample, info: Optional[Path], fallback_rig) -> tup
 
 
 PICTURES = ("full", "bev", "none")
+
+
+def run_key(bundle, bank, identifier: str, picture: str, save_volumes: bool, int8: bool) -> str:
+    """What a prediction file was made with (bundle, bank, identifier, outputs), as a sha256: stored in each
+    npz `ago infer` writes (`run_key`), so a resumed run keeps only frames made by the same settings."""
+    import hashlib
+    import json
+
+    from ago_runtime.predict.bundle import BUNDLE_JSON, file_sha256
+
+    d = {"bundle": file_sha256(bundle.root / BUNDLE_JSON), "bank": [bank.source_hash, bank.encoder_hash,
+                                                                    list(bank.class_names), bank.template],
+         "identifier": identifier, "picture": picture, "volumes": bool(save_volumes), "int8": bool(int8)}
+    return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()
+
+
+PNG_END = b"IEND\xaeB`\x82"
+
+
+def frame_is_whole(out: Path, name: str, key: str, grid_shape, picture: str) -> bool:
+    """Whether `out/<name>.npz` (and its PNG unless picture is none) are whole outputs of the run `key`:
+    every array of the npz reads (zip CRCs checked), `run_key` is `key`, `semantics` has the grid's shape;
+    the PNG has its signature and end chunk and decodes. Checked, not trusted by name. `ago infer` writes the
+    PNG before the npz, so a whole npz of this key means its PNG was written too."""
+    import zipfile
+
+    import cv2
+
+    from ago_runtime.readers import check_npz
+
+    try:
+        with np.load(out / f"{name}.npz", allow_pickle=False) as z:
+            check_npz(out / f"{name}.npz", z)
+            arrays = {k: z[k] for k in z.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, AgoInputError):
+        return False
+    if str(arrays.get("run_key", "")) != key or tuple(arrays["semantics"].shape) != tuple(grid_shape):
+        return False
+    if picture == "none":
+        return True
+    try:
+        data = (out / f"{name}.png").read_bytes()
+    except OSError:
+        return False
+    return (data.startswith(b"\x89PNG\r\n\x1a\n") and data.endswith(PNG_END)
+            and cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) is not None)
 
 
 def prediction_picture(pred, images: dict | None, title: str = "", kind: str = "full") -> np.ndarray:
@@ -182,7 +250,8 @@ def auto_workers(frames: int) -> int:
 
 
 def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, sample=None, info=None,
-              int8=False, picture: str = "full", warm_up: bool = False, workers: int | None = None) -> list[Path]:
+              int8=False, picture: str = "full", warm_up: bool = False, workers: int | None = None,
+              resume: bool = True, allow_outside_root: bool = False, shard: str | None = None) -> list[Path]:
     """Predict every frame; three stages overlap (threads; numpy, OpenCV and onnxruntime release the GIL):
     a reader decodes and preprocesses the next frames and a writer writes the previous ones (npz, PNG, in
     frame order) while `workers` threads run the graphs and heads of the current ones (one Predictor, its
@@ -191,7 +260,9 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
     the run with that error (the files written before it are complete: every file is written atomically).
     warm_up: run the graphs once on dummy inputs before the first frame; off by default here: the dummy frame
     costs a whole frame (~0.2 s) to save the first real frame ~0.04 s of first-run allocations (measured on a
-    quiet machine, benchmarks/infer_ab.py --vary warm_up); an interactive Predictor keeps it on."""
+    quiet machine, benchmarks/infer_ab.py --vary warm_up); an interactive Predictor keeps it on.
+    resume (over a dataset or an info file): frames whose outputs in `out` are whole and were made with the
+    same bundle, bank and settings (frame_is_whole) are skipped, the others made again."""
     from ago_runtime.atomic import save_npz
     from ago_runtime.predict.bundle import Bundle, resolve_bundle
     from ago_runtime.progress import track
@@ -212,16 +283,37 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
         raise AgoInputError("--picture", f"must be one of {', '.join(PICTURES)}, got {picture!r}")
     if workers is not None and not 1 <= int(workers) <= 64:
         raise AgoInputError("--workers", f"must be between 1 and 64, got {workers}")
+    from ago_runtime.shards import parse_shard
+
+    parse_shard(shard)   # a bad --shard before any work
     check_output_dir(out, "--out")   # before any work
     b = Bundle.load(resolve_bundle(bundle))
     typer.echo(card_line(b))   # stdout: information; stderr keeps only warnings and the one error line
     chosen = choose_bank(b, prompts, bank)
     b.check_bank(chosen)   # the bank's text encoder and width, before any work
     identifier = identifier or b.identifier_for(chosen)   # none for a closed-world bank
-    count, frames = open_frames(Path(images) if images else None, sample, Path(info) if info else None, b.rig)
+    key = run_key(b, chosen, identifier, picture, save_volumes, int8)
+    out = Path(out)
+    kept: list[str] = []
+
+    def whole(name: str) -> bool:
+        if frame_is_whole(out, name, key, b.grid.shape, picture):
+            kept.append(name)
+            return True
+        return False
+
+    count, frames = open_frames(Path(images) if images else None, sample, Path(info) if info else None, b.rig,
+                                skip=whole if resume and out.is_dir() else None,
+                                allow_outside_root=allow_outside_root, shard=parse_shard(shard))
+    if shard is not None:
+        typer.echo(f"note: using shard {shard}: {count + len(kept)} frames")
+    if kept:
+        typer.echo(f"resuming: {len(kept)} frames already whole in {out} (same bundle, bank and settings), "
+                   f"{count} to predict")
+    if count == 0:
+        return []
     workers = int(workers) if workers is not None else auto_workers(count)
     threads = max(1, (os.cpu_count() or 1) // workers) if workers > 1 else None
-    out = Path(out)
     opened: dict = {}
 
     def open_predictor():
@@ -240,13 +332,15 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
         x, m = prepare_inputs(b, imgs, rig, source)
         return name, imgs, x, m, time.perf_counter() - t
 
-    def write(item):
+    def write(item):   # the PNG first, then the npz (with run_key): a whole npz means a whole frame
         name, imgs, pred = item
         npz = out / f"{name}.npz"
-        save_npz(npz, compresslevel=1, **pred.output_arrays(volumes=save_volumes))
+        for stale in out.glob(glob.escape(f".{name}.") + "*.tmp.*"):   # a killed run's temp files of this frame
+            stale.unlink(missing_ok=True)
         files = [npz]
         if picture != "none":
             files.append(save_png(out / f"{name}.png", prediction_picture(pred, imgs, name, picture)))
+        save_npz(npz, compresslevel=1, run_key=np.array(key), **pred.output_arrays(volumes=save_volumes))
         t = pred.timings
         typer.echo(f"{name}: {' '.join(map(str, files))} (preprocess {t['preprocess']:.2f} s, encoder "
                    f"{t['encoder']:.2f} s, heads {t['heads']:.2f} s)", err=True)
@@ -338,10 +432,18 @@ def register(app: typer.Typer) -> None:
         workers: Optional[int] = typer.Option(None, "--workers", help="frames predicted at once (default: 2 over "
                                               "a dataset on a multi-core CPU, else 1; each worker holds a frame's "
                                               "activations)"),
+        resume: bool = typer.Option(True, "--resume/--no-resume", help="over a dataset or info file: skip frames "
+                                    "whose outputs in --out are whole and made with the same bundle, bank and "
+                                    "settings (checked: every array read, the PNG decoded)"),
+        allow_outside_root: bool = typer.Option(False, "--allow-outside-root", help="let file names in the data "
+                                                "files (info .pkl, sample_data.json) leave the data root: absolute "
+                                                "or with '..' (refused by default)"),
+        shard: Optional[str] = typer.Option(None, "--shard", help="K/N: only the K-th of N contiguous runs of the "
+                                            "dataset's frames (N machines, no coordination; ago_runtime/shards.py)"),
     ) -> None:
         """Predict 3D occupancy for camera images with an exported bundle (numpy + onnxruntime)."""
         run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, sample, info, int8, picture,
-                  workers=workers)
+                  workers=workers, resume=resume, allow_outside_root=allow_outside_root, shard=shard)
 
     @app.command("demo")
     def demo_cmd(
@@ -360,15 +462,18 @@ def register(app: typer.Typer) -> None:
     @app.command("retrieve")
     def retrieve_cmd(
         phrase: str = typer.Option(..., "--phrase", help='what to look for, e.g. "traffic cone"'),
-        images: Path = typer.Option(..., "--images", help="images folder (six CAM_*.jpg + calib.json)"),
+        images: Path = typer.Option(..., "--images", help="images folder (six CAM_*.jpg + calib.json) or a "
+                                    "nuScenes dataroot"),
+        sample: Optional[str] = typer.Option(None, "--sample", help="a dataroot's sample token or scene name "
+                                             "(default: its first keyframe)"),
         bundle: Optional[Path] = typer.Option(None, "--bundle", help="bundle folder"),
         out: Path = typer.Option(Path("ago_retrieve"), "--out", "-o", help="output folder"),
     ) -> None:
         """Similarity of every voxel to a phrase (cosine, on the adapted VLM-aligned branch) + a BEV picture."""
-        run_retrieve(phrase, images, bundle, out)
+        run_retrieve(phrase, images, bundle, out, sample)
 
 
-def run_retrieve(phrase: str, images: Path, bundle, out: Path) -> list[Path]:
+def run_retrieve(phrase: str, images: Path, bundle, out: Path, sample: str | None = None) -> list[Path]:
     from ago_runtime.pictures import render
     from ago_runtime.atomic import save_npz
     from ago_runtime.predict.bundle import Bundle, resolve_bundle
@@ -378,16 +483,23 @@ def run_retrieve(phrase: str, images: Path, bundle, out: Path) -> list[Path]:
 
     from ago_runtime.outputs import check_output_dir
 
+    from ago_runtime.vocab.prompts import check_phrase
+
     one_line_warnings()
-    if not phrase.strip():
-        raise AgoInputError("--phrase", "is empty")
+    phrase = check_phrase(phrase, "--phrase")    # no control characters (NUL...), a bounded length
+    if "," in phrase:
+        raise AgoInputError("--phrase", f"{phrase[:60]!r}: give one phrase, without commas (a comma separates "
+                                        "phrases in a prompt file)")
     check_output_dir(out, "--out")
     b = Bundle.load(resolve_bundle(bundle))
     direction = np.asarray(bundle_text_encoder(b).encode([phrase]), np.float32)[0]
     predictor = Predictor(b)
     bank = choose_bank(b, None, None)
     predictor.fold(bank)
-    [(name, imgs, rig, source)] = list(iter_frames(Path(images), None, None, b.rig))
+    count, frames = open_frames(Path(images), sample, None, b.rig)
+    name, imgs, rig, source = next(frames)   # a dataset: the first keyframe (of --sample)
+    if count > 1:
+        typer.echo(f"note: using keyframe {name}, the first of {count} (--sample TOKEN picks another)")
     h, g = predictor.encode(imgs, rig, source)
     pred = predictor.predict_hidden(h, g, bank, b.identifier)
     # the adapted branch F~_3D everywhere: it is the embedding aligned with the VLM's image space, the one that

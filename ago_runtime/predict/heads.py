@@ -65,6 +65,8 @@ class HeadWeights:
     # every phrase's adapted score is standardised, z = (F~.t - m.t) / sqrt(t' S t) (phrase_standardisation)
     adapted_mean: np.ndarray | None = None
     adapted_cov: np.ndarray | None = None
+    # added to the main branch's free score, F_3D . free_embedding + free_bias (ModelConfig.free_bias; 0 = none)
+    free_bias: float = 0.0
 
     KEYS = ("W_dec", "b_dec", "W_ad", "b_ad", "free_embedding")   # required; the fields above after it optional
 
@@ -89,6 +91,7 @@ class HeadWeights:
     def to_arrays(self) -> dict[str, np.ndarray]:
         out = {k: np.asarray(getattr(self, k), dtype=np.float32) for k in self.KEYS}
         out["branch_scales"] = np.asarray(self.scales, dtype=np.float32)
+        out["free_bias"] = np.asarray([self.free_bias], dtype=np.float32)
         if self.adapted_mean is not None:
             out["adapted_mean"] = np.asarray(self.adapted_mean, dtype=np.float32)
             out["adapted_cov"] = np.asarray(self.adapted_cov, dtype=np.float32)
@@ -163,7 +166,9 @@ class FoldedHeads:
         self.one_phrase_per_class = bool(np.all(counts == 1))
         T64 = T.astype(np.float64)
         self.A_main_T = np.ascontiguousarray(T64 @ weights.W_dec.astype(np.float64), dtype=np.float32)  # (P', Dh)
-        self.c_main = (T64 @ weights.b_dec.astype(np.float64)).astype(np.float32)[:, None]              # (P', 1)
+        c_main = T64 @ weights.b_dec.astype(np.float64)
+        c_main[-1] += float(weights.free_bias)                      # the free row (last)
+        self.c_main = c_main.astype(np.float32)[:, None]                                                  # (P', 1)
         # adapted branch: each phrase row standardised (HeadWeights.adapted_phrase_map); the free row as is
         scale, bias = weights.adapted_phrase_map(T64[:-1])
         scale, bias = np.append(scale, 1.0), np.append(bias, 0.0)

@@ -1,4 +1,4 @@
-"""CLI verb `ago metric`: the Occ3D mIoU of predictions against ground truth.
+"""CLI verb `ago metric`: the Occ3D mIoU and RayIoU of predictions against ground truth, and LiDAR measures.
 
 `ago metric --pred DIR --gt DIR [--json out.json] [--md out.md] [--subset NAME=c1,c2]`
     evaluates predictions against Occ3D ground truth (see `ago_runtime.scoring.metric`).
@@ -9,6 +9,10 @@
 `--prompts FILE` scores in that prompt file's label space, as the torch evaluation (`ago eval`) does:
     GT voxels of Occ3D classes no prompt covers are ignored, predictions are matched by class name,
     mIoU is over the file's classes, and its @known line gives "known" / "unknown" subsets.
+Both mIoUs are reported (camera mask / every voxel; `--no-mask` picks the per-class table), and RayIoU
+(`ago_runtime.scoring.ray_iou`).
+`--lidar DATAROOT` scores predictions of a nuScenes dataset's keyframes against their own LiDAR
+(`ago_runtime.scoring.lidar_agreement`): no Occ3D labels needed.
 """
 
 from __future__ import annotations
@@ -43,7 +47,11 @@ def find_gt_files(gt_root: Path) -> dict[str, Path]:
 
 def find_prediction(pred_root: Path, gt_file: Path) -> Path | None:
     """The prediction file for the GT file's sample token, or None."""
-    token, scene = gt_file.parent.name, gt_file.parent.parent.name
+    return find_prediction_for(pred_root, gt_file.parent.parent.name, gt_file.parent.name)
+
+
+def find_prediction_for(pred_root: Path, scene: str, token: str) -> Path | None:
+    """The prediction file of a sample token (of a scene), or None."""
     for cand in (pred_root / scene / token / "labels.npz", pred_root / token / "labels.npz",
                  pred_root / f"{token}.npz"):
         if cand.is_file():
@@ -89,84 +97,200 @@ def prediction_in_space(path: Path, sem: np.ndarray, names: list[str]) -> np.nda
     return lut[sem].astype(np.uint8)
 
 
+def prediction_free_index(path: Path, default: int) -> int:
+    """The `free_index` a prediction file states (ago infer writes it), else `default` (Occ3D: 17)."""
+    with np.load(path, allow_pickle=False) as z:
+        return int(z["free_index"]) if "free_index" in z.files else default
+
+
+def parse_origin(text: str) -> tuple[float, float, float]:
+    """'x,y,z' metres -> a tuple; anything else is one AgoInputError naming --ray-origin."""
+    try:
+        xyz = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        xyz = ()
+    if len(xyz) != 3 or not all(np.isfinite(xyz)):
+        raise AgoInputError("--ray-origin", f"expected x,y,z in metres like 0.943,0,1.84, got {text!r}")
+    from ago_runtime.geometry.grid import Grid
+
+    g = Grid.occ3d()
+    if not all(lo <= v < hi for v, lo, hi in zip(xyz, g.range_min, g.range_max)):
+        raise AgoInputError("--ray-origin", f"{text!r} lies outside the grid {g.range_min}..{g.range_max}")
+    return xyz
+
+
+def score_against_gt(pred: Path, gt: Path, space, m_mask, m_all, rays, allow_missing: bool) -> list[str]:
+    """Accumulate the Occ3D metric with and without the camera mask, and RayIoU; returns skipped tokens."""
+    from ago_runtime.formats.occ3d import Occ3DLabels
+    from ago_runtime.geometry.grid import Grid
+    from ago_runtime.progress import track
+
+    gts = find_gt_files(gt)
+    pairs, missing = [], []
+    for token, gt_file in gts.items():
+        p = find_prediction(pred, gt_file)
+        if p is None:
+            missing.append(token)
+        else:
+            pairs.append((gt_file, p))
+    if missing and not allow_missing:
+        raise AgoInputError(pred, f"no prediction for {len(missing)} of {len(gts)} GT frames "
+                                  f"(first: {missing[0]}); use --allow-missing to skip them")
+    if not pairs:
+        raise AgoInputError(pred, "no prediction matches any GT frame")
+    gt_lut = None if space is None else space.gt_lut(free_index=space.num_classes)
+    for gt_file, p in track(pairs, description="scoring (frames)", total=len(pairs)):
+        labels = Occ3DLabels.load(gt_file)
+        sem, _ = load_semantics(p)
+        gt_sem = labels.semantics
+        if space is not None:
+            sem = prediction_in_space(p, sem, m_mask.class_names)
+            gt_sem = gt_lut[gt_sem]
+        sem = to_gt_resolution(sem, labels.shape, p)
+        if sem.max() >= m_mask.num_labels:
+            raise AgoInputError(p, f"prediction labels must lie in 0..{m_mask.num_labels - 1}, found {sem.max()}")
+        m_mask.update(sem, gt_sem, labels.mask_camera.astype(bool))
+        m_all.update(sem, gt_sem, None)
+        grid = Grid.with_shape(labels.shape)
+        rays.update(sem, gt_sem, grid.range_min, grid.voxel_size)
+    return missing
+
+
+def score_against_lidar(pred: Path, dataroot: Path, agreement, allow_missing: bool) -> list[str]:
+    """Accumulate the LiDAR measures (`scoring.lidar_agreement`) of every keyframe of the dataset that has a
+    prediction; returns the tokens skipped for lack of one."""
+    from ago_runtime.classes import FREE
+    from ago_runtime.formats.nuscenes import NuScenesDataset
+    from ago_runtime.geometry.grid import Grid
+    from ago_runtime.progress import track
+    from ago_runtime.scoring.lidar_agreement import score_frame
+
+    if not (dataroot.is_dir() and any(p.is_dir() and p.name.startswith("v1.0") for p in dataroot.iterdir())):
+        raise AgoInputError(dataroot, "--lidar takes a nuScenes dataroot (the folder holding v1.0-*/ and samples/)")
+    ds = NuScenesDataset(dataroot, load_images=False, load_extras=False)
+    pairs, missing = [], []
+    for i, token in enumerate(ds.sample_tokens):
+        p = find_prediction_for(pred, ds.scene_of(i), token)
+        if p is None:
+            missing.append(token)
+        else:
+            pairs.append((i, p))
+    if missing and (not allow_missing or not pairs):
+        raise AgoInputError(pred, f"no prediction for {len(missing)} of {len(ds)} keyframes of {dataroot} "
+                                  f"(first: {missing[0]}); use --allow-missing to skip them")
+    for i, p in track(pairs, description="LiDAR measures (frames)", total=len(pairs)):
+        frame = ds[i]
+        sem, _ = load_semantics(p)
+        free = prediction_free_index(p, FREE)
+        grid = Grid.with_shape(sem.shape)
+        points = frame.lidar.points_in(frame.ego2global)
+        origin = (np.linalg.inv(frame.ego2global) @ frame.lidar.ego2global @ frame.lidar.lidar2ego)[:3, 3]
+        if not all(lo <= v < hi for v, lo, hi in zip(origin, grid.range_min, grid.range_max)):
+            raise AgoInputError(frame.lidar.path, f"the LiDAR sits at {origin.round(2).tolist()} m, outside the grid")
+        agreement.update(ds.sample_tokens[i], score_frame(sem != free, grid.range_min, grid.voxel_size, points, origin))
+    return missing
+
+
 def register(app: typer.Typer) -> None:
     @app.command("metric")
     def metric(
         pred: Path = typer.Option(..., "--pred",
                                   help="folder of predictions (<scene>/<token>/labels.npz or <token>.npz)"),
-        gt: Path = typer.Option(..., "--gt", help="Occ3D ground-truth folder (<scene>/<token>/labels.npz)"),
+        gt: Optional[Path] = typer.Option(None, "--gt", help="Occ3D ground-truth folder (<scene>/<token>/labels.npz)"),
+        lidar: Optional[Path] = typer.Option(
+            None, "--lidar", help="nuScenes dataroot: score against each keyframe's own LiDAR (depth error, hits in "
+            "occupied, occupied seen free; no Occ3D labels needed)"),
         json_out: Optional[Path] = typer.Option(None, "--json", help="write the summary as JSON"),
         md_out: Optional[Path] = typer.Option(None, "--md", help="write the markdown table"),
         subset: Optional[List[str]] = typer.Option(None, "--subset",
                                                    help="extra mIoU over classes: NAME=c1,c2 (repeatable)"),
         allow_missing: bool = typer.Option(False, "--allow-missing", help="skip GT frames with no prediction"),
-        no_mask: bool = typer.Option(False, "--no-mask", help="score every voxel, not only mask_camera"),
+        no_mask: bool = typer.Option(False, "--no-mask", help="the main table over every voxel, not only "
+                                     "mask_camera (both mIoUs are always reported)"),
+        ray_origin: str = typer.Option("0.943,0,1.84", "--ray-origin",
+                                       help="RayIoU: where the query rays start, x,y,z metres in the ego frame "
+                                       "(default: nuScenes LIDAR_TOP)"),
         prompts: Optional[Path] = typer.Option(
             None, "--prompts", help="score in this prompt file's label space (as `ago eval` does): GT voxels of "
             "Occ3D classes no prompt covers are ignored, mIoU over its classes, and known / unknown subsets "
             "from its @known line"),
     ) -> None:
-        """Occ3D mIoU (mask_camera voxels, confusion matrix over the whole split) of predictions vs GT."""
+        """Occ3D mIoU (with and without the camera mask) and RayIoU against GT (--gt); LiDAR measures (--lidar)."""
         from ago_runtime.atomic import write_json, write_text
         from ago_runtime.scoring.metric import OccupancyMetric
-        from ago_runtime.formats.occ3d import Occ3DLabels
-        from ago_runtime.progress import track
+        from ago_runtime.scoring.lidar_agreement import LidarAgreement
+        from ago_runtime.scoring.ray_iou import RayIoU
 
-        from ago_runtime.outputs import check_output_file
+        from ago_runtime.outputs import check_distinct_outputs, check_output_file
 
+        if gt is None and lidar is None:
+            raise AgoInputError("--gt", "give --gt GT_DIR (Occ3D labels) and/or --lidar DATAROOT (nuScenes LiDAR)")
+        origin = parse_origin(ray_origin)
         space = None
         if prompts is not None:
             from ago_runtime.vocab.prompts import parse_prompt_file
 
             space = parse_prompt_file(prompts)
             K = space.num_classes
-            m = OccupancyMetric(list(space.class_names) + ["free"], free_index=K)
-            gt_lut = space.gt_lut(free_index=K)
-            subsets = parse_subsets(subset, m.class_names)
+            names, free = list(space.class_names) + ["free"], K
+            subsets = parse_subsets(subset, names)
             if space.known and any(c not in space.known for c in space.class_names):
                 subsets.setdefault("known", [c for c in space.class_names if c in space.known])
                 subsets.setdefault("unknown", [c for c in space.class_names if c not in space.known])
         else:
-            m = OccupancyMetric()
-            subsets = parse_subsets(subset, m.class_names)
+            from ago_runtime.classes import FREE, OCC3D_CLASSES
+
+            names, free = list(OCC3D_CLASSES), FREE
+            subsets = parse_subsets(subset, names)
+        m_mask, m_all = OccupancyMetric(names, free_index=free), OccupancyMetric(names, free_index=free)
+        rays = RayIoU(names, free, origin=origin)
+        agreement = LidarAgreement()
         for option, target in (("--json", json_out), ("--md", md_out)):
             if target is not None:
                 check_output_file(target, option)   # before scoring, not after the table
+        check_distinct_outputs(("--json", json_out), ("--md", md_out))
         if not pred.is_dir():
             raise AgoInputError(pred, "prediction folder not found")
-        gts = find_gt_files(gt)
-        pairs, missing = [], []
-        for token, gt_file in gts.items():
-            p = find_prediction(pred, gt_file)
-            if p is None:
-                missing.append(token)
-            else:
-                pairs.append((gt_file, p))
-        if missing and not allow_missing:
-            raise AgoInputError(pred, f"no prediction for {len(missing)} of {len(gts)} GT frames "
-                                      f"(first: {missing[0]}); use --allow-missing to skip them")
-        if not pairs:
-            raise AgoInputError(pred, "no prediction matches any GT frame")
-        for gt_file, p in track(pairs, description="scoring", total=len(pairs)):
-            labels = Occ3DLabels.load(gt_file)
-            sem, _ = load_semantics(p)
-            gt_sem = labels.semantics
-            if space is not None:
-                sem = prediction_in_space(p, sem, m.class_names)
-                gt_sem = gt_lut[gt_sem]
-            sem = to_gt_resolution(sem, labels.shape, p)
-            if sem.max() >= m.num_labels:
-                raise AgoInputError(p, f"prediction labels must lie in 0..{m.num_labels - 1}, found {sem.max()}")
-            m.update(sem, gt_sem, None if no_mask else labels.mask_camera.astype(bool))
-        table = m.to_markdown(subsets)
-        typer.echo(table)
-        if missing:
-            typer.echo(f"skipped {len(missing)} GT frame(s) with no prediction", err=True)
-        if json_out is not None:
+        missing = score_against_gt(pred, gt, space, m_mask, m_all, rays, allow_missing) if gt is not None else []
+        lidar_missing = score_against_lidar(pred, lidar, agreement, allow_missing) if lidar is not None else []
+        parts, summary = [], {}
+        if gt is not None:
+            m = m_all if no_mask else m_mask
+            parts.append(m.to_markdown(subsets))
+            parts.append(both_mious_markdown(m_mask, m_all, rays))
             summary = m.summary()
+            summary["camera_mask"] = not no_mask
             summary["subsets"] = {name: {"classes": cls, "mIoU": _pct(m.miou(cls))}
                                   for name, cls in subsets.items()}
+            summary["mIoU_camera_mask"] = _pct(m_mask.miou())
+            summary["mIoU_no_camera_mask"] = _pct(m_all.miou())
+            summary["geometry_IoU_camera_mask"] = _pct(m_mask.geometry_iou())
+            summary["geometry_IoU_no_camera_mask"] = _pct(m_all.geometry_iou())
+            summary["ray_iou"] = rays.summary()
             summary["skipped_frames"] = missing
+        if lidar is not None:
+            parts.append("LiDAR measures (no Occ3D labels; keyframe LiDAR of " + str(lidar) + ")\n\n"
+                         + agreement.to_markdown())
+            summary["lidar"] = {**agreement.summary(), "dataroot": str(lidar), "skipped_frames": lidar_missing}
+        table = "\n".join(parts)
+        typer.echo(table)
+        if missing or lidar_missing:
+            typer.echo(f"skipped {len(missing) + len(lidar_missing)} frame(s) with no prediction", err=True)
+        if json_out is not None:
             write_json(json_out, summary)
         if md_out is not None:
             write_text(md_out, table)
+
+
+def both_mious_markdown(m_mask, m_all, rays) -> str:
+    """The short table beside the per-class one: mIoU / geometry IoU with and without the camera mask, RayIoU."""
+    r = rays.summary()
+    rows = [("mIoU, camera mask", _pct(m_mask.miou())), ("mIoU, every voxel (no camera mask)", _pct(m_all.miou())),
+            ("geometry IoU, camera mask", _pct(m_mask.geometry_iou())),
+            ("geometry IoU, every voxel", _pct(m_all.geometry_iou())), ("**RayIoU** (mean of 1, 2, 4 m)", r["RayIoU"])]
+    rows += [(f"RayIoU@{t:g} m", r[f"RayIoU@{t:g}"]) for t in rays.thresholds]
+    lines = ["| measure | % |", "|---|---:|"]
+    lines += [f"| {name} | {'n/a' if v is None else f'{v:.2f}'} |" for name, v in rows]
+    lines += ["", f"RayIoU over {r['rays_counted']} rays ({r['rays_per_frame']} per frame from {r['origin_m']} m, "
+                  "those whose GT meets an occupied voxel; docs/metric_and_pictures.md)."]
+    return "\n".join(lines) + "\n"

@@ -27,6 +27,7 @@ import numpy as np
 
 from ago_runtime.atomic import save_npz
 from ago_runtime.errors import AgoInputError
+from ago_runtime.readers import check_npz
 from ago_runtime.vocab.prompts import LabelSpace, parse_prompt_file
 
 FORMAT_VERSION = 1
@@ -39,9 +40,12 @@ def apply_template(template: str, phrase: str) -> str:
     return template.replace("{}", phrase)
 
 
-def check_template(template: str) -> str:
+def check_template(template: str, option: str | None = "template") -> str:
+    """`template` when it has exactly one `{}` and is a short line of text; AgoInputError naming `option`."""
     if template.count("{}") != 1:
-        raise AgoInputError(None, f"template {template!r} must contain exactly one '{{}}' for the phrase")
+        raise AgoInputError(option, f"{template[:80]!r} must contain exactly one '{{}}' for the phrase")
+    if len(template) > 200 or any(ord(c) < 32 for c in template):
+        raise AgoInputError(option, "must be one short line of text (at most 200 characters, no control characters)")
     return template
 
 
@@ -154,6 +158,7 @@ class PromptBank:
             raise AgoInputError(path, "prompt bank file not found")
         try:
             with np.load(path, allow_pickle=False) as z:
+                check_npz(path, z)
                 arrays = {k: z[k] for k in z.files}
         except (ValueError, OSError, zipfile.BadZipFile, EOFError) as e:
             raise AgoInputError(path, f"not a prompt bank (.npz) file: {e}") from None
@@ -189,6 +194,9 @@ class PromptBank:
         except (KeyError, TypeError, ValueError) as e:
             raise AgoInputError(path, f"prompt bank metadata incomplete: {e}") from None
         bank._validate(path)
+        zero = np.abs(bank.embeddings).max(axis=1) == 0 if bank.num_phrases else np.zeros(0, bool)
+        if zero.any():   # a file's phrase with no direction scores nothing (a hand-made or damaged bank)
+            raise AgoInputError(path, f"the embedding of phrase {bank.phrases[int(np.argmax(zero))]!r} is all zeros")
         return bank
 
 

@@ -31,7 +31,7 @@ def build(prompt_file: str = typer.Argument(..., help="prompt file, or a shipped
 
     space = parse_prompt_file(prompt_file)
     if template is not None:
-        check_template(template)
+        check_template(template, "--template")
     check_output_file(output, "-o")   # before the encoding
     enc = text_encoder_for(encoder)
     bank = build_bank(space, enc, template if template is not None else DEFAULT_TEMPLATE)

@@ -132,6 +132,27 @@ def _split_list(text: str) -> list[str]:
     return [" ".join(p.split()) for p in text.split(",") if p.strip()]
 
 
+# Bounds on what a prompt file (or a --phrase) may ask the text encoder to do, checked before any encoding.
+MAX_PROMPT_BYTES = 1 << 20      # a prompt file of more than 1 MiB is refused (the shipped ones are < 4 kB)
+MAX_PHRASE_CHARS = 300          # the text encoder reads 256 word pieces; a phrase is a few words
+MAX_PHRASES = 20000             # phrases in one file
+
+
+def check_phrase(phrase: str, where, what: str = "phrase") -> str:
+    """`phrase` with its white space folded, or AgoInputError naming `where`: empty, longer than
+    MAX_PHRASE_CHARS, or holding a control character (a NUL, an escape, a tab inside a phrase...)."""
+    if any(ord(c) < 32 or 127 <= ord(c) < 160 for c in phrase):
+        bad = next(c for c in phrase if ord(c) < 32 or 127 <= ord(c) < 160)
+        raise AgoInputError(where, f"{what} holds the control character {bad!r}")
+    if len(phrase) > MAX_PHRASE_CHARS:
+        raise AgoInputError(where, f"{what} is {len(phrase)} characters long (at most {MAX_PHRASE_CHARS}: "
+                                   "a phrase is a few words)")
+    phrase = " ".join(phrase.split())
+    if not phrase:
+        raise AgoInputError(where, f"{what} is empty")
+    return phrase
+
+
 def _truncate_long_phrase(phrase: str, where: str, max_tokens: int | None, tok) -> str:
     if tok is None or max_tokens is None:
         return phrase
@@ -164,6 +185,11 @@ def parse_prompt_text(text: str | bytes, name: str | None = None, source: str | 
     """Parse prompt-file content (see the module docstring). `source` names it in errors."""
     where = str(source) if source is not None else "<prompt text>"
     raw = text.encode("utf-8") if isinstance(text, str) else bytes(text)
+    if len(raw) > MAX_PROMPT_BYTES:
+        raise AgoInputError(where, f"prompt file of {len(raw)} bytes (at most {MAX_PROMPT_BYTES})")
+    if b"\x00" in raw:
+        line = raw[: raw.index(b"\x00")].count(b"\n") + 1
+        raise AgoInputError(where, f"line {line}: holds a NUL byte")
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as e:
@@ -228,6 +254,9 @@ def parse_prompt_text(text: str | bytes, name: str | None = None, source: str | 
             occ3d_owner[i] = (cname, lineno)
         phrases: list[str] = []
         for p in _split_list(m.group("phrases")):
+            p = check_phrase(p, where, f"line {lineno}: phrase")
+            if len(phrase_owner) >= MAX_PHRASES:
+                raise AgoInputError(where, f"{at}: more than {MAX_PHRASES} phrases")
             tok, limit = _default_tokenizer()
             limit = max_tokens if max_tokens is not None else limit
             p = _truncate_long_phrase(p, f"{where}:{lineno}", limit, tok)
@@ -282,6 +311,8 @@ def parse_prompt_file(path: str | Path, max_tokens: int | None = None) -> LabelS
     """
     path = resolve_prompt_file(path)
     try:
+        if path.stat().st_size > MAX_PROMPT_BYTES:
+            raise AgoInputError(path, f"prompt file of {path.stat().st_size} bytes (at most {MAX_PROMPT_BYTES})")
         raw = path.read_bytes()
     except OSError as e:
         raise AgoInputError(path, f"cannot read: {e.strerror}") from None

@@ -180,7 +180,7 @@ def evaluate_views(ckpt_path: str | Path, data: str | Path, views: list[View], s
         for v in views:
             b = banks[v.name]
             K = b.space.num_classes
-            main = class_logits(out["feat"], b.text, b.phrase_class, K, free, None)[0]
+            main = class_logits(out["feat"], b.text, b.phrase_class, K, free, None, free_bias=out.get("free_bias"))[0]
             adapted = (adapted_logits(out["feat_adapted"], b.text, b.phrase_class, K, free, adapted_stats)[0]
                        * v.adapted_scale
                        if v.identifier != "none" or v.name == stats_view else None)

@@ -220,7 +220,7 @@ def compute_losses(outputs: dict, batch: dict, bank: BankTensors, cfg: LossConfi
     if cfg.uses_grounding:
         target = _flat_targets(batch, outputs, K)
         noise = bank.noise if cfg.use_noise else None
-        logits = class_logits(feat, bank.text, bank.phrase_class, K, free, noise)
+        logits = class_logits(feat, bank.text, bank.phrase_class, K, free, noise, free_bias=outputs.get("free_bias"))
         ce, lov = grounding_loss(logits, target, K, cfg.lovasz_only_present, weight=w, class_weight=class_weight)
         losses["grounding_ce"], losses["grounding_lovasz"] = ce, lov
         total = total + cfg.w_ce * ce + cfg.w_lovasz * lov
@@ -233,7 +233,7 @@ def compute_losses(outputs: dict, batch: dict, bank: BankTensors, cfg: LossConfi
             total = total + cfg.w_unlabelled_uniform * losses["unlabelled_uniform"]
     if not cfg.uses_grounding and cfg.use_occ:
         target = _flat_targets(batch, outputs, K)
-        logits = class_logits(feat, bank.text, bank.phrase_class, K, free, None)
+        logits = class_logits(feat, bank.text, bank.phrase_class, K, free, None, free_bias=outputs.get("free_bias"))
         losses["occ"] = occupancy_loss(logits, target, K, weight=_occupancy_weight(w, batch, outputs, cfg),
                                        binary=_flat_occupancy(batch, outputs, K))
         total = total + cfg.w_occ * losses["occ"]

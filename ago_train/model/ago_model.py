@@ -5,7 +5,7 @@ forward_hidden(images (B, 6, 3, H, W) float32 normalised by ago_runtime.geometry
   -> h (B, N, Dh) decoder hidden, g (B, N, Da) adapter hidden; N = X*Y*Z, C order over [x, y, z].
 forward(images, ego2img, voxel_index=None, prefix=None) -> {"feat": F_3D = decoder_out(h) (B, N, C),
                  "feat_adapted": F~_3D = adapter_out(g) (B, N, C),
-                 "free_embedding": (C,)}
+                 "free_embedding": (C,), and "free_bias": () when the model has one}
   `prefix` (training with ago_train/feature_cache.py): the frozen backbone stages' maps, a list of
   (B*6, C_l, H_l, W_l) tensors = backbone.frozen_prefix(images); `images` is then not used (may be None).
 
@@ -46,6 +46,8 @@ class AGOModel(nn.Module):
         self.adapter_out = nn.Linear(self.adapter.out_dim, cfg.embed_dim)
         free = torch.randn(cfg.embed_dim)
         self.free_embedding = nn.Parameter(free / free.norm())
+        # the free score's bias (ModelConfig.free_bias); None = the paper's plain dot product
+        self.free_bias = nn.Parameter(torch.zeros(())) if cfg.free_bias else None
 
     @property
     def num_voxels(self) -> int:
@@ -101,6 +103,8 @@ class AGOModel(nn.Module):
         h = self.decoder(self.voxel_features(images, ego2img, voxel_index, prefix, grid_shape))
         feat = self.decoder_out(h)
         out = {"feat": feat, "free_embedding": self.free_embedding}
+        if self.free_bias is not None:
+            out["free_bias"] = self.free_bias
         if adapted:
             out["feat_adapted"] = self.adapt(feat)
         if voxel_index is not None:

@@ -22,7 +22,8 @@ from dataclasses import asdict, dataclass, field, fields
 from ago_runtime.errors import AgoInputError
 from ago_runtime.geometry.grid import Grid
 
-BACKBONES = ("efficientnet_lite0", "resnet101", "tiny_cnn")
+BACKBONES = ("efficientnet_lite0", "resnet50", "resnet101", "tiny_cnn")
+RESNETS = ("resnet50", "resnet101")   # weights only from the user's file: backbone_weights
 TPV_LAYOUTS = ("canvas", "reference")   # ago_train/model/tpv_canvas.py, tpv.py
 
 
@@ -38,8 +39,10 @@ class ModelConfig:
     image_height: int = 192  # = ago_runtime.geometry.preprocess.Preprocess.height
     num_cameras: int = 6
     # --- image backbone + FPN
-    backbone: str = "efficientnet_lite0"  # "efficientnet_lite0" | "resnet101" | "tiny_cnn"
-    pretrained: bool = True               # ImageNet weights (EfficientNet-Lite0 only: bundled package)
+    backbone: str = "efficientnet_lite0"  # "efficientnet_lite0" | "resnet50" | "resnet101" | "tiny_cnn"
+    pretrained: bool = True               # ImageNet weights (EfficientNet-Lite0: bundled; ResNet: backbone_weights)
+    backbone_weights: str | None = None   # ResNet only: torchvision/mmdet state dict file (docs/model.md)
+    backbone_style: str = "pytorch"       # ResNet only: "pytorch" (torchvision) | "caffe" (mmdet caffe, e.g. FCOS3D)
     frozen_stages: int = 1                # backbone stages kept frozen: 0 none, 1 up to stride 8, 2 up to 16, 3 all
     # --- TPV encoder
     tpv_dim: int = 64
@@ -56,11 +59,16 @@ class ModelConfig:
     num_heads: int = 4
     num_layers: int = 2
     tpv_layout: str = "canvas"           # how the TPV arithmetic runs (same function): "canvas" | "reference"
+    query_pos: bool = False              # add the learnt plane queries (each cell's own embedding: its position)
+                                         # to the input of every encoder layer after the first, as TPVFormer
+                                         # adds its positional encoding in every layer
     ffn_dim: int = 128
     # --- decoder + adapter
     hidden_dim: int = 128      # Dh, decoder hidden width
     decoder_layers: int = 1    # hidden layers (softplus) before `decoder_out`
     embed_dim: int = 384       # C, the text embedding width (all-MiniLM-L6-v2)
+    free_bias: bool = False    # a learnt scalar added to the free score (F_3D . free_embedding + b), started at
+                               # the training data's prior log-odds of free (ago_train/trainer.py)
     adapter_depth: int = 2     # 1..4 linear layers in the modality adapter (2 = paper)
     adapter_hidden: int = 384
 
@@ -76,6 +84,15 @@ class ModelConfig:
     def validate(self, source: str | None = None) -> None:
         if self.backbone not in BACKBONES:
             raise AgoInputError(source, f"unknown backbone {self.backbone!r}; expected one of {BACKBONES}")
+        if self.backbone_weights is not None and not (isinstance(self.backbone_weights, str) and self.backbone_weights):
+            raise AgoInputError(source, f"backbone_weights must be a file path or null, got {self.backbone_weights!r}")
+        if self.backbone_style not in ("pytorch", "caffe"):
+            raise AgoInputError(source, f"backbone_style must be 'pytorch' or 'caffe', got {self.backbone_style!r}")
+        if self.backbone not in RESNETS and (self.backbone_weights or self.backbone_style != "pytorch"):
+            raise AgoInputError(source, f"backbone_weights / backbone_style are for {RESNETS}, not {self.backbone!r}")
+        if self.backbone in RESNETS and self.pretrained and not self.backbone_weights:
+            raise AgoInputError(source, f"{self.backbone} with pretrained=true needs backbone_weights=PATH (no ResNet "
+                                        "weights ship with ago and nothing is downloaded); or set pretrained=false")
         if not 0 <= self.frozen_stages <= 3:
             raise AgoInputError(source, f"frozen_stages must be 0..3, got {self.frozen_stages}")
         if not 1 <= self.adapter_depth <= 4:
@@ -96,10 +113,14 @@ class ModelConfig:
             if getattr(self, name) < 1:
                 raise AgoInputError(source, f"{name} must be >= 1")
 
-    def build(self) -> "AGOModel":  # noqa: F821
+    def build(self, load_weights: bool = True) -> "AGOModel":  # noqa: F821
+        """load_weights=False: leave a ResNet's backbone_weights file unread (every weight comes from a checkpoint)."""
         from .ago_model import AGOModel
+        from .backbone import configure_backbone
 
-        return AGOModel(self)
+        model = AGOModel(self)
+        configure_backbone(model.backbone, self, load_weights)
+        return model
 
     def to_dict(self) -> dict:
         return asdict(self)

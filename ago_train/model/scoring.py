@@ -20,9 +20,10 @@ NO_PHRASE_SCORE = -1e4  # a class without any phrase scores this (finite, so CE/
 
 def class_logits(feat: torch.Tensor, text: torch.Tensor, phrase_class: torch.Tensor, num_classes: int,
                  free_embedding: torch.Tensor, noise: torch.Tensor | None = None,
-                 phrase_bias: torch.Tensor | None = None) -> torch.Tensor:
+                 phrase_bias: torch.Tensor | None = None, free_bias: torch.Tensor | None = None) -> torch.Tensor:
     """feat (B, N, C) -> logits (B, N, K + 1 + Nn) in the column order of this module.
-    `phrase_bias` (P,) is added to each phrase's dot product (the adapted branch's standardisation)."""
+    `phrase_bias` (P,) is added to each phrase's dot product (the adapted branch's standardisation),
+    `free_bias` () to the free column (ModelConfig.free_bias; None = none)."""
     phrase_class = phrase_class.reshape(-1).to(feat.device, torch.long)
     if phrase_class.numel() and (phrase_class.min() < 0 or phrase_class.max() >= num_classes):
         raise ValueError(f"phrase classes must lie in 0..{num_classes - 1}")
@@ -36,7 +37,10 @@ def class_logits(feat: torch.Tensor, text: torch.Tensor, phrase_class: torch.Ten
     has_phrase = torch.zeros(num_classes, dtype=torch.bool, device=feat.device)
     has_phrase[phrase_class] = True
     cls = torch.where(has_phrase, cls, torch.full_like(cls, NO_PHRASE_SCORE))
-    cols = [cls, (feat @ free_embedding.to(feat.dtype)).unsqueeze(-1)]
+    free = feat @ free_embedding.to(feat.dtype)
+    if free_bias is not None:
+        free = free + free_bias.to(feat.dtype)
+    cols = [cls, free.unsqueeze(-1)]
     if noise is not None and noise.shape[0] > 0:
         cols.append(feat @ noise.to(feat.dtype).T)
     return torch.cat(cols, -1)

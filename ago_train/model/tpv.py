@@ -392,7 +392,9 @@ class TPVEncoder(nn.Module):
                 cams[p] = ("atlas", *select_cameras(uv, mask, k), count)
         cross_refs = {p: [getattr(self, f"cross_{p}_from_{s}") for s in PLANES] for p in PLANES}
         queries = {p: self.queries[p].unsqueeze(0).expand(B, -1, -1) for p in PLANES}
-        for layer in self.layers:
+        for i, layer in enumerate(self.layers):
+            if i and self.cfg.query_pos:
+                queries = {p: queries[p] + self.queries[p].unsqueeze(0) for p in PLANES}
             queries = layer(queries, self.plane_hw, feats, cams, cross_refs)
         out = {}
         for p in PLANES:

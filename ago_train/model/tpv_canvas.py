@@ -310,6 +310,8 @@ def encode_frame(encoder, feats: list[torch.Tensor], ego2img: torch.Tensor, comp
     geo = {p: c.frames[p](ego2img) for p in PLANES}
     canvas = camera_canvas(feats, c.cam_layout)
     queries = {p: encoder.queries[p] for p in PLANES}
-    for layer in encoder.layers:
+    for i, layer in enumerate(encoder.layers):
+        if i and encoder.cfg.query_pos:
+            queries = {p: queries[p] + encoder.queries[p] for p in PLANES}
         queries = layer_forward(layer, queries, canvas, geo, c, encoder.plane_hw, compact)
     return queries

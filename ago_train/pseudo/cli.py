@@ -27,7 +27,7 @@ def parse_grid(text: str):
 
 
 def build_backends(prompts: str, segmenter: str, masks: Path | None, embedder: str, feats: Path | None,
-                   seed: int):
+                   seed: int, data: Path | None = None):
     """(label_space, segmenter, embedder or None) from the CLI choices."""
     from ago_runtime.errors import AgoInputError
     from ago_runtime.vocab.prompts import parse_prompt_file, resolve_prompt_file
@@ -43,8 +43,12 @@ def build_backends(prompts: str, segmenter: str, masks: Path | None, embedder: s
         seg = FileSegmenter(masks, space)
     elif segmenter == "sim":
         seg = SimulatedSegmenter(space, SimSegmenterConfig(seed=seed))
+    elif segmenter == "boxes":
+        from .boxes import BoxSegmenter
+
+        seg = BoxSegmenter(data, space)
     else:
-        raise AgoInputError("--segmenter", f"expected sim or files, got {segmenter!r}")
+        raise AgoInputError("--segmenter", f"expected files, sim or boxes, got {segmenter!r}")
     if embedder == "none":
         emb = None
     elif embedder == "files":
@@ -96,12 +100,14 @@ def resolve_defaults(data: Path, segmenter: str | None, masks: Path | None, embe
             segmenter = "sim"
         else:
             raise AgoInputError("--segmenter", f"{data} has no label maps (<data>/masks) and is not `ago synth` "
-                                "data: give --segmenter files --masks DIR (layout: docs/vlm_files.md)")
+                                "data: give --segmenter files --masks DIR (layout: docs/vlm_files.md), or "
+                                "--segmenter boxes (labels painted from the dataset's own 3D boxes, no VLM)")
         notes.append(f"--segmenter {segmenter}")
     if embedder is None:
         embedder = "files" if feats is not None else "none"
-        if feats is not None:
-            notes.append("--embedder files")
+        notes.append("--embedder files" if feats is not None else
+                     f"--embedder none (no feature maps: {data / 'feats'} not found; training will not align the "
+                     "modality adapter, and the bundle card says so)")
     return segmenter, masks, embedder, feats, notes
 
 
@@ -140,9 +146,10 @@ def register(app: typer.Typer) -> None:
         data: Path = typer.Option(..., "--data", help="nuScenes-format dataset folder (real or `ago synth`)."),
         out: Path = typer.Option(..., "--out", help="Output folder (resumable; refused if made with other settings)."),
         prompts: str = typer.Option("cw", "--prompts", help="Prompt file (path or shipped name: cw, ow_pretrain, ow)."),
-        segmenter: str = typer.Option(None, "--segmenter", help="files (label maps, docs/vlm_files.md) or sim "
-                                      "(SIMULATED, `ago synth` data only). Default: files when there are label "
-                                      "maps (--masks, or <data>/masks), sim on `ago synth` data."),
+        segmenter: str = typer.Option(None, "--segmenter", help="files (label maps, docs/vlm_files.md), sim "
+                                      "(SIMULATED, `ago synth` data only) or boxes (painted from the dataset's 3D "
+                                      "boxes and LiDAR ground: not a VLM; ago_train/pseudo/boxes.py). Default: files "
+                                      "when there are label maps (--masks, or <data>/masks), sim on `ago synth` data."),
         masks: Path = typer.Option(None, "--masks", help="Label-map folder for --segmenter files (default <data>/masks)."),
         embedder: str = typer.Option(None, "--embedder", help="files, sim (SIMULATED) or none. Default: files when "
                                      "there are feature maps (--feats, or <data>/feats), else none."),
@@ -162,6 +169,8 @@ def register(app: typer.Typer) -> None:
         limit: int = typer.Option(0, "--limit", min=0, help="Only the first N samples of the split (0 = all)."),
         jobs: int = typer.Option(1, "--jobs", min=1, max=64, help="Worker processes labelling scenes in parallel "
                                  "(the same pseudo-labels for any value)."),
+        shard: str = typer.Option(None, "--shard", help="K/N: only the K-th of N contiguous runs of the split's "
+                                  "keyframes (N machines, no coordination; ago_runtime/shards.py)."),
     ):
         """Lift 2-D masks (and image features) into 3-D pseudo-labels with the LiDAR (keyframes + non-key sweeps)."""
         from ago_runtime.formats.nuscenes import NuScenesDataset
@@ -169,10 +178,14 @@ def register(app: typer.Typer) -> None:
 
         from .generate import PseudoLabelConfig, generate
 
+        from ago_runtime.errors import AgoInputError
+        from ago_runtime.shards import parse_shard, shard_indices
+
         check_output_dir(out, "--out")
+        shard_kn = parse_shard(shard)
         pgrid = parse_grid(grid)
         segmenter, masks, embedder, feats, notes = resolve_defaults(Path(data), segmenter, masks, embedder, feats)
-        space, seg, emb = build_backends(prompts, segmenter, masks, embedder, feats, seed)
+        space, seg, emb = build_backends(prompts, segmenter, masks, embedder, feats, seed, Path(data))
         needs_extras = segmenter == "sim" or embedder == "sim"
         ds = NuScenesDataset(data, load_images=False, load_extras=needs_extras)
         indices, split_note = resolve_split(ds, split)
@@ -180,6 +193,11 @@ def register(app: typer.Typer) -> None:
         notes += [n for n in (split_note, sweep_note) if n]
         if limit > 0:
             indices = indices[:limit]
+        if shard_kn is not None:
+            indices = shard_indices(indices, shard_kn)
+            notes.append(f"shard {shard_kn[0]}/{shard_kn[1]}: {len(indices)} keyframes")
+            if not indices:
+                raise AgoInputError("--shard", f"shard {shard} of this split has no keyframes (fewer than N)")
         for n in notes:
             typer.echo(f"note: using {n}")
         config = PseudoLabelConfig(grid=pgrid, num_keyframes=keyframes, interval=interval, nonkey_sweeps=nonkey,

@@ -486,10 +486,14 @@ def generate(ds, indices: list[int], out_dir: str | Path, label_space, segmenter
 
         with ProcessPoolExecutor(max_workers=min(jobs, len(groups)), mp_context=mp.get_context("spawn"),
                                  initializer=_init_worker, initargs=(job,)) as ex:
-            futures = [ex.submit(_label_scene, g) for g in groups]
-            done = as_completed(futures)
-            for fut in (track(done, "pseudo-labels (scenes)", total=len(futures)) if progress else done):
-                fut.result()
+            futures = {ex.submit(_label_scene, g): len(g) for g in groups}
+
+            def frames_done():   # the bar counts frames: a finished scene advances it by its frames
+                for fut in as_completed(futures):
+                    fut.result()
+                    yield from range(futures[fut])
+            for _ in (track(frames_done(), "pseudo-labels (frames)", total=len(rest)) if progress else frames_done()):
+                pass
     else:
         cache = _cache_for(ds, segmenter, config)
         items = track(rest, "pseudo-labels", total=len(rest)) if progress else rest

@@ -12,12 +12,20 @@ from pathlib import Path
 import typer
 
 
+# Bounds on what one `ago synth` may be asked to make, checked before any work (tests/test_bad_inputs.py).
+MAX_SCENES = 10000
+MAX_FRAMES = 100          # 50 s at 2 Hz (a nuScenes scene is 20 s); the city is sized by the ego's travel
+MAX_IMAGE_SIDE = 4096
+MAX_GRID_XY, MAX_GRID_Z = 800, 64
+
+
 def register(app: typer.Typer) -> None:
     @app.command("synth")
     def synth(
         out: Path = typer.Option(Path("data/synth"), "--out", "-o", help="dataset root to write"),
-        scenes: int = typer.Option(10, "--scenes", min=1, help="number of scenes"),
-        frames: int = typer.Option(40, "--frames", min=1, help="keyframes per scene (2 Hz)"),
+        scenes: int = typer.Option(10, "--scenes", min=1, max=MAX_SCENES, help="number of scenes"),
+        frames: int = typer.Option(40, "--frames", min=1, max=MAX_FRAMES,
+                                   help="keyframes per scene (2 Hz; the city grows with the scene's length)"),
         seed: int = typer.Option(0, "--seed", min=0, help="random seed (same seed, same dataset)"),
         image_size: str = typer.Option("800x450", "--image-size", help="camera image WIDTHxHEIGHT"),
         grid: str = typer.Option("200x200x16", "--grid", help="Occ3D grid XxYxZ over [-40,40]x[-40,40]x[-1,5.4] m"),
@@ -30,6 +38,7 @@ def register(app: typer.Typer) -> None:
                                  help="worker processes rendering scenes in parallel (same dataset for any value)"),
     ) -> None:
         """Generate a synthetic city: six cameras, a 32-beam LiDAR, 3D boxes and Occ3D ground truth."""
+        from ago_runtime.errors import AgoInputError
         from ago_runtime.outputs import check_output_dir
 
         from .config import SynthConfig, parse_size
@@ -37,6 +46,11 @@ def register(app: typer.Typer) -> None:
 
         w, h = parse_size(image_size, 2, "--image-size")
         shape = parse_size(grid, 3, "--grid")
+        if w > MAX_IMAGE_SIDE or h > MAX_IMAGE_SIDE:
+            raise AgoInputError("--image-size", f"{w}x{h}: each side at most {MAX_IMAGE_SIDE} pixels")
+        if max(shape[:2]) > MAX_GRID_XY or shape[2] > MAX_GRID_Z:
+            raise AgoInputError("--grid", f"{'x'.join(map(str, shape))}: at most {MAX_GRID_XY}x{MAX_GRID_XY}x{MAX_GRID_Z} "
+                                          "voxels (Occ3D: 200x200x16)")
         check_output_dir(out, "--out")
         config = SynthConfig(seed=seed, num_scenes=scenes, frames_per_scene=frames, image_width=w, image_height=h,
                              grid_shape=shape, val_fraction=val_fraction, sweeps_between=sweeps_between)

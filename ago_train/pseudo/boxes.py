@@ -1,0 +1,141 @@
+"""`--segmenter boxes`: label maps painted from the dataset's own 3D boxes and LiDAR ground points.
+
+A stand-in for a vision-language segmenter on real nuScenes-layout data, so the whole real chain runs
+without one. It is NOT a VLM and is named "boxes" everywhere (pseudo-label meta.json, bundle card:
+"labels from dataset boxes").
+
+For a keyframe and a camera it gives, like every `Segmenter`, an (H, W) uint8 map of label-space class
+indices (255 = no label) at the camera's native size:
+1. ground: the keyframe LiDAR returns with ego-frame z < `GROUND_Z` (0.3 m; the ego frame's origin is
+   on the ground under the rear axle) that lie in no box are projected into the image and each paints a
+   disc of `GROUND_RADIUS_PX` pixels at 1600 px width (scaled with the image) as `driveable_surface`;
+2. boxes: every sample_annotation of the keyframe (global centre, size w l h, rotation) is moved into the
+   keyframe's ego frame, its surface sampled every 0.1 m, the points in front of the camera projected,
+   and their convex hull filled with the box's class; boxes are painted far to near (by the distance of
+   their centre from the camera), so nearer boxes cover farther ones.
+Pixels neither step paints stay 255 (no label): buildings, vegetation, sky are not labelled.
+
+Box classes: nuScenes categories -> Occ3D classes as nuScenes-lidarseg's 16-class challenge maps them;
+categories it maps to "ignore" (police car, bicycle rack, debris, pushable/pullable, animals, strollers,
+wheelchairs, personal mobility) are painted `others`. A class the prompt file does not cover is not painted.
+Needs the sample_annotation, instance and category tables (a trimmed extract usually has them).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ago_runtime.errors import AgoInputError
+from ago_runtime.classes import OCC3D_ID
+from ago_runtime.formats.frame import Frame
+from ago_runtime.formats.nuscenes import find_version, load_table
+from ago_runtime.formats.nuscenes_schema import quaternion_to_matrix
+from ago_runtime.vocab.prompts import LabelSpace
+
+NO_LABEL = 255
+GROUND_Z = 0.3           # metres above the ego frame's ground plane
+GROUND_RADIUS_PX = 6     # disc radius per ground return at 1600 px image width
+SURFACE_STEP = 0.1       # metres between sampled points on a box's faces
+BOX_TABLES = ("sample_annotation", "instance", "category")
+
+# nuScenes category -> Occ3D class (nuScenes-lidarseg's 16 challenge classes; its "ignore" -> others)
+CATEGORY_CLASS = {
+    "human.pedestrian.adult": "pedestrian", "human.pedestrian.child": "pedestrian",
+    "human.pedestrian.construction_worker": "pedestrian", "human.pedestrian.police_officer": "pedestrian",
+    "vehicle.car": "car", "vehicle.motorcycle": "motorcycle", "vehicle.bicycle": "bicycle",
+    "vehicle.bus.bendy": "bus", "vehicle.bus.rigid": "bus", "vehicle.truck": "truck",
+    "vehicle.construction": "construction_vehicle", "vehicle.trailer": "trailer",
+    "movable_object.barrier": "barrier", "movable_object.trafficcone": "traffic_cone",
+}
+GROUND_CLASS = "driveable_surface"
+
+
+def box_corners_sampler(size_wlh) -> np.ndarray:
+    """(N, 3) points on the surface of a box of size (w, l, h) centred at 0, x along l, y along w."""
+    w, l, h = (float(v) for v in size_wlh)
+    axes = [np.linspace(-a / 2, a / 2, max(2, int(np.ceil(a / SURFACE_STEP)) + 1)) for a in (l, w, h)]
+    pts = []
+    for axis in range(3):
+        others = [axes[i] for i in range(3) if i != axis]
+        g = np.stack(np.meshgrid(*others, indexing="ij"), -1).reshape(-1, 2)
+        for side in (axes[axis][0], axes[axis][-1]):
+            p = np.insert(g, axis, side, axis=1)
+            pts.append(p)
+    return np.concatenate(pts)
+
+
+class BoxSegmenter:
+    """Label maps from the dataset's 3D boxes and LiDAR ground (see the module doc)."""
+
+    name = "boxes"
+
+    def __init__(self, data_root: str | Path, label_space: LabelSpace):
+        root = Path(data_root)
+        table_dir = root / find_version(root)
+        missing = [t for t in BOX_TABLES if not (table_dir / f"{t}.json").is_file()]
+        if missing:
+            raise AgoInputError(table_dir / f"{missing[0]}.json", f"--segmenter boxes needs the box tables "
+                                f"{', '.join(t + '.json' for t in missing)} (missing); use --segmenter files --masks DIR")
+        categories = {r["token"]: r["name"] for r in load_table(table_dir, "category")}
+        instance_class = {r["token"]: CATEGORY_CLASS.get(categories.get(r.get("category_token"), ""), "others")
+                          for r in load_table(table_dir, "instance")}
+        lut = label_space.gt_lut()
+        self.class_index = {c: int(lut[OCC3D_ID[c]]) for c in OCC3D_ID if c != "free"}
+        self.boxes: dict[str, list[tuple[np.ndarray, np.ndarray, str]]] = {}   # sample -> (box2global, wlh, class)
+        for r in load_table(table_dir, "sample_annotation"):
+            m = np.eye(4)
+            m[:3, :3] = quaternion_to_matrix(r["rotation"])
+            m[:3, 3] = r["translation"]
+            cls = instance_class.get(r.get("instance_token"), "others")
+            self.boxes.setdefault(r["sample_token"], []).append((m, np.asarray(r["size"], float), cls))
+        self.root = root
+
+    def config_dict(self) -> dict:
+        return {"source": "dataset boxes (sample_annotation) + LiDAR ground, not a VLM",
+                "ground_z": GROUND_Z, "ground_radius_px": GROUND_RADIUS_PX, "surface_step": SURFACE_STEP}
+
+    def frame_boxes(self, frame: Frame) -> list[tuple[np.ndarray, np.ndarray, str]]:
+        """(box2ego 4x4, size wlh, Occ3D class) of the keyframe's annotations, in its ego frame."""
+        global2ego = np.linalg.inv(frame.ego2global)
+        return [(global2ego @ m, wlh, cls) for m, wlh, cls in self.boxes.get(frame.token, [])]
+
+    def segment(self, frame: Frame, camera: str) -> np.ndarray:
+        cam = frame.rig[camera]
+        out = np.full((cam.height, cam.width), NO_LABEL, np.uint8)
+        boxes = self.frame_boxes(frame)
+        ground = self.class_index[GROUND_CLASS]
+        if ground != NO_LABEL and frame.sweeps:
+            pts = frame.lidar.points_in(frame.ego2global)
+            low = pts[pts[:, 2] < GROUND_Z]
+            for m, wlh, _ in boxes:      # returns inside a box are the object's, not ground
+                local = (low - m[:3, 3]) @ m[:3, :3]
+                low = low[~np.all(np.abs(local) <= np.array([wlh[1], wlh[0], wlh[2]]) / 2 + 0.05, axis=1)]
+            uv, _, ok = cam.project(low)
+            radius = max(1, int(round(GROUND_RADIUS_PX * cam.width / 1600)))
+            mask = np.zeros(out.shape, np.uint8)
+            for u, v in uv[ok].astype(np.int32):
+                cv2.circle(mask, (int(u), int(v)), radius, 1, -1)
+            out[mask > 0] = ground
+        order = []
+        for m, wlh, cls in boxes:
+            index = self.class_index[cls]
+            if index == NO_LABEL:
+                continue
+            centre_cam = cam.ego2cam[:3, :3] @ m[:3, 3] + cam.ego2cam[:3, 3]
+            order.append((float(np.linalg.norm(centre_cam)), m, wlh, index))
+        order.sort(key=lambda item: -item[0])          # far to near
+        for _, m, wlh, index in order:
+            pts = box_corners_sampler(wlh) @ m[:3, :3].T + m[:3, 3]
+            c = pts @ cam.ego2cam[:3, :3].T + cam.ego2cam[:3, 3]
+            front = c[:, 2] > 0.1
+            if front.sum() < 3:
+                continue
+            uv = c[front] @ cam.intrinsics.T
+            uv = uv[:, :2] / uv[:, 2:3]
+            uv = np.clip(uv, -4 * cam.width, 5 * cam.width)     # far off-image points: keep the hull finite
+            hull = cv2.convexHull(np.round(uv).astype(np.int32))
+            cv2.fillConvexPoly(out, hull, int(index))
+        return out
