@@ -112,7 +112,11 @@ class TrainConfig:
                        warmup_steps=500, log_every=10, ckpt_every=250, noise_words=100,
                        prompts="cw", data="runs/synth-cpu", pseudo="runs/synth-cpu-pseudo", out="runs/train-cpu")
         if name == "full":
+            # backbone and FPN at 0.1x the learning rate (as TPVFormer trains its backbone) and the free score's
+            # prior-initialised bias (model.free_bias): without them the voxel features collapse to one vector
+            # in ~10 steps and every voxel is free (docs/training.md, "Does it learn?")
             return cls(name="full", model=ModelConfig.preset("full"), epochs=24, batch_size=1, warmup_steps=500,
+                       backbone_lr_mult=0.1, fpn_lr_mult=0.1,
                        log_every=50, ckpt_every=2000, noise_words=100, prompts="cw", num_workers=4,
                        data="data/nuscenes", pseudo="data/nuscenes-pseudo", out="runs/train-full")
         raise AgoInputError(None, f"unknown training preset {name!r}; choose one of {list(PRESETS)} or a .json file")

@@ -100,34 +100,34 @@ def grid_diagnostics(ckpt: Path, data: Path, device: str) -> dict:
         for i in range(len(items)):
             item = items[i]
             out = model(item["images"][None].to(dev), item["ego2img"][None].to(dev), adapted=False)
-            logits = class_logits(out["feat"], text, phrase_class, space.num_classes, out["free_embedding"])
+            logits = class_logits(out["feat"], text, phrase_class, space.num_classes, out["free_embedding"],
+                                  free_bias=out.get("free_bias"))
             spread.append(feature_spread(out["feat"]))
             free.append(free_share(logits, space.num_classes))
     return {"feat_spread": float(np.mean(spread)), "free_share": float(np.mean(free))}
 
 
 def plot(rows: list[dict], log: list[dict], path: Path, title: str) -> None:
-    import matplotlib
+    """Three charts side by side: the training loss, the batch's spread and free share, the scores."""
+    import cv2
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from ago_runtime.pictures.charts import PALETTE, line_chart
 
-    fig, ax = plt.subplots(1, 3, figsize=(13, 3.6))
     steps = [r["step"] for r in log]
-    ax[0].plot(steps, [r["total"] for r in log], label="loss (training batch)")
-    ax[0].set_xlabel("step"); ax[0].legend()
-    ax[1].plot(steps, [r.get("feat_spread", np.nan) for r in log], label="feature spread (sample)")
-    ax[1].plot(steps, [r.get("free_share", np.nan) for r in log], label="free share (sample)")
-    ax[1].axhline(0.05, color="grey", lw=0.8, ls="--")
-    ax[1].set_xlabel("step"); ax[1].legend()
+    diag = [r for r in log if "feat_spread" in r]
     s = [r["step"] for r in rows]
-    ax[2].plot(s, [r["geometry_IoU"] for r in rows], "o-", label="geometry IoU")
-    ax[2].plot(s, [r["mIoU"] for r in rows], "o-", label="mIoU")
-    ax[2].set_xlabel("step"); ax[2].set_ylabel("% on its training frames"); ax[2].legend()
-    fig.suptitle(title, fontsize=10)
-    fig.tight_layout()
+    charts = [
+        line_chart(f"{title}: loss", [("loss (training batch)", steps, [r["total"] for r in log], PALETTE[0])],
+                   x_label="step", width=480, height=360),
+        line_chart("training batch", [("feature spread", [r["step"] for r in diag], [r["feat_spread"] for r in diag], PALETTE[1]),
+                                      ("free share", [r["step"] for r in diag], [r["free_share"] for r in diag], PALETTE[2])],
+                   x_label="step", width=480, height=360, y_range=(0.0, 1.05)),
+        line_chart("on its training frames (%)", [("geometry IoU", s, [r["geometry_IoU"] for r in rows], PALETTE[3]),
+                                                   ("mIoU", s, [r["mIoU"] for r in rows], PALETTE[4])],
+                   x_label="step", width=480, height=360),
+    ]
     tmp = path.with_name(path.name + ".tmp.png")
-    fig.savefig(tmp, dpi=90)
+    cv2.imwrite(str(tmp), cv2.hconcat(charts))
     os.replace(tmp, path)
 
 

@@ -92,6 +92,30 @@ def test_lr_schedule_warmup_and_cosine():
     assert cfg.effective_warmup(200) == 10  # short runs: capped at 5 % of the steps
 
 
+def test_run_length_says_which_limit_wins():
+    """epochs x steps-per-epoch vs max_steps: the shorter sets the run and its schedule, and a note says so."""
+    import dataclasses
+
+    from ago_train.train_config import TrainConfig
+    from ago_train.trainer import parameter_groups
+
+    full = TrainConfig.preset("full")
+    assert full.run_length(3) == (72, None)                        # max_steps unset: the epochs
+    steps, note = dataclasses.replace(full, max_steps=600).run_length(3)
+    assert steps == 72 and "epochs=24" in note and "max_steps=600" in note and "--set epochs=200" in note
+    steps, note = dataclasses.replace(full, max_steps=50).run_length(3)
+    assert steps == 50 and note.startswith("note: max_steps=50 comes before")
+    assert dataclasses.replace(full, max_steps=72).run_length(3) == (72, None)
+    # the full preset's parameter groups: backbone and FPN at 0.1x, the rest at 1x
+    from ago_train.model import ModelConfig
+
+    cfg = ModelConfig.preset("tiny")
+    model = cfg.build()
+    groups = {g["name"]: g["lr"] for g in parameter_groups(model, full)}
+    assert groups == {"backbone": pytest.approx(1e-4), "fpn": pytest.approx(1e-4), "rest": pytest.approx(1e-3)}
+    assert [g["name"] for g in parameter_groups(model, TrainConfig.preset("cpu"))] == ["all"]
+
+
 # ---- dataset pieces -------------------------------------------------------------------------
 def test_target_mapping_and_collate():
     from ago_train.dataset import IGNORE_INDEX, collate, pseudo_to_target

@@ -156,6 +156,6 @@ class ModelConfig:
                 backbone="efficientnet_lite0", pretrained=True, frozen_stages=1, tpv_dim=128,
                 tpv_h=100, tpv_w=100, tpv_z=16, num_points_in_pillar=4, num_points_in_pillar_side=32,
                 num_sampling_offsets=2, num_cross_view_points=8, num_self_points=4, num_heads=8,
-                num_layers=3, ffn_dim=256, hidden_dim=256, decoder_layers=2, adapter_hidden=384,
+                num_layers=3, ffn_dim=256, hidden_dim=256, decoder_layers=2, adapter_hidden=384, free_bias=True,
             )
         raise AgoInputError(None, f"unknown model preset {name!r}; expected tiny, cpu or full")

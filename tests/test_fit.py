@@ -1,0 +1,57 @@
+"""Does the `full` preset's structure keep its voxel features apart? (issue: "The paper's configuration learns")
+
+A small copy of the `full` preset's structure - ImageNet EfficientNet with stages 2-3 trained, a trained FPN,
+a two-layer decoder, the loss on the whole grid - on three synthetic frames of a 100x100x8 grid, where
+free space outnumbers occupied voxels about 5 to 1, trained 12 steps through the trainer's own loop.
+With the `full` preset's optimiser settings (backbone and FPN at 0.1x the learning rate, the free score's
+bias started at the data's prior) the features keep their spread; with the old ones (everything at 1e-3,
+no free bias) the spread falls to ~0.015 by step 12 and every voxel is free (docs/training.md, "Does it
+learn?"), and this test fails.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+torch = pytest.importorskip("torch")
+
+REPO = Path(__file__).resolve().parents[1]
+GRID = '{"range_min": [-40.0, -40.0, -1.0], "range_max": [40.0, 40.0, 5.4], "voxel_size": [0.8, 0.8, 0.8], ' \
+       '"shape": [100, 100, 8]}'
+
+
+def _ago(*args: str) -> None:
+    env = dict(os.environ, AGO_NO_PROGRESS="1")
+    r = subprocess.run([sys.executable, "-m", "ago_runtime.cli", *args], cwd=REPO, env=env, capture_output=True,
+                       text=True)
+    assert r.returncode == 0, r.stderr
+
+
+def test_full_structure_keeps_its_feature_spread(tmp_path):
+    from ago_train.train_config import TrainConfig
+    from ago_train.trainer import Trainer
+
+    data, pseudo = tmp_path / "synth", tmp_path / "pseudo"
+    _ago("synth", "--out", str(data), "--scenes", "1", "--frames", "3", "--image-size", "192x128",
+         "--grid", "100x100x8", "--seed", "3", "--val-fraction", "0")
+    _ago("pseudo-labels", "--data", str(data), "--out", str(pseudo), "--prompts", "cw", "--grid", "100x100x8",
+         "--split", "all", "--embedder", "sim", "--keyframes", "3", "--interval", "1")
+    full = TrainConfig.preset("full")
+    cfg = TrainConfig.preset("tiny").with_overrides([
+        f"data={data}", f"pseudo={pseudo}", f"out={tmp_path / 'run'}", "train_split=all", "device=cpu",
+        "max_steps=12", "epochs=4", "log_every=4", "warmup_steps=2", "noise_words=100", "train_voxels=0",
+        f"model.grid={GRID}", "model.tpv_h=25", "model.tpv_w=25", "model.backbone=efficientnet_lite0",
+        "model.pretrained=true", "model.frozen_stages=1", "model.decoder_layers=2", "model.hidden_dim=64",
+        f"lr={full.lr}", f"backbone_lr_mult={full.backbone_lr_mult}", f"fpn_lr_mult={full.fpn_lr_mult}",
+        f"model.free_bias={json.dumps(full.model.free_bias)}"])
+    Trainer(cfg, quiet=True).run()
+    rows = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    spreads = [r["feat_spread"] for r in rows if "feat_spread" in r]
+    assert len(spreads) >= 2
+    assert min(spreads) > 0.05, f"voxel features collapse: spread per 4 steps {spreads}"
