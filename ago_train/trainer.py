@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -49,8 +50,9 @@ def open_frames(data: str | Path, gts: str | None, split: str, load_images: bool
         raise AgoInputError(root, "dataset root not found (make a synthetic one with `ago synth`)")
     ds = NuScenesDataset(root, gts_root=gts, load_images=load_images, load_extras=False)
     indices = ds.split(split)
-    if ds.split_note(split):   # no splits.json: say which default split is used
-        print(f"note: using {ds.split_note(split)}", file=__import__("sys").stderr, flush=True)
+    note = ds.split_note(split)
+    if note:   # no splits.json: say which default split is used
+        print(f"note: using {note}", file=sys.stderr, flush=True)
     return ds, list(indices)
 
 
@@ -246,8 +248,6 @@ class Trainer:
         if self.resume:
             self._load_resume()
         if note and info.is_main and not self.quiet:   # after init_from / resume checks: an error stays one line
-            import sys
-
             print(note, file=sys.stderr, flush=True)
         if info.distributed:
             self.ddp = torch.nn.parallel.DistributedDataParallel(
@@ -320,7 +320,7 @@ class Trainer:
         cache = FeatureCache(self.model, self.preprocess, root)
         if self.info.is_main and not self.quiet:
             print(f"note: using feature cache {cache.dir} (frozen backbone maps of the training frames; "
-                  "--set feature_cache=DIR moves it, $AGO_CACHE_DIR too)", file=__import__("sys").stderr, flush=True)
+                  "--set feature_cache=DIR moves it, $AGO_CACHE_DIR too)", file=sys.stderr, flush=True)
         if self.info.is_main:
             flips = (False, True) if self.cfg.augment != "none" else (False,)
             cache.fill(self.dataset.frames, progress=not self.quiet, flips=flips)

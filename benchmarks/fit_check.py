@@ -60,19 +60,11 @@ def prepare(work: Path, frames: int, grid: str, render: str) -> None:
 
 
 def pseudo_miou(work: Path) -> float:
-    """mIoU of the pseudo-labels against the GT of the same frames (camera mask; unobserved = free)."""
-    from ago_runtime.classes import FREE, OCC3D_CLASSES
-    from ago_runtime.scoring.metric import OccupancyMetric, upsample_nearest
+    """mIoU of the pseudo-labels against the GT of the same frames (benchmarks/pseudo_class_iou.py's rule)."""
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from pseudo_class_iou import pseudo_label_metric
 
-    metric = OccupancyMetric(list(OCC3D_CLASSES[:FREE]) + ["free"], free_index=FREE)
-    for path in sorted((work / "pseudo").glob("*/*/labels.npz")):
-        with np.load(path) as z:
-            sem = z["semantics"].astype(np.uint8)
-        with np.load(work / "synth" / "gts" / path.parent.parent.name / path.parent.name / "labels.npz") as g:
-            gt, mask = g["semantics"], g["mask_camera"].astype(bool)
-        sem = np.where(sem > FREE, FREE, sem)
-        metric.update(upsample_nearest(sem, tuple(a // b for a, b in zip(gt.shape, sem.shape))), gt, mask)
-    return 100.0 * metric.miou()
+    return 100.0 * pseudo_label_metric(work / "pseudo", work / "synth" / "gts").miou()
 
 
 def grid_diagnostics(ckpt: Path, data: Path, device: str) -> dict:

@@ -26,6 +26,22 @@ from ago_runtime.classes import FREE, OCC3D_CLASSES  # noqa: E402
 from ago_runtime.scoring.metric import OccupancyMetric, upsample_nearest  # noqa: E402
 
 
+def pseudo_label_metric(pseudo: Path, gts: Path) -> OccupancyMetric:
+    """The cw pseudo-labels of every frame in `pseudo` scored against the Occ3D GT in `gts` (camera mask;
+    unobserved voxels count as free; coarser pseudo-labels upsampled by nearest neighbour)."""
+    metric = OccupancyMetric(list(OCC3D_CLASSES[:FREE]) + ["free"], free_index=FREE)
+    for d in sorted(Path(pseudo).glob("*/*/labels.npz")):
+        with np.load(d) as z:
+            sem = z["semantics"].astype(np.uint8)
+        gt_path = Path(gts) / d.parent.parent.name / d.parent.name / "labels.npz"
+        with np.load(gt_path) as g:
+            gt, mask = g["semantics"], g["mask_camera"].astype(bool)
+        sem = np.where(sem > FREE, FREE, sem)
+        factor = tuple(a // b for a, b in zip(gt.shape, sem.shape))
+        metric.update(upsample_nearest(sem, factor), gt, mask)
+    return metric
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--pseudo", required=True)
@@ -33,16 +49,7 @@ def main(argv=None) -> None:
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     names = list(OCC3D_CLASSES[:FREE]) + ["free"]
-    metric = OccupancyMetric(names, free_index=FREE)
-    for d in sorted(Path(args.pseudo).glob("*/*/labels.npz")):
-        with np.load(d) as z:
-            sem = z["semantics"].astype(np.uint8)
-        gt_path = Path(args.gts) / d.parent.parent.name / d.parent.name / "labels.npz"
-        with np.load(gt_path) as g:
-            gt, mask = g["semantics"], g["mask_camera"].astype(bool)
-        sem = np.where(sem > FREE, FREE, sem)
-        factor = tuple(a // b for a, b in zip(gt.shape, sem.shape))
-        metric.update(upsample_nearest(sem, factor), gt, mask)
+    metric = pseudo_label_metric(Path(args.pseudo), Path(args.gts))
     counts = metric.counts()
     iou = metric.iou()
     lines = ["# Pseudo-label IoU per class against the GT", "",
