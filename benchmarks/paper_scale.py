@@ -1,0 +1,284 @@
+"""The runtime at the paper's scale on this CPU (issue 39): the `full` preset (1600x928 input, 200x200x16 grid,
+the preset's widths) through the runtime, this tree against a baseline commit, side by side in one run.
+
+    python benchmarks/paper_scale.py [--baseline a2187f0] [--reps 3] [--rounds 2] [--profile]
+        # writes benchmarks/results/paper_scale.md (+ .json)
+
+The weights are random (the full preset's TPV encoder and heads; the EfficientNet-Lite0 backbone without its
+ImageNet weights): only the cost is measured, and the random model calls every voxel occupied, the runtime's
+worst case. One random checkpoint is made; each side exports it with its own code (the baseline tree is
+extracted with `git archive` and run with PYTHONPATH pointing there; export without the torch parity check).
+Frames are predicted in fresh child processes that alternate between the sides, each figure the best of the
+rounds (a load spike on this shared machine hits both sides alike). Per side: bundle open, first frame, steady
+frame (median of --reps), the planes graph alone (onnxruntime, from the preprocessed tensors), peak RSS (VmHWM),
+and the labels, compared voxel by voxel (argmax agreement). The frame is the real nuScenes keyframe of
+../shared (1600x900, six cameras) when present, else the exporter's synthetic frame.
+FLOP bound: matmul + conv FLOPs of one frame (torch's flop counter on the exported modules) / the best fp32
+GFLOP/s onnxruntime reaches here (runtime_speed.py's MatMul/Conv probe). --profile adds onnxruntime's
+per-operator split of the planes graph (new side).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_SAMPLE = REPO.parent / "shared" / "data" / "nuscenes-sample"
+RESULTS = REPO / "benchmarks" / "results" / "paper_scale.md"
+
+
+def peak_rss_mib() -> float:
+    for line in open("/proc/self/status"):
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def load_frame():
+    if (SHARED_SAMPLE / "mmdet3d_info.pkl").is_file():
+        from ago_runtime.formats.mmdet3d_info import load_mmdet3d_info
+
+        f = load_mmdet3d_info(SHARED_SAMPLE / "mmdet3d_info.pkl", SHARED_SAMPLE)[0]
+        return f.images, f.rig, f"nuScenes keyframe {f.token} (six 1600x900 images)"
+    from ago_export.export import synthetic_frame
+    from ago_runtime.geometry.camera import Rig
+
+    images, rig, name = synthetic_frame(Rig.nuscenes_like(1600, 900))
+    return images, rig, name
+
+
+# ---------------------------------------------------------------------------- children (either tree)
+def child_checkpoint(path: str) -> dict:
+    from ago_export.testing import random_checkpoint
+
+    random_checkpoint(Path(path), "full", prompts="cw", seed=0)
+    return {"checkpoint": path}
+
+
+def child_export(ckpt: str, out: str) -> dict:
+    from ago_export.export import export_bundle
+
+    t = time.perf_counter()
+    export_bundle(Path(ckpt), Path(out), bank_prompts=[], parity=False, log=lambda s: None)
+    return {"export_s": time.perf_counter() - t, "export_rss_mib": peak_rss_mib()}
+
+
+def child_frame(bundle: str, reps: int, cache: str, labels_out: str, profile: str) -> dict:
+    os.environ["AGO_CACHE_DIR"] = cache
+    import numpy as np
+    import onnxruntime as ort
+
+    from ago_runtime.predict.predictor import Predictor
+
+    images, rig, frame_name = load_frame()
+    t = time.perf_counter()
+    p = Predictor(bundle)
+    open_s = time.perf_counter() - t
+    bank = p.bundle.load_bank()
+    identifier = p.bundle.identifier_for(bank)
+    x, m = p.prepare(images, rig)
+    t = time.perf_counter()
+    pred = p.predict_arrays(x, m, bank, identifier)
+    first_s = time.perf_counter() - t
+    steady = []
+    for _ in range(reps):
+        t = time.perf_counter()
+        pred = p.predict_arrays(x, m, bank, identifier)
+        steady.append(time.perf_counter() - t)
+    np.save(labels_out, pred.semantics)
+    rss = peak_rss_mib()          # before the second planes session below
+    # the planes graph alone, in a session of its own with the runtime's options
+    from ago_runtime.cache import session_options
+
+    so = session_options()
+    if profile:
+        so.enable_profiling = True
+        so.profile_file_prefix = profile
+    sess = ort.InferenceSession(str(Path(bundle) / "planes.onnx"), so, providers=["CPUExecutionProvider"])
+    feed = dict(zip([i.name for i in sess.get_inputs()], [x, m]))
+    sess.run(None, feed)
+    planes = []
+    for _ in range(max(1, reps - 1)):
+        t = time.perf_counter()
+        sess.run(None, feed)
+        planes.append(time.perf_counter() - t)
+    prof_file = sess.end_profiling() if profile else None
+    return {"open_s": open_s, "first_s": first_s, "steady_s": float(np.median(steady)), "steady_all_s": steady,
+            "planes_s": float(np.median(planes)), "rss_mib": rss, "identifier": str(identifier),
+            "frame": frame_name, "occupied_share": float((pred.semantics != bank.num_classes).mean()),
+            "shape": list(pred.semantics.shape), "profile": prof_file}
+
+
+def child_flops() -> dict:
+    """Matmul + conv FLOPs of one frame of the full preset: the planes (backbone, FPN, TPV encoder) and the
+    per-voxel decoder + adapter + the bank products of the training bank's phrases."""
+    import torch
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from ago_runtime.geometry.camera import Rig
+    from ago_runtime.geometry.preprocess import Preprocess
+    from ago_runtime.vocab.bank import load_prompt_bank
+    from ago_runtime.vocab.prompts import parse_prompt_file
+    from ago_train.model import ModelConfig
+
+    cfg = ModelConfig.preset("full")
+    cfg.pretrained = False
+    torch.manual_seed(0)
+    model = cfg.build().eval().requires_grad_(False)
+    x = torch.zeros(1, 6, 3, cfg.image_height, cfg.image_width)
+    m = torch.from_numpy(Preprocess(cfg.image_width, cfg.image_height).ego2img(Rig.nuscenes_like(1600, 900))[None])
+    with torch.no_grad(), FlopCounterMode(display=False) as fc:
+        model.planes(x, m)
+    planes = fc.get_total_flops()
+    X, Y, Z = cfg.grid_obj().shape
+    n = X * Y * Z
+    phrases = len(load_prompt_bank(parse_prompt_file("cw")).phrase_class)
+    d, dh, da, c = cfg.tpv_dim, cfg.hidden_dim, cfg.adapter_hidden, cfg.embed_dim
+    decoder = 2 * n * (d * dh + dh * dh * (cfg.decoder_layers - 1))
+    adapter = 2 * n * (dh * da + da * da * (cfg.adapter_depth - 1))
+    main = decoder + 2 * n * phrases * dh          # the main branch: decoder + its bank product, every voxel
+    adapted = adapter + 2 * n * phrases * da       # the adapted branch, if it ran on every voxel
+    return {"planes": planes, "voxels": main, "voxels_note": f"decoder + main bank product ({phrases} phrases) on "
+            f"{n} voxels", "adapted_all": adapted, "total": planes + main}
+
+
+def child_rate() -> dict:
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    from runtime_speed import matmul_rates
+
+    return matmul_rates()
+
+
+CHILDREN = {"checkpoint": child_checkpoint, "export": child_export, "frame": child_frame, "flops": child_flops,
+            "rate": child_rate}
+
+
+def run_child(tree: Path, *args: str) -> dict:
+    env = {**os.environ, "PYTHONPATH": str(tree), "AGO_NO_PROGRESS": "1"}
+    script = REPO / "benchmarks" / "paper_scale.py"
+    r = subprocess.run([sys.executable, str(script), "--child", *args], capture_output=True, text=True, env=env,
+                       cwd=str(tree))
+    if r.returncode != 0:
+        raise SystemExit(f"child {args[0]} in {tree} failed:\n{r.stderr[-3000:]}")
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def op_split(profile_file: str, top: int = 8) -> list[tuple[str, float]]:
+    import collections
+
+    events = json.loads(Path(profile_file).read_text())
+    by_op: collections.Counter = collections.Counter()
+    for e in events:
+        if e.get("cat") == "Node" and e["name"].endswith("_kernel_time"):
+            by_op[e["args"]["op_name"]] += e["dur"]
+    total = sum(by_op.values()) or 1
+    return [(op, 100.0 * us / total) for op, us in by_op.most_common(top)]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--baseline", default="a2187f0", help="git commit of the code to compare against")
+    ap.add_argument("--reps", type=int, default=3)
+    ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--work", type=Path, default=REPO / "work" / "paper_scale")
+    ap.add_argument("--profile", action="store_true")
+    ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        name, *rest = args.child
+        fn = CHILDREN[name]
+        if name == "frame":
+            rest = [rest[0], int(rest[1]), *rest[2:]]
+        print(json.dumps(fn(*rest)))
+        return
+
+    import numpy as np
+
+    work = args.work.resolve()
+    work.mkdir(parents=True, exist_ok=True)
+    log = lambda s: print(f"[{time.strftime('%H:%M:%S')}] {s}", flush=True)  # noqa: E731
+    base = Path(tempfile.mkdtemp(prefix="ago-base-"))
+    archive = subprocess.run(["git", "-C", str(REPO), "archive", args.baseline], capture_output=True, check=True)
+    subprocess.run(["tar", "x", "-C", str(base)], input=archive.stdout, check=True)
+    ckpt = work / "full_random.pt"
+    if not ckpt.is_file():
+        run_child(REPO, "checkpoint", str(ckpt))
+    res: dict = {"baseline": args.baseline, "command": "python benchmarks/paper_scale.py " + " ".join(sys.argv[1:]),
+                 "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "load_start": os.getloadavg()[0]}
+    sides = {"base": base, "new": REPO}
+    for side, tree in sides.items():
+        res[f"{side}_export"] = run_child(tree, "export", str(ckpt), str(work / f"bundle_{side}"))
+        log(f"{side}: exported in {res[f'{side}_export']['export_s']:.1f} s")
+    rounds: dict = {"base": [], "new": []}
+    for r in range(args.rounds):
+        for side, tree in sides.items():
+            cache = str(work / f"cache_{side}")
+            prof = str(work / "prof_new") if (args.profile and side == "new" and r == 0) else ""
+            rounds[side].append(run_child(tree, "frame", str(work / f"bundle_{side}"), str(args.reps), cache,
+                                          str(work / f"labels_{side}.npy"), prof))
+            log(f"{side} round {r + 1}: steady {rounds[side][-1]['steady_s']:.2f} s (load {os.getloadavg()[0]:.1f})")
+    for side in sides:
+        rs = rounds[side]
+        res[side] = {k: min(x[k] for x in rs) for k in ("open_s", "first_s", "steady_s", "planes_s", "rss_mib")}
+        res[side]["occupied_share"] = rs[0]["occupied_share"]
+        res[side]["identifier"] = rs[0]["identifier"]
+    res["frame"] = rounds["new"][0]["frame"]
+    a, b = np.load(work / "labels_base.npy"), np.load(work / "labels_new.npy")
+    res["agreement"] = float((a == b).mean()) if a.shape == b.shape else None
+    res["speedup"] = res["base"]["steady_s"] / res["new"]["steady_s"]
+    if args.profile and rounds["new"][0]["profile"]:
+        res["op_split"] = op_split(rounds["new"][0]["profile"])
+    res["flops"] = run_child(REPO, "flops")
+    res["rate"] = run_child(REPO, "rate")
+    best = max(res["rate"].values())
+    res["bound_s"] = res["flops"]["total"] / (best * 1e9)
+    res["bound_share"] = res["bound_s"] / res["new"]["steady_s"]
+    res["load_end"] = os.getloadavg()[0]
+    write_report(res, args.out)
+    log(f"wrote {args.out}")
+
+
+def write_report(res: dict, path: Path) -> None:
+    from ago_runtime.atomic import write_text
+
+    b, n = res["base"], res["new"]
+    lines = [
+        "# The runtime at the paper's scale (issue 39)", "",
+        f"Command: `{res['command']}` ({res['date']}, this 2-core CPU; load average {res['load_start']:.1f} at the "
+        f"start, {res['load_end']:.1f} at the end).", "",
+        "`full` preset (1600x928 input, 200x200x16 grid, TPV 100x100x16 with the preset's widths), random weights "
+        "(cost only; every voxel is called occupied, the runtime's worst case), exported without the parity check by "
+        f"each side's code; frame: {res['frame']}. Baseline: commit {res['baseline']}. Best of the alternating rounds.", "",
+        "| | baseline | this tree | ratio |", "|---|---:|---:|---:|",
+    ]
+    for key, label in (("steady_s", "steady frame (s)"), ("first_s", "first frame (s)"), ("open_s", "bundle open (s)"),
+                       ("planes_s", "planes graph alone (s)"), ("rss_mib", "peak RSS (MiB)")):
+        lines.append(f"| {label} | {b[key]:.2f} | {n[key]:.2f} | {b[key] / n[key]:.2f}x |")
+    lines += [f"| export (s) | {res['base_export']['export_s']:.1f} | {res['new_export']['export_s']:.1f} | |",
+              f"| export peak RSS (MiB) | {res['base_export']['export_rss_mib']:.0f} | "
+              f"{res['new_export']['export_rss_mib']:.0f} | |", "",
+              f"Label agreement (same voxel, same label), this tree vs baseline: "
+              f"{100 * res['agreement']:.3f} %." if res["agreement"] is not None else "Label grids differ in shape.", "",
+              f"FLOP bound: {res['flops']['total'] / 1e9:.0f} GFLOP a frame (planes {res['flops']['planes'] / 1e9:.0f}, "
+              f"{res['flops']['voxels_note']}: {res['flops']['voxels'] / 1e9:.0f}) at this CPU's best "
+              f"{max(res['rate'].values()):.0f} GFLOP/s = {res['bound_s']:.2f} s; the steady frame reaches "
+              f"{100 * res['bound_share']:.0f} % of it (the bound counts the main branch on every voxel; the adapted "
+              f"branch on every voxel would add {res['flops']['adapted_all'] / 1e9:.0f} GFLOP; identifier "
+              f"`{n['identifier']}`).", ""]
+    if res.get("op_split"):
+        lines += ["Where the planes graph's time goes (onnxruntime profile, this tree, share of kernel time):", "",
+                  "| operator | share |", "|---|---:|"] + [f"| {op} | {s:.1f} % |" for op, s in res["op_split"]] + [""]
+    write_text(path, "\n".join(lines))
+    write_text(path.with_suffix(".json"), json.dumps(res, indent=1))
+
+
+if __name__ == "__main__":
+    main()
