@@ -100,10 +100,9 @@ class TrainConfig:
                        warmup_steps=2, log_every=1, ckpt_every=1000, noise_words=8, prompts="cw",
                        data="runs/synth-tiny", pseudo="runs/synth-tiny-pseudo", out="runs/train-tiny")
         if name == "cpu":
-            # The recipe measured in docs/training.md ("The cpu recipe"): the whole ImageNet backbone
-            # frozen and its maps cached, a stratified 4000-voxel sample with importance weights, mirror /
-            # half-turn augmentation, 4000 steps (~33 min on this 2-core CPU for 304 frames on 2026-12-05,
-            # 20-57 by the machine's speed of the day, 0.30-0.86 s/step seen; benchmarks/results/training_cpu.md).
+            # The recipe of docs/training.md ("The cpu recipe"): the whole ImageNet backbone frozen and its
+            # maps cached, a stratified 4000-voxel sample with importance weights, mirror / half-turn
+            # augmentation, 4000 steps (time on a 2-core CPU: benchmarks/results/training_cpu.md).
             model = ModelConfig.preset("cpu")
             model.frozen_stages = 3
             return cls(name="cpu", model=model, epochs=1000, max_steps=4000, batch_size=1, max_frames=None,
