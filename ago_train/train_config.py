@@ -8,8 +8,8 @@ they parse, else taken as strings: `--set epochs=3 --set model.embed_dim=64 --se
 
 Presets (`TrainConfig.preset(name)`):
 - "tiny": the test suite's; a few optimiser steps on a handful of synthetic frames (seconds).
-- "cpu": a meaningful run on this 2-core CPU in well under an hour (the model's cpu preset, a
-  small synthetic dataset, a few epochs); see docs/training.md for the commands and timings.
+- "cpu": a meaningful run on a 2-core CPU (the model's cpu preset, a small synthetic dataset, a few
+  epochs); see docs/training.md for the commands (times: benchmarks/results/training_cpu.md).
 - "full": the paper's schedule: AdamW lr 1e-3, weight decay 0.01, 500 warm-up steps from 1e-5,
   cosine to 1e-6, 24 epochs, batch 1 per GPU on 8 GPUs (total 8), 100 noise words per step.
 
