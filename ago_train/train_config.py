@@ -8,8 +8,8 @@ they parse, else taken as strings: `--set epochs=3 --set model.embed_dim=64 --se
 
 Presets (`TrainConfig.preset(name)`):
 - "tiny": the test suite's; a few optimiser steps on a handful of synthetic frames (seconds).
-- "cpu": a meaningful run on this 2-core CPU in well under an hour (the model's cpu preset, a
-  small synthetic dataset, a few epochs); see docs/training.md for the commands and timings.
+- "cpu": a meaningful run on a 2-core CPU (the model's cpu preset, a small synthetic dataset, a few
+  epochs); see docs/training.md for the commands (times: benchmarks/results/training_cpu.md).
 - "full": the paper's schedule: AdamW lr 1e-3, weight decay 0.01, 500 warm-up steps from 1e-5,
   cosine to 1e-6, 24 epochs, batch 1 per GPU on 8 GPUs (total 8), 100 noise words per step.
 
@@ -100,10 +100,9 @@ class TrainConfig:
                        warmup_steps=2, log_every=1, ckpt_every=1000, noise_words=8, prompts="cw",
                        data="runs/synth-tiny", pseudo="runs/synth-tiny-pseudo", out="runs/train-tiny")
         if name == "cpu":
-            # The recipe measured in docs/training.md ("The cpu recipe"): the whole ImageNet backbone
-            # frozen and its maps cached, a stratified 4000-voxel sample with importance weights, mirror /
-            # half-turn augmentation, 4000 steps (~33 min on this 2-core CPU for 304 frames on 2026-12-05,
-            # 20-57 by the machine's speed of the day, 0.30-0.86 s/step seen; benchmarks/results/training_cpu.md).
+            # The recipe of docs/training.md ("The cpu recipe"): the whole ImageNet backbone frozen and its
+            # maps cached, a stratified 4000-voxel sample with importance weights, mirror / half-turn
+            # augmentation, 4000 steps (time on a 2-core CPU: benchmarks/results/training_cpu.md).
             model = ModelConfig.preset("cpu")
             model.frozen_stages = 3
             return cls(name="cpu", model=model, epochs=1000, max_steps=4000, batch_size=1, max_frames=None,

@@ -1,4 +1,4 @@
-"""Does the modality adapter learn class directions with more training? (diagnostic for docs/results.md)
+"""Does the modality adapter learn class directions with more training? (diagnostic; benchmarks/results/adapter_training_length.md)
 
 Takes an experiments folder made by `ago experiments run --profile cpu --out DIR` (its data and its
 `ow/ago` run of the profile's length), trains the same open-world `ago` run for longer (same config,

@@ -7,9 +7,8 @@
 #   parity-checked, with its bundle card)
 #   -> ago_runtime/assets/default_bundle/ + assets/demo_frame/
 #
-# Needs the training extra (scripts/setup.sh). 51 min on a fresh machine (2026-12-05, this 2-core CPU, by
-# stage in benchmarks/results/training_cpu.md; the target is 60; each step's time is printed); every step
-# resumes or reuses what an interrupted run left. Usage:
+# Needs the training extra (scripts/setup.sh). Each step's time is printed (measured runs, by stage:
+# benchmarks/results/training_cpu.md); every step resumes or reuses what an interrupted run left. Usage:
 #   bash scripts/make_default_bundle.sh [WORK_DIR]
 # The training run keeps snapshots for the learning curve:
 #   python benchmarks/learning_curve.py --run WORK_DIR/train --data WORK_DIR/synth --fresh FRESH_TOWN
@@ -19,12 +18,12 @@ REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 WORK="${1:-$REPO/work/default_bundle}"
 SCENES="${SCENES:-24}"
 FRAMES="${FRAMES:-16}"
-# 4000 steps, the cpu preset's (with the 352x198 town: the chain in 51 min, not ~67; the 5000-step 704x396
-# bundle scored 0.8 mIoU more on four towns it never saw: benchmarks/results/training_cpu.md)
+# 4000 steps, the cpu preset's: the length that keeps the chain within an hour on a 2-core CPU
+# (what longer runs scored: benchmarks/results/training_cpu.md)
 STEPS="${STEPS:-4000}"
 SNAPSHOTS="${SNAPSHOTS:-[250,500,1000,2000,3000,4000]}"
-# the training town is rendered at half of 704x396: the model reads 352x192 anyway, and synth costs ~0.54x,
-# the per-pixel pseudo-labels less too (the towns it is scored on are rendered at 704x396)
+# the training town is rendered at half of 704x396: the model reads 352x192 anyway, and synth and the
+# per-pixel pseudo-labels cost less (the towns it is scored on are rendered at 704x396)
 IMAGE_SIZE="${IMAGE_SIZE:-352x198}"
 PROMPTS="${PROMPTS:-cw}"
 PRESET="${PRESET:-cpu}"

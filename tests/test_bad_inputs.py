@@ -449,7 +449,7 @@ def test_usage_error_classes_are_found_for_the_installed_typer():
 
 def test_scrambled_jpegs_are_refused_as_measured():
     """decode_image refuses 2 000-byte scrambles of the middle of a real-size JPEG, with and without 0xFF
-    bytes in the junk, where cv2.imdecode alone returns an image for each (docs/runtime.md)."""
+    bytes in the junk, where cv2.imdecode alone returns an image for each (benchmarks/results/corrupt_jpeg.md)."""
     from ago_runtime.errors import AgoInputError
     from ago_runtime.formats.image_files import decode_image
 

@@ -13,9 +13,8 @@
    `decode_image` captures what the decoder writes to the process's stderr (file descriptor 2)
    during the call and refuses the file when it says "Corrupt JPEG data", "Premature end of JPEG
    file" or a libpng error/CRC warning; any other decoder message is passed on to stderr.
-   Measured (docs/runtime.md): of 100 random scrambles of 2 000 / 500 / 50 middle bytes of a real
-   nuScenes JPEG, 100 / 100 / 68 were refused this way; cv2.imdecode alone returned an image for
-   every one. The rest decode with no decoder message at all (the Huffman decoder fell back in step).
+   Scrambles that decode with no decoder message at all (the Huffman decoder fell back in step) are
+   not caught; how many that is: benchmarks/results/corrupt_jpeg.md.
    (The capture swaps fd 2 for the duration of one decode: not meant for decoding from several
    threads at once.)
 

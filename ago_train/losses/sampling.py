@@ -15,10 +15,10 @@ Two rules (`TrainConfig.voxel_sampling`):
   weighted occupied : free proportion equals the pseudo-labels' own, whatever `occupied_share` is
   (that only trades variance between the strata). Weights have mean 1 over the sample.
   `select_stratified(semantics, num, occupied_share, generator)` -> (index (B, M), weight (B, M)).
-- "priority" (the rule before 2026-12): align voxels > labelled occupied > labelled free > unknown,
+- "priority" (the older rule): align voxels > labelled occupied > labelled free > unknown,
   random within a level, no weights. It fills the sample with occupied voxels first, so a frame
   whose labelled grid is ~20 % occupied is seen ~45 % occupied: the model learns that most space is
-  full. Kept for the ablation (docs/training.md).
+  full. Kept for the ablation (benchmarks/results/training_cpu.md).
   `select_training_voxels(semantics, num, align_index=None, generator=None)` -> (B, M) indices.
 
 `M = min(num, N)` for "priority"; for "stratified" M = num exactly (repeats only when a frame has

@@ -5,8 +5,8 @@
 - "reference" (tpv.py): per level and per camera set, tensors laid out (B, cameras, Q, heads, points);
   the plain reading of TPVFormer's attention, kept as the oracle;
 - "canvas" (this module; the default, `ModelConfig.tpv_layout`): one frame at a time, restructured
-  for a CPU. Measured on the `cpu` preset: TPV forward + backward 1.36x faster than the reference
-  (benchmarks/results/train_step_speed.md); `ago export` traces this same code into planes.onnx.
+  for a CPU (its cost against the reference: benchmarks/results/train_step_speed.md); `ago export`
+  traces this same code into planes.onnx.
 
 What is restructured:
 - queries kept as (Q, D); every per-sample tensor is laid out (heads, points, Q) with the Q queries
