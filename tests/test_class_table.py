@@ -8,6 +8,7 @@ import re
 import zipfile
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -248,3 +249,34 @@ def test_waymo_open_world_files_follow_tab_h():
     for c in used:                                   # every class resolves in the Occ3D-Waymo table ...
         OCC3D_WAYMO.id_of(c)
     assert all(OCC3D_WAYMO.id_of(c) != 0 for c in used)   # ... and GO is excluded
+
+
+def test_ago_show_draws_waymo_files_with_their_table(tmp_path):
+    from typer.testing import CliRunner
+
+    from ago_runtime.cli import app
+
+    sem = np.full((8, 8, 4), 23, np.uint8)
+    sem[:, :, 0] = 13                                    # road everywhere on the ground
+    p = tmp_path / "000_04.npz"
+    _write_waymo_gt(p, voxel_label=sem)
+    out = tmp_path / "w.png"
+    r = CliRunner().invoke(app, ["show", str(p), "--out", str(out), "--view", "bev"])
+    assert r.exit_code == 0, r.output
+    def magenta(png):   # road (255, 0, 255), darkened by the height shading; nuScenes' id 13 is dark purple
+        img = cv2.cvtColor(cv2.imread(str(png)), cv2.COLOR_BGR2RGB).astype(int)
+        return ((img[..., 0] > 120) & (img[..., 2] > 120) & (img[..., 1] < 60)).sum()
+
+    assert magenta(out) > 500                            # 32 x 32 BEV pixels of road
+    # a plain `semantics` file holding Waymo ids, drawn with --classes
+    np.savez(tmp_path / "plain.npz", semantics=sem)
+    r = CliRunner().invoke(app, ["show", str(tmp_path / "plain.npz"), "--out", str(out), "--view", "bev",
+                                 "--classes", "occ3d_waymo"])
+    assert r.exit_code == 0, r.output
+    assert magenta(out) > 500
+    r = CliRunner().invoke(app, ["show", str(tmp_path / "plain.npz"), "--out", str(out), "--view", "bev"])
+    assert r.exit_code == 0 and magenta(out) < 50        # without the table: Occ3D-nuScenes colours
+    bad = tmp_path / "bad.json"
+    bad.write_text("[1]")
+    r = CliRunner().invoke(app, ["show", str(p), "--out", str(tmp_path / "x.png"), "--classes", str(bad)])
+    assert isinstance(r.exception, AgoInputError) and not (tmp_path / "x.png").exists()

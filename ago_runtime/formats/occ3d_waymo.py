@@ -75,6 +75,17 @@ class Occ3DWaymoLabels:
                  final_voxel_state=self.mask_camera.astype(np.uint8), infov=self.mask_fov.astype(np.uint8))
 
 
+def is_waymo_file(path: str | Path) -> bool:
+    """True when an .npz holds Occ3D-Waymo's `voxel_label` key (reads the member list only; False if unreadable)."""
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(path) as zf:
+            return "voxel_label.npy" in zf.namelist()
+    except (OSError, zipfile.BadZipFile):
+        return False
+
+
 def gt_path(root: str | Path, split: str, scene: int, frame: int, voxel_size: str = "0.4") -> Path:
     """`<root>/<split>/<scene:03d>/<frame:03d>_04.npz` (voxel_size "0.4") or `<frame:03d>.npz` ("0.1")."""
     if split not in SPLITS:
