@@ -165,11 +165,11 @@ class Rig:
         cams = []
         for name in CAMERA_NAMES:
             x, y, z, yaw, hfov = spec[name]
-            cams.append(_pinhole(name, x, y, z, np.deg2rad(yaw), np.deg2rad(hfov), 1600, 900).scaled(width, height))
+            cams.append(level_camera(name, x, y, z, np.deg2rad(yaw), np.deg2rad(hfov), 1600, 900).scaled(width, height))
         return cls(cams)
 
 
-def _pinhole(name: str, x: float, y: float, z: float, yaw: float, hfov: float, w: int, h: int) -> Camera:
+def level_camera(name: str, x: float, y: float, z: float, yaw: float, hfov: float, w: int, h: int) -> Camera:
     """A level camera at (x, y, z) in the ego frame looking along `yaw`."""
     f = (w / 2) / np.tan(hfov / 2)
     k = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1.0]])

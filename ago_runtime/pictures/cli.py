@@ -1,8 +1,10 @@
 """CLI verb `ago show`: pictures of occupancy grids and camera rigs.
 
-`ago show LABELS.npz [--gt GT.npz] [--view bev|voxels|both] [--out out.png]`
-    PNG of an occupancy grid (any npz with a `semantics` (X, Y, Z) array); with --gt, prediction
-    and ground truth side by side (voxels outside the GT's mask_camera washed out).
+`ago show LABELS.npz [--gt GT.npz] [--view bev|voxels|both] [--classes TABLE] [--out out.png]`
+    PNG of an occupancy grid (any npz with a `semantics` (X, Y, Z) array, or an Occ3D-Waymo
+    ground-truth file, drawn with the Occ3D-Waymo class table); with --gt, prediction and ground
+    truth side by side (voxels outside the GT's mask_camera washed out). --classes: a class table
+    (occ3d_nuscenes, occ3d_waymo or a JSON file, see ago_runtime/classes.py) for the labels' ids.
 `ago show DATASET_DIR (--sample TOKEN | --index I) [--out out.png]`
     the six camera images of one nuScenes-layout sample in the 2 x 3 rig layout.
 (`ago metric`, which scores such grids, is in ago_runtime/scoring/cli.py.)
@@ -16,9 +18,10 @@ from typing import Optional
 import numpy as np
 import typer
 
-from ago_runtime.classes import FREE, OCC3D_CLASSES, OCC3D_COLORS
+from ago_runtime.classes import FREE, OCC3D_CLASSES, OCC3D_COLORS, OCC3D_WAYMO, ClassTable, load_class_table
 from ago_runtime.errors import AgoInputError
 from ago_runtime.formats.occ3d import load_semantics
+from ago_runtime.formats.occ3d_waymo import Occ3DWaymoLabels, is_waymo_file
 from ago_runtime.scoring.metric import to_gt_resolution
 
 
@@ -33,6 +36,9 @@ def register(app: typer.Typer) -> None:
         index: Optional[int] = typer.Option(None, "--index", help="dataset folder: sample index"),
         use_mask: Optional[bool] = typer.Option(None, "--mask/--no-mask",
                                                 help="wash out voxels outside mask_camera (default: on with --gt)"),
+        classes: Optional[str] = typer.Option(None, "--classes",
+                                              help="class table of the labels: occ3d_nuscenes, occ3d_waymo or a JSON "
+                                                   "file (default: occ3d_waymo for Occ3D-Waymo files, else occ3d_nuscenes)"),
     ) -> None:
         """Draw an occupancy grid (BEV and/or 3-D voxels) or a sample's six camera images as a PNG."""
         from ago_runtime.pictures import render
@@ -45,29 +51,47 @@ def register(app: typer.Typer) -> None:
             raise AgoInputError(path, "not found (give a labels .npz or a dataset folder)")
         check_output_file(out, "--out")
         check_suffix(out, (".png",), "--out")   # the picture is a PNG
+        table = load_class_table(classes) if classes is not None else None
         if path.is_dir():
             image = _rig_picture(path, sample, index)
         else:
-            sem, mask = load_semantics(path)
+            sem, mask, file_table = _load_grid(path)
+            table = table or file_table
             if gt is not None:
-                gt_sem, gt_mask = load_semantics(gt)
+                gt_sem, gt_mask, gt_table = _load_grid(gt)
+                table = table or gt_table
                 if sem.shape != gt_sem.shape:
                     sem = to_gt_resolution(sem, gt_sem.shape, path)
                 image = render.prediction_vs_gt(sem, gt_sem, gt_mask if use_mask is not False else None, views=view,
-                                                titles=(path.parent.name + "/" + path.name, "ground truth"))
+                                                titles=(path.parent.name + "/" + path.name, "ground truth"),
+                                                table=table)
             else:
                 m = mask if use_mask else None  # a single grid is drawn whole unless --mask
                 panels = []
                 if view in ("bev", "both"):
-                    panels.append(("BEV (x forward = up)", render.bev_image(sem, mask=m, scale=4)))
+                    panels.append(("BEV (x forward = up)", render.bev_image(sem, mask=m, scale=4, table=table)))
                 if view in ("voxels", "both"):
-                    panels.append(("3-D", render.voxel_view(sem, mask=m)))
+                    panels.append(("3-D", render.voxel_view(sem, mask=m, table=table)))
                 fig = render.side_by_side(panels)
-                present = [i for i in np.unique(sem).tolist() if i < FREE]
-                names = [OCC3D_CLASSES[i] for i in present]
-                image = render.stack_vertical([fig, render.legend(names, OCC3D_COLORS[present], width=fig.shape[1])])
+                if table is None:
+                    present = [i for i in np.unique(sem).tolist() if i < FREE]
+                    names, colors = [OCC3D_CLASSES[i] for i in present], OCC3D_COLORS[present]
+                else:
+                    present = [i for i in np.unique(sem).tolist() if i in table.ids]
+                    names, colors = [table.name_of(i) for i in present], table.palette_by_id()[present]
+                image = render.stack_vertical([fig, render.legend(names, colors, width=fig.shape[1])])
         render.save_png(out, image)
         typer.echo(f"wrote {out} ({image.shape[1]}x{image.shape[0]})")
+
+def _load_grid(path: Path) -> tuple[np.ndarray, np.ndarray | None, ClassTable | None]:
+    """(semantics, mask_camera or None, class table or None = today's Occ3D-nuScenes default) of a grid file:
+    an Occ3D-Waymo ground-truth file (key voxel_label) comes with OCC3D_WAYMO."""
+    if path.is_file() and is_waymo_file(path):
+        labels = Occ3DWaymoLabels.load(path)
+        return labels.semantics, labels.mask_camera.astype(bool), OCC3D_WAYMO
+    sem, mask = load_semantics(path)
+    return sem, mask, None
+
 
 def _rig_picture(root: Path, sample: str | None, index: int | None) -> np.ndarray:
     """The six camera images of one sample of a nuScenes-layout dataset in the 2 x 3 rig layout,

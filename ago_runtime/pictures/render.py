@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 
 from ago_runtime.atomic import atomic_path
-from ago_runtime.classes import FREE, IGNORE, OCC3D_CLASSES, OCC3D_COLORS
+from ago_runtime.classes import FREE, IGNORE, OCC3D_CLASSES, OCC3D_COLORS, ClassTable
 from ago_runtime.geometry.grid import Grid
 
 FREE_GREY = (250, 250, 250)      # BEV columns seen free (near-white)
@@ -123,9 +123,17 @@ def _to_bev_orientation(a: np.ndarray) -> np.ndarray:
     return a[::-1, ::-1]
 
 
+def _table_style(table: ClassTable | None, colors, free_index: int):
+    """(colors, free_index) of a class table (labels as its file ids), or the ones given when table is None."""
+    if table is None:
+        return colors, free_index
+    return table.palette_by_id(), table.free_id
+
+
 def bev_image(semantics: np.ndarray, colors: np.ndarray | None = None, free_index: int = FREE,
               scale: int = 3, mask: np.ndarray | None = None, grid: Grid | None = None,
-              mark_ego: bool = True, height_shading: float = 0.35, mask_mode: str = "dim") -> np.ndarray:
+              mark_ego: bool = True, height_shading: float = 0.35, mask_mode: str = "dim",
+              table: ClassTable | None = None) -> np.ndarray:
     """Top-down picture: each (x, y) column shows the class of its highest non-free, non-255 voxel.
 
     semantics: (X, Y, Z) integer labels. Returns (X*scale, Y*scale, 3) uint8 RGB, x up, y left.
@@ -136,9 +144,12 @@ def bev_image(semantics: np.ndarray, colors: np.ndarray | None = None, free_inde
              free columns with no voxel inside the mask are light grey;
       "hide": voxels outside the mask count as unknown: the picture shows exactly what the metric scores.
     `grid` only places the ego marker (default: the Occ3D range cut into this shape).
+    `table` (a ClassTable; labels are its file ids, e.g. Occ3D-Waymo's free = 23) sets the colours and
+    the free id instead of `colors` / `free_index`.
     """
     sem = _check_volume(semantics)
     X, Y, Z = sem.shape
+    colors, free_index = _table_style(table, colors, free_index)
     colors = _colors_or_default(colors, free_index + 1)
     if mask_mode not in ("dim", "hide"):
         raise ValueError(f"mask_mode must be 'dim' or 'hide', got {mask_mode!r}")
@@ -232,16 +243,18 @@ def _sprite(basis: np.ndarray):
 def voxel_view(semantics: np.ndarray, colors: np.ndarray | None = None, free_index: int = FREE,
                scale: int = 2, mask: np.ndarray | None = None, basis=VIEW_BASIS,
                crop: bool = True, edges: bool = True, height_shading: float = 0.25,
-               grid: Grid | None = None, mark_ego: bool = True) -> np.ndarray:
+               grid: Grid | None = None, mark_ego: bool = True, table: ClassTable | None = None) -> np.ndarray:
     """Orthographic 3-D picture of the occupied voxels (label not free, not 255), RGB uint8.
 
     Viewed from behind-right and above: ego x goes up-right, y up-left, z up. Top faces are
     full colour, the x-facing sides darker, the y-facing sides darker still; cube edges are
     slightly darkened when `edges`. `mask` (e.g. mask_camera): voxels outside it are drawn
     in a pale, washed-out version of their class colour. A 200 x 200 x 16 grid takes well under a second.
+    `table`: as in `bev_image`.
     """
     sem = _check_volume(semantics)
     X, Y, Z = sem.shape
+    colors, free_index = _table_style(table, colors, free_index)
     colors = _colors_or_default(colors, free_index + 1)
     basis = np.asarray(basis, dtype=np.int64) * int(scale)
     occ = (sem != free_index) & (sem != IGNORE)
@@ -495,15 +508,21 @@ def legend(class_names: Sequence[str], colors: np.ndarray | None = None, width: 
 def prediction_vs_gt(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None,
                      class_names: Sequence[str] = OCC3D_CLASSES, colors: np.ndarray | None = None,
                      free_index: int = FREE, grid: Grid | None = None, views: str = "both",
-                     titles: tuple[str, str] = ("prediction", "ground truth")) -> np.ndarray:
+                     titles: tuple[str, str] = ("prediction", "ground truth"),
+                     table: ClassTable | None = None) -> np.ndarray:
     """One figure: BEV prediction | BEV GT (top), voxel views (below), legend of present classes.
 
     `mask` (e.g. mask_camera): BEV shows only voxels inside it and the voxel views grey out those
-    outside it. views: "bev", "voxels" or "both".
+    outside it. views: "bev", "voxels" or "both". `table` (a ClassTable; both volumes in its file ids)
+    sets names, colours and the free id instead of `class_names` / `colors` / `free_index`.
     """
     pred, gt = _check_volume(pred, "prediction"), _check_volume(gt, "ground truth")
     if pred.shape != gt.shape:
         raise ValueError(f"prediction shape {pred.shape} != GT shape {gt.shape}")
+    if table is not None:
+        colors, free_index = _table_style(table, colors, free_index)
+        class_names = [table.name_of(i) if i in table.ids or i == table.free_id else str(i)
+                       for i in range(len(colors))]
     colors = palette_for(class_names) if colors is None and list(class_names) != list(OCC3D_CLASSES) \
         else _colors_or_default(colors, len(class_names))
     rows = []

@@ -32,7 +32,7 @@ from typing import Sequence
 import numpy as np
 
 from ago_runtime.errors import AgoInputError
-from ago_runtime.classes import FREE, IGNORE, MIOU_STAR_EXCLUDED, OCC3D_CLASSES
+from ago_runtime.classes import FREE, IGNORE, MIOU_STAR_EXCLUDED, OCC3D_CLASSES, ClassTable
 
 
 def upsample_nearest(volume: np.ndarray, factor_xyz: int | Sequence[int]) -> np.ndarray:
@@ -71,10 +71,18 @@ class OccupancyMetric:
 
     `class_names` lists every label id in order, free included (Occ3D: 17 classes + "free" at 17).
     Labels must lie in 0..len(class_names)-1; GT 255 is ignored.
+
+    `table` (a `ClassTable`, e.g. `OCC3D_WAYMO`) replaces `class_names` / `free_index` / `ignore_index`:
+    labels are then given as the table's file ids (Occ3D-Waymo: free = 23) and are brought to the
+    table's dense order (classes, then free) before counting; a value the table does not name is a
+    ValueError. With the Occ3D-nuScenes table the ids already are the dense order, so nothing changes.
     """
 
     def __init__(self, class_names: Sequence[str] = OCC3D_CLASSES, free_index: int = FREE,
-                 ignore_index: int = IGNORE):
+                 ignore_index: int = IGNORE, table: ClassTable | None = None):
+        self.table = table
+        if table is not None:
+            class_names, free_index, ignore_index = table.label_names, table.free_index, IGNORE
         self.class_names = list(class_names)
         self.num_labels = len(self.class_names)
         if not 0 <= free_index < self.num_labels:
@@ -93,6 +101,9 @@ class OccupancyMetric:
         """Add one frame (or a batch: any equal shapes). `mask` (bool or 0/1) selects the voxels that count."""
         pred = np.asarray(pred)
         gt = np.asarray(gt)
+        if self.table is not None and not self.table.is_dense:
+            pred = self.table.to_dense(pred, "prediction labels")
+            gt = self.table.to_dense(gt, "GT labels")
         if pred.shape != gt.shape:
             raise ValueError(f"prediction shape {pred.shape} != GT shape {gt.shape} "
                              "(evaluate at GT resolution: see upsample_nearest)")
@@ -179,7 +190,9 @@ class OccupancyMetric:
     def summary(self) -> dict:
         """JSON-able results; IoUs in percent rounded to 2 decimals, None where NaN (absent class)."""
         iou = self.iou()
+        table = {} if self.table is None else {"class_table": self.table.name}
         return {
+            **table,
             "frames": self.frames,
             "voxels": int(self.confusion.sum()),
             "class_names": self.class_names,

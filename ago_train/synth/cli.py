@@ -1,7 +1,9 @@
 """CLI verb `ago synth`: write a procedural synthetic driving dataset in the nuScenes layout.
 
-`ago synth --out data/synth --scenes N --frames M [--seed S] [--image-size 800x450] [--grid 200x200x16]
-[--sweeps-between K]`
+`ago synth --out data/synth --scenes N --frames M [--seed S] [--rig nuscenes|waymo|front]
+[--image-size 800x450] [--grid 200x200x16] [--sweeps-between K]`
+--rig nuscenes (default): six cameras, nuScenes layout. --rig waymo: Waymo's five cameras (two image
+heights), --rig front: its front camera alone; both write the Occ3D-Waymo layout (synth/rigs.py).
 Needs numpy + opencv only (no torch). Deterministic given the seed.
 """
 
@@ -27,7 +29,12 @@ def register(app: typer.Typer) -> None:
         frames: int = typer.Option(40, "--frames", min=1, max=MAX_FRAMES,
                                    help="keyframes per scene (2 Hz; the city grows with the scene's length)"),
         seed: int = typer.Option(0, "--seed", min=0, help="random seed (same seed, same dataset)"),
-        image_size: str = typer.Option("800x450", "--image-size", help="camera image WIDTHxHEIGHT"),
+        rig: str = typer.Option("nuscenes", "--rig",
+                                help="cameras: nuscenes (six, nuScenes layout), waymo (five, Occ3D-Waymo layout) "
+                                     "or front (Waymo's front camera alone, Occ3D-Waymo layout)"),
+        image_size: str = typer.Option(None, "--image-size",
+                                       help="camera image WIDTHxHEIGHT (default 800x450; waymo/front: 960x640, "
+                                            "the side cameras as wide and 886/1280 as tall)"),
         grid: str = typer.Option("200x200x16", "--grid", help="Occ3D grid XxYxZ over [-40,40]x[-40,40]x[-1,5.4] m"),
         val_fraction: float = typer.Option(0.2, "--val-fraction", min=0.0, max=0.99,
                                            help="share of the scenes (the last ones) in val"),
@@ -43,8 +50,13 @@ def register(app: typer.Typer) -> None:
 
         from .config import SynthConfig, parse_size
         from .generate import write_dataset
+        from .rigs import DEFAULT_IMAGE_SIZE, RIGS
 
-        w, h = parse_size(image_size, 2, "--image-size")
+        if rig not in RIGS:
+            raise AgoInputError("--rig", f"{rig!r}: one of {', '.join(RIGS)}")
+        if rig != "nuscenes" and sweeps_between:
+            raise AgoInputError("--sweeps-between", "the Occ3D-Waymo layout (--rig waymo|front) has no LiDAR sweeps")
+        w, h = parse_size(image_size, 2, "--image-size") if image_size is not None else DEFAULT_IMAGE_SIZE[rig]
         shape = parse_size(grid, 3, "--grid")
         if w > MAX_IMAGE_SIDE or h > MAX_IMAGE_SIDE:
             raise AgoInputError("--image-size", f"{w}x{h}: each side at most {MAX_IMAGE_SIDE} pixels")
@@ -53,7 +65,8 @@ def register(app: typer.Typer) -> None:
                                           "voxels (Occ3D: 200x200x16)")
         check_output_dir(out, "--out")
         config = SynthConfig(seed=seed, num_scenes=scenes, frames_per_scene=frames, image_width=w, image_height=h,
-                             grid_shape=shape, val_fraction=val_fraction, sweeps_between=sweeps_between)
+                             grid_shape=shape, val_fraction=val_fraction, sweeps_between=sweeps_between,
+                             rig_name=rig)
         summary = write_dataset(config, out, jobs=jobs)
         typer.echo(f"wrote {summary['samples']} keyframes of {summary['scenes']} scenes "
                    f"({len(summary['splits']['train'])} train, {len(summary['splits']['val'])} val) to {out}")

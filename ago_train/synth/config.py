@@ -1,7 +1,8 @@
 """`SynthConfig`: every parameter of the synthetic world, its sensors and its output.
 
-Build the nouns from it: `config.grid()` (Occ3D grid in the ego frame), `config.rig()` (six
-nuScenes-like cameras at the configured image size), `config.lidar2ego()`.
+Build the nouns from it: `config.grid()` (Occ3D grid in the ego frame), `config.rig()` (the cameras of
+`config.rig_name` at the configured image size: six nuScenes-like ones by default, see synth/rigs.py),
+`config.lidar2ego()`.
 """
 
 from __future__ import annotations
@@ -10,9 +11,11 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from ago_runtime.geometry.camera import Rig
+from ago_runtime.geometry.camera import Camera, Rig
 from ago_runtime.errors import AgoInputError
 from ago_runtime.geometry.grid import Grid
+
+from .rigs import RIGS, make_rig
 
 
 @dataclass
@@ -26,6 +29,7 @@ class SynthConfig:
     scene_prefix: str = "synth"
     version: str = "v1.0-trainval"
     # cameras
+    rig_name: str = "nuscenes"          # "nuscenes" (nuScenes layout), "waymo" or "front" (Occ3D-Waymo layout)
     image_width: int = 800
     image_height: int = 450
     image_noise_std: float = 3.0        # per-pixel Gaussian noise (8-bit levels)
@@ -73,6 +77,10 @@ class SynthConfig:
             problems.append("sweeps_between must be >= 0")
         if self.lidar_beams < 1 or self.lidar_azimuth_steps < 8:
             problems.append("the LiDAR needs >= 1 beam and >= 8 azimuth steps")
+        if self.rig_name not in RIGS:
+            problems.append(f"rig must be one of {', '.join(RIGS)}, got {self.rig_name!r}")
+        elif self.rig_name != "nuscenes" and self.num_scenes > 1000:
+            problems.append("the Occ3D-Waymo layout numbers scenes with three digits: at most 1000 scenes")
         if problems:
             raise AgoInputError("SynthConfig", "; ".join(problems))
 
@@ -80,8 +88,9 @@ class SynthConfig:
         """The Occ3D range [-40,-40,-1, 40,40,5.4] m cut into `grid_shape` voxels (default 0.4 m)."""
         return Grid.with_shape(self.grid_shape)
 
-    def rig(self) -> Rig:
-        return Rig.nuscenes_like(self.image_width, self.image_height)
+    def rig(self) -> Rig | list[Camera]:
+        """A `Rig` for "nuscenes"; the cameras in file order for "waymo" / "front" (synth/rigs.py)."""
+        return make_rig(self.rig_name, self.image_width, self.image_height)
 
     def lidar2ego(self) -> np.ndarray:
         """(4, 4): nuScenes' LIDAR_TOP mounting; LiDAR x = ego right (-y), LiDAR y = ego forward."""

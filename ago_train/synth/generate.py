@@ -11,6 +11,9 @@
   between the previous keyframe and this one (empty by default and for the first keyframe).
 `write_dataset(config, out)` writes every scene through `ago_runtime.formats.nuscenes_writer.NuScenesWriter`
 (the last `val_fraction` of the scenes form the val split) and returns a small summary dict.
+With `config.rig_name` "waymo" or "front" the frames hold that rig's cameras (a list, synth/rigs.py),
+`gt` is `Occ3DWaymoLabels` (synth/waymo_labels.py) and `write_dataset` writes the Occ3D-Waymo layout
+through `ago_runtime.formats.occ3d_waymo_writer.Occ3DWaymoWriter` (no LiDAR files, boxes or extras).
 
 Global frame = the world frame shifted by GLOBAL_OFFSET so that every pose is positive (nuScenes maps
 put global (0, 0) at their bottom-left corner).
@@ -24,11 +27,12 @@ from typing import Iterator
 import numpy as np
 
 from ago_runtime.formats.nuscenes_writer import BoxAnnotation, NuScenesWriter
+from ago_runtime.formats.occ3d_waymo_writer import Occ3DWaymoWriter
 from ago_runtime.progress import track
 
 from .config import SynthConfig
 from .lidar import lidar_directions, scan_lidar
-from .occupancy import occupancy_gt
+from .occupancy import occupancy_gt, occupancy_gt_waymo
 from .raycast import PrimitiveSet
 from .render import CameraRays, render_camera
 from .world import World, build_world
@@ -98,8 +102,9 @@ def generate_scene(config: SynthConfig, scene_index: int, world: World | None = 
                                "ego2global": _to_global(pose_k),
                                "lidar_points": scan_lidar(world, prims_k, aabb_k, config, pose_k, rng_k,
                                                           lidar_dirs).points})
-        gt = occupancy_gt(world, prims, ego2world, grid, rig, depth, scan.origin_world, scan.points_world,
-                          config.gt_samples_per_axis)
+        gt_of = occupancy_gt if config.rig_name == "nuscenes" else occupancy_gt_waymo
+        gt = gt_of(world, prims, ego2world, grid, rig, depth, scan.origin_world, scan.points_world,
+                   config.gt_samples_per_axis)
         # annotations
         centres = world.object_centres(time_s)
         near = np.hypot(*(centres[:, :2] - ego2world[:2, 3]).T) < ANNOTATION_RADIUS
@@ -131,30 +136,67 @@ def _scene_frames(args: tuple[SynthConfig, int]) -> list[dict]:
     return list(generate_scene(config, scene_index))
 
 
+def _scenes(config: SynthConfig, jobs: int):
+    """(scene index, its frames) for every scene, rendered here or in `jobs` worker processes."""
+    if jobs <= 1 or config.num_scenes <= 1:
+        for s in range(config.num_scenes):
+            yield s, generate_scene(config, s)
+        return
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(max_workers=min(jobs, config.num_scenes), mp_context=mp.get_context("spawn")) as ex:
+        yield from enumerate(ex.map(_scene_frames, [(config, s) for s in range(config.num_scenes)]))
+
+
+def write_waymo_layout(config: SynthConfig, out: str | Path, progress: bool = True, jobs: int = 1) -> dict:
+    """Write `config.num_scenes` scenes under `out` in the Occ3D-Waymo layout; returns a summary.
+
+    Train scenes are `training/000, 001, ...`, val scenes `validation/000, ...` (numbered per split, as
+    Occ3D-Waymo); splits.json lists the folder names as `training/000`."""
+    out = Path(out)
+    rig = config.rig()
+    writer = Occ3DWaymoWriter(out, [c.name for c in rig])
+    val = set(config.val_scene_indices())
+    splits = {"train": [], "val": []}
+    number = {"training": 0, "validation": 0}
+    samples = 0
+
+    def frames():
+        for s, scene in _scenes(config, jobs):
+            split = "validation" if s in val else "training"
+            index = number[split]
+            number[split] += 1
+            splits["val" if split == "validation" else "train"].append(f"{split}/{index:03d}")
+            for frame in scene:
+                yield split, index, frame
+
+    total = config.num_scenes * config.frames_per_scene
+    it = track(frames(), "synth", total=total) if progress else frames()
+    for split, index, fr in it:
+        writer.add_frame(split, index, fr["frame_index"], fr["ego2global"], fr["rig"], fr["images"], fr["gt"])
+        samples += 1
+    writer.close(splits)
+    return {"out": str(out), "scenes": config.num_scenes, "splits": splits, "samples": samples,
+            "annotations": 0, "lidar_points": 0}
+
+
 def write_dataset(config: SynthConfig, out: str | Path, progress: bool = True, jobs: int = 1) -> dict:
     """Write `config.num_scenes` scenes under `out` in the nuScenes layout; returns a summary.
 
     `jobs` > 1 renders whole scenes in that many worker processes (each scene depends only on
-    (seed, scene index), so the dataset is byte-for-byte the same); the writer stays in this process."""
+    (seed, scene index), so the dataset is byte-for-byte the same); the writer stays in this process.
+    `config.rig_name` "waymo" / "front": the Occ3D-Waymo layout instead (`write_waymo_layout`)."""
+    if config.rig_name != "nuscenes":
+        return write_waymo_layout(config, out, progress=progress, jobs=jobs)
     out = Path(out)
     writer = NuScenesWriter(out, version=config.version)
     val = set(config.val_scene_indices())
     splits = {"train": [], "val": []}
     counts = {"samples": 0, "annotations": 0, "lidar_points": 0}
 
-    def scenes():
-        if jobs <= 1 or config.num_scenes <= 1:
-            for s in range(config.num_scenes):
-                yield s, generate_scene(config, s)
-            return
-        import multiprocessing as mp
-        from concurrent.futures import ProcessPoolExecutor
-
-        with ProcessPoolExecutor(max_workers=min(jobs, config.num_scenes), mp_context=mp.get_context("spawn")) as ex:
-            yield from enumerate(ex.map(_scene_frames, [(config, s) for s in range(config.num_scenes)]))
-
     def frames():
-        for s, scene in scenes():
+        for s, scene in _scenes(config, jobs):
             name = config.scene_name(s)
             token = writer.add_scene(name, description=f"ago synth seed {config.seed} scene {s}")
             splits["val" if s in val else "train"].append(name)

@@ -26,11 +26,13 @@ from __future__ import annotations
 import numpy as np
 
 from ago_runtime.geometry.camera import Rig
-from ago_runtime.classes import FREE
+from ago_runtime.classes import FREE, OCC3D_WAYMO
 from ago_runtime.geometry.grid import Grid
 from ago_runtime.formats.occ3d import Occ3DLabels
+from ago_runtime.formats.occ3d_waymo import Occ3DWaymoLabels
 
 from .raycast import BOX, CONE, CYL, ELL, MAP_CLASS, PrimitiveSet
+from .waymo_labels import NUSCENES_TO_WAYMO, fov_mask, waymo_label_of
 from .builder import SURFACE_CLASS
 from .world import World
 
@@ -49,11 +51,16 @@ def _axis_samples(lo: float, size: float, i0: int, i1: int, S: int) -> np.ndarra
     return (lo + (i + s) * size).ravel()
 
 
-def semantics(world: World, prims: PrimitiveSet, ego2global: np.ndarray, grid: Grid, S: int = 2) -> np.ndarray:
+def semantics(world: World, prims: PrimitiveSet, ego2global: np.ndarray, grid: Grid, S: int = 2,
+              labels_of: np.ndarray | None = None, surface_lut: np.ndarray | None = None,
+              free: int = FREE) -> np.ndarray:
+    """(X, Y, Z) uint8 labels (module docstring). By default Occ3D-nuScenes ids; another class table
+    gives `labels_of` (one label per primitive of `prims`), `surface_lut` (256: Occ3D-nuScenes ground
+    class -> label) and its `free` id. The painting order stays the one of the Occ3D-nuScenes classes."""
     X, Y, Z = grid.shape
     lo_g = np.asarray(grid.range_min, float)
     vs = np.asarray(grid.voxel_size, float)
-    labels = np.full((X, Y, Z), FREE, np.uint8)
+    labels = np.full((X, Y, Z), free, np.uint8)
     R = ego2global[:3, :3]
     t = ego2global[:3, 3]
     # ground layer
@@ -63,7 +70,8 @@ def semantics(world: World, prims: PrimitiveSet, ego2global: np.ndarray, grid: G
     wx = R[0, 0] * cx + R[0, 1] * cy + t[0]
     wy = R[1, 0] * cx + R[1, 1] * cy + t[1]
     if 0 <= k_ground < Z:
-        labels[:, :, k_ground] = SURFACE_CLASS[world.surface_at(np.stack([wx, wy], -1))]
+        ground = SURFACE_CLASS[world.surface_at(np.stack([wx, wy], -1))]
+        labels[:, :, k_ground] = ground if surface_lut is None else surface_lut[ground]
     # primitives, static first then movable objects
     yaw_e = np.arctan2(R[1, 0], R[0, 0])
     rel = prims.center - t
@@ -111,7 +119,7 @@ def semantics(world: World, prims: PrimitiveSet, ego2global: np.ndarray, grid: G
             rr = (h[0] + pad[0]) * (h[2] - sz) / (2 * h[2])
             occ3 = ((lx * lx + ly * ly)[:, :, None] <= (rr ** 2)[None, None, :]) & (np.abs(sz) <= h[2] + pad[2])[None, None, :]
             occ = occ3.reshape(ni, S, nj, S, nk, S).any(axis=(1, 3, 5))
-        labels[i0:i1, j0:j1, k0:k1][occ] = prims.cls[p]
+        labels[i0:i1, j0:j1, k0:k1][occ] = prims.cls[p] if labels_of is None else labels_of[p]
     return labels
 
 
@@ -181,3 +189,17 @@ def occupancy_gt(world: World, prims: PrimitiveSet, ego2global: np.ndarray, grid
     o = world2ego[:3, :3] @ lidar_origin_world + world2ego[:3, 3]
     pe = lidar_points_world @ world2ego[:3, :3].T + world2ego[:3, 3]
     return Occ3DLabels(sem, lidar_mask(grid, o, pe), camera_mask(grid, rig, depths))
+
+
+def occupancy_gt_waymo(world: World, prims: PrimitiveSet, ego2global: np.ndarray, grid: Grid, cameras,
+                       depths: dict[str, np.ndarray], lidar_origin_world: np.ndarray, lidar_points_world: np.ndarray,
+                       samples_per_axis: int = 2) -> Occ3DWaymoLabels:
+    """The Occ3D-Waymo labels of one keyframe: the same rules as `occupancy_gt`, labels in OCC3D_WAYMO
+    (`waymo_labels.waymo_label_of`, free = 23), plus `infov` (`waymo_labels.fov_mask`)."""
+    sem = semantics(world, prims, ego2global, grid, samples_per_axis,
+                    labels_of=waymo_label_of(prims.cls, prims.material), surface_lut=NUSCENES_TO_WAYMO,
+                    free=OCC3D_WAYMO.free_id)
+    world2ego = np.linalg.inv(ego2global)
+    o = world2ego[:3, :3] @ lidar_origin_world + world2ego[:3, 3]
+    pe = lidar_points_world @ world2ego[:3, :3].T + world2ego[:3, 3]
+    return Occ3DWaymoLabels(sem, lidar_mask(grid, o, pe), camera_mask(grid, cameras, depths), fov_mask(grid, cameras))
