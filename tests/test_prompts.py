@@ -8,7 +8,7 @@ import zipfile
 import numpy as np
 import pytest
 
-from ago_runtime.vocab.bank import PromptBank, bank_for_prompts, build_bank
+from ago_runtime.vocab.bank import PromptBank, load_prompt_bank, build_bank
 from ago_runtime.classes import FREE, IGNORE, OCC3D_CLASSES, OCC3D_ID
 from ago_runtime.errors import AgoInputError
 from ago_runtime.vocab.prompts import (PROMPTS_DIR, name_key, parse_prompt_file, parse_prompt_text,
@@ -245,18 +245,18 @@ def test_load_rejects_corrupt_and_foreign_files(tmp_path):
     assert zipfile.is_zipfile(good)
 
 
-def test_bank_for_prompts_caches_by_content(tmp_path):
+def test_load_prompt_bank_caches_by_content(tmp_path):
     enc = FakeEncoder()
     pf = tmp_path / "p.txt"
     pf.write_text("car: car\nbus: bus\n")
-    b1 = bank_for_prompts(pf, enc, cache_dir=tmp_path / "cache")
+    b1 = load_prompt_bank(pf, enc, cache_dir=tmp_path / "cache")
     assert enc.calls == 1 and len(list((tmp_path / "cache").glob("*.npz"))) == 1
-    b2 = bank_for_prompts(pf, enc, cache_dir=tmp_path / "cache")
+    b2 = load_prompt_bank(pf, enc, cache_dir=tmp_path / "cache")
     assert enc.calls == 1 and np.array_equal(b1.embeddings, b2.embeddings)
-    bank_for_prompts(pf, enc, cache_dir=tmp_path / "cache", template="a {}.")
+    load_prompt_bank(pf, enc, cache_dir=tmp_path / "cache", template="a {}.")
     assert enc.calls == 2
     pf.write_text("car: car\nbus: bus, coach\n")
-    b3 = bank_for_prompts(pf, enc, cache_dir=tmp_path / "cache")
+    b3 = load_prompt_bank(pf, enc, cache_dir=tmp_path / "cache")
     assert enc.calls == 3 and b3.num_phrases == 3
     assert len(list((tmp_path / "cache").glob("*.npz"))) == 3
 

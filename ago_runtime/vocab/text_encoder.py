@@ -28,7 +28,7 @@ from typing import Callable
 
 import numpy as np
 
-from ago_runtime.cache import ago_cache_dir, open_session  # noqa: F401  (ago_cache_dir: its old home, still imported from here)
+from ago_runtime.cache import ago_cache_dir, open_session
 from ago_runtime.errors import AgoInputError, MissingExtra, require_torch
 from ago_runtime.vocab.tokenizer import WordPieceTokenizer
 
