@@ -707,7 +707,7 @@ def test_infer_dataset_pipeline_outputs_pictures_and_errors(bundle_dir, tmp_path
         with np.load(out / f"{f.token}.npz", allow_pickle=False) as z:
             assert np.array_equal(z["bank_semantics"], p.predict(f.images, f.rig).semantics)
     # a dataset runs two frames at once by default (auto_workers); one at a time gives the same files' arrays
-    from ago_runtime.predict.cli import auto_workers
+    from ago_runtime.predict.pipeline import auto_workers
 
     assert auto_workers(1) == 1 and auto_workers(len(tokens)) == (2 if (os.cpu_count() or 1) >= 2 else 1)
     one = tmp_path / "one_worker"

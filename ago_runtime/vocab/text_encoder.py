@@ -136,8 +136,8 @@ class OnnxTextEncoder:
         self.batch_size = batch_size
         self.tokenizer = WordPieceTokenizer(vocab_path, max_length=max_length or side.get("max_length")
                                             or minilm_max_length())
-        # the file's sha256 (the bank cache's key) also keys onnxruntime's cached optimised graph: a new
-        # prompt file then opens the encoder in ~0.07 s instead of ~0.3 s (graph optimisation)
+        # the file's sha256 (the bank cache's key) also keys onnxruntime's cached optimised graph, so a
+        # later session skips the graph optimisation
         self._weights_hash = file_sha256(self.onnx_path)
         self.session = open_session(self.onnx_path, threads, self._weights_hash)
         self.input_names = [i.name for i in self.session.get_inputs()]
