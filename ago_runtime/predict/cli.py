@@ -358,8 +358,7 @@ def run_retrieve(phrase: str, images: Path, bundle, out: Path, sample: str | Non
     h, g = predictor.encode(imgs, rig, source)
     pred = predictor.predict_hidden(h, g, bank, b.identifier)
     # the adapted branch F~_3D everywhere: it is the embedding aligned with the VLM's image space, the one that
-    # can know phrases no training class had (benchmarks/results/retrieval_ap.md: unknown-class AP 6.4x the
-    # prevalence on F~_3D, 1.1x on the identifier's per-voxel choice, which is mostly the grounded branch)
+    # can know phrases no training class had (benchmarks/results/retrieval_ap.md compares the branches)
     sim = phrase_similarity(b.heads, h, g, np.ones(h.shape[0], np.uint8), direction).reshape(b.grid.shape)
     occupied = pred.semantics != pred.free_index
     slug = "".join(c if c.isalnum() else "_" for c in phrase.strip().lower())[:40]
