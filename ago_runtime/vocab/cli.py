@@ -13,7 +13,6 @@ from typing import Optional
 
 import typer
 
-from ago_runtime.errors import AgoInputError
 
 def build(prompt_file: str = typer.Argument(..., help="prompt file, or a shipped name: cw, ow, ow_pretrain, veon_9_8 ..."),
           output: Path = typer.Option(..., "-o", "--output", help="bank file to write (.npz)"),

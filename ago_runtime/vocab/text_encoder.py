@@ -118,8 +118,6 @@ class OnnxTextEncoder:
                  encoder_id: str | None = None, variant: str | None = None, pooling: str | None = None,
                  normalise: bool = True, max_length: int | None = None, batch_size: int = 128,
                  threads: int | None = None):
-        import onnxruntime as ort
-
         self.onnx_path = Path(onnx_path)
         if not self.onnx_path.is_file():
             raise AgoInputError(onnx_path, "text encoder ONNX file not found")
