@@ -37,6 +37,7 @@ from ago_runtime.geometry.camera import Rig
 from ago_runtime.predict.bundle import Bundle
 from ago_runtime.predict.predictor import Prediction, Predictor, prepare_inputs
 from ago_runtime.progress import track
+from ago_runtime.vocab.bank import PromptBank
 
 
 class PipelineFrame(NamedTuple):
@@ -72,7 +73,7 @@ class FramePipeline:
     progress: the progress bar's label (stderr), None for no bar."""
 
     bundle: Bundle
-    bank: Any
+    bank: PromptBank
     identifier: str | None = None
     volumes: bool = False
     workers: int | None = None
