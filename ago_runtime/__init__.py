@@ -11,8 +11,7 @@ concern (docs/architecture.md):
 - cli.py: the `ago` app, its verb table and its one error path; each part's verbs in its cli.py.
 
 May import: numpy, onnxruntime, OpenCV, typer; never ago_train or ago_export (the CLI names their
-verb modules as data and loads them when the app is built). The old flat module paths users import
-(ago_runtime.grid, .bundle, .predictor, ...) remain as aliases of the moved modules.
+verb modules as data and loads the ones a command runs).
 """
 
 __version__ = "0.1.0"

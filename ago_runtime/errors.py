@@ -11,6 +11,11 @@ class AgoInputError(ValueError):
         super().__init__(f"{self.path}: {problem}" if self.path else problem)
 
 
+class AgoNote(UserWarning):
+    """Information a user should see once, e.g. which shipped file a name stood for. The CLI prints it as
+    `note: <message>` on stdout (`one_line_warnings`); from Python it is a warning of this class."""
+
+
 class MissingExtra(RuntimeError):
     """A verb needs an optional part (torch: the training extra) that is not installed."""
 
@@ -30,11 +35,15 @@ def one_line(text) -> str:
 
 
 def one_line_warnings() -> None:
-    """Show warnings as `warning: <message>`, one line each, on stderr (the CLI's warning path)."""
+    """Show warnings as `warning: <message>`, one line each, on stderr, and AgoNote as `note: <message>` on
+    stdout (the CLI's warning path: stderr keeps only warnings and the one error line)."""
     import sys
     import warnings
 
     def show(message, category, filename, lineno, file=None, line=None):
-        print(f"warning: {one_line(message)}", file=sys.stderr)
+        if issubclass(category, AgoNote):
+            print(f"note: {one_line(message)}", file=sys.stdout)
+        else:
+            print(f"warning: {one_line(message)}", file=sys.stderr)
 
     warnings.showwarning = show

@@ -34,7 +34,7 @@ from ago_runtime.geometry.grid import Grid  # noqa: E402
 from ago_runtime.scoring.metric import OccupancyMetric  # noqa: E402
 from ago_runtime.formats.nuscenes import NuScenesDataset  # noqa: E402
 from ago_runtime.vocab.prompts import parse_prompt_file, resolve_prompt_file  # noqa: E402
-from ago_runtime.vocab.text_encoder import ago_cache_dir  # noqa: E402
+from ago_runtime.cache import ago_cache_dir  # noqa: E402
 from ago_train.pseudo.cli import simulated_text_embeddings  # noqa: E402
 from ago_train.pseudo.generate import LiftCache, PseudoLabelConfig, pseudo_sample  # noqa: E402
 from ago_train.pseudo.simulated import (SimEmbedderConfig, SimSegmenterConfig, SimulatedImageEmbedder,  # noqa: E402

@@ -27,7 +27,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from ago_runtime.atomic import write_text  # noqa: E402
-from ago_runtime.vocab.bank import bank_for_prompts  # noqa: E402
+from ago_runtime.vocab.bank import load_prompt_bank  # noqa: E402
 from ago_runtime.classes import FREE  # noqa: E402
 from ago_runtime.predict.heads import phrase_similarity  # noqa: E402
 from ago_runtime.scoring.metric import upsample_nearest  # noqa: E402
@@ -54,7 +54,7 @@ def main(argv=None) -> dict:
 
     predictor = Predictor(args.bundle)
     b = predictor.bundle
-    bank = bank_for_prompts(args.prompts)
+    bank = load_prompt_bank(args.prompts)
     space = parse_prompt_file(args.prompts)
     covered = {i for c in parse_prompt_file(args.known_from).classes for i in c.occ3d_ids}
     K = bank.num_classes

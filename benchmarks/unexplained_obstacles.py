@@ -12,7 +12,7 @@ Positives: voxels whose GT class no prompt class covers (e.g. manmade, vegetatio
 (`unexplained` = 1 - best prompted-class probability; target >= 0.75, issue "Open world that works")
 and, for comparison, of the product p_occ x score (which also counts the model's geometry misses), the
 average precision beside the positives' prevalence, and the share of positives and of negatives the
-mask flags (p_occ > 0.5 and score > `ago_runtime.predictor.UNEXPLAINED_THRESHOLD`), plus the mean
+mask flags (p_occ > 0.5 and score > `ago_runtime.predict.predictor.UNEXPLAINED_THRESHOLD`), plus the mean
 score per GT class. Writes a markdown table with the command.
 """
 
@@ -28,7 +28,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from ago_runtime.atomic import write_text  # noqa: E402
-from ago_runtime.vocab.bank import bank_for_prompts  # noqa: E402
+from ago_runtime.vocab.bank import load_prompt_bank  # noqa: E402
 from ago_runtime.classes import FREE as OCC3D_FREE, OCC3D_CLASSES  # noqa: E402
 from ago_runtime.scoring.metric import upsample_nearest  # noqa: E402
 from ago_runtime.formats.nuscenes import NuScenesDataset  # noqa: E402
@@ -53,7 +53,7 @@ def main(argv=None) -> dict:
     args = ap.parse_args(argv)
 
     predictor = Predictor(args.bundle)
-    bank = bank_for_prompts(args.prompts)
+    bank = load_prompt_bank(args.prompts)
     covered = covered_occ3d_ids(args.prompts)
     ds = NuScenesDataset(args.data, load_extras=False)
     indices = ds.split(args.split) if args.split != "all" else list(range(len(ds)))

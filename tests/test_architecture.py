@@ -1,5 +1,5 @@
 """The layout rules of docs/architecture.md, checked on the source (ast; nothing is imported but in the
-last test):
+tests that run the code in a child process):
 
 - no import circles among the modules of ago_runtime, ago_train and ago_export, counting module-level
   imports and, separately, every import (inside functions too; `if TYPE_CHECKING:` blocks excluded);
@@ -8,12 +8,18 @@ last test):
 - inside ago_runtime, each subpackage imports only the ones below it (the table ALLOWED), a verb
   module (`<subpackage>/cli.py`) anything in ago_runtime;
 - every package opens with a docstring saying what it holds (and, in ago_runtime, what it may import);
-- importing every ago_runtime module and building the whole `ago` app loads no torch.
+- no module is only an alias: no `sys.modules[...] = ...`, no module (other than a package's __init__)
+  whose body is only imports;
+- importing every ago_runtime module and building the whole `ago` app loads no torch;
+- `ago infer` (its verb module, `ago infer --help`) loads no ago_train / ago_export module and no other
+  verb module, and VERB_MODULES says where each verb is (these import the code, in a child process).
 """
 
 from __future__ import annotations
 
 import ast
+import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -192,3 +198,61 @@ def test_runtime_and_the_whole_cli_load_no_torch():
             "assert 'torch' not in sys.modules, 'torch was imported'\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO)
     assert r.returncode == 0, r.stderr
+
+
+def _assigns_sys_modules(node: ast.AST) -> bool:
+    targets = node.targets if isinstance(node, ast.Assign) else [getattr(node, "target", None)]
+    return any(isinstance(t, ast.Subscript) and isinstance(t.value, ast.Attribute) and t.value.attr == "modules"
+               and isinstance(t.value.value, ast.Name) and t.value.value.id == "sys" for t in targets)
+
+
+def test_no_module_is_only_an_alias():
+    """An old import path kept as `sys.modules[__name__] = moved` or a module that only re-exports names
+    is a second name for code that lives elsewhere: refused (packages' __init__ may gather names)."""
+    aliases = []
+    for name, (path, is_pkg) in _modules().items():
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        if any(isinstance(n, (ast.Assign, ast.AugAssign, ast.AnnAssign)) and _assigns_sys_modules(n)
+               for n in ast.walk(tree)):
+            aliases.append(f"{name}: assigns sys.modules")
+        body = [n for n in tree.body if not (isinstance(n, ast.Expr) and isinstance(n.value, ast.Constant))]
+        only_imports = all(isinstance(n, (ast.Import, ast.ImportFrom)) or (
+            isinstance(n, ast.Assign) and all(isinstance(t, ast.Name) and t.id == "__all__" for t in n.targets))
+            for n in body)
+        if body and only_imports and not is_pkg:
+            aliases.append(f"{name}: only imports")
+    assert aliases == [], f"modules that are only aliases: {aliases}"
+
+
+def _loaded_after(code: str) -> list[str]:
+    """The ago modules a child python has loaded after running `code` (this tree first on the path)."""
+    code += ("\nimport json, sys\nprint(json.dumps(sorted(m for m in sys.modules if m.split('.')[0] in "
+             "('ago_runtime', 'ago_train', 'ago_export'))))")
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, env=env)
+    assert r.returncode == 0, r.stderr
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def test_the_infer_path_imports_only_what_it_runs():
+    from ago_runtime.cli import VERB_MODULES
+
+    verb_modules = {m for modules in VERB_MODULES.values() for m in modules}
+    for code in ("from ago_runtime.cli import run\nrun(['infer', '--help'])", "import ago_runtime.predict.cli"):
+        loaded = _loaded_after(code)
+        assert [m for m in loaded if not m.startswith("ago_runtime")] == [], (code, loaded)
+        assert [m for m in loaded if m in verb_modules] == ["ago_runtime.predict.cli"], (code, loaded)
+
+
+def test_verb_modules_table_says_where_each_verb_is():
+    """build_app(verb) holds that verb (its modules only); build_app() holds exactly the table's verbs."""
+    code = ("import json, typer.main\nfrom ago_runtime.cli import VERB_MODULES, build_app\n"
+            "print(json.dumps({v: sorted(typer.main.get_command(build_app(v)).commands) for v in VERB_MODULES}))\n"
+            "print(json.dumps(sorted(typer.main.get_command(build_app()).commands)))")
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, env=env)
+    assert r.returncode == 0, r.stderr
+    per_verb, every = (json.loads(line) for line in r.stdout.strip().splitlines()[-2:])
+    missing = [v for v, verbs in per_verb.items() if v not in verbs]
+    assert missing == [], f"VERB_MODULES names modules that do not define these verbs: {missing}"
+    assert sorted(per_verb) == every

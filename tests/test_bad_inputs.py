@@ -5,7 +5,7 @@ the named outputs absent).
 
 Every verb has usage-error rows (unknown option, wrong type, missing option, value out of range),
 because those come from click's exception classes, which typer >= 0.26 vendors as `typer._click`
-(ago_runtime/cli.py finds the classes through typer itself). The rows run in this process through
+(ago_runtime/cli.py finds that module from typer.BadParameter). The rows run in this process through
 `ago_runtime.cli.run`, the function the `ago` console script calls.
 """
 
@@ -441,15 +441,18 @@ def test_the_table_covers_every_verb():
 
 
 # ------------------------------------------------------------------------------------ rows that are not exit 2
-def test_usage_error_classes_are_found_for_the_installed_typer():
-    """The handler's classes are the ones this typer raises (typer._click for typer >= 0.26, else click)."""
-    import typer
+def test_usage_error_classes_are_the_ones_typer_raises():
+    """The handler reads the one click typer runs on (typer._click for typer >= 0.26, else click), found
+    from the public typer.BadParameter; a usage error typer raises is one of its classes."""
+    import typer.main
 
-    from ago_runtime.cli import click_exception_classes
+    from ago_runtime.cli import build_app, click_exceptions
 
-    classes = click_exception_classes()
-    assert issubclass(typer.BadParameter, classes["ClickException"])
-    assert any(issubclass(typer.Abort, c) for c in classes["Abort"])
+    ce = click_exceptions()
+    assert issubclass(typer.BadParameter, ce.UsageError) and issubclass(ce.NoSuchOption, ce.UsageError)
+    command = typer.main.get_command(build_app("show"))
+    with pytest.raises(ce.UsageError):
+        command.main(args=["show", "--bogus"], prog_name="ago", standalone_mode=False)
 
 
 def test_scrambled_jpegs_are_refused_as_measured():
@@ -711,7 +714,13 @@ ROWS2 = [
                                                h.nul_prompts, "--out", "o"], ["nul.txt", "NUL"], ["o"]),
     # 8. no silent fallback
     ("--prompts in a missing folder", lambda h: ["infer", "--images", h.w.frame, "--bundle", h.w.bundle, "--prompts",
-                                                 "no/such/dir/ow.txt", "--out", "o"], ["no/such/dir/ow.txt"], ["o"]),
+                                                 "no/such/dir/ow.txt", "--out", "o"],
+     ["error: --prompts: no/such/dir/ow.txt", "prompt file not found"], ["o"]),
+    ("--prompts an unknown shipped name", lambda h: ["infer", "--images", h.w.frame, "--bundle", h.w.bundle,
+                                                     "--prompts", "prompts/nope.txt", "--out", "o"],
+     ["--prompts", "prompts/nope.txt", "shipped"], ["o"]),
+    ("--prompts a folder", lambda h: ["infer", "--images", h.w.frame, "--bundle", h.w.bundle, "--prompts",
+                                      h.w.root, "--out", "o"], ["--prompts", "is a folder"], ["o"]),
 ]
 
 
@@ -747,13 +756,23 @@ def test_the_path_rule_allows_outside_only_when_asked(h, tmp_path):
     assert "outside" not in line and "CAM_FRONT_RIGHT.jpg" in line       # CAM_FRONT (outside) was accepted
 
 
-def test_prompts_fallback_names_the_file_taken(h, tmp_path):
-    """`--prompts prompts/ow.txt` from another folder takes the shipped file and says so (one warning line)."""
-    r = run_ago(["infer", "--images", h.w.frame, "--bundle", h.w.bundle, "--prompts", "prompts/cw.txt", "--out", "o",
+def test_prompts_shipped_names_say_which_file(h, tmp_path):
+    """`--prompts cw`, `cw.txt` or `prompts/cw.txt` with no such file in the working folder take the shipped
+    file and say so in one `note:` line on stdout (stderr has no warning); a file of that name in the working
+    folder is taken as it is, with no note."""
+    for name in ("cw", "cw.txt", "prompts/cw.txt"):
+        r = run_ago(["infer", "--images", h.w.frame, "--bundle", h.w.bundle, "--prompts", name, "--out", "o",
+                     "--picture", "none"], tmp_path)
+        assert r.code == 0, r.stderr
+        notes = [ln for ln in r.stdout.splitlines() if ln.startswith("note: ")]
+        assert len(notes) == 1 and f"--prompts {name}" in notes[0] and "shipped" in notes[0], r.stdout
+        assert "warning:" not in r.stderr, r.stderr
+    (tmp_path / "cw.txt").write_text("fire hydrant: fire hydrant\nmailbox: mailbox\n")
+    r = run_ago(["infer", "--images", h.w.frame, "--bundle", h.w.bundle, "--prompts", "cw.txt", "--out", "o2",
                  "--picture", "none"], tmp_path)
-    assert r.code == 0, r.stderr
-    warns = [ln for ln in r.stderr.splitlines() if ln.startswith("warning: ")]
-    assert any("--prompts prompts/cw.txt" in ln and "shipped" in ln for ln in warns), r.stderr
+    assert r.code == 0 and "note: " not in r.stdout, r.stdout + r.stderr
+    with np.load(next((tmp_path / "o2").glob("*.npz"))) as z:
+        assert list(z["class_names"])[:2] == ["fire hydrant", "mailbox"]   # the local file, not the shipped one
 
 
 def test_infer_over_a_dataset_resumes_whole_frames_only(h, tmp_path):

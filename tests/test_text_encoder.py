@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -194,3 +195,23 @@ def test_runtime_never_imports_torch():
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                        cwd=Path(__file__).resolve().parents[1])
     assert r.returncode == 0, r.stderr
+
+
+def _python(code: str) -> subprocess.CompletedProcess:
+    repo = Path(__file__).resolve().parents[1]
+    env = dict(os.environ, PYTHONPATH=str(repo))
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=repo, env=env)
+
+
+def test_torch_encoder_from_python_without_the_cli():
+    """`text_encoder_for("torch")` in a fresh process that never built the CLI: the torch MiniLM (named as data
+    in EXTRA_ENCODERS, no registration by ago_train.text.cli); with ago_train missing: how to install it."""
+    pytest.importorskip("torch")
+    r = _python("import sys\nfrom ago_runtime.vocab.text_encoder import text_encoder_for\n"
+                "e = text_encoder_for('torch')\nprint(type(e).__name__, e.encode(['car']).shape, "
+                "'ago_train.text.cli' in sys.modules, 'ago_runtime.cli' in sys.modules)")
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split() == ["TorchMiniLMEncoder", "(1,", "384)", "False", "False"]
+    r = _python("import sys\nsys.modules['ago_train'] = None   # as if not installed\n"
+                "from ago_runtime.vocab.text_encoder import text_encoder_for\ntext_encoder_for('torch')")
+    assert r.returncode != 0 and "MissingExtra" in r.stderr and "pip install -e '.[train]'" in r.stderr

@@ -12,7 +12,8 @@ uint8 with free = 17 when every class is one Occ3D class, else bank class indice
 `class_names`, `free_index`; with --save-volumes also `entropy`, `confidence`, `branch` and the
 unexplained-obstacle volumes `unexplained` (score), `unexplained_mask`, `unexplained_threshold`) and
 `<name>.png` (--picture full: BEV of the classes, entropy BEV, camera mosaic, legend; bev: the class
-BEV and legend; none: no PNG). Reading, inference and writing overlap (run_infer). Over a dataset or an
+BEV and legend; none: no PNG). Reading, inference and writing overlap (FramePipeline,
+ago_runtime/predict/pipeline.py). Over a dataset or an
 info file a re-run resumes: frames whose outputs are whole and of the same settings are skipped
 (frame_is_whole; docs/bad_inputs.md). File names in the data files stay under the data root
 (ago_runtime.paths) unless --allow-outside-root.
@@ -20,12 +21,7 @@ info file a re-run resumes: frames whose outputs are whole and of the same setti
 
 from __future__ import annotations
 
-import collections
 import glob
-import os
-import queue
-import threading
-import time
 from pathlib import Path
 from typing import Iterator, List, Optional
 
@@ -35,29 +31,14 @@ import typer
 from ago_runtime.errors import AgoInputError, one_line_warnings
 
 
-def resolve_prompts(path: str) -> Path:
-    """A prompt file relative to the cwd; else a shipped one by name ("ow", "ow.txt"), or as the README
-    spells it (`prompts/ow.txt`, run from another folder: the shipped file is taken with a warning that names
-    it). Any other path that does not exist is refused: no silent fallback."""
-    import warnings
-
-    from ago_runtime.vocab.prompts import PROMPTS_DIR, resolve_prompt_file
-
-    p = Path(path)
-    if p.is_file():
-        return p
-    if p.parent == Path("prompts") and (PROMPTS_DIR / p.name).is_file():
-        warnings.warn(f"--prompts {path}: not found here; using the shipped {PROMPTS_DIR / p.name}", stacklevel=2)
-        return PROMPTS_DIR / p.name
-    if p.parent != Path("."):
-        raise AgoInputError(path, "prompt file not found (--prompts)")
-    return resolve_prompt_file(path)   # shipped name ("ow") or a clear error
-
-
 def choose_bank(bundle, prompts: Optional[str], bank: Optional[str]):
-    """The bank infer / demo / retrieve use: --bank FILE or a bundle bank name; --prompts FILE (through
-    `load_prompt_bank`: parsed once, cached by content hash); else the bundle's default bank."""
+    """The bank infer / demo / retrieve use, checked against the bundle once: --bank FILE (its text encoder,
+    width and class count: `check_bank_for_bundle`) or a bank the bundle ships; --prompts FILE or a shipped
+    name (`parse_prompt_file`'s one lookup, then `load_prompt_bank`: the class count before any encoding,
+    the bundle's own bank or the cache, else encoded with the bundle's text encoder); else the bundle's
+    default bank."""
     from ago_runtime.vocab.bank import PromptBank, check_bank_for_bundle, load_prompt_bank
+    from ago_runtime.vocab.prompts import parse_prompt_file
 
     if prompts and bank:
         raise AgoInputError(None, "give --prompts or --bank, not both")
@@ -68,7 +49,7 @@ def choose_bank(bundle, prompts: Optional[str], bank: Optional[str]):
             return bundle.load_bank(bank)
         raise AgoInputError(bank, f"prompt bank file not found (the bundle ships {sorted(bundle.banks)})")
     if prompts:
-        return load_prompt_bank(resolve_prompts(prompts), bundle=bundle)
+        return load_prompt_bank(parse_prompt_file(prompts, option="--prompts"), bundle=bundle)
     return bundle.load_bank()
 
 
@@ -211,70 +192,41 @@ def prediction_picture(pred, images: dict | None, title: str = "", kind: str = "
     return render.with_title(picture, title) if title else picture   # the full name, wrapped, never cut
 
 
-def _read_ahead(frames, read, outbox: queue.Queue, stop: threading.Event) -> None:
-    """Reader thread: read(frame) for each frame onto `outbox`, then None; an exception is put on the
-    queue instead (the consumer re-raises it). Stops early when `stop` is set."""
-    try:
-        for frame in frames:
-            if stop.is_set():
-                return
-            outbox.put(read(frame))
-        outbox.put(None)
-    except BaseException as e:  # handed to the main thread
-        outbox.put(e)
+def infer_writer(out: Path, key: str, picture: str, volumes: bool):
+    """`ago infer`'s write(name, images, prediction) for FramePipeline: `out/<name>.png` (unless picture is
+    none), then `out/<name>.npz` with `run_key` (a whole npz means a whole frame: frame_is_whole), each
+    written atomically; a killed run's temporary files of the frame are removed first. Gives the files."""
+    from ago_runtime.atomic import save_npz
+    from ago_runtime.pictures.render import save_png
 
+    def write(name: str, images: dict, pred) -> list[Path]:
+        npz = out / f"{name}.npz"
+        for stale in out.glob(glob.escape(f".{name}.") + "*.tmp.*"):
+            stale.unlink(missing_ok=True)
+        files = [npz]
+        if picture != "none":
+            files.append(save_png(out / f"{name}.png", prediction_picture(pred, images, name, picture)))
+        save_npz(npz, compresslevel=1, run_key=np.array(key), **pred.output_arrays(volumes=volumes))
+        t = pred.timings
+        typer.echo(f"{name}: {' '.join(map(str, files))} (preprocess {t['preprocess']:.2f} s, encoder "
+                   f"{t['encoder']:.2f} s, heads {t['heads']:.2f} s)", err=True)
+        return files
 
-class _Writer(threading.Thread):
-    """Writer thread: write(item) for each item of `inbox` until None. The first exception is kept in
-    `error` (the main thread re-raises it) and later items are dropped, so the queue never blocks."""
-
-    def __init__(self, write, inbox: queue.Queue):
-        super().__init__(daemon=True)
-        self.write, self.inbox = write, inbox
-        self.error: BaseException | None = None
-
-    def run(self) -> None:
-        while (item := self.inbox.get()) is not None:
-            if self.error is None:
-                try:
-                    self.write(item)
-                except BaseException as e:
-                    self.error = e
-
-
-def auto_workers(frames: int) -> int:
-    """Frames predicted at once by `ago infer`: 2 over a dataset on a multi-core CPU (each with half the
-    cores' onnxruntime threads: two one-thread frames at once beat one two-thread frame, measured 0.172 ->
-    0.125 s a frame on 2 cores, docs/runtime.md), 1 for a single frame (which then gets every core)."""
-    return 2 if frames > 1 and (os.cpu_count() or 1) >= 2 else 1
+    return write
 
 
 def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, sample=None, info=None,
               int8=False, picture: str = "full", warm_up: bool = False, workers: int | None = None,
               resume: bool = True, allow_outside_root: bool = False, shard: str | None = None) -> list[Path]:
-    """Predict every frame; three stages overlap (threads; numpy, OpenCV and onnxruntime release the GIL):
-    a reader decodes and preprocesses the next frames and a writer writes the previous ones (npz, PNG, in
-    frame order) while `workers` threads run the graphs and heads of the current ones (one Predictor, its
-    sessions with cpu_count // workers threads each; None = auto_workers). The first frame is read and checked before
-    anything is written, while the onnxruntime sessions open in another thread; an error in any stage ends
-    the run with that error (the files written before it are complete: every file is written atomically).
-    warm_up: run the graphs once on dummy inputs before the first frame; off by default here: the dummy frame
-    costs a whole frame (~0.2 s) to save the first real frame ~0.04 s of first-run allocations (measured on a
-    quiet machine, benchmarks/infer_ab.py --vary warm_up); an interactive Predictor keeps it on.
-    resume (over a dataset or an info file): frames whose outputs in `out` are whole and were made with the
-    same bundle, bank and settings (frame_is_whole) are skipped, the others made again."""
-    from ago_runtime.atomic import save_npz
-    from ago_runtime.predict.bundle import Bundle, resolve_bundle
-    from ago_runtime.progress import track
-    from concurrent.futures import ThreadPoolExecutor
-
-    from ago_runtime.predict.predictor import Predictor, prepare_inputs
-    from ago_runtime.pictures.render import save_png
-
-    from ago_runtime.predict.bundle import card_line
+    """`ago infer`: check the options, load the bundle and choose the bank, open the frames (a resumed run
+    leaves out the frames whose outputs in `out` are whole and were made with the same bundle, bank and
+    settings: frame_is_whole), then predict and write them with a FramePipeline (reading, prediction and
+    writing overlap; ago_runtime/predict/pipeline.py). Gives the files written."""
     from ago_runtime.outputs import check_output_dir
-
+    from ago_runtime.predict.bundle import Bundle, card_line, resolve_bundle
     from ago_runtime.predict.heads import IDENTIFIERS
+    from ago_runtime.predict.pipeline import FramePipeline, PipelineFrame
+    from ago_runtime.shards import parse_shard
 
     one_line_warnings()
     if identifier is not None and identifier not in IDENTIFIERS:
@@ -283,14 +235,11 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
         raise AgoInputError("--picture", f"must be one of {', '.join(PICTURES)}, got {picture!r}")
     if workers is not None and not 1 <= int(workers) <= 64:
         raise AgoInputError("--workers", f"must be between 1 and 64, got {workers}")
-    from ago_runtime.shards import parse_shard
-
     parse_shard(shard)   # a bad --shard before any work
     check_output_dir(out, "--out")   # before any work
     b = Bundle.load(resolve_bundle(bundle))
     typer.echo(card_line(b))   # stdout: information; stderr keeps only warnings and the one error line
-    chosen = choose_bank(b, prompts, bank)
-    b.check_bank(chosen)   # the bank's text encoder and width, before any work
+    chosen = choose_bank(b, prompts, bank)   # checked against the bundle here, once
     identifier = identifier or b.identifier_for(chosen)   # none for a closed-world bank
     key = run_key(b, chosen, identifier, picture, save_volumes, int8)
     out = Path(out)
@@ -312,104 +261,10 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
                    f"{count} to predict")
     if count == 0:
         return []
-    workers = int(workers) if workers is not None else auto_workers(count)
-    threads = max(1, (os.cpu_count() or 1) // workers) if workers > 1 else None
-    opened: dict = {}
-
-    def open_predictor():
-        try:
-            opened["predictor"] = Predictor(b, int8=int8, threads=threads, warm_up=warm_up)
-            opened["folded"] = opened["predictor"].fold(chosen)
-        except BaseException as e:   # re-raised by the main thread
-            opened["error"] = e
-
-    opener = threading.Thread(target=open_predictor, daemon=True)
-    opener.start()
-
-    def read(frame):
-        name, imgs, rig, source = frame
-        t = time.perf_counter()
-        x, m = prepare_inputs(b, imgs, rig, source)
-        return name, imgs, x, m, time.perf_counter() - t
-
-    def write(item):   # the PNG first, then the npz (with run_key): a whole npz means a whole frame
-        name, imgs, pred = item
-        npz = out / f"{name}.npz"
-        for stale in out.glob(glob.escape(f".{name}.") + "*.tmp.*"):   # a killed run's temp files of this frame
-            stale.unlink(missing_ok=True)
-        files = [npz]
-        if picture != "none":
-            files.append(save_png(out / f"{name}.png", prediction_picture(pred, imgs, name, picture)))
-        save_npz(npz, compresslevel=1, run_key=np.array(key), **pred.output_arrays(volumes=save_volumes))
-        t = pred.timings
-        typer.echo(f"{name}: {' '.join(map(str, files))} (preprocess {t['preprocess']:.2f} s, encoder "
-                   f"{t['encoder']:.2f} s, heads {t['heads']:.2f} s)", err=True)
-        return files
-
-    try:
-        first = read(next(frames))      # reads and checks the first frame before anything is written
-    finally:
-        opener.join()
-    if "error" in opened:
-        raise opened["error"]
-    predictor, folded = opened["predictor"], opened["folded"]
-    prepared: queue.Queue = queue.Queue(maxsize=workers + 1)
-    to_write: queue.Queue = queue.Queue(maxsize=workers + 1)
-    stop = threading.Event()
-    written: list[Path] = []
-    reader = threading.Thread(target=_read_ahead, args=(frames, read, prepared, stop), daemon=True)
-    writer = _Writer(lambda item: written.extend(write(item)), to_write)
-    reader.start()
-    writer.start()
-
-    def stream():
-        yield first
-        while (item := prepared.get()) is not None:
-            if isinstance(item, BaseException):
-                raise item
-            yield item
-
-    def predict(item):
-        name, imgs, x, m, t_pre = item
-        pred = predictor.predict_arrays(x, m, chosen, identifier, folded, volumes=save_volumes)
-        pred.timings = {"preprocess": t_pre, **pred.timings}
-        return name, imgs, pred
-
-    pool = ThreadPoolExecutor(workers, thread_name_prefix="ago-infer") if workers > 1 else None
-    in_flight: collections.deque = collections.deque()   # futures in frame order
-    try:
-        for item in track(stream(), "predicting", total=count):
-            if writer.error is not None:
-                break
-            if pool is None:
-                to_write.put(predict(item))
-                continue
-            in_flight.append(pool.submit(predict, item))
-            if len(in_flight) >= workers:
-                to_write.put(in_flight.popleft().result())
-        while in_flight and writer.error is None:      # the last frames; their errors propagate
-            to_write.put(in_flight.popleft().result())
-    finally:
-        if pool is not None:   # on an error: the frames already submitted are finished and written, in order
-            while in_flight and writer.error is None:
-                try:
-                    to_write.put(in_flight.popleft().result())
-                except BaseException:
-                    break
-            for fut in in_flight:
-                fut.cancel()
-            pool.shutdown(wait=True)
-        stop.set()
-        while reader.is_alive():           # unblock a reader waiting on a full queue
-            try:
-                prepared.get(timeout=0.05)
-            except queue.Empty:
-                pass
-        to_write.put(None)
-        writer.join()
-    if writer.error is not None:
-        raise writer.error
-    return written
+    pipeline = FramePipeline(b, chosen, identifier, volumes=save_volumes, int8=int8, warm_up=warm_up,
+                             workers=int(workers) if workers is not None else None)
+    return pipeline.run((PipelineFrame(*frame) for frame in frames), infer_writer(out, key, picture, save_volumes),
+                        total=count)
 
 
 def register(app: typer.Typer) -> None:
@@ -503,8 +358,7 @@ def run_retrieve(phrase: str, images: Path, bundle, out: Path, sample: str | Non
     h, g = predictor.encode(imgs, rig, source)
     pred = predictor.predict_hidden(h, g, bank, b.identifier)
     # the adapted branch F~_3D everywhere: it is the embedding aligned with the VLM's image space, the one that
-    # can know phrases no training class had (benchmarks/results/retrieval_ap.md: unknown-class AP 6.4x the
-    # prevalence on F~_3D, 1.1x on the identifier's per-voxel choice, which is mostly the grounded branch)
+    # can know phrases no training class had (benchmarks/results/retrieval_ap.md compares the branches)
     sim = phrase_similarity(b.heads, h, g, np.ones(h.shape[0], np.uint8), direction).reshape(b.grid.shape)
     occupied = pred.semantics != pred.free_index
     slug = "".join(c if c.isalnum() else "_" for c in phrase.strip().lower())[:40]

@@ -265,7 +265,8 @@ def load_prompt_bank(prompts: "str | Path | LabelSpace", encoder=None, cache_dir
     4. Otherwise `build_bank` encodes the phrases with `encoder` (default: default_text_encoder()) and
        the bank is saved in the cache.
     """
-    from ago_runtime.vocab.text_encoder import ago_cache_dir, bundle_text_encoder, default_text_encoder
+    from ago_runtime.cache import ago_cache_dir
+    from ago_runtime.vocab.text_encoder import bundle_text_encoder, default_text_encoder
 
     space = prompts if isinstance(prompts, LabelSpace) else parse_prompt_file(prompts)
     if bundle is not None:
@@ -290,6 +291,3 @@ def load_prompt_bank(prompts: "str | Path | LabelSpace", encoder=None, cache_dir
     bank = build_bank(space, encoder, template)
     bank.save(path)
     return bank
-
-
-bank_for_prompts = load_prompt_bank   # its name before the vocabulary path was one function

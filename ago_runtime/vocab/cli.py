@@ -2,7 +2,8 @@
 
 build FILE -o BANK     encode a prompt file's phrases into a bank (.npz)
 show BANK|FILE         classes, phrases, and the class-to-class similarity table
-(`prompts export-encoder` and `prompts noise` need torch: ago_train/text/cli.py adds them to `prompts_app`.)
+(`prompts export-encoder` and `prompts noise` need torch: ago_train/text/cli.py adds them to the group
+`prompts_group(app)` gives.)
 """
 
 from __future__ import annotations
@@ -12,12 +13,7 @@ from typing import Optional
 
 import typer
 
-from ago_runtime.errors import AgoInputError
 
-prompts_app = typer.Typer(no_args_is_help=True, help="Prompt files, prompt banks and the text encoder.")
-
-
-@prompts_app.command("build")
 def build(prompt_file: str = typer.Argument(..., help="prompt file, or a shipped name: cw, ow, ow_pretrain, veon_9_8 ..."),
           output: Path = typer.Option(..., "-o", "--output", help="bank file to write (.npz)"),
           encoder: str = typer.Option("onnx", "--encoder", help="onnx | int8 | torch | PATH to an ONNX text encoder"),
@@ -40,7 +36,6 @@ def build(prompt_file: str = typer.Argument(..., help="prompt file, or a shipped
                f"{bank.encoder_id} ({bank.encoder_variant}), dim {bank.dim}, template {bank.template!r}")
 
 
-@prompts_app.command("show")
 def show(bank_or_file: str = typer.Argument(..., help="a bank (.npz) or a prompt file / shipped name"),
          encoder: str = typer.Option("onnx", "--encoder", help="encoder for a prompt file (see build)")):
     """Print classes, phrases and the class similarity table (max cosine over phrase pairs)."""
@@ -78,5 +73,18 @@ def show(bank_or_file: str = typer.Argument(..., help="a bank (.npz) or a prompt
         echo(f"{k:>3}  {name:<{width}}{cells}")
 
 
+def prompts_group(app: typer.Typer) -> typer.Typer:
+    """The `ago prompts` group of `app` (with build and show), added to `app` the first time it is asked for:
+    this module's register and ago_train/text/cli.py's both add their verbs to it."""
+    for info in app.registered_groups:
+        if info.name == "prompts":
+            return info.typer_instance
+    group = typer.Typer(no_args_is_help=True, help="Prompt files, prompt banks and the text encoder.")
+    group.command("build")(build)
+    group.command("show")(show)
+    app.add_typer(group, name="prompts")
+    return group
+
+
 def register(app: typer.Typer) -> None:
-    app.add_typer(prompts_app, name="prompts")
+    prompts_group(app)

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ago_runtime.classes import FREE, IGNORE, NUM_SEMANTIC, OCC3D_CLASSES
-from ago_runtime.errors import AgoInputError
+from ago_runtime.errors import AgoInputError, AgoNote
 
 PROMPTS_DIR = Path(__file__).resolve().parents[2] / "prompts"
 _CLASS_LINE = re.compile(r"^(?P<name>[^\[\]:@#]+?)\s*(?:\[(?P<ids>[^\]]*)\])?\s*:(?P<phrases>.*)$")
@@ -153,10 +153,15 @@ def check_phrase(phrase: str, where, what: str = "phrase") -> str:
     return phrase
 
 
-def _truncate_long_phrase(phrase: str, where: str, max_tokens: int | None, tok) -> str:
-    if tok is None or max_tokens is None:
+def _truncate_long_phrase(phrase: str, where: str, max_tokens: int) -> str:
+    """`phrase`, cut at a word boundary to at most `max_tokens` word pieces (with a warning). A word piece
+    holds at least one character that is not white space, so a phrase with no more such characters than
+    `max_tokens` is never cut and the tokenizer is not loaded for it (the usual case: phrases are a few
+    words, the limit 254)."""
+    if sum(not c.isspace() for c in phrase) <= max_tokens:
         return phrase
-    if len(tok.tokenize_ids(phrase)) <= max_tokens:
+    tok = _default_tokenizer()
+    if tok is None or len(tok.tokenize_ids(phrase)) <= max_tokens:
         return phrase
     words = phrase.split()
     while len(words) > 1 and len(tok.tokenize_ids(" ".join(words))) > max_tokens:
@@ -169,15 +174,20 @@ def _truncate_long_phrase(phrase: str, where: str, max_tokens: int | None, tok) 
 
 @lru_cache(maxsize=1)
 def _default_tokenizer():
-    """(tokenizer, word-piece limit) of the installed MiniLM, or (None, None) without it."""
+    """The installed MiniLM's WordPiece tokenizer, or None without it."""
     from ago_runtime.vocab.text_encoder import minilm_max_length, minilm_vocab_path
     from ago_runtime.vocab.tokenizer import WordPieceTokenizer
 
     vocab = minilm_vocab_path()
-    if vocab is None:
-        return None, None
-    n = minilm_max_length()
-    return WordPieceTokenizer(vocab, max_length=n), n - 2
+    return WordPieceTokenizer(vocab, max_length=minilm_max_length()) if vocab is not None else None
+
+
+@lru_cache(maxsize=1)
+def _default_max_tokens() -> int:
+    """Word pieces a phrase may have: the installed MiniLM's max_seq_length - 2 ([CLS] and [SEP])."""
+    from ago_runtime.vocab.text_encoder import minilm_max_length
+
+    return minilm_max_length() - 2
 
 
 def parse_prompt_text(text: str | bytes, name: str | None = None, source: str | Path | None = None,
@@ -257,9 +267,8 @@ def parse_prompt_text(text: str | bytes, name: str | None = None, source: str | 
             p = check_phrase(p, where, f"line {lineno}: phrase")
             if len(phrase_owner) >= MAX_PHRASES:
                 raise AgoInputError(where, f"{at}: more than {MAX_PHRASES} phrases")
-            tok, limit = _default_tokenizer()
-            limit = max_tokens if max_tokens is not None else limit
-            p = _truncate_long_phrase(p, f"{where}:{lineno}", limit, tok)
+            limit = max_tokens if max_tokens is not None else _default_max_tokens()
+            p = _truncate_long_phrase(p, f"{where}:{lineno}", limit)
             pk = p.lower()
             if pk in phrase_owner:
                 other, other_line = phrase_owner[pk]
@@ -291,25 +300,39 @@ def parse_prompt_text(text: str | bytes, name: str | None = None, source: str | 
     return space
 
 
-def resolve_prompt_file(name_or_path: str | Path) -> Path:
-    """A path as given if it exists, else a shipped prompt file by name ("cw" -> prompts/cw.txt)."""
-    p = Path(name_or_path)
+def resolve_prompt_file(name_or_path: str | Path, option: str | None = None) -> Path:
+    """The one prompt-file lookup: `name_or_path` when that file exists; else a shipped prompt file, for a
+    bare name ("ow", "ow.txt") or the shipped folder's own spelling ("prompts/ow.txt", as the README writes
+    it, from any working folder), with an AgoNote naming the file taken. Anything else is refused, naming
+    `option` (e.g. "--prompts") when given: a path in another folder never falls back to a shipped file."""
+    value = str(name_or_path)
+    where = option or value
+    p = Path(value)
     if p.is_file():
         return p
-    for cand in (PROMPTS_DIR / f"{name_or_path}.txt", PROMPTS_DIR / str(name_or_path)):
-        if cand.is_file():
-            return cand
-    shipped = ", ".join(sorted(q.stem for q in PROMPTS_DIR.glob("*.txt")))
-    raise AgoInputError(name_or_path, f"prompt file not found (shipped label spaces: {shipped})")
+    if p.exists():
+        raise AgoInputError(where, f"{value} is a folder, not a prompt file")
+    shipped = ", ".join(shipped_label_spaces())
+    if p.parent not in (Path("."), Path("prompts")) or p.suffix not in ("", ".txt"):
+        raise AgoInputError(where, f"{value}: prompt file not found (a shipped one is named without a folder, "
+                                   f"e.g. ow; shipped: {shipped})")
+    candidate = PROMPTS_DIR / (p.name if p.suffix == ".txt" else f"{p.name}.txt")
+    if not candidate.is_file():
+        raise AgoInputError(where, f"{value}: prompt file not found, nor a shipped label space of that name "
+                                   f"(shipped: {shipped})")
+    warnings.warn(f"{option + ' ' if option else ''}{value}: no such file here; using the shipped {candidate}",
+                  AgoNote, stacklevel=3)
+    return candidate
 
 
-def parse_prompt_file(path: str | Path, max_tokens: int | None = None) -> LabelSpace:
-    """Read and check a prompt file (or a shipped one by name, e.g. "cw"); see the module docstring.
+def parse_prompt_file(path: str | Path, max_tokens: int | None = None, option: str | None = None) -> LabelSpace:
+    """Read and check a prompt file (or a shipped one by name, e.g. "cw": `resolve_prompt_file`, whose
+    errors name `option`); see the module docstring.
 
     Phrases longer than the text encoder's limit (`max_tokens` word pieces; default the installed
     MiniLM's max_seq_length - 2) are cut at a word boundary with a warning.
     """
-    path = resolve_prompt_file(path)
+    path = resolve_prompt_file(path, option)
     try:
         if path.stat().st_size > MAX_PROMPT_BYTES:
             raise AgoInputError(path, f"prompt file of {path.stat().st_size} bytes (at most {MAX_PROMPT_BYTES})")

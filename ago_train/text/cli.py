@@ -3,9 +3,9 @@
 export-encoder [-o P]  write MiniLM as ONNX (needs torch) - default the ago cache
 noise [-o P]           build the WordNet noise-word bank for training (needs torch + nltk data)
 
-`register(app)` adds both verbs to ago_runtime's `ago prompts` group (ago_runtime/vocab/cli.py) and the
-torch MiniLM to `ago_runtime.vocab.text_encoder.NAMED_ENCODERS` as "torch", so `ago prompts build
---encoder torch` finds it without ago_runtime importing ago_train. Imports nothing heavy at import time.
+`register(app)` adds both verbs to ago_runtime's `ago prompts` group (ago_runtime/vocab/cli.py). The
+`--encoder torch` choice is not registered here: ago_runtime.vocab.text_encoder names the torch MiniLM's
+module as data (`EXTRA_ENCODERS`). Imports nothing heavy at import time.
 """
 
 from __future__ import annotations
@@ -16,14 +16,6 @@ from typing import Optional
 import typer
 
 from ago_runtime.errors import require_torch
-
-
-def torch_encoder():
-    """The fp32 MiniLM in torch (bundled weights): `--encoder torch`."""
-    require_torch("prompts build --encoder torch")
-    from .minilm import TorchMiniLMEncoder
-
-    return TorchMiniLMEncoder()
 
 
 def export_encoder(output: Optional[Path] = typer.Option(None, "-o", "--output",
@@ -65,9 +57,8 @@ def noise(output: Optional[Path] = typer.Option(None, "-o", "--output", help="no
 
 
 def register(app: typer.Typer) -> None:
-    from ago_runtime.vocab.cli import prompts_app
-    from ago_runtime.vocab.text_encoder import NAMED_ENCODERS
+    from ago_runtime.vocab.cli import prompts_group
 
-    NAMED_ENCODERS["torch"] = torch_encoder
-    prompts_app.command("export-encoder")(export_encoder)
-    prompts_app.command("noise")(noise)
+    group = prompts_group(app)
+    group.command("export-encoder")(export_encoder)
+    group.command("noise")(noise)

@@ -33,7 +33,8 @@ import numpy as np
 from ago_runtime.atomic import save_npz
 from ago_runtime.errors import AgoInputError
 from ago_runtime.vocab.prompts import PROMPTS_DIR, parse_prompt_file
-from ago_runtime.vocab.text_encoder import MINILM_ID, ago_cache_dir
+from ago_runtime.cache import ago_cache_dir
+from ago_runtime.vocab.text_encoder import MINILM_ID
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 NEAR_SYNONYM_COS = 0.5

@@ -1,7 +1,0 @@
-"""Old import path of `ago_runtime.vocab.bank`, kept for users: the same module object."""
-
-import sys
-
-from ago_runtime.vocab import bank as _moved
-
-sys.modules[__name__] = _moved

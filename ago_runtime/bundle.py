@@ -1,7 +1,0 @@
-"""Old import path of `ago_runtime.predict.bundle`, kept for users: the same module object."""
-
-import sys
-
-from ago_runtime.predict import bundle as _moved
-
-sys.modules[__name__] = _moved
