@@ -184,6 +184,7 @@ def prediction_picture(pred, images: dict | None, title: str = "", kind: str = "
     """The PNG of one prediction. kind "full": class BEV, entropy BEV, adapted-branch share, legend and
     the six cameras; "bev": the class BEV and the legend only (a few ms)."""
     from ago_runtime.pictures import render
+    from ago_runtime.predict.contract import Identifier
     from ago_runtime.predict.predictor import UNEXPLAINED_THRESHOLD
 
     colors = render.palette_for(pred.class_names)
@@ -195,7 +196,7 @@ def prediction_picture(pred, images: dict | None, title: str = "", kind: str = "
         occupied = pred.semantics != pred.free_index
         ent = render.scalar_bev(pred.entropy, mask=occupied, label="entropy (nats)", grid=pred.grid, scale=scale)
         panels.append(("entropy, max over z", ent))
-        if pred.identifier != "none":
+        if pred.identifier != Identifier.NONE:
             share = render.scalar_bev(pred.branch.astype(np.float32), reduce="mean", mask=occupied, vmin=0, vmax=1,
                                       label="adapted share", grid=pred.grid, scale=scale)
             panels.append(("identifier: adapted branch share", share))
@@ -274,11 +275,11 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
     from ago_runtime.predict.bundle import card_line
     from ago_runtime.outputs import check_output_dir
 
-    from ago_runtime.predict.heads import IDENTIFIERS
+    from ago_runtime.predict.contract import Identifier
 
     one_line_warnings()
-    if identifier is not None and identifier not in IDENTIFIERS:
-        raise AgoInputError("--identifier", f"must be one of {', '.join(IDENTIFIERS)}, got {identifier!r}")
+    if identifier is not None:
+        identifier = Identifier.parse(identifier, "--identifier")
     if picture not in PICTURES:
         raise AgoInputError("--picture", f"must be one of {', '.join(PICTURES)}, got {picture!r}")
     if workers is not None and not 1 <= int(workers) <= 64:
@@ -319,7 +320,8 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
     def open_predictor():
         try:
             opened["predictor"] = Predictor(b, int8=int8, threads=threads, warm_up=warm_up)
-            opened["folded"] = opened["predictor"].fold(chosen)
+            p = opened["predictor"]   # with volumes, the unexplained score needs the reference classes
+            opened["folded"] = p.fold_with_reference(chosen) if save_volumes else p.fold(chosen)
         except BaseException as e:   # re-raised by the main thread
             opened["error"] = e
 
