@@ -6,8 +6,9 @@ classifier baseline) and a few statistics for the figures; running the encoder o
 and scoring every `View` from its output costs one eval instead of five.
 
 A `View` is (prompt file, identifier, closed_set):
-- identifier "none" (F_3D only), "max-conf" / "min-entropy" (the open-world identifier between
-  F_3D and the adapted F~_3D, ago_train.model.scoring.open_world_identify) or "adapted" (F~_3D only);
+- identifier (ago_runtime.predict.contract.Identifier): NONE (F_3D only), MAX_CONF / MIN_ENTROPY (the
+  open-world identifier between F_3D and the adapted F~_3D, ago_train.model.scoring.open_world_identify)
+  or ADAPTED (F~_3D only);
 - closed_set=True drops the phrases of the label space's unknown classes, so they can never be
   predicted: a closed-world classifier over the known classes (the SelfOcc-like baseline);
 - adapted_scale multiplies the adapted branch's logits before its softmax (a diagnostic: the adapted
