@@ -739,18 +739,7 @@ def test_unexplained_obstacle_score_on_hand_made_scores():
     """score = 1 - best prompted-class confidence over both branches (whatever the identifier);
     occupancy = 1 - p(free): a voxel is flagged when the main branch says occupied and no branch is sure
     of any prompted class; free voxels and voxels a branch explains are not."""
-    from ago_runtime.predict import decision
-from ago_runtime.predict.contract import Branch, Identifier
-from ago_runtime.predict.heads import FoldedHeads, HeadWeights
-
-
-def decide_scores(folded, s_main, s_ad, identifier, volumes=False):
-    """The voxel decision of hand-made bias-free phrase scores (P+1, n) of both branches (every voxel)."""
-    z_main = folded.class_scores(s_main.copy(), Branch.MAIN)
-    free = decision.main_free(z_main, folded.num_classes)
-    need = decision.adapted_voxels(free, Identifier(identifier), volumes)
-    z_ad = folded.class_scores(s_ad[:, need].copy(), Branch.ADAPTED) if len(need) else None
-    return decision.decide(z_main, free, z_ad, need, identifier, folded.num_classes, folded.scales, volumes)
+    from ago_runtime.predict.heads import FoldedHeads, HeadWeights
     from ago_runtime.predict.predictor import UNEXPLAINED_THRESHOLD
 
     C, K = 4, 3
@@ -780,18 +769,7 @@ def decide_scores(folded, s_main, s_ad, identifier, volumes=False):
 def test_unexplained_score_sees_reference_classes_and_keeps_the_labels():
     """With reference classes (training classes no prompt covers) folded in, a voxel that matches only a
     reference class is occupied and unexplained, while the labels equal those without reference classes."""
-    from ago_runtime.predict import decision
-from ago_runtime.predict.contract import Branch, Identifier
-from ago_runtime.predict.heads import FoldedHeads, HeadWeights
-
-
-def decide_scores(folded, s_main, s_ad, identifier, volumes=False):
-    """The voxel decision of hand-made bias-free phrase scores (P+1, n) of both branches (every voxel)."""
-    z_main = folded.class_scores(s_main.copy(), Branch.MAIN)
-    free = decision.main_free(z_main, folded.num_classes)
-    need = decision.adapted_voxels(free, Identifier(identifier), volumes)
-    z_ad = folded.class_scores(s_ad[:, need].copy(), Branch.ADAPTED) if len(need) else None
-    return decision.decide(z_main, free, z_ad, need, identifier, folded.num_classes, folded.scales, volumes)
+    from ago_runtime.predict.heads import FoldedHeads, HeadWeights
 
     C = 4
     z = np.zeros
