@@ -67,7 +67,7 @@ def softplus_(x: np.ndarray, tmp: np.ndarray) -> np.ndarray:
 
     The same function as torch's softplus to float32 rounding (softplus(x) > x always, and for x > 20
     log(1 + e^x) = x to float32; absolute error <= 1e-6, tests/test_runtime.py). OpenCV's vectorised
-    cv2.exp / cv2.log are ~6x faster than numpy's and than onnxruntime's Log kernel here."""
+    cv2.exp / cv2.log are faster than numpy's and than onnxruntime's Log kernel here."""
     np.minimum(x, 20.0, out=tmp)
     cv2.exp(tmp, tmp)
     tmp += 1.0

@@ -129,8 +129,8 @@ class Predictor:
     def __init__(self, bundle: Bundle | str | Path, int8: bool = False, threads: int | None = None,
                  chunk: int | None = None, warm_up: bool = True):
         """warm_up: run each graph once on dummy inputs now, so that the first frame runs at the steady-state
-        speed; False lets the first frame pay onnxruntime's first-run allocations instead (~0.04 s against a ~0.2 s
-        dummy frame: `ago infer` runs without it, benchmarks/results/infer_warm_up.md)."""
+        speed; False lets the first frame pay onnxruntime's first-run allocations instead (`ago infer` runs without
+        it, benchmarks/results/infer_warm_up.md)."""
         self.bundle = bundle if isinstance(bundle, Bundle) else Bundle.load(bundle)
         self.encoder = open_encoder(self.bundle, int8, threads, warm_up=warm_up)
         check_heads_fit_encoder(self.bundle, self.encoder)   # a bad heads.npz is named as such
