@@ -209,7 +209,7 @@ def evaluate_views(ckpt_path: str | Path, data: str | Path, views: list[View], s
         summary = m.summary()
         results[v.name] = {
             "checkpoint": str(ckpt_path), "split": split, "frames": len(indices), "label_space": space.name,
-            "identifier": v.identifier, "closed_set": v.closed_set,
+            "identifier": v.identifier.value, "closed_set": v.closed_set,
             "mIoU": summary["mIoU"], "mIoU_star": _pct(m.miou_star()), "geometry_IoU": summary["geometry_IoU"],
             "subsets": {name: _pct(m.miou(sub)) if sub else None for name, sub in subsets.items()},
             "metric": summary,
