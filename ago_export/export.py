@@ -4,14 +4,13 @@ Takes a checkpoint written by ago_train (torch.load(weights_only=True); keys "mo
 "model_config", "label_space", "bank", ...). Gives a bundle folder (layout: ago_runtime/predict/bundle.py,
 docs/runtime.md):
 
-1. the camera-to-voxel encoder plus the modality adapter's hidden layers, as two ONNX graphs
-   (bundle format 3, ago_runtime/predict/encoder.py; the traced modules are ago_export/graphs.py):
+1. the camera-to-voxel encoder plus the modality adapter's hidden layers as ONNX graphs
+   (bundle format 4, ago_runtime/predict/encoder.py; the traced modules are ago_export/graphs.py):
    `planes.onnx` (images (1,6,3,H,W) + ego2img (1,6,4,4) -> the three TPV planes at the grid's
-   resolution, times the decoder's first linear layer, channels last) and the voxel stages (a slab
-   of voxels -> h (n,Dh), g (n,Da) and the folded bank's scores), so the runtime streams
-   slabs and never holds the grid's features at once; key metadata also in metadata_props;
-   `voxels_<i>.onnx` are the per-voxel MLP's layers and the bank products, one graph per layer
-   (the runtime applies the softplus activations between them);
+   resolution, times the decoder's first linear layer, channels last) and `voxels_<i>.onnx`, the
+   per-voxel MLP's remaining linear layers, one graph per layer (the runtime applies the softplus
+   activations between them and computes the bank products itself), so the runtime streams slabs and
+   never holds the grid's features at once; key metadata also in metadata_props;
 2. the linear heads (`heads.npz`) and the learnt free embedding, for bank folding at run time;
 3. banks: "train" (the label-space embeddings saved in the checkpoint) and one per shipped prompt
    file the installed text encoder could build;
@@ -37,14 +36,16 @@ from torch import nn
 import ago_runtime
 from ago_runtime.atomic import replace_dir, temp_dir_beside, write_json
 from ago_runtime.vocab.bank import PromptBank, load_prompt_bank
-from ago_runtime.predict.bundle import BUNDLE_FORMAT, BUNDLE_FORMAT_VERSION, BUNDLE_JSON, file_sha256
+from ago_runtime.errors import AgoInputError
 from ago_runtime.formats.calibration import find_camera_images, load_images_folder
 from ago_runtime.geometry.camera import Rig
 from ago_runtime.geometry.grid import Grid
-from ago_runtime.predict.encoder import SplitEncoder
-from ago_runtime.errors import AgoInputError
-from ago_runtime.predict.heads import HeadWeights
 from ago_runtime.geometry.preprocess import Preprocess
+from ago_runtime.predict.contract import (BUNDLE_FORMAT, BUNDLE_FORMAT_VERSION, BUNDLE_JSON, BundleContract,
+                                          CameraSlot, FileEntry, Identifier, LabelClass, LabelSpaceSpec, RigSpec,
+                                          TextEncoderSpec, VoxelStageSpec, file_sha256)
+from ago_runtime.predict.encoder import SplitEncoder, StageGraph
+from ago_runtime.predict.heads import HeadWeights
 from ago_runtime.vocab.prompts import LabelSpace, parse_prompt_text, shipped_label_spaces
 
 from .card import write_card
@@ -110,10 +111,10 @@ def _finish_onnx(path: Path, metadata: dict[str, str], doc: str) -> None:
 
 
 def export_onnx(model: nn.Module, out_dir: Path, cfg, metadata: dict[str, str],
-                grid_shape: tuple[int, int, int] | None = None) -> tuple[dict[str, str], list[dict]]:
+                grid_shape: tuple[int, int, int] | None = None) -> tuple[dict[str, str], list[VoxelStageSpec]]:
     """Write planes.onnx and voxels_<i>.onnx (ago_export.graphs) into out_dir; returns ({key: file}, the
-    voxel stages' specs for bundle.json "voxel_stages", each with its file key). grid_shape: the read-out
-    grid planes.onnx upsamples to (default the model's)."""
+    voxel stages' contract entries, each with its file key). grid_shape: the read-out grid planes.onnx
+    upsamples to (default the model's)."""
     images = torch.zeros(1, cfg.num_cameras, 3, cfg.image_height, cfg.image_width)
     ego2img = torch.eye(4).expand(1, cfg.num_cameras, 4, 4).contiguous()
     files, specs = {"planes": "planes.onnx"}, []
@@ -123,34 +124,29 @@ def export_onnx(model: nn.Module, out_dir: Path, cfg, metadata: dict[str, str],
                           opset_version=OPSET, input_names=["images", "ego2img"],
                           output_names=["plane_xy", "plane_xz", "plane_yz"], do_constant_folding=True)
         for i, stage in enumerate(voxel_stages(model)):
-            graph = VoxelStageGraph(stage).eval()
-            # the last stage (no linear) takes g: the width of the previous stage's output
-            d_in = stage.linear.in_features if stage.linear is not None else specs[-1]["linear"][1]
-            inputs, outputs = graph.io_names()
-            args = (torch.zeros(2, d_in),) + ((torch.zeros(3, d_in),) if stage.bank else ())
-            axes = {"x": {0: "voxels"}, "bank": {0: "phrases"}, "y": {0: "voxels"}, "s": {0: "phrases", 1: "voxels"}}
             key = f"voxels_{i}"
-            torch.onnx.export(graph, args, str(out_dir / f"{key}.onnx"), dynamo=False, opset_version=OPSET,
-                              input_names=inputs, output_names=outputs,
-                              dynamic_axes={k: v for k, v in axes.items() if k in inputs + outputs},
-                              do_constant_folding=True)
+            torch.onnx.export(VoxelStageGraph(stage).eval(), (torch.zeros(2, stage.linear.in_features),),
+                              str(out_dir / f"{key}.onnx"), dynamo=False, opset_version=OPSET,
+                              input_names=["x"], output_names=["y"],
+                              dynamic_axes={"x": {0: "voxels"}, "y": {0: "voxels"}}, do_constant_folding=True)
             files[key] = f"{key}.onnx"
-            specs.append({"file": key, "input_dim": d_in, **stage.spec()})
+            specs.append(stage.spec(key))
     _finish_onnx(out_dir / "planes.onnx", {**metadata, "ago.graph": "planes"},
                  "ago camera-to-TPV encoder: images (1,6,3,H,W) + ego2img (1,6,4,4) -> plane_xy (X,Y,Dh), "
                  "plane_xz (X,Z,Dh), plane_yz (Y,Z,Dh): the TPV planes at the grid resolution times the decoder's "
                  "first linear layer (its bias in plane_xy), channels last")
     for spec in specs:
-        _finish_onnx(out_dir / files[spec["file"]], {**metadata, "ago.graph": spec["file"],
-                                                      "ago.voxel_stage": json.dumps(spec)},
-                     "ago per-voxel MLP stage: x (n, d_in) -> y = x W^T + b (n, d_out) the next pre-activation, "
-                     "and for the h / g stages s = bank x^T (P', n)")
+        _finish_onnx(out_dir / files[spec.file], {**metadata, "ago.graph": spec.file,
+                                                  "ago.voxel_stage": json.dumps(spec.to_dict())},
+                     "ago per-voxel MLP stage: x (n, d_in) -> y = x W^T + b (n, d_out), the next pre-activation")
     return files, specs
 
 
-def stage_paths(root: Path, files: dict[str, str], specs: list[dict], suffix: str = "") -> list[dict]:
-    """The voxel stages of a bundle folder as SplitEncoder takes them: spec + "path"."""
-    return [{**s, "path": root / files[s["file"] + suffix]} for s in specs]
+def open_split_encoder(root: Path, files: dict[str, str], specs: list[VoxelStageSpec], grid: Grid, heads: HeadWeights,
+                       suffix: str = "") -> SplitEncoder:
+    """The encoder of a bundle folder being written (parity checks)."""
+    stages = [StageGraph(s, root / files[s.file + suffix]) for s in specs]
+    return SplitEncoder(root / files["planes" + suffix], stages, grid, heads.hidden_dim, heads.adapter_dim)
 
 
 # ---- label space and banks -----------------------------------------------------------------
@@ -181,10 +177,10 @@ def train_bank(ckpt: dict, space: LabelSpace, source) -> PromptBank:
         occ3d_ids=[c.occ3d_ids for c in space.classes])
 
 
-def label_space_dict(space: LabelSpace) -> dict:
-    return {"name": space.name, "sha256": space.sha256,
-            "classes": [{"name": c.name, "occ3d_ids": list(c.occ3d_ids), "known": c.name in space.known,
-                         "phrases": list(c.phrases)} for c in space.classes]}
+def label_space_spec(space: LabelSpace) -> LabelSpaceSpec:
+    return LabelSpaceSpec(space.name, space.sha256,
+                          [LabelClass(c.name, [int(i) for i in c.occ3d_ids], c.name in space.known, list(c.phrases))
+                           for c in space.classes])
 
 
 # ---- parity frame --------------------------------------------------------------------------
@@ -229,11 +225,6 @@ def parity_frame(spec: str | Path | None, real_frame: bool, rig: Rig) -> tuple[d
 
 
 # ---- the bundle ----------------------------------------------------------------------------
-def _file_entry(root: Path, rel: str) -> dict:
-    p = root / rel
-    return {"path": rel, "sha256": file_sha256(p), "size": p.stat().st_size}
-
-
 def _replace_dir(tmp: Path, out: Path) -> None:
     """Move the finished temp folder onto `out` (an existing bundle there is replaced; never missing)."""
     if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not (out / BUNDLE_JSON).is_file())):
@@ -280,8 +271,7 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
         rig, rig_source = Rig.from_dict(ckpt["rig"]), "checkpoint"
     else:
         rig, rig_source = Rig.nuscenes_like(1600, 900), "Rig.nuscenes_like(1600, 900) (checkpoint has no rig)"
-    text_encoder = {"id": bank.encoder_id, "hash": bank.encoder_hash, "dim": int(bank.dim),
-                    "variant": bank.encoder_variant}
+    text_encoder = TextEncoderSpec(bank.encoder_id, bank.encoder_hash, int(bank.dim), bank.encoder_variant)
     images, frame_rig, frame_name = parity_frame(parity_frame_dir, real_frame, rig)   # checked before any work
     if parity_frame_dir is None:
         log(f"note: using parity frame {frame_name} (--parity-frame DIR chooses one, --no-real-frame a synthetic one)")
@@ -290,10 +280,10 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
         metadata = {
             "ago.format": BUNDLE_FORMAT, "ago.format_version": str(BUNDLE_FORMAT_VERSION),
             "ago.version": ago_runtime.__version__, "ago.grid": json.dumps(grid.to_dict()),
-            "ago.preprocess": json.dumps(pre.to_dict()), "ago.text_encoder": json.dumps(text_encoder),
+            "ago.preprocess": json.dumps(pre.to_dict()), "ago.text_encoder": json.dumps(vars(text_encoder)),
             "ago.class_names": json.dumps(list(space.class_names)), "ago.label_space": space.name,
             "ago.outputs": "planes: the TPV planes at the grid (times the decoder's first linear); voxels_<i>: one layer "
-                           "of the per-voxel MLP (y = x W^T + b) and the bank scores s = bank x^T (P', n) of h / g",
+                           "of the per-voxel MLP (y = x W^T + b)",
         }
         log(f"exporting the encoder to ONNX (opset {OPSET}) ...")
         files, stages = export_onnx(model, tmp, cfg, metadata, grid.shape)
@@ -319,8 +309,8 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
         report: dict = {}
         if parity:
             log("checking parity onnxruntime vs torch ...")
-            report["fp32"] = check_parity(model, SplitEncoder(tmp / files["planes"], stage_paths(tmp, files, stages),
-                                                              grid), heads, bank, x, m, tolerance, frame_name)
+            report["fp32"] = check_parity(model, open_split_encoder(tmp, files, stages, grid, heads), heads, bank,
+                                          x, m, tolerance, frame_name)
             log(f"parity fp32: {describe(report['fp32'])}")
             if not report["fp32"]["ok"]:
                 raise AgoInputError(checkpoint, f"export parity check failed on {frame_name}: {describe(report['fp32'])}")
@@ -331,43 +321,33 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
             from .quantize import quantize_encoder
 
             log("quantising the encoder to int8 ...")
-            for key in ["planes"] + [st["file"] for st in stages]:
+            for key in ["planes"] + [st.file for st in stages]:
                 quantize_encoder(tmp / files[key], tmp / f"{key}.int8.onnx")
                 files[f"{key}_int8"] = f"{key}.int8.onnx"
             if parity:
-                report["int8"] = check_parity(model, SplitEncoder(tmp / "planes.int8.onnx",
-                                                                  stage_paths(tmp, files, stages, "_int8"), grid),
+                report["int8"] = check_parity(model, open_split_encoder(tmp, files, stages, grid, heads, "_int8"),
                                               heads, bank, x, m, int8_tolerance, frame_name)
                 log(f"parity int8: {describe(report['int8'])}")
                 if not report["int8"]["ok"]:
                     raise AgoInputError(checkpoint, f"int8 parity check failed on {frame_name}: "
                                         f"{describe(report['int8'])}")
-        file_entries = {k: _file_entry(tmp, v) for k, v in files.items()}
-        file_entries.update({f"bank/{k}": _file_entry(tmp, v) for k, v in banks.items()})
-        meta = {
-            "format": BUNDLE_FORMAT,
-            "format_version": BUNDLE_FORMAT_VERSION,
-            "ago_version": ago_runtime.__version__,
-            "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-            "checkpoint": {"path": str(checkpoint), "sha256": file_sha256(checkpoint),
-                           "step": int(ckpt.get("step", 0) or 0), "epoch": int(ckpt.get("epoch", 0) or 0)},
-            "model": {"config": cfg.to_dict(), "hidden_dim": heads.hidden_dim, "adapter_dim": heads.adapter_dim,
-                      "embed_dim": heads.embed_dim, "num_voxels": grid.num_voxels, "opset": OPSET},
-            "grid": grid.to_dict(),
-            "model_grid": model_grid.to_dict(),
-            "preprocess": pre.to_dict(),
-            "rig": rig.to_dict(),
-            "rig_source": rig_source,
-            "label_space": label_space_dict(space),
-            "text_encoder": text_encoder,
-            "identifier": "min-entropy",
-            "default_bank": "train",
-            "banks": banks,
-            "bank_notes": bank_notes,
-            "files": file_entries,
-            "voxel_stages": stages,
-            "parity": report,
-        }
+        file_entries = {k: FileEntry.of(tmp, v) for k, v in files.items()}
+        file_entries.update({f"bank/{k}": FileEntry.of(tmp, v) for k, v in banks.items()})
+        contract = BundleContract(
+            grid=grid.to_dict(), model_grid=model_grid.to_dict(), preprocess=pre.to_dict(),
+            rig=RigSpec([CameraSlot(c.name, pre.width, pre.height) for c in rig.cameras]),
+            training_rig=rig.to_dict(), rig_source=rig_source, label_space=label_space_spec(space),
+            text_encoder=text_encoder, files=file_entries, voxel_stages=stages,
+            hidden_dim=heads.hidden_dim, adapted_dim=heads.adapter_dim, identifier=Identifier.MIN_ENTROPY,
+            banks=banks, default_bank="train", bank_notes=bank_notes,
+            checkpoint={"path": str(checkpoint), "sha256": file_sha256(checkpoint),
+                        "step": int(ckpt.get("step", 0) or 0), "epoch": int(ckpt.get("epoch", 0) or 0)},
+            model={"config": cfg.to_dict(), "hidden_dim": heads.hidden_dim, "adapter_dim": heads.adapter_dim,
+                   "embed_dim": heads.embed_dim, "num_voxels": grid.num_voxels, "opset": OPSET},
+            parity=report, ago_version=ago_runtime.__version__,
+            created_utc=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
+        contract.check_stages()
+        meta = contract.to_dict()
         write_card(tmp, ckpt, checkpoint, readout=(list(grid.shape), list(model_grid.shape)), **(card or {}))   # card.json: what it was trained on (ago_export/card.py)
         write_json(tmp / BUNDLE_JSON, meta)
         for p in [tmp, *tmp.rglob("*")]:

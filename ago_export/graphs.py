@@ -1,4 +1,4 @@
-"""The torch modules `ago export` traces into the bundle's two ONNX graphs (bundle format 3).
+"""The torch modules `ago export` traces into the bundle's ONNX graphs (bundle format 4).
 
 They compute the trained model's function (ago_train.model) with the same weights, restructured
 for onnxruntime on a CPU; tests/test_export.py checks them against the torch model itself.
@@ -10,10 +10,10 @@ for onnxruntime on a CPU; tests/test_export.py checks them against the torch mod
     (W (xy + xz + yz) + b = (W xy + b) + W xz + W yz) and with bilinear upsampling (its weights sum
     to one), so it runs on the ~11 600 plane cells instead of on every voxel.
 `VoxelStageGraph` (voxels_<i>.onnx, one per `voxel_stages(model)`): the per-voxel MLP's linear
-    layers and the folded bank's products, one graph per layer. The runtime sums the planes of a
-    slab of voxels, applies the softplus activations between the stages itself (numpy + OpenCV's
-    vectorised exp / log: measured ~2x faster than onnxruntime's Log in a graph, docs/runtime.md)
-    and runs each stage's GEMMs in onnxruntime.
+    layers after the planes, one graph per layer. The runtime sums the planes of a slab of voxels,
+    applies the softplus activations between the stages itself (numpy + OpenCV's vectorised exp / log)
+    and runs each stage's GEMM in onnxruntime; the folded bank's products are the runtime's own
+    (ago_runtime.predict.bank_product), so no graph holds a bank.
 
 The TPV encoder runs in its "canvas" layout (one grid_sample per attention over zero-framed canvases,
 queries last, fused offset/weight products, per-frame camera geometry): ago_train/model/tpv_canvas.py,
@@ -28,6 +28,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ago_runtime.predict.contract import Branch, VoxelStageSpec
 from ago_train.model.tpv_canvas import PLANES, encode_frame
 
 
@@ -126,112 +127,63 @@ class PlanesGraph(nn.Module):
 
 @dataclass
 class VoxelStage:
-    """One ONNX graph of the per-voxel MLP (voxels_<i>.onnx). Input x (n, d_in), the activation of the
-    previous layer (the runtime applies the softplus between stages, ago_runtime.predict.encoder.Softplus);
-    outputs y = x W^T + b (n, d_out), the next layer's pre-activation (no linear: no y), and, for the
-    stages whose input is h (bank "main") or g (bank "adapted"), s = bank x^T (P', n) with the folded
-    bank fed as the input "bank". activation: whether the runtime applies softplus to y."""
+    """One ONNX graph of the per-voxel MLP (voxels_<i>.onnx): x (n, d_in), the activation of the previous
+    layer (the runtime applies the softplus between stages, ago_runtime.predict.encoder.Softplus) -> y =
+    x W^T + b (n, d_out), the next layer's pre-activation. activation: whether the runtime applies softplus
+    to y. branch: MAIN for the decoder's layers (toward h, every voxel), ADAPTED for the adapter's (from h
+    toward g)."""
 
-    linear: nn.Linear | None
+    linear: nn.Linear
     activation: bool
-    bank: str | None
+    branch: Branch
 
-    def spec(self) -> dict:
-        return {"linear": None if self.linear is None else [self.linear.in_features, self.linear.out_features],
-                "activation": "softplus" if self.activation else "none", "bank": self.bank}
+    def spec(self, file: str) -> VoxelStageSpec:
+        return VoxelStageSpec(file, self.linear.in_features, self.linear.out_features,
+                              "softplus" if self.activation else "none", self.branch)
 
 
 def voxel_stages(model) -> list[VoxelStage]:
     """The per-voxel MLP after the planes as stages: the decoder's remaining layers (each Linear +
     softplus; the first linear is in the planes and its softplus is applied to the plane sum), then
     from h the adapter's layers with decoder_out folded into the first (fused_adapter; adapter depth 1:
-    g = decoder_out(h), no activation), then the adapted bank's product on g."""
-    stages = [VoxelStage(m, True, None) for m in list(model.decoder.net)[1:] if isinstance(m, nn.Linear)]
+    g = decoder_out(h), no activation)."""
+    stages = [VoxelStage(m, True, Branch.MAIN) for m in list(model.decoder.net)[1:] if isinstance(m, nn.Linear)]
     mods = list(fused_adapter(model))
-    i, bank = 0, "main"
+    i = 0
     while i < len(mods):
         act = i + 1 < len(mods) and isinstance(mods[i + 1], LogSigmoidSoftplus)
-        stages.append(VoxelStage(mods[i], act, bank))
-        bank = None
+        stages.append(VoxelStage(mods[i], act, Branch.ADAPTED))
         i += 2 if act else 1
-    stages.append(VoxelStage(None, False, "adapted"))
     return stages
 
 
 class VoxelStageGraph(nn.Module):
-    """voxels_<i>.onnx for one VoxelStage: inputs x (n, d_in) [, bank (P', d_in)] -> [y (n, d_out)] [, s (P', n)]."""
+    """voxels_<i>.onnx for one VoxelStage: x (n, d_in) -> y (n, d_out)."""
 
     def __init__(self, stage: VoxelStage):
         super().__init__()
-        self.linear, self.bank = stage.linear, stage.bank
+        self.linear = stage.linear
 
-    def io_names(self) -> tuple[list[str], list[str]]:
-        return (["x"] + (["bank"] if self.bank else []),
-                (["y"] if self.linear is not None else []) + (["s"] if self.bank else []))
-
-    def forward(self, x, bank=None):
-        out = []
-        if self.linear is not None:
-            out.append(self.linear(x))
-        if self.bank:
-            out.append(torch.matmul(bank, x.t()))
-        return tuple(out)
+    def forward(self, x):
+        return self.linear(x)
 
 
 class VoxelsReference(nn.Module):
     """The whole per-voxel stage in torch, as the runtime runs it slab by slab (tests): a slab of x rows
-    plane_xy (x, Y, Dh), plane_xz (x, Z, Dh), plane_yz (Y, Z, Dh), bank_main (P', Dh), bank_adapted
-    (P', Da) -> h (n, Dh), g (n, Da), s_main (P', n), s_adapted (P', n); n = x*Y*Z in C order."""
+    plane_xy (x, Y, Dh), plane_xz (x, Z, Dh), plane_yz (Y, Z, Dh) -> h (n, Dh), g (n, Da); n = x*Y*Z in C order."""
 
     def __init__(self, model):
         super().__init__()
         self.stages = voxel_stages(model)
         self.act = LogSigmoidSoftplus()
 
-    def forward(self, plane_xy, plane_xz, plane_yz, bank_main, bank_adapted):
+    def forward(self, plane_xy, plane_xz, plane_yz):
         a = plane_xy.unsqueeze(2) + plane_xz.unsqueeze(1) + plane_yz.unsqueeze(0)      # (x, Y, Z, Dh)
         x = self.act(a.reshape(-1, a.shape[-1]))
-        out = {}
+        h = None
         for st in self.stages:
-            if st.bank == "main":
-                out["h"], out["s_main"] = x, torch.matmul(bank_main, x.t())
-            if st.bank == "adapted":
-                out["g"], out["s_adapted"] = x, torch.matmul(bank_adapted, x.t())
-            if st.linear is not None:
-                x = st.linear(x)
-                x = self.act(x) if st.activation else x
-        return out["h"], out["g"], out["s_main"], out["s_adapted"]
-
-
-def bank_scores_model():
-    """The runtime's generic bank-product graph (ago_runtime/assets/graphs/bank_scores.onnx): inputs
-    x (n, d) and bank (P', d), output s = bank x^T (P', n), every dimension symbolic, no weights. The
-    runtime computes both branches' folded-bank scores with it (onnxruntime's GEMM; numpy's OpenBLAS was
-    3-20x slower for this skinny shape here), so it can score any subset of voxels of any bundle.
-    Rewrite the file with `write_bank_scores()`; tests/test_runtime.py checks it."""
-    from onnx import TensorProto, helper
-
-    graph = helper.make_graph(
-        [helper.make_node("Transpose", ["x"], ["xt"], perm=[1, 0]), helper.make_node("MatMul", ["bank", "xt"], ["s"])],
-        "ago_bank_scores",
-        [helper.make_tensor_value_info("x", TensorProto.FLOAT, ["voxels", "width"]),
-         helper.make_tensor_value_info("bank", TensorProto.FLOAT, ["phrases", "width"])],
-        [helper.make_tensor_value_info("s", TensorProto.FLOAT, ["phrases", "voxels"])])
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=8,
-                              producer_name="ago_export.graphs.bank_scores_model")
-    return model
-
-
-def write_bank_scores(path=None):
-    """Write bank_scores_model() to the runtime's asset (or `path`)."""
-    import onnx
-    from pathlib import Path
-
-    from ago_runtime.predict.encoder import BANK_SCORES_GRAPH
-
-    path = Path(path or BANK_SCORES_GRAPH)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    model = bank_scores_model()
-    onnx.checker.check_model(model, full_check=True)
-    onnx.save(model, str(path))
-    return path
+            if st.branch == Branch.ADAPTED and h is None:
+                h = x
+            x = st.linear(x)
+            x = self.act(x) if st.activation else x
+        return h, x

@@ -7,9 +7,9 @@ preprocessed frame (images (1, 6, 3, H, W), ego2img (1, 6, 4, 4)). Gives a JSON-
   embeddings F_3D = decoder_out(h) and F~_3D = adapter_out(g) (torch: `model.forward`; ORT: the
   encoder's h, g through the heads in numpy);
 - `agreement_main`, `agreement_adapted`, `agreement_identifier`: share of voxels whose argmax class
-  (K bank classes + free) agrees between the torch reference (float64 scores from the torch
-  embeddings, computed directly, unfolded) and the runtime's own path (`runtime_labels`: the bank
-  folded into the heads, scores from the encoder slab by slab, numpy class max and softmax),
+  (K bank classes + free) agrees between the torch reference (`reference_labels`: the voxel decision
+  of ago_runtime.predict.decision in float64 on the torch embeddings, unfolded) and the runtime's own
+  path (`runtime_labels`: the bank folded into the heads, the encoder slab by slab, VoxelClassifier),
   for the original branch, the adapted branch and the min-entropy identifier;
 - `ok` and the tolerances used.
 
@@ -23,6 +23,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ago_runtime.predict import decision
+from ago_runtime.predict.classifier import VoxelClassifier
+from ago_runtime.predict.contract import Branch, Identifier
 from ago_runtime.predict.heads import FoldedHeads, HeadWeights, embeddings
 
 
@@ -36,55 +39,38 @@ FP32_TOLERANCE = Tolerance(1e-3, 0.999)
 INT8_TOLERANCE = Tolerance(0.25, 0.85)
 
 
-def reference_labels(feat: np.ndarray, feat_ad: np.ndarray, bank, free: np.ndarray,
-                     scales: tuple[float, float] = (1.0, 1.0), adapted_stats: tuple | None = None,
-                     free_bias: float = 0.0) -> dict[str, np.ndarray]:
-    """Unfolded float64 reference: per-voxel argmax (K classes + free) per branch, and the min-entropy
-    identifier's labels by the rule of ago_train.model.scoring.open_world_identify (occupancy from the
-    main branch, class from the branch whose scaled class distribution has the lower entropy).
-    `adapted_stats` (mean (C,), cov (C, C)): the adapted phrase scores are standardised, (s - m.t) / sqrt(t'St)."""
-    T = np.concatenate([bank.embeddings, free[None]]).astype(np.float64)       # (P+1, C)
-    out, zs = {}, {}
-    for name, f in (("main", feat), ("adapted", feat_ad)):
-        s = f.astype(np.float64) @ T.T                                          # (N, P+1)
-        if name == "adapted" and adapted_stats is not None:
-            m, S = (np.asarray(a, dtype=np.float64) for a in adapted_stats)
-            P = T.shape[0] - 1
-            sd = np.sqrt(np.einsum("pc,cd,pd->p", T[:P], S, T[:P]))
-            s[:, :P] = (s[:, :P] - T[:P] @ m) / sd
-        if name == "main":
-            s[:, -1] += free_bias
-        z = np.concatenate([bank.class_scores(s[:, :-1]), s[:, -1:]], axis=1)   # (N, K+1)
-        out[name] = z.argmax(axis=1)
-        zs[name] = z
-    K = zs["main"].shape[1] - 1
-    ent, cls = {}, {}
-    for (name, z), scale in zip(zs.items(), scales):
-        c = scale * z[:, :K]
-        c = c - c.max(axis=1, keepdims=True)
-        p = np.exp(c)
-        p /= p.sum(axis=1, keepdims=True)
-        ent[name] = -(p * np.log(np.maximum(p, 1e-300))).sum(axis=1)
-        cls[name] = c.argmax(axis=1)
-    occupied = out["main"] != K
-    pick = np.where(ent["adapted"] < ent["main"], cls["adapted"], cls["main"])
-    out["identifier"] = np.where(occupied, pick, K)
+def reference_labels(feat: np.ndarray, feat_ad: np.ndarray, bank, heads: HeadWeights,
+                     identifier: Identifier = Identifier.MIN_ENTROPY) -> dict[str, np.ndarray]:
+    """The float64 reference from the per-voxel embeddings F (N, C), F~ (N, C): each branch's argmax over
+    [K classes + free] ("main", "adapted") and the identifier's labels, by the voxel decision
+    (ago_runtime.predict.decision) with the bank applied to the embeddings directly (unfolded)."""
+    layout = decision.PhraseLayout(bank.phrase_class, bank.num_classes)
+    phrases = np.asarray(bank.embeddings)[layout.order]
+    out, z = {}, {}
+    for branch, f in ((Branch.MAIN, feat), (Branch.ADAPTED, feat_ad)):
+        R, o = decision.score_rows(heads, phrases, branch)
+        z[branch] = decision.class_scores(R @ f.astype(np.float64).T, o[:, None], layout)   # (K+1, N)
+        out[branch.value] = decision.softmax_stats(z[branch].copy()).label
+    K = bank.num_classes
+    free = decision.main_free(z[Branch.MAIN], K)
+    need = decision.adapted_voxels(free, identifier)
+    z_ad = z[Branch.ADAPTED][:, need] if len(need) else None
+    out["identifier"] = decision.decide(z[Branch.MAIN], free, z_ad, need, identifier, K, heads.scales).label
     return out
 
 
-def runtime_labels(encoder, folded: FoldedHeads, images: np.ndarray, ego2img: np.ndarray) -> dict[str, np.ndarray]:
-    """Labels the way `ago infer` gets them: "identifier" from the runtime's own slab loop (the adapted
-    branch only where the main branch calls a voxel occupied: ago_runtime.predict.predictor.classify_slabs);
-    "main" and "adapted" from both branches' scores on every voxel (the encoder's score_chunks), each through
-    the numpy class max / softmax."""
-    from ago_runtime.predict.predictor import classify_slabs
-
-    out: dict[str, list] = {"main": [], "adapted": []}
-    for _start, _stop, s_main, s_ad in encoder.score_chunks(images, ego2img, folded):
-        out["main"].append(folded.softmax_stats(folded.class_scores(s_main, "main")).label)
-        out["adapted"].append(folded.softmax_stats(folded.class_scores(s_ad, "adapted")).label)
+def runtime_labels(encoder, folded: FoldedHeads, images: np.ndarray, ego2img: np.ndarray,
+                   identifier: Identifier = Identifier.MIN_ENTROPY) -> dict[str, np.ndarray]:
+    """Labels the way `ago infer` gets them: "identifier" from the runtime's slab loop (VoxelClassifier: the
+    adapted branch only where the main branch calls a voxel occupied); "main" and "adapted" from each branch's
+    folded scores on every voxel, slab by slab, each through the class max and softmax."""
+    out: dict[str, list] = {Branch.MAIN.value: [], Branch.ADAPTED.value: []}
+    for _start, _stop, h, g in encoder.chunks(images, ego2img):
+        for branch, x in ((Branch.MAIN, h), (Branch.ADAPTED, g)):
+            z = folded.class_scores(encoder.scores(folded.A[branch], x), branch)
+            out[branch.value].append(decision.softmax_stats(z).label)
     labels = {k: np.concatenate(v) for k, v in out.items()}
-    labels["identifier"] = classify_slabs(encoder, folded, images, ego2img, "min-entropy", label_dtype=np.int64)[0]["label"]
+    labels["identifier"] = VoxelClassifier(encoder).classify(images, ego2img, folded, identifier)[0]["label"]
     return labels
 
 
@@ -105,8 +91,7 @@ def check_parity(model, encoder, heads: HeadWeights, bank, images: np.ndarray, e
     def rel(a, b):
         return float(np.abs(a - b).max() / max(float(np.abs(b).max()), 1e-12))
 
-    stats = None if heads.adapted_mean is None else (heads.adapted_mean, heads.adapted_cov)
-    want = reference_labels(feat_t, feat_ad_t, bank, heads.free_embedding, heads.scales, stats, heads.free_bias)
+    want = reference_labels(feat_t, feat_ad_t, bank, heads)
     folded = FoldedHeads(heads, bank.embeddings, bank.phrase_class, bank.num_classes)
     got = runtime_labels(encoder, folded, images, ego2img)
     report = {

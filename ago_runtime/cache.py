@@ -4,7 +4,7 @@ imports only onnxruntime and ago_runtime.errors).
 - `ago_cache_dir()`: $AGO_CACHE_DIR or ~/.cache/ago (banks, text encoder, optimised graphs, ...);
 - `open_session(path, threads, sha256)`: an onnxruntime CPU session; with the file's sha256 the optimised
   graph is saved under `ago_cache_dir()/ort/` by the first session and loaded with graph optimisation off
-  by later ones (opening planes.onnx 0.26 s -> ~0.04 s, the text encoder ~0.3 s -> ~0.1 s);
+  by later ones, which then open several times faster;
 - `session_options(threads, optimize)`: the runtime's options (idle worker threads do not spin).
 """
 
@@ -36,8 +36,8 @@ def session_options(threads: int | None = None, optimize: bool = True) -> ort.Se
     if threads:
         so.intra_op_num_threads = int(threads)
     # onnxruntime's idle worker threads spin by default; between the slabs they then steal the cores
-    # that numpy's heads need (measured on 2 cores: 2.6 s -> 2.2 s per 200x200x16 frame, and
-    # 0.43 -> 0.37 s at 100x100x8, with spinning off). AGO_ORT_SPIN=1 turns spinning back on.
+    # that numpy's heads need (frames are faster with spinning off on a 2-core machine).
+    # AGO_ORT_SPIN=1 turns spinning back on.
     if os.environ.get("AGO_ORT_SPIN", "0") != "1":
         so.add_session_config_entry("session.intra_op.allow_spinning", "0")
     so.log_severity_level = 3

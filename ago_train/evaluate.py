@@ -7,9 +7,10 @@ against the label space's text bank (class score = max over its phrases, plus fr
 is coarser -> `OccupancyMetric` over `mask_camera`, GT mapped into the label space with
 `LabelSpace.gt_lut(free_index=K)` (Occ3D classes the space does not cover are ignored).
 
-Identifier (`identifier`): "none" classifies with F_3D only (the closed-world default, as the
-paper's supplementary material); "min-entropy" / "max-conf" pick per voxel between F_3D and the
-adapted F~_3D (the open-world identifier; default when the prompt file has unknown classes).
+Identifier (`identifier`, ago_runtime.predict.contract.Identifier, the same choices as `ago infer`): NONE
+classifies with F_3D only (the closed-world default, as the paper's supplementary material); MIN_ENTROPY /
+MAX_CONF pick per voxel between F_3D and the adapted F~_3D (the open-world identifier; default when the
+prompt file has unknown classes); ADAPTED takes F~_3D on every occupied voxel.
 
 Writes `<out>/metrics.json` (the metric summary + known/unknown mIoU + run info) and
 `<out>/metrics.md` (per-class IoU table).
@@ -26,13 +27,14 @@ from ago_runtime.atomic import write_json, write_text
 from ago_runtime.errors import AgoInputError
 from ago_runtime.scoring.metric import OccupancyMetric, upsample_nearest
 from ago_runtime.geometry.preprocess import Preprocess
+from ago_runtime.predict.contract import Identifier
 from ago_runtime.vocab.prompts import LabelSpace, parse_prompt_file, parse_prompt_text
 
 from .checkpoint import load_checkpoint
 from .dataset import FrameList, OccSampleDataset, collate
 from .distributed import pick_device
 
-IDENTIFIERS = ("min-entropy", "max-conf", "none")
+IDENTIFIERS = Identifier.names()   # `ago eval --identifier` choices: those of `ago infer`
 READOUTS = ("model", "gt")   # the grid the planes are read on (evaluate)
 
 
@@ -75,9 +77,9 @@ def bank_for(ckpt: dict, label_space: LabelSpace) -> tuple[torch.Tensor, torch.T
     return torch.from_numpy(new.embeddings), torch.from_numpy(new.phrase_class)
 
 
-def default_identifier(label_space: LabelSpace, trained_classes=None) -> str:
-    """'min-entropy' when the label space has classes unknown to the model (outside its `@known:` list,
-    or, without one, outside `trained_classes`), else 'none' (closed world): the runtime's rule
+def default_identifier(label_space: LabelSpace, trained_classes=None) -> Identifier:
+    """MIN_ENTROPY when the label space has classes unknown to the model (outside its `@known:` list,
+    or, without one, outside `trained_classes`), else NONE (closed world): the runtime's rule
     (ago_runtime.predict.heads.default_identifier), so `ago eval` and `ago infer` score alike."""
     from ago_runtime.predict.heads import default_identifier as rule
 
@@ -99,7 +101,7 @@ def checkpoint_adapted_stats(ckpt: dict) -> dict | None:
 
 
 def predict_labels(model, images: torch.Tensor, ego2img: torch.Tensor, text: torch.Tensor,
-                   phrase_class: torch.Tensor, num_classes: int, identifier: str,
+                   phrase_class: torch.Tensor, num_classes: int, identifier: Identifier,
                    scales: tuple[float, float] = (1.0, 1.0), adapted_stats: dict | None = None,
                    grid_shape: tuple[int, int, int] | None = None,
                    voxel_index: torch.Tensor | None = None) -> torch.Tensor:
@@ -109,10 +111,11 @@ def predict_labels(model, images: torch.Tensor, ego2img: torch.Tensor, text: tor
     from .model.scoring import adapted_logits, class_logits, open_world_identify
 
     # F~_3D only when the identifier reads it
-    out = model(images, ego2img, voxel_index=voxel_index, adapted=identifier != "none", grid_shape=grid_shape)
+    identifier = Identifier(identifier)
+    out = model(images, ego2img, voxel_index=voxel_index, adapted=identifier != Identifier.NONE, grid_shape=grid_shape)
     free = out.get("free_embedding", model.free_embedding)
     main = class_logits(out["feat"], text, phrase_class, num_classes, free, None, free_bias=out.get("free_bias"))
-    if identifier == "none":
+    if identifier == Identifier.NONE:
         return main.argmax(dim=-1)
     adapted = adapted_logits(out["feat_adapted"], text, phrase_class, num_classes, free, adapted_stats)
     pred, _branch, _entropy = open_world_identify(main, adapted, identifier, num_classes, *scales)
@@ -158,8 +161,8 @@ def evaluate(ckpt_path: str | Path, data: str | Path, split: str = "val", prompt
 
     if readout not in READOUTS:
         raise AgoInputError("--readout", f"must be one of {', '.join(READOUTS)}, got {readout!r}")
-    if identifier is not None and identifier not in IDENTIFIERS:
-        raise AgoInputError(None, f"unknown identifier {identifier!r}; choose one of {list(IDENTIFIERS)}")
+    if identifier is not None:
+        identifier = Identifier.parse(identifier, "--identifier")
     dev = pick_device(device)
     ckpt = load_checkpoint(ckpt_path, map_location="cpu")
     mcfg, model = load_model(ckpt, dev, ckpt_path)
@@ -207,7 +210,7 @@ def evaluate(ckpt_path: str | Path, data: str | Path, split: str = "val", prompt
     result = {
         "checkpoint": str(ckpt_path), "data": str(data), "split": split, "frames": len(indices),
         "label_space": label_space.name, "prompt_file": str(label_space.source) if label_space.source else None,
-        "identifier": identifier, "model_grid": list(grid.shape), "readout": readout,
+        "identifier": identifier.value, "model_grid": list(grid.shape), "readout": readout,
         "mIoU": summary["mIoU"], "geometry_IoU": summary["geometry_IoU"],
         "subsets": {name: _pct(metric.miou(sub)) if sub else None for name, sub in subsets.items()},
         "metric": summary,

@@ -7,8 +7,8 @@ the nuScenes keyframe occupied). To see the frame time at other shares on the sa
 bank's phrase embeddings are scaled by a factor (weaker phrases -> more voxels free); the labels of such a
 bank mean nothing, only the share matters here. Per factor: the share, the median steady-state frame
 (predict_arrays from preprocessed tensors) and its split. First row, for comparison in the same process:
-the bundle's own bank with the adapted branch on EVERY voxel (the encoder's score_chunks +
-FoldedHeads.classify_scores: what the runtime did before it ran the adapter on the occupied voxels only).
+the bundle's own bank with the adapted branch on EVERY voxel (the encoder's chunks + decision.decide: what
+the runtime did before it ran the adapter on the occupied voxels only).
 
     python benchmarks/occupied_share.py --bundle BUNDLE [--scales 1,0.5,0.3] [--reps 3]
 """
@@ -28,6 +28,9 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "benchmarks"))
+
+from ago_runtime.predict import decision  # noqa: E402
+from ago_runtime.predict.contract import Branch, Identifier  # noqa: E402
 
 
 def main() -> None:
@@ -57,18 +60,21 @@ def main() -> None:
     every = []
     for _ in range(args.reps + 1):
         t = time.perf_counter()
-        for _start, _stop, s_main, s_ad in p.encoder.score_chunks(x, m, folded):
-            folded.classify_scores(s_main, s_ad, "min-entropy")
+        for _start, _stop, h, g in p.encoder.chunks(x, m):
+            z_main = folded.class_scores(p.encoder.scores(folded.A_main_T, h), Branch.MAIN)
+            z_ad = folded.class_scores(p.encoder.scores(folded.A_ad_T, g), Branch.ADAPTED)
+            decision.decide(z_main, decision.main_free(z_main, folded.num_classes), z_ad, np.arange(len(h)),
+                            Identifier.MIN_ENTROPY, folded.num_classes, folded.scales)
         every.append(time.perf_counter() - t)
     print(f"| 1, adapted branch on every voxel | 100 % (computed) | {statistics.median(every[1:]):.3f} | | |")
     for scale in [float(v) for v in args.scales.split(",")]:
         bank = dataclasses.replace(base, embeddings=base.embeddings * scale)
         folded = p.fold(bank)
-        p.predict_arrays(x, m, bank, "min-entropy", folded)
+        p.predict_arrays(x, m, bank, Identifier.MIN_ENTROPY, folded)
         wall, enc, heads = [], [], []
         for _ in range(args.reps):
             t = time.perf_counter()
-            pr = p.predict_arrays(x, m, bank, "min-entropy", folded)
+            pr = p.predict_arrays(x, m, bank, Identifier.MIN_ENTROPY, folded)
             wall.append(time.perf_counter() - t)
             enc.append(pr.timings["encoder"])
             heads.append(pr.timings["heads"])

@@ -154,16 +154,14 @@ def build_variants(tmp: Path):
                               dynamic_axes={**axes, "bank_main": {0: "p"}, "bank_adapted": {0: "p"}})
             out["voxels"][name] = (path, kind)
         stages = []
-        for i, st in enumerate(G.voxel_stages(model)):
-            graph = G.VoxelStageGraph(st).eval()
-            d_in = st.linear.in_features if st.linear is not None else stages[-1]["linear"][1]
-            ins, outs = graph.io_names()
+        from ago_runtime.predict.encoder import StageGraph
+
+        for i, st in enumerate(G.voxel_stages(model)):   # bundle format 4: each stage x -> y
             path = tmp / f"stage{i}.onnx"
-            torch.onnx.export(graph, (torch.zeros(2, d_in),) + ((torch.zeros(3, d_in),) if st.bank else ()), str(path),
-                              dynamo=False, opset_version=17, input_names=ins, output_names=outs,
-                              dynamic_axes={k: v for k, v in {"x": {0: "n"}, "bank": {0: "p"}, "y": {0: "n"},
-                                                              "s": {0: "p", 1: "n"}}.items() if k in ins + outs})
-            stages.append({**st.spec(), "input_dim": d_in, "path": path, "file": f"stage{i}"})
+            torch.onnx.export(G.VoxelStageGraph(st).eval(), (torch.zeros(2, st.linear.in_features),), str(path),
+                              dynamo=False, opset_version=17, input_names=["x"], output_names=["y"],
+                              dynamic_axes={"x": {0: "n"}, "y": {0: "n"}})
+            stages.append(StageGraph(st.spec(f"stage{i}"), path))
         out["stages"] = stages
     return cfg, out
 
@@ -231,8 +229,12 @@ def main() -> None:
         from ago_runtime.predict.encoder import SplitEncoder
         from ago_runtime.geometry.grid import Grid
 
-        enc = SplitEncoder(files["planes"]["restructured TPV (shipped)"], files["stages"], Grid.from_dict(cfg.grid),
-                           warm_up=False)
+        from ago_runtime.predict.contract import Branch
+
+        stages = files["stages"]
+        hidden_dim = next(st.spec.input_dim for st in stages if st.spec.branch == Branch.ADAPTED)
+        enc = SplitEncoder(files["planes"]["restructured TPV (shipped)"], stages, Grid.from_dict(cfg.grid),
+                           hidden_dim, stages[-1].spec.output_dim, warm_up=False)
         fold = {"main": bank["bank_main"], "adapted": bank["bank_adapted"]}
 
         def staged(voxels):

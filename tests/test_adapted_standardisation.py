@@ -2,12 +2,16 @@
 runtime folds it exactly, a generic phrase stops winning everywhere, and bad statistics are refused."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
 
 from ago_runtime.errors import AgoInputError
 from ago_runtime.predict.bundle import _load_heads
+from ago_runtime.predict.decision import phrase_standardisation as numpy_standardisation
+from ago_runtime.predict.decision import softmax_stats
 from ago_runtime.predict.heads import FoldedHeads, HeadWeights
 from ago_train.model.scoring import adapted_logits, phrase_standardisation
 
@@ -28,14 +32,14 @@ def test_torch_and_numpy_maps_agree():
     w = _heads(rng)
     w.adapted_mean, w.adapted_cov = _stats(rng)
     T = rng.standard_normal((7, 16)).astype(np.float32)
-    scale, bias = w.adapted_phrase_map(T)
+    scale, bias = numpy_standardisation(T, w.adapted_mean, w.adapted_cov)
     t_scaled, t_bias = phrase_standardisation(torch.from_numpy(T), torch.from_numpy(w.adapted_mean),
                                               torch.from_numpy(w.adapted_cov))
     np.testing.assert_allclose(t_scaled.numpy(), T * scale[:, None], rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(t_bias.numpy(), bias, rtol=1e-5, atol=1e-6)
     # without statistics the map is the identity
     w.adapted_mean = w.adapted_cov = None
-    s, b = w.adapted_phrase_map(T)
+    s, b = numpy_standardisation(T, w.adapted_mean, w.adapted_cov)
     assert np.all(s == 1) and np.all(b == 0)
 
 
@@ -53,7 +57,7 @@ def test_folded_heads_apply_the_standardisation_exactly():
     sd = np.sqrt(np.einsum("pc,cd,pd->p", t, w.adapted_cov.astype(np.float64), t))
     z = (feat_ad @ t.T - t @ w.adapted_mean.astype(np.float64)) / sd
     want = np.stack([z[:, pc == k].max(1) for k in range(K)], axis=1)
-    got = fh.class_scores(fh.phrase_scores(g, "adapted"), "adapted").T    # (n, K + 1)
+    got = fh.class_scores(fh.A_ad_T @ g.T, "adapted").T    # (n, K + 1)
     np.testing.assert_allclose(got[:, :K], want, rtol=1e-4, atol=1e-4)
     # the torch path of training and evaluation gives the same class logits
     logits = adapted_logits(torch.from_numpy(feat_ad.astype(np.float32))[None], torch.from_numpy(emb),
@@ -108,14 +112,14 @@ def test_export_parity_reference_standardises_like_the_runtime():
     K, P = 4, 6
     pc = np.array([0, 1, 2, 3, 1, 2])
     emb = rng.standard_normal((P, 16)).astype(np.float32)
-    bank = SimpleNamespace(embeddings=emb, class_scores=lambda s: np.stack([s[:, pc == k].max(1) for k in range(K)], 1))
+    bank = SimpleNamespace(embeddings=emb, phrase_class=pc, num_classes=K)
     g = rng.standard_normal((400, 12)).astype(np.float32)
     h = rng.standard_normal((400, 10)).astype(np.float32)
     feat = h.astype(np.float64) @ w.W_dec.T + w.b_dec
     feat_ad = g.astype(np.float64) @ w.W_ad.T + w.b_ad
-    ref = reference_labels(feat, feat_ad, bank, w.free_embedding, (1.0, 1.0), (w.adapted_mean, w.adapted_cov))
+    ref = reference_labels(feat, feat_ad, bank, w)
     fh = FoldedHeads(w, emb, pc, K)
-    got = fh.softmax_stats(fh.class_scores(fh.phrase_scores(g, "adapted"), "adapted")).label
+    got = softmax_stats(fh.class_scores(fh.A_ad_T @ g.T, "adapted")).label
     assert np.mean(got == ref["adapted"]) > 0.995
-    plain = reference_labels(feat, feat_ad, bank, w.free_embedding)
+    plain = reference_labels(feat, feat_ad, bank, dataclasses.replace(w, adapted_mean=None, adapted_cov=None))
     assert np.mean(plain["adapted"] != ref["adapted"]) > 0.05   # the map does change the labels

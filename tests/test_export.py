@@ -11,6 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from ago_runtime.geometry.camera import CAMERA_NAMES
+
 torch = pytest.importorskip("torch")
 onnx = pytest.importorskip("onnx")
 
@@ -38,14 +40,18 @@ def env(tmp_path_factory):
 
 def test_bundle_is_self_describing(env):
     meta = json.loads((env["bundle"] / "bundle.json").read_text())
-    assert meta["format_version"] == 3
-    assert {"planes", "voxels_0", "voxels_1", "heads"} <= set(meta["files"]) and "encoder" not in meta["files"]
-    assert [st["bank"] for st in meta["voxel_stages"]] == ["main", "adapted"]     # tiny: decoder 1 layer, adapter 2
+    assert meta["format_version"] == 4
+    assert {"planes", "voxels_0", "heads"} <= set(meta["files"]) and "voxels_1" not in meta["files"]
+    assert [st["branch"] for st in meta["voxel_stages"]] == ["adapted"]     # tiny: decoder 1 layer, adapter 2
+    assert (meta["hidden_dim"], meta["adapted_dim"]) == tuple(meta["voxel_stages"][0][k] for k in ("input_dim", "output_dim"))
+    assert not (env["bundle"] / "voxels_1.onnx").exists()
     assert meta["grid"]["shape"] == [20, 20, 4]
     assert [c["name"] for c in meta["label_space"]["classes"]][:3] == ["others", "barrier", "bicycle"]
     assert meta["label_space"]["classes"][4]["occ3d_ids"] == [4]          # car
     assert meta["preprocess"]["width"] == 96 and meta["preprocess"]["height"] == 64
-    assert len(meta["rig"]["cameras"]) == 6
+    assert [c["name"] for c in meta["rig"]["cameras"]] == list(CAMERA_NAMES)
+    assert all((c["width"], c["height"]) == (96, 64) for c in meta["rig"]["cameras"])
+    assert len(meta["training_rig"]["cameras"]) == 6
     assert meta["text_encoder"]["dim"] == 384 and meta["text_encoder"]["id"]
     assert set(meta["banks"]) == {"train", "ow"}
     for entry in meta["files"].values():
@@ -56,7 +62,7 @@ def test_bundle_is_self_describing(env):
 
 def test_onnx_files_check_and_carry_metadata(env):
     ios = {"planes": (["images", "ego2img"], ["plane_xy", "plane_xz", "plane_yz"]),
-           "voxels_0": (["x", "bank"], ["y", "s"]), "voxels_1": (["x", "bank"], ["s"])}
+           "voxels_0": (["x"], ["y"])}       # a stage holds its layer only: no bank input, no bank product
     for name, (inputs, outputs) in ios.items():
         path = env["bundle"] / f"{name}.onnx"
         onnx.checker.check_model(str(path), full_check=True)
@@ -68,7 +74,7 @@ def test_onnx_files_check_and_carry_metadata(env):
         assert [o.name for o in model.graph.output] == outputs
         ops = {n.op_type for n in model.graph.node}
         assert "Softplus" not in ops and "NonZero" not in ops     # no data-dependent shapes
-    assert {n.op_type for n in onnx.load(str(env["bundle"] / "voxels_1.onnx")).graph.node} <= {"MatMul", "Transpose", "Gemm"}
+    assert {n.op_type for n in onnx.load(str(env["bundle"] / "voxels_0.onnx")).graph.node} <= {"MatMul", "Add", "Gemm"}
 
 
 def test_split_encoder_slabs_equal_the_torch_model_voxel_by_voxel(env):
@@ -104,7 +110,7 @@ def test_parity_report_within_tolerance(env):
         assert "ca9a282c9e77460f8360f564131a8af5" in p["frame"]       # checked on the real keyframe
     q = env["meta"]["parity"]["int8"]
     assert q["rel_err_feat"] > p["rel_err_feat"]                      # int8 really is a different model
-    assert all((env["bundle"] / f"{k}.int8.onnx").is_file() for k in ("planes", "voxels_0", "voxels_1"))
+    assert all((env["bundle"] / f"{k}.int8.onnx").is_file() for k in ("planes", "voxels_0"))
 
 
 def _torch_labels_on_random_frame(ckpt, bundle_dir, seed: int, grid_shape=None):
@@ -120,8 +126,7 @@ def _torch_labels_on_random_frame(ckpt, bundle_dir, seed: int, grid_shape=None):
     x, m = pred.prepare(images, rig)
     with torch.no_grad():
         out = model(torch.from_numpy(x), torch.from_numpy(m), grid_shape=grid_shape)
-    want = reference_labels(out["feat"][0].numpy(), out["feat_adapted"][0].numpy(), bank, b.heads.free_embedding,
-                            free_bias=b.heads.free_bias)
+    want = reference_labels(out["feat"][0].numpy(), out["feat_adapted"][0].numpy(), bank, b.heads)
     return pred, bank, images, rig, want
 
 
@@ -279,10 +284,11 @@ def test_canvas_frames_keep_maps_apart():
 
 @pytest.mark.parametrize("decoder_layers,adapter_depth", [(1, 1), (2, 3), (1, 4)])
 def test_voxel_stages_equal_the_model_for_any_depth(decoder_layers, adapter_depth):
-    """The staged per-voxel MLP (first linear in the planes, then one stage per layer, h and g where the
-    banks are applied) gives the model's forward_hidden for any decoder / adapter depth."""
+    """The staged per-voxel MLP (first linear in the planes, then one stage per layer: the decoder's toward h,
+    the adapter's from h to g) gives the model's forward_hidden for any decoder / adapter depth."""
     from ago_export.graphs import PlanesGraph, VoxelsReference, voxel_stages
     from ago_runtime.geometry.camera import Rig
+    from ago_runtime.predict.contract import Branch
     from ago_runtime.geometry.preprocess import Preprocess
     from ago_train.model import ModelConfig
 
@@ -291,28 +297,25 @@ def test_voxel_stages_equal_the_model_for_any_depth(decoder_layers, adapter_dept
     torch.manual_seed(2)
     model = cfg.build().eval()
     stages = voxel_stages(model)
-    assert [s.bank for s in stages].count("main") == 1 and stages[-1].bank == "adapted"
-    assert len(stages) == decoder_layers - 1 + max(1, adapter_depth - 1) + 1
+    assert [s.branch for s in stages] == [Branch.MAIN] * (decoder_layers - 1) + [Branch.ADAPTED] * max(1, adapter_depth - 1)
     x = torch.randn(1, 6, 3, cfg.image_height, cfg.image_width)
     m = torch.from_numpy(Preprocess(cfg.image_width, cfg.image_height).ego2img(Rig.nuscenes_like(1600, 900))[None])
     with torch.no_grad():
         h_t, g_t = model.forward_hidden(x, m)
         xy, xz, yz = PlanesGraph(model)(x, m)
-        bm, ba = torch.randn(5, h_t.shape[-1]), torch.randn(5, g_t.shape[-1])
-        h, g, s_main, s_ad = VoxelsReference(model)(xy, xz, yz, bm, ba)
+        h, g = VoxelsReference(model)(xy, xz, yz)
     assert torch.allclose(h, h_t[0], atol=1e-5) and torch.allclose(g, g_t[0], atol=1e-5)
-    assert torch.allclose(s_main, bm @ h_t[0].t(), atol=1e-4) and torch.allclose(s_ad, ba @ g_t[0].t(), atol=1e-4)
 
 
 def test_deeper_model_exports_and_keeps_parity(tmp_path):
-    """A 2-layer decoder and a 3-layer adapter: four voxel stages, runtime == torch."""
+    """A 2-layer decoder and a 3-layer adapter: three voxel stages, runtime == torch."""
     from ago_train.model import ModelConfig
 
     cfg = ModelConfig.preset("tiny")
     cfg.pretrained, cfg.decoder_layers, cfg.adapter_depth = False, 2, 3
     ckpt = random_checkpoint(tmp_path / "deep.pt", cfg, prompts="cw", seed=4)
     meta = export_bundle(ckpt, tmp_path / "b", bank_prompts=[], real_frame=False, log=lambda s: None)
-    assert [st["bank"] for st in meta["voxel_stages"]] == [None, "main", None, "adapted"]
+    assert [st["branch"] for st in meta["voxel_stages"]] == ["main", "adapted", "adapted"]
     p = meta["parity"]["fp32"]
     assert p["ok"] and min(p["agreement_main"], p["agreement_adapted"], p["agreement_identifier"]) >= 0.999
 

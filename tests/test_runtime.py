@@ -25,7 +25,18 @@ from ago_runtime.formats.calibration import load_calibration, save_calibration
 from ago_runtime.geometry.camera import CAMERA_NAMES, Rig
 from ago_runtime.classes import FREE, OCC3D_CLASSES, OCC3D_ID
 from ago_runtime.errors import AgoInputError
+from ago_runtime.predict import decision
+from ago_runtime.predict.contract import Branch, Identifier
 from ago_runtime.predict.heads import FoldedHeads, HeadWeights
+
+
+def decide_scores(folded, s_main, s_ad, identifier, volumes=False):
+    """The voxel decision of hand-made bias-free phrase scores (P+1, n) of both branches (every voxel)."""
+    z_main = folded.class_scores(s_main.copy(), Branch.MAIN)
+    free = decision.main_free(z_main, folded.num_classes)
+    need = decision.adapted_voxels(free, Identifier(identifier), volumes)
+    z_ad = folded.class_scores(s_ad[:, need].copy(), Branch.ADAPTED) if len(need) else None
+    return decision.decide(z_main, free, z_ad, need, identifier, folded.num_classes, folded.scales, volumes)
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_SAMPLE = REPO.parent / "shared" / "data" / "nuscenes-sample"
@@ -142,7 +153,9 @@ def test_folded_heads_match_unfolded_reference():
     for name, x, W, b in (("main", h, w.W_dec, w.b_dec), ("adapted", g, w.W_ad, w.b_ad)):
         s = (x.astype(np.float64) @ W.T.astype(np.float64) + b) @ np.concatenate([emb, w.free_embedding[None]]).T
         z = np.stack([s[:, :P][:, pc == k].max(1) for k in range(K)] + [s[:, P]], axis=1)
-        p = np.exp(z - z.max(1, keepdims=True))
+        # entropy and confidence: of the softmax over the K classes (free only decides occupancy), for every
+        # identifier, "none" included (ago_runtime.predict.decision)
+        p = np.exp(z[:, :K] - z[:, :K].max(1, keepdims=True))
         p /= p.sum(1, keepdims=True)
         ref[name] = (z.argmax(1), -(p * np.log(p)).sum(1), p.max(1))
     out = fh.run(h, g, "none", chunk=37)
@@ -235,30 +248,8 @@ def test_streamed_slabs_match_whole_grid_heads(bundle_dir, frame_dir, monkeypatc
         np.testing.assert_allclose(got.entropy, whole.entropy, atol=1e-4)
     # the score block of a slab stays within the budget: with a tiny budget every slab is one row
     monkeypatch.setattr(enc, "SCORE_BUDGET_BYTES", 1)
-    seen = [stop - start for start, stop, _s, _a in p.encoder.score_chunks(x, m, p.fold(bank))]
+    seen = [(x1 - x0) * 20 * 4 for x0, x1 in p.encoder.slabs(p.encoder.slab_rows(p.fold(bank).num_rows))]
     assert seen == [20 * 4] * 20 and SCORE_BUDGET_BYTES > 1
-
-
-def test_bank_scores_graph_is_the_generic_bank_product():
-    """The runtime's generic bank-product graph (no weights, every dimension symbolic): s = bank x^T for any
-    width, any number of phrases and voxels; the committed file is what ago_export.graphs writes."""
-    import onnxruntime as ort
-
-    from ago_runtime.predict.encoder import BANK_SCORES_GRAPH
-
-    sess = ort.InferenceSession(str(BANK_SCORES_GRAPH), providers=["CPUExecutionProvider"])
-    rng = np.random.default_rng(0)
-    for n, d, P in ((1, 3, 1), (777, 128, 46), (50, 384, 5)):
-        x = rng.normal(size=(n, d)).astype(np.float32)
-        bank = rng.normal(size=(P, d)).astype(np.float32)
-        (s,) = sess.run(["s"], {"x": x, "bank": bank})
-        np.testing.assert_allclose(s, bank.astype(np.float64) @ x.T.astype(np.float64), rtol=1e-5, atol=1e-4)
-    onnx = pytest.importorskip("onnx")
-    pytest.importorskip("torch")
-    from ago_export.graphs import bank_scores_model
-
-    committed, made = onnx.load(str(BANK_SCORES_GRAPH)), bank_scores_model()
-    assert committed.graph.SerializeToString() == made.graph.SerializeToString()
 
 
 def test_adapted_branch_runs_only_where_the_main_branch_sees_matter(bundle_dir, frame_dir, monkeypatch):
@@ -268,7 +259,6 @@ def test_adapted_branch_runs_only_where_the_main_branch_sees_matter(bundle_dir, 
     every voxel) on every voxel."""
     import ago_runtime.predict.encoder as enc
     from ago_runtime.formats.calibration import load_images_folder
-    from ago_runtime.predict.heads import MainPart
     from ago_runtime.predict.predictor import Predictor
 
     p = Predictor(bundle_dir)
@@ -288,24 +278,23 @@ def test_adapted_branch_runs_only_where_the_main_branch_sees_matter(bundle_dir, 
             adapter_rows = sum(rows)
             # the full computation: both branches' scores on every voxel, the adapted one used everywhere
             full = {k: [] for k in ("label", "entropy", "confidence", "branch", "unexplained", "occupancy", "need")}
-            for _a, _b, s_main, s_ad in p.encoder.score_chunks(x, m, folded, adapted=ident != "none" or volumes):
-                part = folded.main_part(s_main, ident, volumes)
-                if part.need is not None:
-                    full["need"].append(np.isin(np.arange(s_main.shape[1]), part.need))
-                    part = MainPart(part.identifier, part.main, part.free, np.arange(s_main.shape[1]),
-                                    part.p_occ, part.conf_main)
-                extras = {} if volumes else None
-                out = folded.finish(part, s_ad, extras)
-                for k, v in zip(("label", "entropy", "confidence", "branch"), out):
-                    full[k].append(v)
-                for k in (extras or {}):
-                    full[k].append(extras[k])
-            full = {k: np.concatenate(v) if v else None for k, v in full.items()}
+            for _a, _b, h, g in p.encoder.chunks(x, m):
+                z_main = folded.class_scores(p.encoder.scores(folded.A_main_T, h), Branch.MAIN)
+                free = decision.main_free(z_main, K)
+                full["need"].append(np.isin(np.arange(len(h)), decision.adapted_voxels(free, ident, volumes)))
+                z_ad = folded.class_scores(p.encoder.scores(folded.A_ad_T, g), Branch.ADAPTED)
+                d = decision.decide(z_main, free, z_ad, np.arange(len(h)), ident, K, folded.scales, volumes)
+                for k in ("label", "entropy", "confidence", "branch", "unexplained", "occupancy"):
+                    full[k].append(getattr(d, k))
+            full = {k: np.concatenate(v) if v[0] is not None else None for k, v in full.items()}
             np.testing.assert_array_equal(got.semantics.reshape(-1), full["label"])
             np.testing.assert_array_equal(got.branch.reshape(-1), full["branch"])
             np.testing.assert_allclose(got.entropy.reshape(-1), full["entropy"], atol=1e-5)
             np.testing.assert_allclose(got.confidence.reshape(-1), full["confidence"], atol=1e-5)
             occupied = got.semantics.reshape(-1) != K
+            if volumes:
+                np.testing.assert_allclose(got.unexplained.reshape(-1), full["unexplained"], atol=1e-5)
+                np.testing.assert_allclose(got.occupancy.reshape(-1), full["occupancy"], atol=1e-5)
             if ident == "none":
                 # labels from the main branch alone: the adapter runs only for the unexplained score
                 assert adapter_rows == (N if volumes else 0)
@@ -537,24 +526,32 @@ def test_refuses_newer_bundle_and_truncated_onnx(bundle_dir, frame_dir, tmp_path
     meta["format_version"] = 99
     (newer / "bundle.json").write_text(json.dumps(meta))
     assert_refused(_infer(newer, frame_dir, out), "bundle.json", out)
-    for old in (1, 2):          # one encoder.onnx; channels-first planes: re-export
+    for old in (1, 2, 3):       # one encoder.onnx; channels-first planes; voxel stages with bank products
         meta["format_version"] = old
         (newer / "bundle.json").write_text(json.dumps(meta))
         r = _infer(newer, frame_dir, out)
         assert_refused(r, "bundle.json", out)
-        assert "re-export" in r.stderr
+        assert f"bundle format version {old} is no longer read" in r.stderr
+        assert "re-export the checkpoint: `ago export CKPT -o BUNDLE_DIR`" in r.stderr
 
     cut = tmp_path / "cut"
     shutil.copytree(bundle_dir, cut)
     data = (cut / "voxels_0.onnx").read_bytes()
     (cut / "voxels_0.onnx").write_bytes(data[: len(data) // 3])
     assert_refused(_infer(cut, frame_dir, out), "voxels_0.onnx", out)
-    # Even with the recorded size/hash removed, onnxruntime's refusal becomes a one-line error.
+    # Even with the size and hash of the cut file recorded, onnxruntime's refusal becomes a one-line error.
+    from ago_runtime.predict.contract import file_sha256
+
     meta = json.loads((cut / "bundle.json").read_text())
+    meta["files"]["voxels_0"].update(size=(cut / "voxels_0.onnx").stat().st_size,
+                                     sha256=file_sha256(cut / "voxels_0.onnx"))
+    (cut / "bundle.json").write_text(json.dumps(meta))
+    assert_refused(_infer(cut, frame_dir, out), "voxels_0.onnx", out)
+    # without them bundle.json itself is incomplete
     for k in ("size", "sha256"):
         meta["files"]["voxels_0"].pop(k)
     (cut / "bundle.json").write_text(json.dumps(meta))
-    assert_refused(_infer(cut, frame_dir, out), "voxels_0.onnx", out)
+    assert_refused(_infer(cut, frame_dir, out), "bundle.json", out)
 
 
 def test_refuses_bank_of_other_encoder_or_width(bundle_dir, frame_dir, tmp_path):
@@ -567,15 +564,15 @@ def test_refuses_bank_of_other_encoder_or_width(bundle_dir, frame_dir, tmp_path)
         "known", "occ3d_ids")}, "encoder_id": "clip-vit-b32"})
     other.save(tmp_path / "other.npz")
     r = _infer(bundle_dir, frame_dir, out, "--bank", tmp_path / "other.npz")
-    assert_refused(r, str(bundle_dir), out)
+    assert_refused(r, "the bundle needs", out)
     assert r.stderr.startswith(f"error: {tmp_path / 'other.npz'}:")     # the bank is what must be rebuilt
     narrow = PromptBank(**{**{k: getattr(bank, k) for k in (
         "phrases", "class_names", "phrase_class", "encoder_id", "encoder_variant", "encoder_hash", "known",
         "occ3d_ids")}, "embeddings": bank.embeddings[:, :128], "dim": 128})
     narrow.save(tmp_path / "narrow.npz")
     r = _infer(bundle_dir, frame_dir, out, "--bank", tmp_path / "narrow.npz")
-    assert_refused(r, str(bundle_dir), out)
-    assert "dim 128" in r.stderr
+    assert_refused(r, "narrow.npz", out)
+    assert "dim 128" in r.stderr and "the bundle needs" in r.stderr
 
 
 def test_bundle_load_errors_name_the_file(bundle_dir, tmp_path):
@@ -641,13 +638,13 @@ def test_optimised_graph_cache_is_used_checked_and_remade(bundle_dir, frame_dir,
     """The first session of a graph writes onnxruntime's optimised graph to the cache; later sessions
     read it (same results); a damaged cache file is removed and remade; AGO_NO_ORT_CACHE=1 bypasses it."""
     from ago_runtime.formats.calibration import load_images_folder
-    from ago_runtime.predict.encoder import optimized_cache_path
+    from ago_runtime.cache import optimized_cache_path
     from ago_runtime.predict.predictor import Predictor
 
     monkeypatch.setenv("AGO_CACHE_DIR", str(tmp_path / "cache"))
     first = Predictor(bundle_dir)
     files = first.bundle.meta["files"]
-    cached = {k: optimized_cache_path(files[k]["sha256"]) for k in ("planes", "voxels_0", "voxels_1")}
+    cached = {k: optimized_cache_path(files[k]["sha256"]) for k in ("planes", "voxels_0")}
     assert all(p.is_file() and p.stat().st_size > 0 for p in cached.values())
     assert not [p for p in cached["planes"].parent.iterdir() if p.name.endswith(".tmp.onnx")]
     images, rig, _ = load_images_folder(frame_dir)
@@ -757,9 +754,8 @@ def test_unexplained_obstacle_score_on_hand_made_scores():
     ad = np.zeros((4, 4), np.float32)
     ad[:, 3] = [0, 9, 0, 0]
     for ident in ("none", "min-entropy"):
-        extras = {}
-        label, *_ = fh.classify_scores(main.copy(), ad.copy(), ident, extras)
-        u, occ = extras["unexplained"], extras["occupancy"]
+        d = decide_scores(fh, main, ad, ident, volumes=True)
+        label, u, occ = d.label, d.unexplained, d.occupancy
         assert u.shape == occ.shape == (4,) and np.all((u >= 0) & (u <= 1)) and np.all((occ >= 0) & (occ <= 1))
         flagged = (occ > 0.5) & (u > UNEXPLAINED_THRESHOLD)
         assert occ[1] < 0.01 and occ[0] > 0.99 and occ[2] > 0.99
@@ -787,13 +783,12 @@ def test_unexplained_score_sees_reference_classes_and_keeps_the_labels():
     s_user = np.array([[9, 0, 0], [0, 0, 0], [0, 2, 9]], np.float32)
     s_ref = np.array([[9, 0, 0], [0, 0, 0], [0, 9, 0], [0, 2, 9]], np.float32)
     for ident in ("none", "min-entropy"):
-        e_user, e_ref = {}, {}
-        lab_u, *_ = user.classify_scores(s_user.copy(), s_user.copy(), ident, e_user)
-        lab_r, *_ = with_ref.classify_scores(s_ref.copy(), s_ref.copy(), ident, e_ref)
-        np.testing.assert_array_equal(lab_u, lab_r)
-        assert lab_r[1] == 2                     # labels: free for the user's classes (index K = 2)
-        assert e_user["occupancy"][1] < 0.3      # without reference classes it looks free
-        assert e_ref["occupancy"][1] > 0.9 and e_ref["unexplained"][1] > 0.9   # with them: occupied, unexplained
-        assert e_ref["unexplained"][0] < 0.01 and e_ref["occupancy"][2] < 0.01
+        d_user = decide_scores(user, s_user, s_user, ident, volumes=True)
+        d_ref = decide_scores(with_ref, s_ref, s_ref, ident, volumes=True)
+        np.testing.assert_array_equal(d_user.label, d_ref.label)
+        assert d_ref.label[1] == 2                # labels: free for the user's classes (index K = 2)
+        assert d_user.occupancy[1] < 0.3          # without reference classes it looks free
+        assert d_ref.occupancy[1] > 0.9 and d_ref.unexplained[1] > 0.9   # with them: occupied, unexplained
+        assert d_ref.unexplained[0] < 0.01 and d_ref.occupancy[2] < 0.01
     with pytest.raises(ValueError):
         FoldedHeads(w, np.eye(2, C, dtype=np.float32), np.arange(2), 2, reference_classes=2)

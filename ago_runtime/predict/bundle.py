@@ -1,38 +1,32 @@
 """`Bundle`: an exported model folder (what `ago export` writes and `ago infer` reads), read and checked.
 
-A bundle is self-describing, like torchvision's Weights: it carries the grid, the label space the
-model was trained with, the text encoder its banks must come from, the preprocessing and the
-camera rig it was trained with. Layout (see docs/runtime.md):
+A bundle is self-describing: bundle.json (its schema is ago_runtime/predict/contract.py, `BundleContract`)
+carries the grid, the label space the model was trained with, the text encoder its banks must come from,
+the preprocessing, the camera rig, and the sha256 of every file. Layout (format 4):
 
     bundle_dir/
-      bundle.json        metadata (below); format_version, sha256 of every file
-      planes.onnx        images (1,6,3,H,W) f32 + ego2img (1,6,4,4) f32 -> plane_xy (X,Y,Dh),
+      bundle.json        the contract (format_version 4)
+      planes.onnx        images (1,V,3,H,W) f32 + ego2img (1,V,4,4) f32 -> plane_xy (X,Y,Dh),
                          plane_xz (X,Z,Dh), plane_yz (Y,Z,Dh): the TPV planes at the grid's resolution
                          times the decoder's first linear layer, channels last
-      voxels_<i>.onnx    the per-voxel MLP, one graph per layer: x (n, d) -> y = x W^T + b and, for
-                         the stages whose input is h or g, the folded bank's scores (bundle.json
-                         "voxel_stages"; ago_runtime/predict/encoder.py)
+      voxels_<i>.onnx    the per-voxel MLP after the planes, one graph per linear layer: x (n, d) -> y = x W^T + b
+                         (contract "voxel_stages"; ago_runtime/predict/encoder.py)
       planes.int8.onnx, voxels_<i>.int8.onnx   optional: dynamically quantised (`ago export --int8`)
       heads.npz          W_dec (C,Dh), b_dec (C,), W_ad (C,Da), b_ad (C,), free_embedding (C,),
                          branch_scales (2,) the identifier's logit scales (main, adapted; absent = 1, 1),
-                         free_bias (1,) added to the main branch's free score (absent = 0)
+                         free_bias (1,) added to the main branch's free score (absent = 0),
+                         adapted_mean (C,), adapted_cov (C,C) optional: the adapted branch's standardisation
       banks/<name>.npz   prompt banks (ago_runtime.vocab.bank.PromptBank files); "train" = the
                          training label space's embeddings stored in the checkpoint
+      card.json          optional (ago_export/card.py): what the model was trained on
 
-`card.json` (optional, ago_export/card.py): what the model was trained on; `Bundle.card`, `card_line`.
-
-`Bundle.load(dir)` refuses (AgoInputError naming the file) a missing folder or file, a newer
-format_version, a file whose sha256 differs from bundle.json (e.g. a truncated ONNX), heads of
-the wrong shapes.
-
-Format versions: 3 = the split encoder above (files "planes", "voxels_<i>"; channels-last planes
-with the decoder's first linear inside planes.onnx). Format 2 (planes (D, X, Y) channels first) and
-format 1 (one monolithic `encoder.onnx`) are refused with a message to re-export the checkpoint.
+`Bundle.load(dir)` refuses (AgoInputError naming the file) a missing folder or file, another format
+version (older ones with the `ago export` command that re-exports them), a file whose sha256 or size
+differs from bundle.json, heads of the wrong shapes.
 """
 
 from __future__ import annotations
 
-import hashlib
 import os
 import zipfile
 from dataclasses import dataclass, field
@@ -40,18 +34,16 @@ from pathlib import Path
 
 import numpy as np
 
-from ago_runtime.geometry.camera import Rig
 from ago_runtime.errors import AgoInputError
-from ago_runtime.paths import inside_root
-from ago_runtime.readers import check_npz, read_json
+from ago_runtime.geometry.camera import Rig
 from ago_runtime.geometry.grid import Grid
-from ago_runtime.predict.heads import HeadWeights
 from ago_runtime.geometry.preprocess import Preprocess
+from ago_runtime.paths import inside_root
+from ago_runtime.predict.contract import (BUNDLE_FORMAT, BUNDLE_FORMAT_VERSION, BUNDLE_JSON, BundleContract,  # noqa: F401
+                                          Identifier, check_bank_fits, file_sha256)
+from ago_runtime.predict.heads import HeadWeights
+from ago_runtime.readers import check_npz, read_json
 
-BUNDLE_FORMAT = "ago-bundle"
-BUNDLE_FORMAT_VERSION = 3
-ENCODER_FILES = ("planes",)      # plus the voxel stages listed in bundle.json "voxel_stages"
-BUNDLE_JSON = "bundle.json"
 CARD_FILE = "card.json"          # written by ago_export/card.py
 ENV_BUNDLE = "AGO_BUNDLE"
 DEFAULT_BUNDLE_DIR = Path(__file__).resolve().parents[1] / "assets" / "default_bundle"
@@ -60,72 +52,84 @@ HOW_TO_MAKE_DEFAULT = ("build one with scripts/make_default_bundle.sh (synth dat
                        "train -> ago export), or pass --bundle DIR / set $AGO_BUNDLE")
 
 
-def file_sha256(path: str | Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
+@dataclass
+class FileRef:
+    """A bundle file: where it is and its sha256 (for the optimised-graph cache)."""
+
+    path: Path
+    sha256: str
 
 
 @dataclass
 class Bundle:
     root: Path
-    meta: dict
+    contract: BundleContract
     grid: Grid
     preprocess: Preprocess
-    rig: Rig                       # the training rig at native image size
+    rig: Rig                       # the training rig's calibration at native image size (fallback calibration)
     heads: HeadWeights
-    label_space: dict              # {"name", "classes": [{"name", "occ3d_ids", "known"}], ...}
-    text_encoder: dict             # {"id", "hash", "dim"}
     banks: dict[str, Path] = field(default_factory=dict)
     card: dict | None = None       # card.json (what the model was trained on), None when the bundle has none
 
+    @property
+    def meta(self) -> dict:
+        """bundle.json's content (the contract as a dict)."""
+        return self.contract.to_dict()
+
+    @property
+    def label_space(self):
+        return self.contract.label_space
+
+    @property
+    def text_encoder(self):
+        return self.contract.text_encoder
+
     # ---- paths -----------------------------------------------------------------------------
-    def encoder_paths(self, int8: bool = False) -> dict:
-        """{"planes": path, "voxels": [stage spec + "path", ...]} (bundle.json "voxel_stages"); int8: the
-        quantised graphs."""
-        files = self.meta["files"]
+    def file(self, key: str) -> FileRef:
+        entry = self.contract.files[key]
+        return FileRef(self.root / entry.path, entry.sha256)   # paths checked under the root by Bundle.load
+
+    def encoder_graphs(self, int8: bool = False):
+        """-> (planes FileRef, [StageGraph, ...]) of the float32 graphs, or the quantised ones with int8."""
+        from ago_runtime.predict.encoder import StageGraph
+
         suffix = "_int8" if int8 else ""
-
-        def path(key):
-            entry = files.get(key + suffix)
-            if entry is None:
-                raise AgoInputError(self.root, "bundle has no int8 encoder (export with `ago export --int8`)")
-            return self.root / entry["path"]
-
-        return {"planes": path("planes"),   # paths checked under the root by Bundle.load
-                "voxels": [{**st, "path": path(st["file"]), "sha256": files[st["file"] + suffix].get("sha256")}
-                           for st in self.meta["voxel_stages"]]}
+        if int8 and BundleContract.PLANES + suffix not in self.contract.files:
+            raise AgoInputError(self.root, "bundle has no int8 encoder (export with `ago export --int8`)")
+        stages = []
+        for st in self.contract.voxel_stages:
+            ref = self.file(st.file + suffix)
+            stages.append(StageGraph(st, ref.path, ref.sha256))
+        return self.file(BundleContract.PLANES + suffix), stages
 
     @property
     def default_bank(self) -> str:
-        return self.meta.get("default_bank", "train")
+        return self.contract.default_bank
 
     @property
-    def identifier(self) -> str:
+    def identifier(self) -> Identifier:
         """The open-world identifier (bundle.json "identifier"), used for banks with unknown classes."""
-        return self.meta.get("identifier", "min-entropy")
+        return self.contract.identifier
 
     @property
     def trained_classes(self) -> list[str]:
-        return [str(c["name"]) for c in self.label_space.get("classes", [])]
+        return self.contract.label_space.class_names
 
     def check_bank(self, bank, source=None) -> None:
-        """A bank made by another text encoder or of another width than this bundle's: AgoInputError."""
-        te = self.text_encoder
-        bank.check_compatible(te["id"], int(te["dim"]), source or self.root)
+        """A bank made by another text encoder or of another width than this bundle's, or with more classes
+        than `ago infer` writes: AgoInputError."""
+        check_bank_fits(bank, self.contract.text_encoder, source or self.root)
 
-    def identifier_for(self, bank) -> str:
+    def identifier_for(self, bank) -> Identifier:
         """The default identifier for `bank` (ago_runtime.predict.heads.default_identifier): the
-        open-world one when the bank holds classes this bundle was not trained on, else "none"."""
+        open-world one when the bank holds classes this bundle was not trained on, else NONE."""
         from .heads import default_identifier
 
         return default_identifier(bank.class_names, bank.known, self.trained_classes, self.identifier)
 
     @property
     def embed_dim(self) -> int:
-        return int(self.text_encoder["dim"])
+        return int(self.contract.text_encoder.dim)
 
     def bank_path(self, name: str | None = None) -> Path:
         name = name or self.default_bank
@@ -146,53 +150,33 @@ class Bundle:
             raise AgoInputError(root, "bundle folder not found")
         meta_path = root / BUNDLE_JSON
         meta = read_json(meta_path, missing="not an ago bundle (no bundle.json)")
-        if not isinstance(meta, dict) or meta.get("format") != BUNDLE_FORMAT:
-            raise AgoInputError(meta_path, f"not an ago bundle (format tag is not {BUNDLE_FORMAT!r})")
-        version = meta.get("format_version")
-        if not isinstance(version, int) or version < 1:
-            raise AgoInputError(meta_path, f"bad format_version {version!r}")
-        if version < BUNDLE_FORMAT_VERSION:
-            raise AgoInputError(meta_path, f"bundle format version {version} is no longer read (this ago reads "
-                                f"{BUNDLE_FORMAT_VERSION}); re-export the checkpoint with `ago export`")
-        if version > BUNDLE_FORMAT_VERSION:
-            raise AgoInputError(meta_path, f"bundle format version {version} is newer than this ago reads "
-                                f"({BUNDLE_FORMAT_VERSION}); upgrade ago or re-export the model")
+        contract = BundleContract.from_dict(meta, meta_path)
         try:
-            grid = Grid.from_dict(meta["grid"])
-            pre = Preprocess.from_dict(meta["preprocess"])
-            rig = Rig.from_dict(meta["rig"])
-            label_space = meta["label_space"]
-            text_encoder = meta["text_encoder"]
-            files = meta["files"]
-            stages = meta["voxel_stages"]
-            if not isinstance(stages, list) or not 1 <= len(stages) <= MAX_VOXEL_STAGES:
-                raise ValueError(f"voxel_stages must list 1 to {MAX_VOXEL_STAGES} stages")
-            for key in ENCODER_FILES + ("heads",) + tuple(st["file"] for st in stages):
-                files[key]["path"]
-            if not isinstance(files, dict) or not all(isinstance(e, dict) for e in files.values()):
-                raise TypeError("files must map names to {path, sha256, size}")
+            grid = Grid.from_dict(contract.grid)
+            pre = Preprocess.from_dict(contract.preprocess)
+            rig = Rig.from_dict(contract.training_rig)
         except (KeyError, TypeError, ValueError, AttributeError, AgoInputError) as e:
             raise AgoInputError(meta_path, f"bundle metadata incomplete or malformed ({e.__class__.__name__}: {e})") from None
-        _check_meta_sizes(meta, grid, meta_path)
+        _check_meta_sizes(contract, grid, meta_path)
         rig.validate(str(meta_path))
-        for key, entry in files.items():
-            p = inside_root(root, entry["path"], meta_path, f"bundle file {key!r}")
+        if sorted(contract.rig.names) != sorted(c.name for c in rig.cameras):
+            raise AgoInputError(meta_path, f"rig cameras {contract.rig.names} differ from the training rig's")
+        for key, entry in contract.files.items():
+            p = inside_root(root, entry.path, meta_path, f"bundle file {key!r}")
             if not p.is_file():
                 raise AgoInputError(p, f"bundle file {key!r} is missing")
-            if "size" in entry and p.stat().st_size != int(entry["size"]):
-                raise AgoInputError(p, f"file has {p.stat().st_size} bytes, bundle.json says {entry['size']} "
+            if p.stat().st_size != entry.size:
+                raise AgoInputError(p, f"file has {p.stat().st_size} bytes, bundle.json says {entry.size} "
                                     "(truncated or replaced; re-export the bundle)")
-            if verify_hashes and "sha256" in entry and file_sha256(p) != entry["sha256"]:
+            if verify_hashes and file_sha256(p) != entry.sha256:
                 raise AgoInputError(p, "sha256 differs from bundle.json (corrupt or replaced; re-export the bundle)")
-        heads = _load_heads(root / files["heads"]["path"], int(text_encoder["dim"]))
-        if not isinstance(meta.get("banks", {}), dict):
-            raise AgoInputError(meta_path, "banks must map bank names to files")
-        banks = {name: inside_root(root, rel, meta_path, f"bank {name!r}") for name, rel in meta.get("banks", {}).items()}
+        heads = _load_heads(root / contract.files[BundleContract.HEADS].path, contract.text_encoder.dim)
+        banks = {name: inside_root(root, rel, meta_path, f"bank {name!r}") for name, rel in contract.banks.items()}
         for name, p in banks.items():
             if not p.is_file():
                 raise AgoInputError(p, f"bundle bank {name!r} is missing")
         card = read_json(root / CARD_FILE, expect=dict) if (root / CARD_FILE).is_file() else None
-        bundle = cls(root, meta, grid, pre, rig, heads, label_space, text_encoder, banks, card)
+        bundle = cls(root, contract, grid, pre, rig, heads, banks, card)
         if "train" in banks:   # the label space bundle.json states is the training bank's
             names = bundle.load_bank("train").class_names
             if names != bundle.trained_classes:
@@ -201,14 +185,13 @@ class Bundle:
         return bundle
 
 
-MAX_VOXEL_STAGES = 16           # an exported decoder has 2-4
 MAX_BUNDLE_VOXELS = 1 << 25     # 33 M voxels (Occ3D's 200x200x16 is 640 k)
 
 
-def _check_meta_sizes(meta: dict, grid: Grid, meta_path: Path) -> None:
-    """Refuse, before any array is made, sizes in bundle.json that do not agree or could not be allocated:
-    the grid (its shape against range / voxel size, its voxel count), the class list, the embedding width."""
-    stated = meta["grid"].get("shape")
+def _check_meta_sizes(contract: BundleContract, grid: Grid, meta_path: Path) -> None:
+    """Refuse, before any array is made, a grid in bundle.json that does not agree with itself or could not be
+    allocated (the class list and the embedding width are bounded by BundleContract.from_dict)."""
+    stated = contract.grid.get("shape")
     shape = grid.shape
     if min(grid.voxel_size) <= 0 or min(shape) <= 0:
         raise AgoInputError(meta_path, f"grid has {shape} voxels of {grid.voxel_size} m")
@@ -216,15 +199,6 @@ def _check_meta_sizes(meta: dict, grid: Grid, meta_path: Path) -> None:
         raise AgoInputError(meta_path, f"grid shape {stated} does not match its range / voxel size ({list(shape)})")
     if grid.num_voxels > MAX_BUNDLE_VOXELS:
         raise AgoInputError(meta_path, f"grid of {grid.num_voxels} voxels, more than ago predicts ({MAX_BUNDLE_VOXELS})")
-    from ago_runtime.vocab.bank import MAX_INFER_CLASSES
-
-    classes = meta["label_space"].get("classes") if isinstance(meta["label_space"], dict) else None
-    if (not isinstance(classes, list) or not 1 <= len(classes) <= MAX_INFER_CLASSES
-            or not all(isinstance(c, dict) and isinstance(c.get("name"), str) for c in classes)):
-        raise AgoInputError(meta_path, f"label_space.classes must list 1 to {MAX_INFER_CLASSES} classes with names")
-    dim = meta["text_encoder"].get("dim") if isinstance(meta["text_encoder"], dict) else None
-    if not isinstance(dim, int) or not 1 <= dim <= 8192:
-        raise AgoInputError(meta_path, f"text_encoder.dim must be an integer 1..8192, got {dim!r}")
 
 
 def _load_heads(path: Path, dim: int) -> HeadWeights:
@@ -282,8 +256,8 @@ def card_line(bundle: Bundle) -> str:
     """One line saying what the bundle's model was trained on (its card's summary), for `ago infer` / `ago demo`."""
     if bundle.card and bundle.card.get("summary"):
         return f"bundle: {' '.join(str(bundle.card['summary']).split())}"
-    step = (bundle.meta.get("checkpoint") or {}).get("step")
-    known = f" (checkpoint step {step}, label space {bundle.label_space.get('name')})" if step is not None else ""
+    step = bundle.contract.checkpoint.get("step")
+    known = f" (checkpoint step {step}, label space {bundle.label_space.name})" if step is not None else ""
     if bundle.root.resolve() == DEFAULT_BUNDLE_DIR:
         return ("bundle: the shipped default bundle has no bundle card" + known + "; it is the small demo model "
                 "scripts/make_default_bundle.sh trains on the SYNTHETIC world - not a nuScenes model")
@@ -291,13 +265,10 @@ def card_line(bundle: Bundle) -> str:
 
 
 def check_heads_fit_encoder(bundle: Bundle, encoder) -> None:
-    """Refuse, naming heads.npz, heads whose hidden widths differ from the voxel graph's (h: Dh, g: Da)."""
-    widths = getattr(encoder, "widths", None)   # the hidden widths the voxel stages give: {"main": Dh, "adapted": Da}
-    if not widths:
-        return   # an encoder without such stages: nothing to compare
-    dh, da = int(widths["main"]), int(widths["adapted"])
+    """Refuse, naming heads.npz, heads whose hidden widths differ from the bundle's (h: Dh, g: Da)."""
+    dh, da = bundle.contract.hidden_dim, bundle.contract.adapted_dim
     h = bundle.heads
     if (h.W_dec.shape[1], h.W_ad.shape[1]) != (dh, da):
-        path = bundle.root / bundle.meta["files"]["heads"]["path"]
+        path = bundle.file(BundleContract.HEADS).path
         raise AgoInputError(path, f"heads take hidden widths Dh {h.W_dec.shape[1]}, Da {h.W_ad.shape[1]} but the "
                             f"voxel stages give Dh {dh}, Da {da} (mixed files from two exports? re-export the bundle)")

@@ -165,6 +165,7 @@ def prediction_picture(pred, images: dict | None, title: str = "", kind: str = "
     """The PNG of one prediction. kind "full": class BEV, entropy BEV, adapted-branch share, legend and
     the six cameras; "bev": the class BEV and the legend only (a few ms)."""
     from ago_runtime.pictures import render
+    from ago_runtime.predict.contract import Identifier
     from ago_runtime.predict.predictor import UNEXPLAINED_THRESHOLD
 
     colors = render.palette_for(pred.class_names)
@@ -176,7 +177,7 @@ def prediction_picture(pred, images: dict | None, title: str = "", kind: str = "
         occupied = pred.semantics != pred.free_index
         ent = render.scalar_bev(pred.entropy, mask=occupied, label="entropy (nats)", grid=pred.grid, scale=scale)
         panels.append(("entropy, max over z", ent))
-        if pred.identifier != "none":
+        if pred.identifier != Identifier.NONE:
             share = render.scalar_bev(pred.branch.astype(np.float32), reduce="mean", mask=occupied, vmin=0, vmax=1,
                                       label="adapted share", grid=pred.grid, scale=scale)
             panels.append(("identifier: adapted branch share", share))
@@ -224,13 +225,13 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
     writing overlap; ago_runtime/predict/pipeline.py). Gives the files written."""
     from ago_runtime.outputs import check_output_dir
     from ago_runtime.predict.bundle import Bundle, card_line, resolve_bundle
-    from ago_runtime.predict.heads import IDENTIFIERS
+    from ago_runtime.predict.contract import Identifier
     from ago_runtime.predict.pipeline import FramePipeline, PipelineFrame
     from ago_runtime.shards import parse_shard
 
     one_line_warnings()
-    if identifier is not None and identifier not in IDENTIFIERS:
-        raise AgoInputError("--identifier", f"must be one of {', '.join(IDENTIFIERS)}, got {identifier!r}")
+    if identifier is not None:
+        identifier = Identifier.parse(identifier, "--identifier")
     if picture not in PICTURES:
         raise AgoInputError("--picture", f"must be one of {', '.join(PICTURES)}, got {picture!r}")
     if workers is not None and not 1 <= int(workers) <= 64:

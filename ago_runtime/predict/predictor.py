@@ -6,10 +6,10 @@
 
 Steps: Preprocess (resize to the model's input size, ImageNet normalisation; intrinsics scaled to
 match) -> the ONNX encoder (onnxruntime; ago_runtime/predict/encoder.py: the TPV planes once, then the
-per-voxel MLPs slab by slab) -> for each slab, hidden features h (n, Dh), g (n, Da) -> the bank
-folded into the linear heads (ago_runtime.predict.heads.FoldedHeads): phrase scores, max over each class's
-phrases, softmax over [K classes + free], entropy, identifier, argmax. The whole grid's (N, Dh) and
-(N, Da) features never exist at once, so memory follows the slab, not the grid.
+per-voxel MLPs slab by slab) -> the slab loop (ago_runtime.predict.classifier.VoxelClassifier): the bank
+folded into the linear heads (ago_runtime.predict.heads.FoldedHeads), class scores, and the voxel decision
+(ago_runtime.predict.decision: free, identifier, entropy, label). The whole grid's (N, Dh) and (N, Da)
+features never exist at once, so memory follows the slab, not the grid.
 
 Swapping the bank (a new prompt file) changes the classes with no retraining and no re-export:
 folding a bank costs one (P+1, C) x (C, Dh) product, cached per bank.
@@ -24,14 +24,19 @@ from pathlib import Path
 
 import numpy as np
 
-from ago_runtime.predict.bundle import Bundle, check_heads_fit_encoder
+from ago_runtime.classes import FREE, OCC3D_CLASSES
+from ago_runtime.errors import AgoInputError
 from ago_runtime.formats.calibration import fit_rig_to_images
 from ago_runtime.geometry.camera import Rig
-from ago_runtime.classes import FREE, OCC3D_CLASSES
-from ago_runtime.predict.encoder import open_encoder
-from ago_runtime.errors import AgoInputError
 from ago_runtime.geometry.grid import Grid
-from ago_runtime.predict.heads import IDENTIFIERS, FoldedHeads
+from ago_runtime.predict.bundle import Bundle, check_heads_fit_encoder
+from ago_runtime.predict.classifier import FrameFeatures, VoxelClassifier
+from ago_runtime.predict.contract import Identifier
+from ago_runtime.predict.encoder import open_encoder
+from ago_runtime.predict.heads import FoldedHeads
+from ago_runtime.vocab.bank import check_class_count
+
+__all__ = ["Predictor", "Prediction", "FrameFeatures", "prepare_inputs", "occ3d_lookup", "UNEXPLAINED_THRESHOLD"]
 
 
 @dataclass
@@ -44,7 +49,7 @@ class Prediction:
     entropy: np.ndarray            # (X, Y, Z) float32, nats, of the chosen branch
     confidence: np.ndarray         # (X, Y, Z) float32, max softmax probability of the chosen branch
     branch: np.ndarray             # (X, Y, Z) uint8: 0 = original (main) branch, 1 = adapted branch
-    identifier: str
+    identifier: Identifier
     grid: Grid
     occ3d: np.ndarray | None = None   # (X, Y, Z) uint8 Occ3D ids (free = 17) when every class is one Occ3D class
     timings: dict = field(default_factory=dict)   # seconds: preprocess, encoder, heads
@@ -82,7 +87,7 @@ class Prediction:
 
 
 # A voxel is flagged as an unexplained obstacle when it is occupied (p_occ > 0.5) and its score
-# 1 - (best prompted-class probability) exceeds this (heads.FoldedHeads.classify_scores, against the
+# 1 - (best prompted-class probability) exceeds this (decision.decide with volumes, against the
 # prompted + reference classes: fold_with_reference): no branch gives any prompted class more than half
 # of its probability. Measured in benchmarks/unexplained_obstacles.py (AUROC, share flagged at 0.5).
 UNEXPLAINED_THRESHOLD = 0.5
@@ -106,7 +111,10 @@ def bank_key(bank) -> str:
 
 def prepare_inputs(bundle: Bundle, images: dict[str, np.ndarray], rig: Rig, source=None) -> tuple[np.ndarray, np.ndarray]:
     """Six images + their rig -> a bundle's model inputs: images (1, 6, 3, H, W) float32, ego2img (1, 6, 4, 4)
-    float32 (needs the bundle only, no sessions: `ago infer` reads its first frame while they open)."""
+    float32 (needs the bundle only, no sessions: `ago infer` reads its first frame while they open). A frame
+    whose cameras are not the bundle's rig's is refused, naming the camera."""
+    bundle.contract.rig.check_cameras(images.keys(), source)
+    bundle.contract.rig.check_cameras([c.name for c in rig.cameras], source)
     rig.validate(source)
     rig = fit_rig_to_images(rig, images)
     pre = bundle.preprocess
@@ -121,11 +129,12 @@ class Predictor:
     def __init__(self, bundle: Bundle | str | Path, int8: bool = False, threads: int | None = None,
                  chunk: int | None = None, warm_up: bool = True):
         """warm_up: run each graph once on dummy inputs now, so that the first frame runs at the steady-state
-        speed; False lets the first frame pay onnxruntime's first-run allocations instead (~0.04 s against a ~0.2 s
-        dummy frame: `ago infer` runs without it, benchmarks/results/infer_warm_up.md)."""
+        speed; False lets the first frame pay onnxruntime's first-run allocations instead (`ago infer` runs without
+        it, benchmarks/results/infer_warm_up.md)."""
         self.bundle = bundle if isinstance(bundle, Bundle) else Bundle.load(bundle)
         self.encoder = open_encoder(self.bundle, int8, threads, warm_up=warm_up)
         check_heads_fit_encoder(self.bundle, self.encoder)   # a bad heads.npz is named as such
+        self.classifier = VoxelClassifier(self.encoder)
         self.chunk = chunk   # voxels per head chunk in predict_hidden; None = FoldedHeads.default_chunk
         self._folded: dict[str, FoldedHeads] = {}
 
@@ -188,13 +197,11 @@ class Predictor:
         return self.encoder.hidden(x, m)
 
     # ---- prediction ------------------------------------------------------------------------
-    def predict(self, images: dict[str, np.ndarray], rig: Rig, bank=None, identifier: str | None = None,
+    def predict(self, images: dict[str, np.ndarray], rig: Rig, bank=None, identifier: Identifier | str | None = None,
                 source=None, volumes: bool = False) -> Prediction:
         """Six images (dict camera -> RGB uint8) + their rig + a bank (default: the bundle's) -> Prediction."""
         bank = bank if bank is not None else self.bundle.load_bank()
-        identifier = identifier or self.bundle.identifier_for(bank)
-        if identifier not in IDENTIFIERS:
-            raise AgoInputError(None, f"identifier must be one of {IDENTIFIERS}, got {identifier!r}")
+        identifier = Identifier.parse(identifier, "identifier") if identifier else self.bundle.identifier_for(bank)
         folded = self.fold_with_reference(bank) if volumes else self.fold(bank)
         t0 = time.perf_counter()
         x, m = self.prepare(images, rig, source)
@@ -203,11 +210,14 @@ class Predictor:
         pred.timings = {"preprocess": t1 - t0, **pred.timings}
         return pred
 
-    def predict_arrays(self, x: np.ndarray, m: np.ndarray, bank, identifier: str = "min-entropy",
+    def predict_arrays(self, x: np.ndarray, m: np.ndarray, bank, identifier: Identifier = Identifier.MIN_ENTROPY,
                        folded: FoldedHeads | None = None, volumes: bool = False,
                        planes: list[np.ndarray] | None = None, features: FrameFeatures | None = None) -> Prediction:
         """Preprocessed inputs -> Prediction, slab by slab: the main branch on every voxel, then the
-        adapted branch only on the voxels that need it (`classify_slabs`).
+        adapted branch only on the voxels that need it (VoxelClassifier).
+
+        folded: `self.fold(bank)` (or, with volumes, `self.fold_with_reference(bank)`) when the caller has it;
+        None folds here.
 
         planes: this frame's `self.encoder.plane_maps(x, m)` when the caller already has them (re-querying
         the same frame with another bank skips the planes graph); None runs it.
@@ -217,31 +227,28 @@ class Predictor:
         timings: "encoder" = the graphs (planes, voxel stages and the bank products) and the numpy glue
         between them (plane sums, softplus, gathers), "heads" = the numpy heads (class max, softmax,
         entropy, identifier)."""
-        # the unexplained-obstacle score needs the reference classes (fold_with_reference); labels are the same
-        folded = self.fold_with_reference(bank) if volumes else (folded or self.fold(bank))
-        self._check_classes(bank)
-        label_dtype = np.uint8 if bank.num_classes + 1 <= 255 else np.uint16
-        out, timings = classify_slabs(self.encoder, folded, x, m, identifier, volumes, label_dtype, planes, features)
+        identifier = Identifier(identifier)
+        if folded is None:
+            # the unexplained-obstacle score needs the reference classes (fold_with_reference); labels are the same
+            folded = self.fold_with_reference(bank) if volumes else self.fold(bank)
+        check_class_count(bank.num_classes, None)
+        out, timings = self.classifier.classify(x, m, folded, identifier, volumes, planes, features)
         pred = self._prediction(out, bank, identifier)
         pred.timings = timings
         return pred
 
-    def _check_classes(self, bank) -> None:
-        if bank.num_classes + 1 > 255:
-            raise AgoInputError(None, f"a bank with {bank.num_classes} classes does not fit uint8 semantics "
-                                "(max 254 classes)")
-
-    def predict_hidden(self, h: np.ndarray, g: np.ndarray, bank, identifier: str = "min-entropy",
+    def predict_hidden(self, h: np.ndarray, g: np.ndarray, bank, identifier: Identifier = Identifier.MIN_ENTROPY,
                        folded: FoldedHeads | None = None) -> Prediction:
         """Whole-grid hidden features -> Prediction (heads only; benchmarks and tests)."""
         folded = folded or self.fold(bank)
-        self._check_classes(bank)
+        check_class_count(bank.num_classes, None)
+        identifier = Identifier(identifier)
         return self._prediction(folded.run(h, g, identifier, self.chunk), bank, identifier)
 
-    def _prediction(self, out: dict, bank, identifier: str) -> Prediction:
+    def _prediction(self, out: dict, bank, identifier: Identifier) -> Prediction:
         shape = self.grid.shape
         K = bank.num_classes
-        sem = out["label"].astype(np.uint8).reshape(shape)
+        sem = out["label"].reshape(shape)
         lut = occ3d_lookup(bank)
         return Prediction(
             semantics=sem, class_names=list(bank.class_names), free_index=K,
@@ -252,84 +259,3 @@ class Predictor:
             occupancy=out["occupancy"].reshape(shape) if "occupancy" in out else None)
 
 
-class FrameFeatures:
-    """What a frame's prediction computes that no bank changes, kept to re-query that frame with other banks
-    (`Predictor.predict_arrays(..., features=...)`): the TPV planes (planes.onnx) and the decoder's h of every
-    voxel, slab by slab (the bank enters only after h: its products with h and g, the heads). A re-query then
-    runs only the bank products, the adapter's stages on the voxels that need them, and the heads.
-
-    Memory: h costs 4 * Dh bytes a voxel (100x100x8, Dh 128: 41 MB; 200x200x16: 328 MB); hold one only while
-    re-querying its frame. Filled by the first prediction that is given it; the frame's own inputs are not
-    checked (give it the same x, m each time)."""
-
-    def __init__(self, planes: list[np.ndarray] | None = None):
-        self.planes = planes
-        self.hidden: dict[tuple[int, int], np.ndarray] = {}   # (x0, x1) rows -> h (n, Dh)
-
-    def hidden_slab(self, encoder, x0: int, x1: int) -> np.ndarray:
-        """h of rows [x0, x1): sliced from a kept slab that covers them, else computed and kept."""
-        row = encoder.grid.shape[1] * encoder.grid.shape[2]
-        for (a, b), h in self.hidden.items():
-            if a <= x0 and x1 <= b:
-                return h[(x0 - a) * row:(x1 - a) * row]
-        h = encoder.hidden_slab(self.planes, x0, x1)
-        self.hidden[(x0, x1)] = h
-        return h
-
-    @property
-    def nbytes(self) -> int:
-        return sum(p.nbytes for p in self.planes or []) + sum(h.nbytes for h in self.hidden.values())
-
-
-def classify_slabs(encoder, folded: FoldedHeads, x: np.ndarray, m: np.ndarray, identifier: str = "min-entropy",
-                   volumes: bool = False, label_dtype=np.uint8, planes: list[np.ndarray] | None = None,
-                   features: FrameFeatures | None = None):
-    """One frame through the encoder and the folded heads, slab by slab -> (out, timings): out = dict of
-    (N,) arrays label, entropy, confidence, branch (+ unexplained, occupancy with volumes).
-
-    Per slab: h of every voxel and the main branch's scores; `FoldedHeads.main_part` says which voxels
-    need the adapted branch (those the main branch calls occupied; every voxel with volumes, for the
-    unexplained-obstacle score); only their h is gathered and run through the adapter's stages and the
-    adapted bank's product. Free voxels take the main branch's label, entropy, confidence and branch 0
-    (FoldedHeads.finish), exactly what they took when the adapted branch ran on every voxel."""
-    encoder.check_folded(folded)
-    n = encoder.grid.num_voxels
-    out = {"label": np.empty(n, label_dtype), "entropy": np.empty(n, np.float32),
-           "confidence": np.empty(n, np.float32), "branch": np.empty(n, np.uint8)}
-    if volumes:
-        out["unexplained"] = np.empty(n, np.float32)
-        out["occupancy"] = np.empty(n, np.float32)
-    extras = {} if volumes else None
-    t_enc = t_heads = 0.0
-    t = time.perf_counter()
-    if features is not None:
-        if features.planes is None:
-            features.planes = planes if planes is not None else encoder.plane_maps(x, m)
-        planes = features.planes
-    elif planes is None:
-        planes = encoder.plane_maps(x, m)
-    row = encoder.grid.shape[1] * encoder.grid.shape[2]
-    for x0, x1 in encoder.slabs(encoder.slab_rows(folded)):
-        h = features.hidden_slab(encoder, x0, x1) if features is not None else encoder.hidden_slab(planes, x0, x1)
-        s_main = encoder.scores(folded.A_main_T, h)
-        t2 = time.perf_counter()
-        t_enc += t2 - t
-        part = folded.main_part(s_main, identifier, volumes)
-        t3 = time.perf_counter()
-        t_heads += t3 - t2
-        s_ad = None
-        if part.need is not None and len(part.need):
-            h_need = h if len(part.need) == len(h) else h[part.need]   # need is sorted: all = arange(n)
-            s_ad = encoder.scores(folded.A_ad_T, encoder.adapted_hidden(h_need))
-        t4 = time.perf_counter()
-        t_enc += t4 - t3
-        label, ent, conf, br = folded.finish(part, s_ad, extras)
-        sl = slice(x0 * row, x1 * row)
-        if volumes:
-            out["unexplained"][sl] = extras["unexplained"]
-            out["occupancy"][sl] = extras["occupancy"]
-        out["label"][sl], out["entropy"][sl] = label, ent
-        out["confidence"][sl], out["branch"][sl] = conf, br
-        t = time.perf_counter()
-        t_heads += t - t4
-    return out, {"encoder": t_enc, "heads": t_heads}

@@ -213,12 +213,7 @@ def check_class_count(num_classes: int, source) -> None:
 def check_bank_for_bundle(bank: PromptBank, bank_path, bundle) -> PromptBank:
     """`bank` when it can be used with `bundle` (same text encoder id and width, a class count `ago infer`
     can write); else AgoInputError naming the BANK file (it is the bank that has to be rebuilt)."""
-    te = bundle.text_encoder
-    if bank.encoder_id != te["id"] or int(bank.dim) != int(te["dim"]):
-        raise AgoInputError(bank_path, f"prompt bank made by text encoder {bank.encoder_id!r} (dim {bank.dim}), "
-                            f"the bundle {bundle.root} needs {te['id']!r} (dim {te['dim']}); rebuild it with "
-                            "`ago prompts build <prompt file> -o BANK`")
-    check_class_count(bank.num_classes, bank_path)
+    bundle.check_bank(bank, bank_path)   # text encoder id and width, class count (ago_runtime.predict.contract)
     return bank
 
 

@@ -255,10 +255,8 @@ def bundle_text_encoder(bundle) -> OnnxTextEncoder:
     """The ONNX text encoder for a bundle's banks and phrases (its own text_encoder.onnx first, then the
     default search); refused, naming the encoder file, unless its id and width are the bundle's."""
     encoder = default_text_encoder(bundle_dir=bundle.root)
-    te = bundle.text_encoder
-    if encoder.encoder_id != te["id"] or int(encoder.dim) != int(te["dim"]):
-        raise AgoInputError(encoder.onnx_path, f"text encoder {encoder.encoder_id!r} (dim {encoder.dim}) cannot "
-                            f"make banks for this bundle, which needs {te['id']!r} (dim {te['dim']})")
+    bundle.text_encoder.check_made_by(encoder.encoder_id, encoder.dim, encoder.onnx_path, "text encoder",
+                                      "it cannot make banks for this bundle")
     return encoder
 
 

@@ -29,6 +29,7 @@ import numpy as np
 
 from ago_runtime.atomic import write_json
 from ago_runtime.errors import AgoInputError
+from ago_runtime.predict.contract import Identifier
 from ago_runtime.readers import read_json
 
 from . import records
@@ -70,18 +71,20 @@ def views_for(spec: RunSpec, ow_prompts: str) -> list[View]:
     """Every way a run is scored by any experiment (one forward pass per frame covers all)."""
     variant = dict(spec.loss).get("variant", "ago")
     if spec.setting == "cw":
-        views = [View("cw", "cw", "none")]
+        views = [View("cw", "cw", Identifier.NONE)]
         if variant == "ago":
-            views += [View("cw-min-entropy", "cw", "min-entropy")]
+            views += [View("cw-min-entropy", "cw", Identifier.MIN_ENTROPY)]
         return views
-    views = [View("ow-none", ow_prompts, "none")]
+    views = [View("ow-none", ow_prompts, Identifier.NONE)]
     if variant == "grounding" and spec.setting == "ow":
-        views.append(View("ow-closed", ow_prompts, "none", closed_set=True))
+        views.append(View("ow-closed", ow_prompts, Identifier.NONE, closed_set=True))
     if variant in ("ago", "grounding+align"):
-        views += [View("ow-max-conf", ow_prompts, "max-conf"), View("ow-min-entropy", ow_prompts, "min-entropy"),
-                  View("ow-adapted", ow_prompts, "adapted")]
+        views += [View("ow-max-conf", ow_prompts, Identifier.MAX_CONF),
+                  View("ow-min-entropy", ow_prompts, Identifier.MIN_ENTROPY),
+                  View("ow-adapted", ow_prompts, Identifier.ADAPTED)]
     if variant == "ago" and not dict(spec.model) and len(spec.loss) == 1:   # the main ago runs (Tab. 2 / 4)
-        views += [View(f"ow-min-entropy-x{s:g}", ow_prompts, "min-entropy", adapted_scale=s) for s in ADAPTED_SCALES]
+        views += [View(f"ow-min-entropy-x{s:g}", ow_prompts, Identifier.MIN_ENTROPY, adapted_scale=s)
+                  for s in ADAPTED_SCALES]
     return views
 
 

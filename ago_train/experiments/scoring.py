@@ -6,8 +6,9 @@ classifier baseline) and a few statistics for the figures; running the encoder o
 and scoring every `View` from its output costs one eval instead of five.
 
 A `View` is (prompt file, identifier, closed_set):
-- identifier "none" (F_3D only), "max-conf" / "min-entropy" (the open-world identifier between
-  F_3D and the adapted F~_3D, ago_train.model.scoring.open_world_identify) or "adapted" (F~_3D only);
+- identifier (ago_runtime.predict.contract.Identifier): NONE (F_3D only), MAX_CONF / MIN_ENTROPY (the
+  open-world identifier between F_3D and the adapted F~_3D, ago_train.model.scoring.open_world_identify)
+  or ADAPTED (F~_3D only);
 - closed_set=True drops the phrases of the label space's unknown classes, so they can never be
   predicted: a closed-world classifier over the known classes (the SelfOcc-like baseline);
 - adapted_scale multiplies the adapted branch's logits before its softmax (a diagnostic: the adapted
@@ -40,17 +41,21 @@ from ..dataset import FrameList, OccSampleDataset, collate
 from ..evaluate import (_pct, _to_gt_resolution, bank_for, checkpoint_adapted_stats, checkpoint_scales, load_model,
                         scored_subsets, scored_voxels)
 from ..model.scoring import adapted_logits, class_logits, entropy, open_world_identify
-
-IDENTIFIERS = ("none", "max-conf", "min-entropy", "adapted")
-
+from ago_runtime.predict.contract import Identifier
 
 @dataclass(frozen=True)
 class View:
     name: str
     prompts: str                 # prompt file path
-    identifier: str = "none"
+    identifier: Identifier = Identifier.NONE
     closed_set: bool = False
     adapted_scale: float = 1.0   # multiplies the adapted branch's logits (a temperature; 1 = the model's own)
+
+    def __post_init__(self):
+        try:
+            object.__setattr__(self, "identifier", Identifier(self.identifier))
+        except ValueError:
+            raise ValueError(f"view {self.name}: unknown identifier {self.identifier!r}") from None
 
 
 @dataclass
@@ -73,9 +78,9 @@ def _bank(ckpt: dict, prompts: str, closed_set: bool) -> _Bank:
     return _Bank(space, text.float(), pc.long(), class_text.float())
 
 
-def _labels(main: torch.Tensor, adapted: torch.Tensor | None, identifier: str, K: int,
+def _labels(main: torch.Tensor, adapted: torch.Tensor | None, identifier: Identifier, K: int,
             scales: tuple[float, float] = (1.0, 1.0)) -> torch.Tensor:
-    if identifier == "none":
+    if identifier == Identifier.NONE:
         return main.argmax(-1)
     pred, _branch, _h = open_world_identify(main, adapted, identifier, K, *scales)
     return pred
@@ -130,9 +135,6 @@ def evaluate_views(ckpt_path: str | Path, data: str | Path, views: list[View], s
 
     from ..trainer import open_frames
 
-    for v in views:
-        if v.identifier not in IDENTIFIERS:
-            raise ValueError(f"view {v.name}: unknown identifier {v.identifier!r}")
     dev = torch.device("cpu")
     ckpt = load_checkpoint(ckpt_path, map_location="cpu")
     mcfg, model = load_model(ckpt, dev, ckpt_path)
@@ -183,7 +185,7 @@ def evaluate_views(ckpt_path: str | Path, data: str | Path, views: list[View], s
             main = class_logits(out["feat"], b.text, b.phrase_class, K, free, None, free_bias=out.get("free_bias"))[0]
             adapted = (adapted_logits(out["feat_adapted"], b.text, b.phrase_class, K, free, adapted_stats)[0]
                        * v.adapted_scale
-                       if v.identifier != "none" or v.name == stats_view else None)
+                       if v.identifier != Identifier.NONE or v.name == stats_view else None)
             labels = on_grid(_labels(main, adapted, v.identifier, K, scales).numpy().astype(np.uint8), K)
             labels = labels.reshape(grid.shape)
             gt = luts[v.name][gt_occ]
@@ -207,7 +209,7 @@ def evaluate_views(ckpt_path: str | Path, data: str | Path, views: list[View], s
         summary = m.summary()
         results[v.name] = {
             "checkpoint": str(ckpt_path), "split": split, "frames": len(indices), "label_space": space.name,
-            "identifier": v.identifier, "closed_set": v.closed_set,
+            "identifier": v.identifier.value, "closed_set": v.closed_set,
             "mIoU": summary["mIoU"], "mIoU_star": _pct(m.miou_star()), "geometry_IoU": summary["geometry_IoU"],
             "subsets": {name: _pct(m.miou(sub)) if sub else None for name, sub in subsets.items()},
             "metric": summary,

@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import torch
 
+from ago_runtime.predict.contract import Identifier
+
 NO_PHRASE_SCORE = -1e4  # a class without any phrase scores this (finite, so CE/softmax stay defined)
 
 
@@ -79,19 +81,21 @@ def entropy(prob: torch.Tensor, dim: int = -1) -> torch.Tensor:
     return -(prob * torch.log(prob.clamp_min(1e-12))).sum(dim)
 
 
-def open_world_identify(logits_main: torch.Tensor, logits_adapted: torch.Tensor, mode: str = "min-entropy",
+def open_world_identify(logits_main: torch.Tensor, logits_adapted: torch.Tensor,
+                        mode: Identifier = Identifier.MIN_ENTROPY,
                         num_classes: int | None = None, scale_main: float = 1.0, scale_adapted: float = 1.0
                         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Per voxel: free or occupied from the main branch, and the class from the branch it trusts.
+    """Per voxel: free or occupied from the main branch, and the class from the branch it trusts: the torch
+    form of ago_runtime.predict.decision.decide (the specification; tests/test_decision.py compares them).
 
     logits_*: (..., K + 1 [+ Nn]) in this module's column order (noise columns are dropped).
     1. Occupancy: the main branch's argmax over [K classes + free] (F_3D is the branch trained on free
        space; F~_3D is aligned only on occupied voxels, so its free column means nothing).
     2. Class of an occupied voxel: P = softmax(scale_main * main[:K]), P~ = softmax(scale_adapted *
        adapted[:K]), both over the K classes (the scales come from ago_train/calibrate.py, fitted on
-       known-class training voxels); "min-entropy" takes the branch with the lower entropy (the
-       paper's c_v = 1[H(P) <= H(P~)]), "max-conf" the one with the higher max probability, "none" the
-       main one, "adapted" the adapted one.
+       known-class training voxels); MIN_ENTROPY takes the branch with the lower entropy (the
+       paper's c_v = 1[H(P) <= H(P~)]), MAX_CONF the one with the higher max probability, NONE the
+       main one, ADAPTED the adapted one.
     Returns pred (...) int64 in 0..K (K = free), branch (...) int64 (1 = adapted; 0 for free voxels) and
     the chosen branch's class entropy (...).
     """
@@ -100,16 +104,18 @@ def open_world_identify(logits_main: torch.Tensor, logits_adapted: torch.Tensor,
     p_main = torch.softmax(scale_main * logits_main[..., :K].float(), -1)
     p_adap = torch.softmax(scale_adapted * logits_adapted[..., :K].float(), -1)
     h_main, h_adap = entropy(p_main), entropy(p_adap)
-    if mode == "min-entropy":
+    try:
+        mode = Identifier(mode)
+    except ValueError:
+        raise ValueError(f"unknown open-world mode {mode!r}; expected one of {', '.join(Identifier.names())}") from None
+    if mode == Identifier.MIN_ENTROPY:
         use_adapted = h_adap < h_main
-    elif mode == "max-conf":
+    elif mode == Identifier.MAX_CONF:
         use_adapted = p_adap.amax(-1) > p_main.amax(-1)
-    elif mode == "none":
+    elif mode == Identifier.NONE:
         use_adapted = torch.zeros_like(h_main, dtype=torch.bool)
-    elif mode == "adapted":
-        use_adapted = torch.ones_like(h_main, dtype=torch.bool)
     else:
-        raise ValueError(f"unknown open-world mode {mode!r}; expected min-entropy, max-conf, none or adapted")
+        use_adapted = torch.ones_like(h_main, dtype=torch.bool)
     use_adapted = use_adapted & occupied
     cls = torch.where(use_adapted, p_adap.argmax(-1), p_main.argmax(-1))
     pred = torch.where(occupied, cls, torch.full_like(cls, K))
