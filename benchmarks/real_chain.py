@@ -50,6 +50,12 @@ MEASURES = (("depth_error_mean_m", "depth error mean (m)", "lower"),
 TARGETS = ("depth_error_median_m", "lidar_hits_in_occupied_pct", "occupied_seen_free_pct")
 
 
+def threads_prefix() -> str:
+    """`OMP_NUM_THREADS=n ` when the run was limited to n torch/OpenMP threads (part of the command), else ""."""
+    n = os.environ.get("OMP_NUM_THREADS")
+    return f"OMP_NUM_THREADS={n} " if n else ""
+
+
 def run_stage(name: str, args: list[str], work: Path, log) -> dict:
     """`python -m ago_runtime ARGS` under /usr/bin/time; its stdout/stderr go to work/<name>.log."""
     timing = work / f"{name}.time"
@@ -130,7 +136,7 @@ def main(argv=None) -> dict:
     by = {s["stage"]: s for s in stages}
     pl_per = by["pseudo_labels"]["seconds"] / max(1, len(train))
     inf_per = by["infer_real"]["seconds"] / max(1, len(val))
-    command = "nice -n 10 python benchmarks/real_chain.py " + " ".join(shlex.quote(str(a)) for a in (argv or sys.argv[1:]))
+    command = threads_prefix() + "nice -n 10 python benchmarks/real_chain.py " + " ".join(shlex.quote(str(a)) for a in (argv or sys.argv[1:]))
     if args.cut:
         split_text = (f"a cut of `{source}` made by benchmarks/dataroot_cut.py: its first {len(train)} keyframes are "
                       f"split train, the next {len(val)} split val, two scenes with a splits.json, so no train "

@@ -100,7 +100,7 @@ def main(argv=None) -> dict:
     header = "| run | " + " | ".join(label for _, label, _ in real_chain.MEASURES) + " |"
     rule = "|---|" + "---:|" * len(real_chain.MEASURES)
     synth_sel = selection[candidates[0]]["results"]["synthetic"]
-    command = "nice -n 10 python benchmarks/real_chain_select.py " + " ".join(
+    command = real_chain.threads_prefix() + "nice -n 10 python benchmarks/real_chain_select.py " + " ".join(
         shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
     met = test["target_met"]
     lines = [
