@@ -56,6 +56,14 @@ def threads_prefix() -> str:
     return f"OMP_NUM_THREADS={n} " if n else ""
 
 
+def last_logged_step(log_jsonl: Path) -> int:
+    """The last step in a training log.jsonl (0 when there is none)."""
+    if not log_jsonl.is_file():
+        return 0
+    lines = [ln for ln in log_jsonl.read_text().splitlines() if ln.strip()]
+    return int(json.loads(lines[-1]).get("step", 0)) if lines else 0
+
+
 def run_stage(name: str, args: list[str], work: Path, log) -> dict:
     """`python -m ago_runtime ARGS` under /usr/bin/time; its stdout/stderr go to work/<name>.log."""
     timing = work / f"{name}.time"
@@ -110,9 +118,16 @@ def main(argv=None) -> dict:
     stages.append(run_stage("pseudo_labels", ["pseudo-labels", "--data", data, "--out", work / "pseudo",
                                               "--segmenter", "boxes", "--split", "train",
                                               "--keyframes", str(args.keyframes)], work, log))
+    done = [ln for ln in (work / "pseudo_labels.log").read_text().splitlines() if ln.startswith("pseudo-labels:")]
+    if done and " 0 already there" not in done[-1]:
+        stages[-1]["note"] = f"resumed: {done[-1].split(' -> ')[0]} (the wall time is this run's part only)"
     resume = ["--resume"] if (work / "train" / "last.pt").is_file() else []
+    start_step = last_logged_step(work / "train" / "log.jsonl") if resume else 0
     stages.append(run_stage("train", ["train", "--config", "cpu", "--data", data, "--pseudo", work / "pseudo",
                                       "--out", work / "train", "--set", f"max_steps={args.steps}", *resume], work, log))
+    if resume:
+        stages[-1]["note"] = (f"resumed from last.pt (log at step {start_step} when resumed): the wall time covers "
+                              "only the steps after the last checkpoint")
     stages.append(run_stage("export", ["export", work / "train" / "last.pt", "-o", work / "bundle",
                                        "--parity-frame", data, "--readout-grid", "200x200x16", "--train-bank-only"],
                             work, log))
@@ -153,6 +168,7 @@ def main(argv=None) -> dict:
         f"Bundle card of the real-trained model: `{card}`", "",
         "| stage | wall (s) | peak RSS (MB) | command |", "|---|---:|---:|---|",
         *[f"| {s['stage']} | {s['seconds']} | {s['peak_rss_mb']} | `{s['command']}` |" for s in stages], "",
+        *[f"- {s['stage']}: {s['note']}" for s in stages if s.get("note")], "",
         f"## LiDAR measures on the {len(val)} val keyframes", "",
         "| measure | real-trained (boxes) | shipped synthetic bundle | better |", "|---|---:|---:|---|",
         *[f"| {label} | {results['real'][key]} | {results['synthetic'][key]} | "
