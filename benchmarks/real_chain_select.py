@@ -84,7 +84,7 @@ def measure_row(label: str, res: dict) -> str:
 
 
 def stage_rows(run: dict, label: str) -> list[str]:
-    return [f"| {label} | {s['stage']} | {s['seconds']} | {s['peak_rss_mb']} |" + (f" {s['note']}" if s.get("note") else "")
+    return [f"| {label} | {s['stage']} | {s['seconds']} | {s['peak_rss_mb']} | {s.get('note', '')} |"
             for s in run["stages"]]
 
 
@@ -137,7 +137,7 @@ def report(args, command: str, candidates: list[int], selection: dict[int, dict]
     runs += [(f"test kf{chosen}", test)] if test is not None else []
     if runs:
         lines += ["## Per-stage wall time and peak RSS", "",
-                  "| run | stage | wall (s) | peak RSS (MB) |", "|---|---|---:|---:|",
+                  "| run | stage | wall (s) | peak RSS (MB) | note |", "|---|---|---:|---:|---|",
                   *[row for label, run in runs for row in stage_rows(run, label)], "",
                   "Wall times are from a machine shared with other engineers' work (2 cores, load 12-15 during "
                   "these runs), so they are loose; the per-run markdown files give each stage's command.", ""]

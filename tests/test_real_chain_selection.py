@@ -83,3 +83,22 @@ def test_rule_without_a_passing_recipe_counts_wins_then_depth_error():
     assert pick(runs) == 10                 # 3 and 10 win 2 of 3; 1 wins 1; tie -> lower median
     runs = {1: _run(1.8, 75.0, 12.0), 10: _run(1.8, 75.0, 12.0)}
     assert pick(runs) == 1                  # full tie -> fewer keyframes
+
+
+def test_report_says_incomplete_and_picks_nothing_until_every_candidate_ran():
+    import argparse
+
+    from benchmarks.real_chain import MEASURES
+    from benchmarks.real_chain_select import report
+
+    def run(median):
+        r = _run(median, 65.0, 6.0)
+        values = {key: 1.0 for key, _, _ in MEASURES}
+        r["results"] = {"real": {**values, "depth_error_median_m": median}, "synthetic": values}
+        r["stages"] = [{"stage": "train", "seconds": 1.0, "peak_rss_mb": 2, "note": "resumed"}]
+        return r
+
+    args = argparse.Namespace(data="D", steps=2000)
+    text = report(args, "cmd", [1, 3], {1: run(1.5)}, None, None)
+    assert "Status: incomplete" in text and "not finished: keyframes 3" in text
+    assert "Picked by the rule" not in text and "## Test" not in text and "| resumed |" in text
