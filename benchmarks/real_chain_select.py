@@ -158,7 +158,8 @@ def main(argv=None) -> dict:
     out_dir, work_root = out.parent, Path(args.work)
     candidates = [int(v) for v in args.candidates.split(",")]
     command = real_chain.threads_prefix() + "nice -n 10 python benchmarks/real_chain_select.py " + " ".join(
-        shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]) if a != "--report-only").rstrip()
+        shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]) if a != "--report-only")
+    command = command.rstrip()
 
     if args.report_only:
         selection = {k: r for k in candidates
