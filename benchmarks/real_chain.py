@@ -1,7 +1,13 @@
 """The real chain, measured (issue 35): a real nuScenes scene through every verb, scored against its LiDAR.
 
     nice -n 10 python benchmarks/real_chain.py [--data ../shared/data/nuscenes-scene] [--work work/real_chain] \
-        [--steps 2000] [--keyframes 3] [--out benchmarks/results/real_chain_kf3.md]
+        [--steps 2000] [--keyframes 3] [--cut TRAIN,VAL] [--out benchmarks/results/real_chain_kf3.md] [--json FILE]
+
+With `--cut TRAIN,VAL` the chain runs on WORK/data, a cut of the one-scene dataroot made by
+benchmarks/dataroot_cut.py: its first TRAIN keyframes are split "train", the next VAL split "val", as two
+scenes with a splits.json, so pseudo-labels of train frames never superimpose a val frame. `--cut 22,8`
+holds out the last 8 of the 30 default training keyframes (recipe selection, real_chain_select.py);
+`--cut 30,11` is the default split without that neighbour overlap (the test run).
 
 Stages, each an `ago` subprocess as a user would run it (wall time and peak RSS from /usr/bin/time):
 1. `ago pseudo-labels --segmenter boxes --split train` (labels from the dataset's own 3D boxes + LiDAR
@@ -44,6 +50,20 @@ MEASURES = (("depth_error_mean_m", "depth error mean (m)", "lower"),
 TARGETS = ("depth_error_median_m", "lidar_hits_in_occupied_pct", "occupied_seen_free_pct")
 
 
+def threads_prefix() -> str:
+    """`OMP_NUM_THREADS=n ` when the run was limited to n torch/OpenMP threads (part of the command), else ""."""
+    n = os.environ.get("OMP_NUM_THREADS")
+    return f"OMP_NUM_THREADS={n} " if n else ""
+
+
+def last_logged_step(log_jsonl: Path) -> int:
+    """The last step in a training log.jsonl (0 when there is none)."""
+    if not log_jsonl.is_file():
+        return 0
+    lines = [ln for ln in log_jsonl.read_text().splitlines() if ln.strip()]
+    return int(json.loads(lines[-1]).get("step", 0)) if lines else 0
+
+
 def run_stage(name: str, args: list[str], work: Path, log) -> dict:
     """`python -m ago_runtime ARGS` under /usr/bin/time; its stdout/stderr go to work/<name>.log."""
     timing = work / f"{name}.time"
@@ -72,12 +92,21 @@ def main(argv=None) -> dict:
     ap.add_argument("--steps", type=int, default=2000, help="training steps")
     ap.add_argument("--keyframes", type=int, default=3, help="pseudo-labels: keyframes superimposed "
                     "(benchmarks/results/real_chain.md compares 1, 3 and 10)")
+    ap.add_argument("--cut", default=None, metavar="TRAIN,VAL", help="run on a cut of the dataroot: its first "
+                    "TRAIN keyframes as split train, the next VAL as split val (benchmarks/dataroot_cut.py)")
     ap.add_argument("--out", default=str(REPO / "benchmarks/results/real_chain_kf3.md"))
+    ap.add_argument("--json", default=None, help="also write the stages and measures as JSON here")
     args = ap.parse_args(argv)
     from ago_runtime.formats.nuscenes import NuScenesDataset
 
     data, work = Path(args.data), Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
+    source = data
+    if args.cut:
+        from benchmarks.dataroot_cut import cut_dataroot
+        n_train, n_val = (int(v) for v in args.cut.split(","))
+        cut_dataroot(source, work / "data", n_train, n_val)
+        data = work / "data"
     ds = NuScenesDataset(data, load_images=False, load_extras=False)
     train, val = ds.split("train"), ds.split("val")
     val_tokens = [ds.sample_tokens[i] for i in val]
@@ -89,21 +118,29 @@ def main(argv=None) -> dict:
     stages.append(run_stage("pseudo_labels", ["pseudo-labels", "--data", data, "--out", work / "pseudo",
                                               "--segmenter", "boxes", "--split", "train",
                                               "--keyframes", str(args.keyframes)], work, log))
+    done = [ln for ln in (work / "pseudo_labels.log").read_text().splitlines() if ln.startswith("pseudo-labels:")]
+    if done and " 0 already there" not in done[-1]:
+        stages[-1]["note"] = f"resumed: {done[-1].split(' -> ')[0]} (the wall time is this run's part only)"
     resume = ["--resume"] if (work / "train" / "last.pt").is_file() else []
+    start_step = last_logged_step(work / "train" / "log.jsonl") if resume else 0
     stages.append(run_stage("train", ["train", "--config", "cpu", "--data", data, "--pseudo", work / "pseudo",
                                       "--out", work / "train", "--set", f"max_steps={args.steps}", *resume], work, log))
+    if resume:
+        stages[-1]["note"] = (f"resumed from last.pt (log at step {start_step} when resumed): the wall time covers "
+                              "only the steps after the last checkpoint")
     stages.append(run_stage("export", ["export", work / "train" / "last.pt", "-o", work / "bundle",
                                        "--parity-frame", data, "--readout-grid", "200x200x16", "--train-bank-only"],
                             work, log))
     sample_args = [a for t in val_tokens for a in ("--sample", t)]
-    results = {}
+    results, per_frame = {}, {}
     for name, bundle in (("real", ["--bundle", work / "bundle"]), ("synthetic", [])):
         pred = work / f"pred_{name}"
         stages.append(run_stage(f"infer_{name}", ["infer", "--images", data, *bundle, *sample_args, "--out", pred,
                                                   "--picture", "none"], work, log))
         stages.append(run_stage(f"metric_{name}", ["metric", "--pred", pred, "--lidar", data, "--allow-missing",
                                                    "--json", work / f"metric_{name}.json"], work, log))
-        results[name] = json.loads((work / f"metric_{name}.json").read_text())["lidar"]["overall"]
+        scored = json.loads((work / f"metric_{name}.json").read_text())["lidar"]
+        results[name], per_frame[name] = scored["overall"], scored.get("per_frame")
     card = (work / "infer_real.log").read_text().splitlines()[0]
 
     def better(key, how):
@@ -114,17 +151,24 @@ def main(argv=None) -> dict:
     by = {s["stage"]: s for s in stages}
     pl_per = by["pseudo_labels"]["seconds"] / max(1, len(train))
     inf_per = by["infer_real"]["seconds"] / max(1, len(val))
-    command = "nice -n 10 python benchmarks/real_chain.py " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
+    command = threads_prefix() + "nice -n 10 python benchmarks/real_chain.py " + " ".join(shlex.quote(str(a)) for a in (argv or sys.argv[1:]))
+    if args.cut:
+        split_text = (f"a cut of `{source}` made by benchmarks/dataroot_cut.py: its first {len(train)} keyframes are "
+                      f"split train, the next {len(val)} split val, two scenes with a splits.json, so no train "
+                      f"pseudo-label superimposes a val keyframe")
+    else:
+        split_text = (ds.split_note("train") or "train split from splits.json") + "; val = " + \
+                     (ds.split_note("val") or "val split from splits.json")
     lines = [
         "# The real chain on one nuScenes scene (issue 35)", "",
         f"Command: `{command}` ({time.strftime('%Y-%m-%d')}, this 2-core CPU shared with other work; niced).", "",
-        f"Data: `{data}` ({len(ds)} keyframes; no splits.json, so train = the first {len(train)}, val = the "
-        f"other {len(val)}). Pseudo-labels from the dataset's 3D boxes + LiDAR ground (`--segmenter boxes`, no "
+        f"Data: `{data}` ({len(ds)} keyframes; {split_text}). Pseudo-labels from the dataset's 3D boxes + LiDAR ground (`--segmenter boxes`, no "
         f"VLM, no image embeddings), `ago train --config cpu` for {args.steps} steps, export, `ago infer` on the "
         f"{len(val)} val keyframes, `ago metric --lidar` (docs/metric_and_pictures.md).", "",
         f"Bundle card of the real-trained model: `{card}`", "",
         "| stage | wall (s) | peak RSS (MB) | command |", "|---|---:|---:|---|",
         *[f"| {s['stage']} | {s['seconds']} | {s['peak_rss_mb']} | `{s['command']}` |" for s in stages], "",
+        *[f"- {s['stage']}: {s['note']}" for s in stages if s.get("note")], "",
         f"## LiDAR measures on the {len(val)} val keyframes", "",
         "| measure | real-trained (boxes) | shipped synthetic bundle | better |", "|---|---:|---:|---|",
         *[f"| {label} | {results['real'][key]} | {results['synthetic'][key]} | "
@@ -144,7 +188,12 @@ def main(argv=None) -> dict:
     ]
     write_text(Path(args.out), "\n".join(lines))
     log(f"wrote {args.out}")
-    return {"stages": stages, "results": results, "wins": wins}
+    summary = {"command": command, "data": str(data), "train_frames": len(train), "val_frames": len(val),
+               "keyframes": args.keyframes, "steps": args.steps, "stages": stages, "results": results,
+               "per_frame": per_frame, "wins": wins, "target_met": all(wins[k] for k in TARGETS), "card": card}
+    if args.json:
+        write_text(Path(args.json), json.dumps(summary, indent=1))
+    return summary
 
 
 if __name__ == "__main__":

@@ -19,6 +19,12 @@ Box classes: nuScenes categories -> Occ3D classes as nuScenes-lidarseg's 16-clas
 categories it maps to "ignore" (police car, bicycle rack, debris, pushable/pullable, animals, strollers,
 wheelchairs, personal mobility) are painted `others`. A class the prompt file does not cover is not painted.
 Needs the sample_annotation, instance and category tables (a trimmed extract usually has them).
+
+With `masks_out` (`ago pseudo-labels --segmenter boxes --write-masks DIR`) every label map it paints is
+also written in the label-map layout of docs/vlm_files.md, so the file backend reads it back as it is
+(`--segmenter files --masks DIR` gives the same pseudo-labels): DIR/classes.json maps id k + 1 to the
+name of label-space class k, DIR/<camera>/<image stem>.png holds the ids (0 = no label), 8-bit, at the
+image's size. Each file is written atomically; a folder whose classes.json says otherwise is refused.
 """
 
 from __future__ import annotations
@@ -28,14 +34,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ago_runtime.atomic import write_bytes, write_json
 from ago_runtime.errors import AgoInputError
+from ago_runtime.readers import read_json
 from ago_runtime.classes import OCC3D_ID
 from ago_runtime.formats.frame import Frame
 from ago_runtime.formats.nuscenes import find_version, load_table
 from ago_runtime.formats.nuscenes_schema import quaternion_to_matrix
 from ago_runtime.vocab.prompts import LabelSpace
 
-NO_LABEL = 255
+from .backends import FILE_NO_LABEL, NO_LABEL, image_stem   # files: 0 = no label; class k is written as k + 1
+
 GROUND_Z = 0.3           # metres above the ego frame's ground plane
 GROUND_RADIUS_PX = 6     # disc radius per ground return at 1600 px image width
 SURFACE_STEP = 0.1       # metres between sampled points on a box's faces
@@ -51,6 +60,27 @@ CATEGORY_CLASS = {
     "movable_object.barrier": "barrier", "movable_object.trafficcone": "traffic_cone",
 }
 GROUND_CLASS = "driveable_surface"
+
+
+def label_map_classes(label_space: LabelSpace) -> dict[str, str]:
+    """classes.json of written label maps: id k + 1 (a string) -> the name of label-space class k."""
+    return {str(k + 1): c.name for k, c in enumerate(label_space.classes)}
+
+
+def to_file_ids(labels: np.ndarray) -> np.ndarray:
+    """A segmenter's map (class indices, 255 = no label) -> label-map file ids (k + 1, 0 = no label)."""
+    return np.where(labels == NO_LABEL, FILE_NO_LABEL, labels.astype(np.int32) + 1).astype(np.uint8)
+
+
+def check_masks_dir(masks_out: str | Path, label_space: LabelSpace) -> Path:
+    """`masks_out` as a Path; refuse a folder whose classes.json maps the ids otherwise (nothing is written
+    here: the folder and its classes.json are made with the first label map)."""
+    root = Path(masks_out)
+    path = root / "classes.json"
+    if path.is_file() and read_json(path) != label_map_classes(label_space):
+        raise AgoInputError(path, f"maps the ids otherwise than label space {label_space.name!r} needs "
+                            f"({label_map_classes(label_space)}); give an empty --write-masks folder")
+    return root
 
 
 def box_corners_sampler(size_wlh) -> np.ndarray:
@@ -72,7 +102,7 @@ class BoxSegmenter:
 
     name = "boxes"
 
-    def __init__(self, data_root: str | Path, label_space: LabelSpace):
+    def __init__(self, data_root: str | Path, label_space: LabelSpace, masks_out: str | Path | None = None):
         root = Path(data_root)
         table_dir = root / find_version(root)
         missing = [t for t in BOX_TABLES if not (table_dir / f"{t}.json").is_file()]
@@ -92,6 +122,22 @@ class BoxSegmenter:
             cls = instance_class.get(r.get("instance_token"), "others")
             self.boxes.setdefault(r["sample_token"], []).append((m, np.asarray(r["size"], float), cls))
         self.root = root
+        # where painted maps are also written (the file layout), or None; not part of config_dict: it
+        # does not change the labels, so a resumed run may add or drop it
+        self.masks_out = check_masks_dir(masks_out, label_space) if masks_out is not None else None
+        self.masks_classes = label_map_classes(label_space)
+
+    def write_label_map(self, frame: Frame, camera: str, labels: np.ndarray) -> Path:
+        """Write `labels` as masks_out/<camera>/<image stem>.png (docs/vlm_files.md layout), atomically."""
+        path = self.masks_out / camera / f"{image_stem(frame, camera)}.png"
+        ok, png = cv2.imencode(".png", to_file_ids(labels))
+        if not ok:
+            raise AgoInputError(path, "could not encode the label map as PNG")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if not (self.masks_out / "classes.json").is_file():
+            write_json(self.masks_out / "classes.json", self.masks_classes)
+        write_bytes(path, png.tobytes())
+        return path
 
     def config_dict(self) -> dict:
         return {"source": "dataset boxes (sample_annotation) + LiDAR ground, not a VLM",
@@ -103,6 +149,13 @@ class BoxSegmenter:
         return [(global2ego @ m, wlh, cls) for m, wlh, cls in self.boxes.get(frame.token, [])]
 
     def segment(self, frame: Frame, camera: str) -> np.ndarray:
+        labels = self.paint(frame, camera)
+        if self.masks_out is not None:
+            self.write_label_map(frame, camera, labels)
+        return labels
+
+    def paint(self, frame: Frame, camera: str) -> np.ndarray:
+        """The label map of one camera image (see the module doc)."""
         cam = frame.rig[camera]
         out = np.full((cam.height, cam.width), NO_LABEL, np.uint8)
         boxes = self.frame_boxes(frame)

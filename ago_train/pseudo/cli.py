@@ -27,8 +27,9 @@ def parse_grid(text: str):
 
 
 def build_backends(prompts: str, segmenter: str, masks: Path | None, embedder: str, feats: Path | None,
-                   seed: int, data: Path | None = None):
-    """(label_space, segmenter, embedder or None) from the CLI choices."""
+                   seed: int, data: Path | None = None, write_masks: Path | None = None):
+    """(label_space, segmenter, embedder or None) from the CLI choices; `write_masks`: the folder the boxes
+    segmenter also writes its label maps to (docs/vlm_files.md layout)."""
     from ago_runtime.errors import AgoInputError
     from ago_runtime.vocab.prompts import parse_prompt_file, resolve_prompt_file
 
@@ -37,6 +38,8 @@ def build_backends(prompts: str, segmenter: str, masks: Path | None, embedder: s
                                    SimulatedSegmenter)
 
     space = parse_prompt_file(resolve_prompt_file(prompts))
+    if write_masks is not None and segmenter != "boxes":
+        raise AgoInputError("--write-masks", f"only --segmenter boxes writes label maps (this run: {segmenter})")
     if segmenter == "files":
         if masks is None:
             raise AgoInputError("--masks", "--segmenter files needs --masks DIR (layout: docs/vlm_files.md)")
@@ -46,7 +49,7 @@ def build_backends(prompts: str, segmenter: str, masks: Path | None, embedder: s
     elif segmenter == "boxes":
         from .boxes import BoxSegmenter
 
-        seg = BoxSegmenter(data, space)
+        seg = BoxSegmenter(data, space, masks_out=write_masks)
     else:
         raise AgoInputError("--segmenter", f"expected files, sim or boxes, got {segmenter!r}")
     if embedder == "none":
@@ -171,6 +174,9 @@ def register(app: typer.Typer) -> None:
                                  "(the same pseudo-labels for any value)."),
         shard: str = typer.Option(None, "--shard", help="K/N: only the K-th of N contiguous runs of the split's "
                                   "keyframes (N machines, no coordination; ago_runtime/shards.py)."),
+        write_masks: Path = typer.Option(None, "--write-masks", help="--segmenter boxes: also write every label "
+                                         "map it paints to this folder in the file layout (docs/vlm_files.md), "
+                                         "readable back with --segmenter files --masks DIR."),
     ):
         """Lift 2-D masks (and image features) into 3-D pseudo-labels with the LiDAR (keyframes + non-key sweeps)."""
         from ago_runtime.formats.nuscenes import NuScenesDataset
@@ -182,10 +188,12 @@ def register(app: typer.Typer) -> None:
         from ago_runtime.shards import parse_shard, shard_indices
 
         check_output_dir(out, "--out")
+        if write_masks is not None:
+            check_output_dir(write_masks, "--write-masks")
         shard_kn = parse_shard(shard)
         pgrid = parse_grid(grid)
         segmenter, masks, embedder, feats, notes = resolve_defaults(Path(data), segmenter, masks, embedder, feats)
-        space, seg, emb = build_backends(prompts, segmenter, masks, embedder, feats, seed, Path(data))
+        space, seg, emb = build_backends(prompts, segmenter, masks, embedder, feats, seed, Path(data), write_masks)
         needs_extras = segmenter == "sim" or embedder == "sim"
         ds = NuScenesDataset(data, load_images=False, load_extras=needs_extras)
         indices, split_note = resolve_split(ds, split)
