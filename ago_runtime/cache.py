@@ -1,10 +1,11 @@
 """ago's cache folder and onnxruntime sessions whose optimised graph is cached there (a basic module:
-imports only onnxruntime and ago_runtime.errors).
+imports only onnxruntime, ago_runtime.errors and ago_runtime.providers).
 
 - `ago_cache_dir()`: $AGO_CACHE_DIR or ~/.cache/ago (banks, text encoder, optimised graphs, ...);
-- `open_session(path, threads, sha256)`: an onnxruntime CPU session; with the file's sha256 the optimised
-  graph is saved under `ago_cache_dir()/ort/` by the first session and loaded with graph optimisation off
-  by later ones, which then open several times faster;
+- `open_session(path, threads, sha256, device)`: an onnxruntime session, on the CPU by default; with the
+  file's sha256 the optimised CPU graph is saved under `ago_cache_dir()/ort/` (keyed by graph, onnxruntime
+  version, provider and CPU) by the first session and loaded with graph optimisation off by later ones,
+  which then open several times faster; another device: `open_device_session`;
 - `session_options(threads, optimize)`: the runtime's options (idle worker threads do not spin).
 """
 
@@ -19,6 +20,7 @@ from pathlib import Path
 import onnxruntime as ort
 
 from ago_runtime.errors import AgoInputError
+from ago_runtime.providers import Device, Precision, check_device, check_session, provider_list, provider_tag
 
 ENV_NO_ORT_CACHE = "AGO_NO_ORT_CACHE"   # =1: never read or write cached optimised graphs
 
@@ -60,22 +62,43 @@ def _cpu_tag() -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:12]
 
 
-def optimized_cache_path(sha256: str) -> Path:
-    return ago_cache_dir() / "ort" / f"{sha256[:32]}-ort{ort.__version__}-{_cpu_tag()}.onnx"
+def optimized_cache_path(sha256: str, device: Device = Device.CPU) -> Path:
+    """Keyed by the graph, onnxruntime's version, the provider and this CPU."""
+    return ago_cache_dir() / "ort" / f"{sha256[:32]}-ort{ort.__version__}-{provider_tag(device)}-{_cpu_tag()}.onnx"
 
 
-def _create(path: Path, so: ort.SessionOptions) -> ort.InferenceSession:
+def _create(path: Path, so: ort.SessionOptions, providers=("CPUExecutionProvider",)) -> ort.InferenceSession:
     try:
-        return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+        return ort.InferenceSession(str(path), so, providers=list(providers))
     except Exception as e:  # onnxruntime raises its own Fail/InvalidProtobuf types
         raise AgoInputError(path, f"onnxruntime cannot load the graph ({str(e).splitlines()[0][:200]})") from None
 
 
-def open_session(path: Path, threads: int | None, sha256: str | None = None) -> ort.InferenceSession:
+def open_device_session(path: Path, threads: int | None, sha256: str | None, device: Device,
+                        precision: Precision = Precision.FP32) -> ort.InferenceSession:
+    """A session on an accelerator (`--device cuda|tensorrt|openvino`). onnxruntime optimises the graph for
+    that provider in memory each time (an optimised graph saved for one provider may hold nodes only it
+    runs); TensorRT keeps the engines it builds under ago_cache_dir()/trt/<graph>-<precision>/. Refused,
+    naming what to install, when the provider is missing or onnxruntime starts another one."""
+    check_device(device, precision)
+    engines = None
+    if device is Device.TENSORRT and sha256 and os.environ.get(ENV_NO_ORT_CACHE) != "1":
+        engines = ago_cache_dir() / "trt" / f"{sha256[:32]}-{provider_tag(device, precision)}"
+        engines.mkdir(parents=True, exist_ok=True)
+    sess = _create(path, session_options(threads), provider_list(device, precision, engines))
+    check_session(sess, device, path)
+    return sess
+
+
+def open_session(path: Path, threads: int | None, sha256: str | None = None, device: Device = Device.CPU,
+                 precision: Precision = Precision.FP32) -> ort.InferenceSession:
     """An onnxruntime session of `path`. With the graph's sha256 (from bundle.json, already checked by
     Bundle.load) the optimised graph is cached: read when present (optimisation off), else written
     while this session is made (written to a temporary name, then renamed). A cache file that
-    onnxruntime cannot read is removed and remade. AGO_NO_ORT_CACHE=1 disables the cache."""
+    onnxruntime cannot read is removed and remade. AGO_NO_ORT_CACHE=1 disables the cache.
+    device: not the CPU -> open_device_session."""
+    if device is not Device.CPU:
+        return open_device_session(path, threads, sha256, device, precision)
     if not sha256 or os.environ.get(ENV_NO_ORT_CACHE) == "1":
         return _create(path, session_options(threads))
     cached = optimized_cache_path(sha256)

@@ -53,7 +53,9 @@ INSTALL = {
 }
 
 
-def parse_device(value: str, option: str = "--device") -> Device:
+def parse_device(value: "str | Device", option: str = "--device") -> Device:
+    if isinstance(value, Device):
+        return value
     try:
         return Device(str(value).strip().lower())
     except ValueError:
@@ -61,7 +63,9 @@ def parse_device(value: str, option: str = "--device") -> Device:
         raise AgoInputError(option, f"unknown device {value!r} (one of: {names})") from None
 
 
-def parse_precision(value: str, option: str = "--precision") -> Precision:
+def parse_precision(value: "str | Precision", option: str = "--precision") -> Precision:
+    if isinstance(value, Precision):
+        return value
     try:
         return Precision(str(value).strip().lower())
     except ValueError:

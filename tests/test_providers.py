@@ -67,3 +67,52 @@ def test_a_session_that_fell_back_to_the_cpu_is_refused():
     check_session(_Session(["CUDAExecutionProvider", "CPUExecutionProvider"]), Device.CUDA, "planes.onnx")
     with pytest.raises(AgoInputError, match=r"^planes.onnx: onnxruntime could not start CUDAExecutionProvider"):
         check_session(_Session(["CPUExecutionProvider"]), Device.CUDA, "planes.onnx")
+
+
+def _ago(args) -> tuple[int, str]:
+    import contextlib
+    import io
+
+    from ago_runtime.cli import run
+
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        try:
+            code = run([str(a) for a in args])
+        except SystemExit as e:
+            code = e.code
+    return code, err.getvalue()
+
+
+def test_infer_refuses_a_missing_provider_before_any_work(tmp_path):
+    out = tmp_path / "out"
+    code, err = _ago(["demo", "--device", "cuda", "--out", out])
+    assert code == 2
+    assert err.startswith("error: --device: cuda needs onnxruntime's CUDAExecutionProvider")
+    assert not out.exists()                              # nothing written
+    code, err = _ago(["infer", "--images", tmp_path, "--precision", "fp16", "--out", out])
+    assert code == 2 and err.startswith("error: --precision:")
+    code, err = _ago(["retrieve", "--phrase", "car", "--images", tmp_path, "--device", "gpu", "--out", out])
+    assert code == 2 and err.startswith("error: --device: unknown device 'gpu'")
+    assert not out.exists()
+
+
+@pytest.mark.filterwarnings("ignore:Specified provider")
+def test_a_listed_provider_that_cannot_start_is_refused_not_run_on_the_cpu(monkeypatch, tmp_path):
+    """onnxruntime-gpu lists CUDA even where its libraries are missing; the Predictor must refuse then,
+    never run the frame on the CPU while the user asked for the GPU."""
+    import onnxruntime as ort
+
+    from ago_runtime.predict.bundle import resolve_bundle
+    from ago_runtime.predict.predictor import Predictor
+
+    monkeypatch.setenv("AGO_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(ort, "get_available_providers", lambda: GPU_BUILD)
+    with pytest.raises(AgoInputError, match=r"planes\.onnx: "):
+        Predictor(resolve_bundle(None), device="cuda", warm_up=False)
+
+
+def test_the_cpu_cache_key_names_the_provider():
+    from ago_runtime.cache import optimized_cache_path
+
+    assert "-cpu-" in optimized_cache_path("ab" * 32).name

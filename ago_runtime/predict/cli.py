@@ -115,7 +115,8 @@ def open_frames(images: Path, sample, info: Optional[Path], fallback_rig, skip=N
 PICTURES = ("full", "bev", "none")
 
 
-def run_key(bundle, bank, identifier: str, picture: str, save_volumes: bool, int8: bool) -> str:
+def run_key(bundle, bank, identifier: str, picture: str, save_volumes: bool, int8: bool,
+            device: str = "cpu", precision: str = "fp32") -> str:
     """What a prediction file was made with (bundle, bank, identifier, outputs), as a sha256: stored in each
     npz `ago infer` writes (`run_key`), so a resumed run keeps only frames made by the same settings."""
     import hashlib
@@ -126,6 +127,8 @@ def run_key(bundle, bank, identifier: str, picture: str, save_volumes: bool, int
     d = {"bundle": file_sha256(bundle.root / BUNDLE_JSON), "bank": [bank.source_hash, bank.encoder_hash,
                                                                     list(bank.class_names), bank.template],
          "identifier": identifier, "picture": picture, "volumes": bool(save_volumes), "int8": bool(int8)}
+    if (device, precision) != ("cpu", "fp32"):   # (keys of CPU fp32 runs stay as they were)
+        d["device"] = [device, precision]
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()
 
 
@@ -218,7 +221,8 @@ def infer_writer(out: Path, key: str, picture: str, volumes: bool):
 
 def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, sample=None, info=None,
               int8=False, picture: str = "full", warm_up: bool = False, workers: int | None = None,
-              resume: bool = True, allow_outside_root: bool = False, shard: str | None = None) -> list[Path]:
+              resume: bool = True, allow_outside_root: bool = False, shard: str | None = None,
+              device: str = "cpu", precision: str = "fp32") -> list[Path]:
     """`ago infer`: check the options, load the bundle and choose the bank, open the frames (a resumed run
     leaves out the frames whose outputs in `out` are whole and were made with the same bundle, bank and
     settings: frame_is_whole), then predict and write them with a FramePipeline (reading, prediction and
@@ -227,6 +231,7 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
     from ago_runtime.predict.bundle import Bundle, card_line, resolve_bundle
     from ago_runtime.predict.contract import Identifier
     from ago_runtime.predict.pipeline import FramePipeline, PipelineFrame
+    from ago_runtime.providers import Device, check_device, parse_device, parse_precision
     from ago_runtime.shards import parse_shard
 
     one_line_warnings()
@@ -237,12 +242,16 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
     if workers is not None and not 1 <= int(workers) <= 64:
         raise AgoInputError("--workers", f"must be between 1 and 64, got {workers}")
     parse_shard(shard)   # a bad --shard before any work
+    device, precision = parse_device(device), parse_precision(precision)
+    check_device(device, precision)   # a provider this onnxruntime lacks, before any work
+    if int8 and device is not Device.CPU:
+        raise AgoInputError("--int8", f"the int8 graphs run on the CPU only, not --device {device.value}")
     check_output_dir(out, "--out")   # before any work
     b = Bundle.load(resolve_bundle(bundle))
     typer.echo(card_line(b))   # stdout: information; stderr keeps only warnings and the one error line
     chosen = choose_bank(b, prompts, bank)   # checked against the bundle here, once
     identifier = identifier or b.identifier_for(chosen)   # none for a closed-world bank
-    key = run_key(b, chosen, identifier, picture, save_volumes, int8)
+    key = run_key(b, chosen, identifier, picture, save_volumes, int8, device.value, precision.value)
     out = Path(out)
     kept: list[str] = []
 
@@ -263,7 +272,8 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
     if count == 0:
         return []
     pipeline = FramePipeline(b, chosen, identifier, volumes=save_volumes, int8=int8, warm_up=warm_up,
-                             workers=int(workers) if workers is not None else None)
+                             workers=int(workers) if workers is not None else None, device=device.value,
+                             precision=precision.value)
     return pipeline.run((PipelineFrame(*frame) for frame in frames), infer_writer(out, key, picture, save_volumes),
                         total=count)
 
@@ -296,23 +306,32 @@ def register(app: typer.Typer) -> None:
                                                 "or with '..' (refused by default)"),
         shard: Optional[str] = typer.Option(None, "--shard", help="K/N: only the K-th of N contiguous runs of the "
                                             "dataset's frames (N machines, no coordination; ago_runtime/shards.py)"),
+        device: str = typer.Option("cpu", "--device", help="where the encoder graphs run: cpu | cuda | tensorrt | "
+                                   "openvino (an onnxruntime build with that provider: scripts/setup.sh --device; "
+                                   "the heads stay on the CPU)"),
+        precision: str = typer.Option("fp32", "--precision", help="fp32, or fp16 with --device tensorrt|openvino"),
     ) -> None:
         """Predict 3D occupancy for camera images with an exported bundle (numpy + onnxruntime)."""
         run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, sample, info, int8, picture,
-                  workers=workers, resume=resume, allow_outside_root=allow_outside_root, shard=shard)
+                  workers=workers, resume=resume, allow_outside_root=allow_outside_root, shard=shard,
+                  device=device, precision=precision)
 
     @app.command("demo")
     def demo_cmd(
         out: Path = typer.Option(Path("ago_demo"), "--out", "-o", help="output folder"),
         bundle: Optional[Path] = typer.Option(None, "--bundle", help="bundle folder (default: the shipped one)"),
         prompts: Optional[str] = typer.Option(None, "--prompts", help="prompt file (default: the bundle's classes)"),
+        device: str = typer.Option("cpu", "--device", help="where the encoder graphs run: cpu | cuda | tensorrt | "
+                                   "openvino (an onnxruntime build with that provider: scripts/setup.sh --device; "
+                                   "the heads stay on the CPU)"),
+        precision: str = typer.Option("fp32", "--precision", help="fp32, or fp16 with --device tensorrt|openvino"),
     ) -> None:
         """Run `ago infer` on the shipped demo frame with the shipped default bundle."""
         from ago_runtime.predict.bundle import DEMO_FRAME_DIR, HOW_TO_MAKE_DEFAULT
 
         if not DEMO_FRAME_DIR.is_dir():
             raise AgoInputError(DEMO_FRAME_DIR, f"no demo frame installed; {HOW_TO_MAKE_DEFAULT}")
-        written = run_infer(DEMO_FRAME_DIR, prompts, None, bundle, out, None, True)
+        written = run_infer(DEMO_FRAME_DIR, prompts, None, bundle, out, None, True, device=device, precision=precision)
         typer.echo(f"demo written to {out}/ ({', '.join(p.name for p in written)})")
 
     @app.command("retrieve")
@@ -324,12 +343,17 @@ def register(app: typer.Typer) -> None:
                                              "(default: its first keyframe)"),
         bundle: Optional[Path] = typer.Option(None, "--bundle", help="bundle folder"),
         out: Path = typer.Option(Path("ago_retrieve"), "--out", "-o", help="output folder"),
+        device: str = typer.Option("cpu", "--device", help="where the encoder graphs run: cpu | cuda | tensorrt | "
+                                   "openvino (an onnxruntime build with that provider: scripts/setup.sh --device; "
+                                   "the heads stay on the CPU)"),
+        precision: str = typer.Option("fp32", "--precision", help="fp32, or fp16 with --device tensorrt|openvino"),
     ) -> None:
         """Similarity of every voxel to a phrase (cosine, on the adapted VLM-aligned branch) + a BEV picture."""
-        run_retrieve(phrase, images, bundle, out, sample)
+        run_retrieve(phrase, images, bundle, out, sample, device, precision)
 
 
-def run_retrieve(phrase: str, images: Path, bundle, out: Path, sample: str | None = None) -> list[Path]:
+def run_retrieve(phrase: str, images: Path, bundle, out: Path, sample: str | None = None, device: str = "cpu",
+                 precision: str = "fp32") -> list[Path]:
     from ago_runtime.pictures import render
     from ago_runtime.atomic import save_npz
     from ago_runtime.predict.bundle import Bundle, resolve_bundle
@@ -339,6 +363,7 @@ def run_retrieve(phrase: str, images: Path, bundle, out: Path, sample: str | Non
 
     from ago_runtime.outputs import check_output_dir
 
+    from ago_runtime.providers import check_device, parse_device, parse_precision
     from ago_runtime.vocab.prompts import check_phrase
 
     one_line_warnings()
@@ -347,9 +372,11 @@ def run_retrieve(phrase: str, images: Path, bundle, out: Path, sample: str | Non
         raise AgoInputError("--phrase", f"{phrase[:60]!r}: give one phrase, without commas (a comma separates "
                                         "phrases in a prompt file)")
     check_output_dir(out, "--out")
+    device, precision = parse_device(device), parse_precision(precision)
+    check_device(device, precision)
     b = Bundle.load(resolve_bundle(bundle))
     direction = np.asarray(bundle_text_encoder(b).encode([phrase]), np.float32)[0]
-    predictor = Predictor(b)
+    predictor = Predictor(b, device=device, precision=precision)
     bank = choose_bank(b, None, None)
     predictor.fold(bank)
     count, frames = open_frames(Path(images), sample, None, b.rig)

@@ -33,6 +33,7 @@ import numpy as np
 import onnxruntime as ort
 
 from ago_runtime.cache import open_session
+from ago_runtime.providers import Device, Precision
 from ago_runtime.errors import AgoInputError
 from ago_runtime.geometry.grid import Grid
 from ago_runtime.predict.bank_product import BankProduct
@@ -53,8 +54,9 @@ class StageGraph:
 
 
 def load_session(path: Path, threads: int | None, inputs: list[str], outputs: list[str],
-                 sha256: str | None = None) -> ort.InferenceSession:
-    sess = open_session(path, threads, sha256)
+                 sha256: str | None = None, device: Device = Device.CPU,
+                 precision: Precision = Precision.FP32) -> ort.InferenceSession:
+    sess = open_session(path, threads, sha256, device, precision)
     names_in = [i.name for i in sess.get_inputs()]
     names_out = [o.name for o in sess.get_outputs()]
     if names_in != inputs or names_out != outputs:
@@ -105,14 +107,15 @@ class SplitEncoder:
 
     def __init__(self, planes_path: Path, stages: list[StageGraph], grid: Grid, hidden_dim: int, adapted_dim: int,
                  threads: int | None = None, slab_voxels: int = SLAB_VOXELS, sha256: str | None = None,
-                 warm_up: bool = True):
+                 warm_up: bool = True, device: Device = Device.CPU, precision: Precision = Precision.FP32):
         self.grid = grid
         self.planes_path = planes_path
-        self.planes = load_session(planes_path, threads, ["images", "ego2img"], self.PLANES, sha256)
-        self.bank_product = BankProduct(threads)
+        self.device = device
+        self.planes = load_session(planes_path, threads, ["images", "ego2img"], self.PLANES, sha256, device, precision)
+        self.bank_product = BankProduct(threads)   # the bank products stay on the CPU (docs/runtime.md, Devices)
         self.sessions = {Branch.MAIN: [], Branch.ADAPTED: []}
         for st in stages:
-            sess = load_session(Path(st.path), threads, ["x"], ["y"], st.sha256)
+            sess = load_session(Path(st.path), threads, ["x"], ["y"], st.sha256, device, precision)
             self.sessions[st.spec.branch].append((sess, st.spec.activation == "softplus"))
         self.widths = {Branch.MAIN: int(hidden_dim), Branch.ADAPTED: int(adapted_dim)}
         self.softplus = Softplus(threads)
@@ -211,9 +214,15 @@ class SplitEncoder:
 
 
 def open_encoder(bundle, int8: bool = False, threads: int | None = None, slab_voxels: int = SLAB_VOXELS,
-                 warm_up: bool = True) -> "SplitEncoder":
-    """The encoder of a loaded `Bundle`; int8 picks the quantised graphs; warm_up: see SplitEncoder."""
+                 warm_up: bool = True, device: Device = Device.CPU,
+                 precision: Precision = Precision.FP32) -> "SplitEncoder":
+    """The encoder of a loaded `Bundle`; int8 picks the quantised graphs (CPU only: their integer MatMuls
+    are onnxruntime CPU kernels); device/precision: the execution provider of the graphs
+    (ago_runtime/providers.py); warm_up: see SplitEncoder."""
+    if int8 and device is not Device.CPU:
+        raise AgoInputError("--int8", f"the int8 graphs run on the CPU only, not --device {device.value} "
+                            "(for a faster accelerator frame use --precision fp16 with tensorrt or openvino)")
     planes, stages = bundle.encoder_graphs(int8)
     c = bundle.contract
     return SplitEncoder(planes.path, stages, bundle.grid, c.hidden_dim, c.adapted_dim, threads, slab_voxels,
-                        sha256=planes.sha256, warm_up=warm_up)
+                        sha256=planes.sha256, warm_up=warm_up, device=device, precision=precision)

@@ -80,6 +80,8 @@ class FramePipeline:
     int8: bool = False
     warm_up: bool = False
     progress: str | None = "predicting"
+    device: str = "cpu"          # the graphs' execution provider (ago_runtime/providers.py)
+    precision: str = "fp32"
 
     def run(self, frames: Iterable[PipelineFrame], write: Write, total: int | None = None,
             predictor: Predictor | None = None) -> list:
@@ -95,7 +97,7 @@ class FramePipeline:
         def open_predictor():
             try:
                 opened["predictor"] = predictor or Predictor(
-                    self.bundle, int8=self.int8, warm_up=self.warm_up,
+                    self.bundle, int8=self.int8, warm_up=self.warm_up, device=self.device, precision=self.precision,
                     threads=max(1, (os.cpu_count() or 1) // workers) if workers > 1 else None)
             except BaseException as e:   # re-raised by the calling thread
                 opened["error"] = e

@@ -34,6 +34,7 @@ from ago_runtime.predict.classifier import FrameFeatures, VoxelClassifier
 from ago_runtime.predict.contract import Identifier
 from ago_runtime.predict.encoder import open_encoder
 from ago_runtime.predict.heads import FoldedHeads
+from ago_runtime.providers import Device, Precision, check_device, parse_device, parse_precision
 from ago_runtime.vocab.bank import check_class_count
 
 __all__ = ["Predictor", "Prediction", "FrameFeatures", "prepare_inputs", "occ3d_lookup", "UNEXPLAINED_THRESHOLD"]
@@ -127,12 +128,17 @@ def prepare_inputs(bundle: Bundle, images: dict[str, np.ndarray], rig: Rig, sour
 
 class Predictor:
     def __init__(self, bundle: Bundle | str | Path, int8: bool = False, threads: int | None = None,
-                 chunk: int | None = None, warm_up: bool = True):
+                 chunk: int | None = None, warm_up: bool = True, device: Device | str = Device.CPU,
+                 precision: Precision | str = Precision.FP32):
         """warm_up: run each graph once on dummy inputs now, so that the first frame runs at the steady-state
         speed; False lets the first frame pay onnxruntime's first-run allocations instead (`ago infer` runs without
-        it, benchmarks/results/infer_warm_up.md)."""
+        it, benchmarks/results/infer_warm_up.md).
+        device, precision: where the graphs run (`cpu`, `cuda`, `tensorrt`, `openvino`; `fp16` through
+        TensorRT or OpenVINO; ago_runtime/providers.py); the heads and bank products stay on the CPU."""
         self.bundle = bundle if isinstance(bundle, Bundle) else Bundle.load(bundle)
-        self.encoder = open_encoder(self.bundle, int8, threads, warm_up=warm_up)
+        device, precision = parse_device(device), parse_precision(precision)
+        check_device(device, precision)   # before any session is made
+        self.encoder = open_encoder(self.bundle, int8, threads, warm_up=warm_up, device=device, precision=precision)
         check_heads_fit_encoder(self.bundle, self.encoder)   # a bad heads.npz is named as such
         self.classifier = VoxelClassifier(self.encoder)
         self.chunk = chunk   # voxels per head chunk in predict_hidden; None = FoldedHeads.default_chunk
