@@ -36,7 +36,7 @@ class LogSigmoidSoftplus(nn.Module):
     """softplus(x) = relu(x) - log(sigmoid(|x|)): the same function (sigmoid(|x|) is in [0.5, 1], so
     no underflow). Marks the activations of the exported MLP (the runtime computes them outside the
     graphs); as an ONNX graph it was measured faster than onnxruntime's Softplus op and than
-    relu(x) + log1p(exp(-|x|)) (docs/runtime.md)."""
+    relu(x) + log1p(exp(-|x|)) (benchmarks/results/runtime_rewrites.md)."""
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return torch.relu(x) - torch.log(torch.sigmoid(torch.abs(x)))
@@ -92,7 +92,7 @@ class PlanesGraph(nn.Module):
     plane_yz (Y, Z, Dh): the TPV planes times the decoder's first linear layer (bias in plane_xy only),
     bilinearly upsampled to the grid (align_corners=False, as ago_train.model.aggregate.upsample_planes),
     channels last. (Running the backbone one camera at a time instead of on the batch of six was
-    measured and did not pay: docs/runtime.md.)"""
+    measured and did not pay: benchmarks/results/runtime_rewrites.md.)"""
 
     def __init__(self, model, grid_shape: tuple[int, int, int] | None = None):
         """grid_shape: the read-out grid the planes are upsampled to (default the model's grid; a finer one
