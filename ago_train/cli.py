@@ -138,13 +138,13 @@ def register(app: typer.Typer) -> None:
         require_torch("open-world")
         from ago_runtime.outputs import check_output_dir
 
-        from .evaluate import IDENTIFIERS
+        from ago_runtime.predict.contract import Identifier
+
         from .open_world import OpenWorldConfig, run_open_world
 
         if stage not in ("pretrain", "zeroshot", "fewshot", "all"):
             raise AgoInputError("--stage", f"must be pretrain, zeroshot, fewshot or all, got {stage!r}")
-        if identifier not in IDENTIFIERS:
-            raise AgoInputError("--identifier", f"must be one of {', '.join(IDENTIFIERS)}, got {identifier!r}")
+        identifier = Identifier.parse(identifier, "--identifier").value
         check_output_dir(out, "--out")
         try:   # each option's own problem first: --seeds, the folders, then what the stage needs
             seed_list = tuple(int(s) for s in seeds.split(",") if s.strip())
