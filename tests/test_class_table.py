@@ -280,3 +280,26 @@ def test_ago_show_draws_waymo_files_with_their_table(tmp_path):
     bad.write_text("[1]")
     r = CliRunner().invoke(app, ["show", str(p), "--out", str(tmp_path / "x.png"), "--classes", str(bad)])
     assert isinstance(r.exception, AgoInputError) and not (tmp_path / "x.png").exists()
+
+
+def test_prompt_files_name_their_class_table():
+    """`@table: occ3d_waymo` resolves names and [ids] in the Occ3D-Waymo table and maps its free id (23);
+    without it a file means Occ3D-nuScenes as before."""
+    from ago_runtime.vocab.prompts import parse_prompt_file, parse_prompt_text
+
+    ev = parse_prompt_file(WAYMO_PROMPTS / "ow_waymo.txt")
+    assert ev.table == "occ3d_waymo" and ev.num_classes == 14
+    assert ev.classes[ev.index("pedestrian")].occ3d_ids == (OCC3D_WAYMO.id_of("pedestrian"),)   # 2, not nuScenes' 7
+    lut = ev.gt_lut(ev.num_classes)
+    assert lut[23] == ev.num_classes and lut[0] == 255          # free -> free; GO not scored
+    assert lut[13] == ev.index("road")
+    pre = parse_prompt_file(WAYMO_PROMPTS / "ow_waymo_pretrain.txt")
+    assert pre.classes[pre.index("cycle")].occ3d_ids == (OCC3D_WAYMO.id_of("bicycle"), OCC3D_WAYMO.id_of("motorcycle"))
+    nus = parse_prompt_text("pedestrian: pedestrian, person\nroad [driveable_surface]: road\n")
+    assert nus.table == "occ3d_nuscenes" and nus.classes[0].occ3d_ids == (7,) and nus.gt_lut(2)[17] == 2
+    with pytest.raises(AgoInputError, match=r"line 1: unknown class table 'kitti'"):
+        parse_prompt_text("@table: kitti\ncar: car\n")
+    with pytest.raises(AgoInputError, match=r"line 2: @table must come before the first class line"):
+        parse_prompt_text("car: car\n@table: occ3d_waymo\n")
+    with pytest.raises(AgoInputError, match=r"'driveable_surface' is not an occ3d_waymo class name"):
+        parse_prompt_text("@table: occ3d_waymo\nroad [driveable_surface]: road\n")

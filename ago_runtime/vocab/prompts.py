@@ -5,6 +5,8 @@ A prompt file (UTF-8 text, see docs/prompts.md) lists one class per line:
     # comment                       (from '#' to the end of the line)
     @name: cw                       (optional; default: the file name without .txt)
     @known: car, truck              (optional; the seen/known classes; default: all)
+    @table: occ3d_waymo             (optional, before the classes; the class table names and [ids] are
+                                     looked up in: occ3d_nuscenes (default) or occ3d_waymo, ago_runtime.classes)
     car: car, van, suv              (an Occ3D class name -> that Occ3D id)
     vehicle [car, bus, truck]: car, bus, lorry     (a class grouping several Occ3D classes)
     traffic sign: traffic sign      (no Occ3D name -> open vocabulary: predicted, not scored)
@@ -25,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ago_runtime.classes import FREE, IGNORE, NUM_SEMANTIC, OCC3D_CLASSES
+from ago_runtime.classes import FREE, IGNORE, NUM_SEMANTIC, OCC3D_CLASSES, SHIPPED_TABLES
 from ago_runtime.errors import AgoInputError, AgoNote
 
 PROMPTS_DIR = Path(__file__).resolve().parents[2] / "prompts"
@@ -41,6 +43,19 @@ def name_key(name: str) -> str:
 _OCC3D_KEY = {name_key(n): i for i, n in enumerate(OCC3D_CLASSES[:NUM_SEMANTIC])}
 
 
+def _label(table) -> str:
+    """How errors name a table's classes: "Occ3D" (Occ3D-nuScenes, the default) or the table's name."""
+    return "Occ3D" if table.name == "occ3d_nuscenes" else table.name
+
+
+def _table_id(table, name: str) -> int | None:
+    """The label id of a class name in `table` (a ClassTable), else None."""
+    try:
+        return table.id_of(name)
+    except KeyError:
+        return None
+
+
 def occ3d_id(name: str) -> int | None:
     """Occ3D id (0..16) of a class name ("driveable surface" == "driveable_surface"), else None."""
     return _OCC3D_KEY.get(name_key(name))
@@ -50,7 +65,8 @@ def occ3d_id(name: str) -> int | None:
 class PromptClass:
     name: str
     phrases: tuple[str, ...]
-    occ3d_ids: tuple[int, ...] = ()   # empty: open vocabulary (predicted, not scored)
+    occ3d_ids: tuple[int, ...] = ()   # label ids in the space's class table (Occ3D-nuScenes by default);
+                                      # empty: open vocabulary (predicted, not scored)
 
     @property
     def open_vocabulary(self) -> bool:
@@ -66,6 +82,11 @@ class LabelSpace:
     known: set[str] = field(default_factory=set)   # names of seen classes; empty set allowed
     source: Path | None = None
     sha256: str = ""
+    table: str = "occ3d_nuscenes"   # the class table `occ3d_ids` index (ago_runtime.classes.SHIPPED_TABLES)
+
+    @property
+    def class_table(self):
+        return SHIPPED_TABLES[self.table]
 
     @property
     def class_names(self) -> list[str]:
@@ -108,7 +129,7 @@ class LabelSpace:
         lut = np.full(256, IGNORE, dtype=np.uint8)
         for k, c in enumerate(self.classes):
             lut[list(c.occ3d_ids)] = k
-        lut[FREE] = free_index
+        lut[self.class_table.free_id] = free_index   # the table's free label (Occ3D-nuScenes 17, -Waymo 23)
         return lut
 
     def check_consistency(self) -> None:
@@ -117,7 +138,7 @@ class LabelSpace:
         for c in self.classes:
             for i in c.occ3d_ids:
                 if i in seen and seen[i] != c.name:
-                    raise AgoInputError(self.source, f"Occ3D class {OCC3D_CLASSES[i]!r} is in two classes: "
+                    raise AgoInputError(self.source, f"{_label(self.class_table)} class {self.class_table.name_of(i)!r} is in two classes: "
                                         f"{seen[i]!r} and {c.name!r}")
                 seen[i] = c.name
         keys = [name_key(n) for n in self.class_names]
@@ -214,6 +235,7 @@ def parse_prompt_text(text: str | bytes, name: str | None = None, source: str | 
     known: set[str] | None = None
     known_line = 0
     space_name = name
+    table = SHIPPED_TABLES["occ3d_nuscenes"]
     for lineno, line in enumerate(text.splitlines(), start=1):
         line = line.split("#", 1)[0].strip()
         if not line:
@@ -230,8 +252,15 @@ def parse_prompt_text(text: str | bytes, name: str | None = None, source: str | 
                 known, known_line = set(_split_list(value)), lineno
             elif key == "name":
                 space_name = space_name or value.strip()
+            elif key == "table":
+                if classes:
+                    raise AgoInputError(where, f"{at}: @table must come before the first class line")
+                if value.strip() not in SHIPPED_TABLES:
+                    raise AgoInputError(where, f"{at}: unknown class table {value.strip()!r} (one of "
+                                        f"{', '.join(SHIPPED_TABLES)})")
+                table = SHIPPED_TABLES[value.strip()]
             else:
-                raise AgoInputError(where, f"{at}: unknown directive @{key} (known: @name, @known)")
+                raise AgoInputError(where, f"{at}: unknown directive @{key} (known: @name, @known, @table)")
             continue
         m = _CLASS_LINE.match(line)
         if m is None:
@@ -246,20 +275,20 @@ def parse_prompt_text(text: str | bytes, name: str | None = None, source: str | 
         if m.group("ids") is not None:
             ids = []
             for occ in _split_list(m.group("ids")):
-                i = occ3d_id(occ)
+                i = _table_id(table, occ)
                 if i is None:
-                    raise AgoInputError(where, f"{at}: {occ!r} is not an Occ3D class name "
-                                        f"(one of {', '.join(OCC3D_CLASSES[:NUM_SEMANTIC])})")
+                    raise AgoInputError(where, f"{at}: {occ!r} is not an {_label(table)} class name "
+                                        f"(one of {', '.join(table.names)})")
                 if i not in ids:
                     ids.append(i)
             occ_ids = tuple(ids)
         else:
-            i = occ3d_id(cname)
+            i = _table_id(table, cname)
             occ_ids = () if i is None else (i,)
         for i in occ_ids:
             if i in occ3d_owner:
                 other, other_line = occ3d_owner[i]
-                raise AgoInputError(where, f"{at}: Occ3D class {OCC3D_CLASSES[i]!r} is already in class "
+                raise AgoInputError(where, f"{at}: {_label(table)} class {table.name_of(i)!r} is already in class "
                                     f"{other!r} (line {other_line})")
             occ3d_owner[i] = (cname, lineno)
         phrases: list[str] = []
@@ -295,7 +324,7 @@ def parse_prompt_text(text: str | bytes, name: str | None = None, source: str | 
     if space_name is None:
         space_name = Path(source).stem if source is not None else "prompts"
     space = LabelSpace(space_name, classes, known_names, Path(source) if source is not None else None,
-                       hashlib.sha256(raw).hexdigest())
+                       hashlib.sha256(raw).hexdigest(), table.name)
     space.check_consistency()
     return space
 
