@@ -1,0 +1,141 @@
+"""The runtime on accelerators (issue 39): each bundle on each device and precision, against CPU fp32.
+
+    python benchmarks/device_check.py [--devices cpu:fp32,cuda:fp32,tensorrt:fp32,tensorrt:fp16] \
+        [--paper-scale] [--reps 5] [--out benchmarks/results/device_check.md]
+
+The script to run, once, on a machine with a GPU (onnxruntime-gpu installed: `bash scripts/setup.sh --device
+cuda`; TensorRT when its libraries are there). Bundles: the shipped default bundle and, with --paper-scale,
+the `full` preset exported from a random checkpoint (cost only; made here with the training extra, or given
+with --paper-bundle DIR). Frame: the real nuScenes keyframe of ../shared (else the exporter's synthetic
+frame). Per bundle and device: bundle open (TensorRT: engine build included the first time), first frame,
+steady frame (median of --reps from the preprocessed tensors), and the labels' agreement with CPU fp32
+voxel by voxel. A device this onnxruntime lacks is written as refused, with the refusal, not skipped
+silently. Every device runs in its own child process (peak RSS per child). On a machine without a package
+registry, carry the wheel: `pip download --no-deps 'onnxruntime-gpu>=1.17,<1.33' -d wheels/` here, then
+`pip uninstall -y onnxruntime && pip install wheels/onnxruntime_gpu-*.whl` there.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "benchmarks"))
+RESULTS = REPO / "benchmarks" / "results" / "device_check.md"
+
+
+def child(bundle: str, device: str, precision: str, reps: int, labels_out: str) -> dict:
+    import numpy as np
+
+    from ago_runtime.errors import AgoInputError
+    from ago_runtime.predict.predictor import Predictor
+    from paper_scale import load_frame, peak_rss_mib
+
+    images, rig, frame_name = load_frame()
+    t = time.perf_counter()
+    try:
+        p = Predictor(bundle, device=device, precision=precision)
+    except AgoInputError as e:
+        return {"refused": str(e)}
+    open_s = time.perf_counter() - t
+    bank = p.bundle.load_bank()
+    identifier = p.bundle.identifier_for(bank)
+    x, m = p.prepare(images, rig)
+    t = time.perf_counter()
+    pred = p.predict_arrays(x, m, bank, identifier)
+    first_s = time.perf_counter() - t
+    steady = []
+    for _ in range(reps):
+        t = time.perf_counter()
+        pred = p.predict_arrays(x, m, bank, identifier)
+        steady.append(time.perf_counter() - t)
+    np.save(labels_out, pred.semantics)
+    return {"open_s": open_s, "first_s": first_s, "steady_s": float(np.median(steady)), "rss_mib": peak_rss_mib(),
+            "frame": frame_name, "identifier": str(identifier), "providers": p.encoder.planes.get_providers()}
+
+
+def run_child(*args: str) -> dict:
+    r = subprocess.run([sys.executable, __file__, "--child", *args], capture_output=True, text=True,
+                       env={**os.environ, "AGO_NO_PROGRESS": "1"})
+    if r.returncode != 0:
+        return {"failed": r.stderr.strip().splitlines()[-1][:300] if r.stderr.strip() else f"exit {r.returncode}"}
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--devices", default="cpu:fp32,cuda:fp32,tensorrt:fp32,tensorrt:fp16")
+    ap.add_argument("--paper-scale", action="store_true", help="also the full preset (random weights)")
+    ap.add_argument("--paper-bundle", default=None, help="an exported full-preset bundle to use")
+    ap.add_argument("--reps", type=int, default=5)
+    ap.add_argument("--work", type=Path, default=REPO / "work" / "device_check")
+    ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument("--child", nargs=5, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        bundle, device, precision, reps, labels = args.child
+        print(json.dumps(child(bundle, device, precision, int(reps), labels)))
+        return
+
+    import numpy as np
+
+    from ago_runtime.predict.bundle import resolve_bundle
+
+    work = args.work.resolve()
+    work.mkdir(parents=True, exist_ok=True)
+    bundles = {"shipped default (cpu preset, 200x200x16 read-out)": str(resolve_bundle(None))}
+    if args.paper_scale or args.paper_bundle:
+        paper = args.paper_bundle
+        if paper is None:
+            from ago_export.export import export_bundle
+            from ago_export.testing import random_checkpoint
+
+            paper = str(work / "paper_bundle")
+            if not (Path(paper) / "bundle.json").is_file():
+                ckpt = random_checkpoint(work / "full_random.pt", "full", prompts="cw", seed=0)
+                export_bundle(ckpt, Path(paper), bank_prompts=[], parity=False, log=print)
+        bundles["paper scale (full preset, random weights)"] = paper
+    devices = [tuple(d.split(":")) for d in args.devices.split(",")]
+    rows = []
+    for label, bundle in bundles.items():
+        ref = None
+        for device, precision in devices:
+            labels = work / f"labels_{abs(hash(label)) % 10**6}_{device}_{precision}.npy"
+            res = run_child(bundle, device, precision, str(args.reps), str(labels))
+            if "steady_s" in res:
+                got = np.load(labels)
+                if (device, precision) == ("cpu", "fp32"):
+                    ref = got
+                res["agreement"] = float((got == ref).mean()) if ref is not None else None
+            rows.append((label, device, precision, res))
+            print(label, device, precision, {k: v for k, v in res.items() if k != "providers"}, flush=True)
+    import onnxruntime as ort
+
+    lines = ["# The runtime on accelerators (issue 39)", "",
+             f"Command: `python benchmarks/device_check.py {' '.join(sys.argv[1:])}` "
+             f"({time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; onnxruntime {ort.__version__}, providers "
+             f"{', '.join(ort.get_available_providers())}).", "",
+             "| bundle | device | precision | open (s) | first frame (s) | steady frame (s) | peak RSS (MiB) | "
+             "labels = CPU fp32 (%) |", "|---|---|---|---:|---:|---:|---:|---:|"]
+    for label, device, precision, r in rows:
+        if "steady_s" in r:
+            agree = f"{100 * r['agreement']:.3f}" if r.get("agreement") is not None else "(no CPU fp32 run)"
+            lines.append(f"| {label} | {device} | {precision} | {r['open_s']:.2f} | {r['first_s']:.3f} | "
+                         f"{r['steady_s']:.3f} | {r['rss_mib']:.0f} | {agree} |")
+        else:
+            lines.append(f"| {label} | {device} | {precision} | {r.get('refused') or r.get('failed')} | | | | |")
+    from ago_runtime.atomic import write_text
+
+    write_text(args.out, "\n".join(lines) + "\n")
+    write_text(args.out.with_suffix(".json"), json.dumps(rows, indent=1))
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
