@@ -53,23 +53,23 @@ INSTALL = {
 }
 
 
-def parse_device(value: "str | Device", option: str = "--device") -> Device:
-    if isinstance(value, Device):
+def _parse(kind: type[Enum], value, option: str, what: str):
+    """`value` (a member or its name, any case) -> a member of `kind`; else one line naming `option`."""
+    if isinstance(value, kind):
         return value
     try:
-        return Device(str(value).strip().lower())
+        return kind(str(value).strip().lower())
     except ValueError:
-        names = ", ".join(d.value for d in Device)
-        raise AgoInputError(option, f"unknown device {value!r} (one of: {names})") from None
+        names = ", ".join(m.value for m in kind)
+        raise AgoInputError(option, f"unknown {what} {value!r} (one of: {names})") from None
+
+
+def parse_device(value: "str | Device", option: str = "--device") -> Device:
+    return _parse(Device, value, option, "device")
 
 
 def parse_precision(value: "str | Precision", option: str = "--precision") -> Precision:
-    if isinstance(value, Precision):
-        return value
-    try:
-        return Precision(str(value).strip().lower())
-    except ValueError:
-        raise AgoInputError(option, f"unknown precision {value!r} (fp32 or fp16)") from None
+    return _parse(Precision, value, option, "precision")
 
 
 def provider_list(device: Device, precision: Precision = Precision.FP32, engine_cache=None) -> list:

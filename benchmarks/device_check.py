@@ -35,7 +35,7 @@ def child(bundle: str, device: str, precision: str, reps: int, labels_out: str) 
 
     from ago_runtime.errors import AgoInputError
     from ago_runtime.predict.predictor import Predictor
-    from paper_scale import load_frame, peak_rss_mib
+    from paper_scale import load_frame, peak_rss_mib, time_predictions
 
     images, rig, frame_name = load_frame()
     t = time.perf_counter()
@@ -47,14 +47,7 @@ def child(bundle: str, device: str, precision: str, reps: int, labels_out: str) 
     bank = p.bundle.load_bank()
     identifier = p.bundle.identifier_for(bank)
     x, m = p.prepare(images, rig)
-    t = time.perf_counter()
-    pred = p.predict_arrays(x, m, bank, identifier)
-    first_s = time.perf_counter() - t
-    steady = []
-    for _ in range(reps):
-        t = time.perf_counter()
-        pred = p.predict_arrays(x, m, bank, identifier)
-        steady.append(time.perf_counter() - t)
+    first_s, steady, pred = time_predictions(p, x, m, bank, identifier, reps)
     np.save(labels_out, pred.semantics)
     return {"open_s": open_s, "first_s": first_s, "steady_s": float(np.median(steady)), "rss_mib": peak_rss_mib(),
             "frame": frame_name, "identifier": str(identifier), "providers": p.encoder.planes.get_providers()}

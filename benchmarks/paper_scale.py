@@ -54,6 +54,19 @@ def load_frame():
     return images, rig, name
 
 
+def time_predictions(p, x, m, bank, identifier, reps: int):
+    """-> (first frame s, [steady s] * reps, the last Prediction) of Predictor `p` on preprocessed x, m."""
+    t = time.perf_counter()
+    pred = p.predict_arrays(x, m, bank, identifier)
+    first_s = time.perf_counter() - t
+    steady = []
+    for _ in range(reps):
+        t = time.perf_counter()
+        pred = p.predict_arrays(x, m, bank, identifier)
+        steady.append(time.perf_counter() - t)
+    return first_s, steady, pred
+
+
 # ---------------------------------------------------------------------------- children (either tree)
 def child_checkpoint(path: str) -> dict:
     from ago_export.testing import random_checkpoint
@@ -84,14 +97,7 @@ def child_frame(bundle: str, reps: int, cache: str, labels_out: str, profile: st
     bank = p.bundle.load_bank()
     identifier = p.bundle.identifier_for(bank)
     x, m = p.prepare(images, rig)
-    t = time.perf_counter()
-    pred = p.predict_arrays(x, m, bank, identifier)
-    first_s = time.perf_counter() - t
-    steady = []
-    for _ in range(reps):
-        t = time.perf_counter()
-        pred = p.predict_arrays(x, m, bank, identifier)
-        steady.append(time.perf_counter() - t)
+    first_s, steady, pred = time_predictions(p, x, m, bank, identifier, reps)
     np.save(labels_out, pred.semantics)
     rss = peak_rss_mib()          # before the second planes session below
     # the planes graph alone, in a session of its own with the runtime's options

@@ -20,6 +20,21 @@ from ago_runtime.errors import AgoInputError
 KEYS = ("semantics", "mask_lidar", "mask_camera")
 
 
+def read_voxel_arrays(path: str | Path, keys, what: str, shape: tuple[int, int, int] | None = None
+                      ) -> dict[str, np.ndarray]:
+    """The arrays `keys` of a ground-truth npz (bounded reading), checked to share one 3-D shape, and that
+    shape to be `shape` when given (Occ3D-nuScenes labels.npz, Occ3D-Waymo files)."""
+    path = Path(path)
+    arrays = read_npz(path, keys, what=what)
+    shapes = {k: a.shape for k, a in arrays.items()}
+    first = arrays[keys[0]]
+    if len(set(shapes.values())) != 1 or first.ndim != 3:
+        raise AgoInputError(path, f"arrays must share one 3-D shape, got {shapes}")
+    if shape is not None and tuple(first.shape) != tuple(shape):
+        raise AgoInputError(path, f"shape {first.shape} does not match the grid {tuple(shape)}")
+    return arrays
+
+
 @dataclass
 class Occ3DLabels:
     semantics: np.ndarray    # (X, Y, Z) uint8
@@ -33,13 +48,7 @@ class Occ3DLabels:
     @classmethod
     def load(cls, path: str | Path, shape: tuple[int, int, int] | None = None) -> "Occ3DLabels":
         """Read and check a labels.npz. `shape`, when given, must match (e.g. Grid.shape)."""
-        path = Path(path)
-        arrays = read_npz(path, KEYS, what="Occ3D labels file")
-        shapes = {k: a.shape for k, a in arrays.items()}
-        if len(set(shapes.values())) != 1 or arrays["semantics"].ndim != 3:
-            raise AgoInputError(path, f"arrays must share one 3-D shape, got {shapes}")
-        if shape is not None and tuple(arrays["semantics"].shape) != tuple(shape):
-            raise AgoInputError(path, f"shape {arrays['semantics'].shape} does not match the grid {tuple(shape)}")
+        arrays = read_voxel_arrays(path, KEYS, "Occ3D labels file", shape)
         return cls(*(arrays[k].astype(np.uint8) for k in KEYS))
 
     def save(self, path: str | Path) -> None:

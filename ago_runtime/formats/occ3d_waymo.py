@@ -22,7 +22,7 @@ import numpy as np
 from ago_runtime.atomic import save_npz
 from ago_runtime.classes import OCC3D_WAYMO, ClassTable
 from ago_runtime.errors import AgoInputError
-from ago_runtime.readers import read_npz
+from ago_runtime.formats.occ3d import read_voxel_arrays
 
 KEYS = ("voxel_label", "origin_voxel_state", "final_voxel_state", "infov")
 SPLITS = ("training", "validation", "test")
@@ -48,12 +48,7 @@ class Occ3DWaymoLabels:
              table: ClassTable = OCC3D_WAYMO) -> "Occ3DWaymoLabels":
         """Read and check one ground-truth npz; `shape`, when given, must match."""
         path = Path(path)
-        arrays = read_npz(path, KEYS, what="Occ3D-Waymo ground-truth file")
-        shapes = {k: a.shape for k, a in arrays.items()}
-        if len(set(shapes.values())) != 1 or arrays["voxel_label"].ndim != 3:
-            raise AgoInputError(path, f"arrays must share one 3-D shape, got {shapes}")
-        if shape is not None and tuple(arrays["voxel_label"].shape) != tuple(shape):
-            raise AgoInputError(path, f"shape {arrays['voxel_label'].shape} does not match the grid {tuple(shape)}")
+        arrays = read_voxel_arrays(path, KEYS, "Occ3D-Waymo ground-truth file", shape)
         sem = arrays["voxel_label"]
         if not np.issubdtype(sem.dtype, np.integer):
             raise AgoInputError(path, f"'voxel_label' must hold integer labels, got dtype {sem.dtype}")

@@ -99,6 +99,8 @@ class FramePipeline:
                 opened["predictor"] = predictor or Predictor(
                     self.bundle, int8=self.int8, warm_up=self.warm_up, device=self.device, precision=self.precision,
                     threads=max(1, (os.cpu_count() or 1) // workers) if workers > 1 else None)
+                p = opened["predictor"]   # the bank folded once per run (volumes: with the reference classes)
+                opened["folded"] = p.fold_with_reference(self.bank) if self.volumes else p.fold(self.bank)
             except BaseException as e:   # re-raised by the calling thread
                 opened["error"] = e
 
@@ -118,11 +120,11 @@ class FramePipeline:
             raise opened["error"]
         if first is None:
             return []
-        p = opened["predictor"]
+        p, folded = opened["predictor"], opened["folded"]
 
         def predict(item):
             name, images, x, m, t_pre = item
-            pred = p.predict_arrays(x, m, self.bank, identifier, volumes=self.volumes)
+            pred = p.predict_arrays(x, m, self.bank, identifier, folded, volumes=self.volumes)
             pred.timings = {"preprocess": t_pre, **pred.timings}
             return name, images, pred
 

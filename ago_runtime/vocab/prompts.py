@@ -27,17 +27,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ago_runtime.classes import FREE, IGNORE, NUM_SEMANTIC, OCC3D_CLASSES, SHIPPED_TABLES
+from ago_runtime.classes import FREE, IGNORE, NUM_SEMANTIC, OCC3D_CLASSES, SHIPPED_TABLES, name_key
 from ago_runtime.errors import AgoInputError, AgoNote
 
 PROMPTS_DIR = Path(__file__).resolve().parents[2] / "prompts"
 _CLASS_LINE = re.compile(r"^(?P<name>[^\[\]:@#]+?)\s*(?:\[(?P<ids>[^\]]*)\])?\s*:(?P<phrases>.*)$")
 _NAME_OK = re.compile(r"^[\w][\w \-./']*$")
-
-
-def name_key(name: str) -> str:
-    """Comparison key of class names: case, spaces, hyphens and underscores don't matter."""
-    return re.sub(r"[\s_\-]+", "_", name.strip().lower())
 
 
 _OCC3D_KEY = {name_key(n): i for i, n in enumerate(OCC3D_CLASSES[:NUM_SEMANTIC])}
