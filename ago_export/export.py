@@ -38,7 +38,7 @@ from ago_runtime.atomic import replace_dir, temp_dir_beside, write_json
 from ago_runtime.vocab.bank import PromptBank, load_prompt_bank
 from ago_runtime.errors import AgoInputError
 from ago_runtime.formats.calibration import find_camera_images, load_images_folder
-from ago_runtime.geometry.camera import Rig
+from ago_runtime.geometry.camera import CAMERA_NAMES, Rig
 from ago_runtime.geometry.grid import Grid
 from ago_runtime.geometry.preprocess import Preprocess
 from ago_runtime.predict.contract import (BUNDLE_FORMAT, BUNDLE_FORMAT_VERSION, BUNDLE_JSON, BundleContract,
@@ -185,14 +185,14 @@ def label_space_spec(space: LabelSpace) -> LabelSpaceSpec:
 
 # ---- parity frame --------------------------------------------------------------------------
 def synthetic_frame(rig: Rig, seed: int = 0) -> tuple[dict[str, np.ndarray], Rig, str]:
-    """Smooth random images (low-frequency noise) for the rig at a quarter of its native size."""
+    """Smooth random images (low-frequency noise) for the rig, each camera at a quarter of its native size."""
     import cv2
 
     rng = np.random.default_rng(seed)
-    w, h = max(32, rig.cameras[0].width // 4), max(32, rig.cameras[0].height // 4)
-    small = rig.scaled(w, h)
+    small = Rig([c.scaled(max(32, c.width // 4), max(32, c.height // 4)) for c in rig])
     images = {}
     for cam in small:
+        w, h = cam.width, cam.height
         coarse = rng.uniform(0, 255, size=(h // 8 + 1, w // 8 + 1, 3)).astype(np.float32)
         images[cam.name] = np.clip(cv2.resize(coarse, (w, h), interpolation=cv2.INTER_CUBIC), 0, 255).astype(np.uint8)
     return images, small, f"synthetic (seed {seed})"
@@ -201,7 +201,8 @@ def synthetic_frame(rig: Rig, seed: int = 0) -> tuple[dict[str, np.ndarray], Rig
 def parity_frame(spec: str | Path | None, real_frame: bool, rig: Rig) -> tuple[dict[str, np.ndarray], Rig, str]:
     """The frame parity runs on: an images folder, a folder with an mmdet3d_info.pkl or a nuScenes dataroot (its
     first keyframe); by default the real nuScenes keyframe next to the repo when present, else a synthetic frame."""
-    if spec is None and real_frame and (DEFAULT_REAL_FRAME / "mmdet3d_info.pkl").is_file():
+    if (spec is None and real_frame and (DEFAULT_REAL_FRAME / "mmdet3d_info.pkl").is_file()
+            and sorted(rig.names) == sorted(CAMERA_NAMES)):   # the real keyframe has nuScenes' six cameras
         spec = DEFAULT_REAL_FRAME
     if spec is None:
         return synthetic_frame(rig)
@@ -219,7 +220,7 @@ def parity_frame(spec: str | Path | None, real_frame: bool, rig: Rig) -> tuple[d
 
         frame = load_mmdet3d_info(spec / "mmdet3d_info.pkl", spec)[0]
         return frame.images, frame.rig, f"{spec} (sample {frame.token})"
-    find_camera_images(spec)   # a clear error when it is neither layout
+    find_camera_images(spec, rig.names)   # a clear error when it is neither layout
     images, frame_rig, _ = load_images_folder(spec, fallback_rig=rig)
     return images, frame_rig, str(spec)
 
@@ -271,8 +272,11 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
         rig, rig_source = Rig.from_dict(ckpt["rig"]), "checkpoint"
     else:
         rig, rig_source = Rig.nuscenes_like(1600, 900), "Rig.nuscenes_like(1600, 900) (checkpoint has no rig)"
+    if len(rig.cameras) != cfg.num_cameras:
+        raise AgoInputError(checkpoint, f"the model takes {cfg.num_cameras} cameras, its rig has {len(rig.cameras)}")
     text_encoder = TextEncoderSpec(bank.encoder_id, bank.encoder_hash, int(bank.dim), bank.encoder_variant)
     images, frame_rig, frame_name = parity_frame(parity_frame_dir, real_frame, rig)   # checked before any work
+    frame_rig = frame_rig.ordered_as(rig.names, frame_name)
     if parity_frame_dir is None:
         log(f"note: using parity frame {frame_name} (--parity-frame DIR chooses one, --no-real-frame a synthetic one)")
     tmp = temp_dir_beside(out)   # removes the temp folders of killed exports first
@@ -304,7 +308,7 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
             b.save(tmp / "banks" / f"{key}.npz")
             banks[key] = f"banks/{key}.npz"
 
-        x = pre.images(images, frame_name)[None]
+        x = pre.images(images, frame_rig, frame_name)[None]
         m = pre.ego2img(frame_rig)[None]
         report: dict = {}
         if parity:
@@ -335,7 +339,7 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
         file_entries.update({f"bank/{k}": FileEntry.of(tmp, v) for k, v in banks.items()})
         contract = BundleContract(
             grid=grid.to_dict(), model_grid=model_grid.to_dict(), preprocess=pre.to_dict(),
-            rig=RigSpec([CameraSlot(c.name, pre.width, pre.height) for c in rig.cameras]),
+            rig=RigSpec([CameraSlot(c.name, w, h) for c, (w, h) in zip(rig, pre.camera_sizes(rig))]),
             training_rig=rig.to_dict(), rig_source=rig_source, label_space=label_space_spec(space),
             text_encoder=text_encoder, files=file_entries, voxel_stages=stages,
             hidden_dim=heads.hidden_dim, adapted_dim=heads.adapter_dim, identifier=Identifier.MIN_ENTROPY,

@@ -2,10 +2,10 @@
 
 `OccSampleDataset(frames, pseudo, label_space, grid, preprocess, ...)` is a torch Dataset; item i:
 
-- "images": (6, 3, H, W) float32, `ago_runtime.geometry.preprocess.Preprocess` (identical to the runtime);
+- "images": (V, 3, H, W) float32 (V cameras, the rig's order), `ago_runtime.geometry.preprocess.Preprocess` (identical to the runtime);
   or, with a `feature_cache` (ago_train/feature_cache.py), instead of the images "prefix": the frozen
-  backbone stages' maps, a list of (6, C_l, H_l, W_l) float16 tensors (the JPEGs are not decoded);
-- "ego2img": (6, 4, 4) float32, ego -> resized-image projections (CAMERA_NAMES order);
+  backbone stages' maps, a list of (V, C_l, H_l, W_l) float16 tensors (the JPEGs are not decoded);
+- "ego2img": (V, 4, 4) float32, ego -> canvas projections (the rig's order);
 - "semantics": (N,) int64 pseudo-label per voxel of the model grid (N = X*Y*Z, C order over [x,y,z]),
   as stored: 0..K-1 class, 17 = free, 255 = unknown, plus 254 = hit by the LiDAR but unlabelled
   (ago_runtime.classes.OCCUPIED_UNLABELLED; the losses map it: `pseudo_to_target` here does
@@ -15,7 +15,7 @@
   "gt_mask": (Xg, Yg, Zg) bool camera-visibility mask — only when `with_gt` and the frame has GT;
 - "token", "scene": strings.
 
-`collate(items)` stacks the fixed-size tensors ("images" (B, 6, 3, H, W) or "prefix" [(B, 6, C_l, H_l, W_l)],
+`collate(items)` stacks the fixed-size tensors ("images" (B, V, 3, H, W) or "prefix" [(B, V, C_l, H_l, W_l)],
 "ego2img", "semantics" (B, N))
 and concatenates E_3D as the losses want it: "align_index" (sum M,) int64 indices into the batch's
 B*N voxels (b * N + voxel) and "align_embed" (sum M, C) float32. GT stays a list of numpy arrays
@@ -188,7 +188,8 @@ class OccSampleDataset(torch.utils.data.Dataset):
         item = dict(base)
         if self.feature_cache is not None:   # the cache keeps its own in-memory copy of recent frames
             item["prefix"] = [torch.from_numpy(m) for m in
-                              self.feature_cache.frame_prefix(base["_image_paths"], base["_source"], flip=t.flip_y)]
+                              self.feature_cache.frame_prefix(base["_image_paths"], self.frames[i].rig, base["_source"],
+                                                             flip=t.flip_y)]
         if t.identity:
             return item
         shape = tuple(self.grid.shape)
@@ -215,11 +216,11 @@ class OccSampleDataset(torch.utils.data.Dataset):
             "_source": source,
         }
         if self.feature_cache is None:
-            images = self.preprocess.images(frame.images, source=source)
+            images = self.preprocess.images(frame.images, frame.rig, source=source)
             if self.color_jitter > 0:
                 rng = np.random.default_rng([self.seed, self.epoch, int(i)])
-                a = 1.0 + rng.uniform(-self.color_jitter, self.color_jitter, size=(6, 1, 1, 1)).astype(np.float32)
-                b = rng.uniform(-self.color_jitter, self.color_jitter, size=(6, 1, 1, 1)).astype(np.float32)
+                a = 1.0 + rng.uniform(-self.color_jitter, self.color_jitter, size=(len(images), 1, 1, 1)).astype(np.float32)
+                b = rng.uniform(-self.color_jitter, self.color_jitter, size=(len(images), 1, 1, 1)).astype(np.float32)
                 images = images * a + b
             item["images"] = torch.from_numpy(np.ascontiguousarray(images))
         if self.pseudo is not None:

@@ -15,7 +15,7 @@ reads it instead of decoding six JPEGs and running those stages at every step.
 - Entry: `<fingerprint>/<key[:2]>/<key>.npz` holding arrays `l0`, `l1`, ... ((C_l, H_l, W_l) float16,
   the maps of `backbone.frozen_prefix`), written atomically; on read the shapes and dtype are checked
   against the backbone's and the values must be finite, else the entry is recomputed.
-- A frame's prefix (`frame_prefix`) = per level (6, C_l, H_l, W_l) float16 in CAMERA_NAMES order;
+- A frame's prefix (`frame_prefix`) = per level (V, C_l, H_l, W_l) float16 in the rig's camera order;
   `flip=True` gives the prefix of the images flipped left-right (the mirror augmentation,
   ago_train/augment.py), stored under `<key>-flip`.
   Recently used frames are also kept in memory (up to `memory_bytes`).
@@ -37,7 +37,7 @@ import numpy as np
 import torch
 
 from ago_runtime.atomic import save_npz, write_json
-from ago_runtime.geometry.camera import CAMERA_NAMES
+from ago_runtime.geometry.camera import Rig
 from ago_runtime.errors import AgoInputError
 from ago_runtime.formats.nuscenes import read_jpeg_rgb
 from ago_runtime.geometry.preprocess import Preprocess
@@ -129,7 +129,7 @@ class FeatureCache:
 
     @torch.no_grad()
     def _compute(self, x: np.ndarray, flip: bool = False) -> list[np.ndarray]:
-        """Preprocessed (6, 3, H, W) images -> per level (6, C, H, W) float16 (of the images flipped
+        """Preprocessed (V, 3, H, W) images -> per level (V, C, H, W) float16 (of the images flipped
         left-right with `flip`). The input goes in channels-last (the convolutions follow it, which is
         faster on a CPU; the maps agree with the NCHW run to ~1e-6 relative, far below float16's resolution)."""
         if flip:
@@ -144,17 +144,21 @@ class FeatureCache:
         return [m.cpu().contiguous().numpy().astype(np.float16) for m in maps]
 
     # ------------------------------------------------------------------ one frame
-    def frame_prefix(self, image_paths: dict[str, str], source: str = "", flip: bool = False) -> list[np.ndarray]:
-        """The frozen prefix of a frame's six images: per level (6, C_l, H_l, W_l) float16."""
-        return self.frame_prefixes(image_paths, source, (flip,))[0]
+    def frame_prefix(self, image_paths: dict[str, str], rig: Rig, source: str = "", flip: bool = False) -> list[np.ndarray]:
+        """The frozen prefix of a frame's images: per level (V, C_l, H_l, W_l) float16 in the rig's order."""
+        return self.frame_prefixes(image_paths, rig, source, (flip,))[0]
 
-    def frame_prefixes(self, image_paths: dict[str, str], source: str = "",
+    def frame_prefixes(self, image_paths: dict[str, str], rig: Rig, source: str = "",
                        flips: tuple[bool, ...] = (False,)) -> list[list[np.ndarray]]:
-        """`frame_prefix` for each of `flips`; the six JPEGs are hashed, decoded and preprocessed once."""
-        missing = [c for c in CAMERA_NAMES if c not in image_paths]
+        """`frame_prefix` for each of `flips`; the JPEGs are hashed, decoded and preprocessed once."""
+        names = rig.names
+        missing = [c for c in names if c not in image_paths]
         if missing:
             raise AgoInputError(source or None, f"cameras {missing} have no image file")
-        base = [image_key(image_paths[c]) for c in CAMERA_NAMES]
+        full = (self.preprocess.width, self.preprocess.height)
+        # a camera that does not fill its canvas (a shorter image of the rig) keys its maps by its size there too
+        base = [image_key(image_paths[c]) + ("" if wh == full else f"-{wh[0]}x{wh[1]}")
+                for c, wh in zip(names, self.preprocess.camera_sizes(rig))]
         x = None   # the preprocessed images, decoded on the first miss
         out = []
         for flip in flips:
@@ -168,7 +172,7 @@ class FeatureCache:
             todo = [i for i, m in enumerate(per_cam) if m is None]
             if todo:
                 if x is None:
-                    x = self.preprocess.images({c: read_jpeg_rgb(image_paths[c]) for c in CAMERA_NAMES},
+                    x = self.preprocess.images({c: read_jpeg_rgb(image_paths[c]) for c in names}, rig,
                                                source=source)
                 computed = self._compute(x, flip)
                 for i in todo:
@@ -176,8 +180,8 @@ class FeatureCache:
                     save_npz(self._path(keys[i]), compressed=False,
                              **{f"l{j}": np.ascontiguousarray(m[i]) for j, m in enumerate(computed)})
                 self.stats["computed"] += len(todo)
-            self.stats["read"] += 6 - len(todo)
-            maps = [np.stack([per_cam[i][j] for i in range(6)]) for j in range(len(self.shapes))]
+            self.stats["read"] += len(names) - len(todo)
+            maps = [np.stack([per_cam[i][j] for i in range(len(names))]) for j in range(len(self.shapes))]
             self._remember(keys, maps)
             out.append(maps)
         return out
@@ -201,5 +205,5 @@ class FeatureCache:
         it = track(items, "caching frozen backbone features", total=len(frames)) if progress else items
         for i in it:
             f = frames[i]
-            self.frame_prefixes(f.image_paths, f"{f.scene}/{f.token}", tuple(flips))
+            self.frame_prefixes(f.image_paths, f.rig, f"{f.scene}/{f.token}", tuple(flips))
         return dict(self.stats)

@@ -16,6 +16,7 @@ were already done, so N straight steps == N/2 steps + resume + N/2 steps.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -203,12 +204,19 @@ class Trainer:
         if not indices:
             raise AgoInputError(cfg.data, f"no frames in split {cfg.train_split!r}")
         self.pseudo.check_files([(ds.scene_of(i), ds.sample_tokens[i]) for i in indices])  # before any file is written
+        # the rig comes from the data: the model takes as many cameras as the training frames have
+        first_rig = ds[indices[0]].rig
+        if len(first_rig.cameras) != cfg.model.num_cameras:
+            print(f"note: the training data's rig has {len(first_rig.cameras)} cameras ({', '.join(first_rig.names)}); "
+                  f"model.num_cameras {cfg.model.num_cameras} -> {len(first_rig.cameras)}", file=sys.stderr, flush=True)
+            cfg = self.cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model,
+                                                                                num_cameras=len(first_rig.cameras)))
         self.preprocess = Preprocess(cfg.model.image_width, cfg.model.image_height)
         self.dataset = OccSampleDataset(FrameList(ds, indices), self.pseudo, K, self.grid, self.preprocess,
                                         with_embeds=True, color_jitter=cfg.color_jitter, seed=cfg.seed,
                                         memory_bytes=cfg.item_memory_mb << 20, augment=cfg.augment)
         # the camera rig of the training data (native image size), for export (a typical rig to trace with)
-        self.rig_record = plain(ds[indices[0]].rig.to_dict())
+        self.rig_record = plain(first_rig.to_dict())
         self.sampler = DistributedSampler(self.dataset, num_replicas=info.world_size, rank=info.rank,
                                           shuffle=True, seed=cfg.seed, drop_last=False)
         self.steps_per_epoch = math.ceil(len(self.sampler) / cfg.batch_size)

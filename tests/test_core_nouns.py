@@ -57,10 +57,23 @@ def test_camera_projection_round_trip_and_scaling():
         assert ok[0], cam.name
 
 
-def test_rig_refuses_missing_camera_and_bad_calibration():
+def test_rig_of_any_cameras_refuses_what_does_not_fit_and_bad_calibration():
     rig = Rig.nuscenes_like(160, 90)
-    with pytest.raises(AgoInputError, match="CAM_BACK"):
-        Rig([c for c in rig if c.name != "CAM_BACK"])
+    five = Rig([c for c in rig if c.name != "CAM_BACK"])           # any 1..12 distinct cameras make a rig
+    assert five.names == [c for c in CAMERA_NAMES if c != "CAM_BACK"]
+    with pytest.raises(AgoInputError, match="camera CAM_BACK: the bundle's rig takes it"):
+        five.ordered_as(CAMERA_NAMES, "calib.json")                 # ... but not the rig a bundle was trained for
+    with pytest.raises(AgoInputError, match="camera CAM_BACK: not a camera of the bundle's rig"):
+        rig.ordered_as(five.names)
+    assert rig.ordered_as(list(reversed(CAMERA_NAMES))).names == list(reversed(CAMERA_NAMES))
+    with pytest.raises(AgoInputError, match="CAM_FRONT: named more than once"):
+        Rig([rig["CAM_FRONT"], rig["CAM_FRONT"]])
+    with pytest.raises(AgoInputError, match="1..12 cameras"):
+        Rig([])
+    with pytest.raises(AgoInputError, match="1..12 cameras"):
+        Rig([Camera(f"C{i}", rig["CAM_FRONT"].intrinsics, np.eye(4), 160, 90) for i in range(13)])
+    with pytest.raises(AgoInputError, match="letters, digits"):
+        Rig([Camera("../x", rig["CAM_FRONT"].intrinsics, np.eye(4), 160, 90)])
     bad = Camera("CAM_FRONT", np.full((3, 3), np.nan), np.eye(4), 10, 10)
     with pytest.raises(AgoInputError, match="NaN"):
         bad.validate("calib.json")
@@ -113,8 +126,9 @@ def test_atomic_write_leaves_nothing_on_failure(tmp_path):
 
 def test_preprocess_shapes_normalisation_and_missing_camera():
     pre = Preprocess(64, 32)
+    rig = Rig.nuscenes_like(160, 90)
     imgs = {c: np.full((90, 160, 3), 128, np.uint8) for c in CAMERA_NAMES}
-    x = pre.images(imgs)
+    x = pre.images(imgs, rig)
     assert x.shape == (6, 3, 32, 64) and x.dtype == np.float32
     assert x[0, 0, 0, 0] == pytest.approx((128 / 255 - 0.485) / 0.229, rel=1e-5)
     # bit-equal to resizing, normalising (H, W, 3) and transposing, on varied pixels and per channel
@@ -124,12 +138,37 @@ def test_preprocess_shapes_normalisation_and_missing_camera():
     inv_std = 1.0 / (np.asarray(pre.std, np.float32) * 255.0)
     want = np.stack([((cv2.resize(varied[c], (64, 32), interpolation=cv2.INTER_AREA).astype(np.float32) - mean)
                       * inv_std).transpose(2, 0, 1) for c in CAMERA_NAMES])
-    assert np.array_equal(pre.images(varied), want)
+    assert np.array_equal(pre.images(varied, rig), want)
     del imgs["CAM_BACK"]
     with pytest.raises(AgoInputError, match="CAM_BACK"):
-        pre.images(imgs, source="dir/")
+        pre.images(imgs, rig, source="dir/")
     e = pre.ego2img(Rig.nuscenes_like(160, 90))
     assert e.shape == (6, 4, 4) and e.dtype == np.float32
+
+
+def test_preprocess_pads_the_shorter_cameras_of_a_rig():
+    """A rig of two image sizes (Occ3D-Waymo's side cameras are shorter): the largest fills the canvas, the
+    others are scaled by the same factors, top-left, padded with 0; ego2img follows the same scaling."""
+    from ago_runtime.geometry.camera import level_camera
+
+    front = level_camera("FRONT", 1.5, 0, 2, 0.0, np.deg2rad(50), 192, 128)
+    side = level_camera("SIDE_LEFT", 1.2, 0.1, 2, np.pi / 2, np.deg2rad(50), 192, 88)
+    rig = Rig([front, side])
+    pre = Preprocess(96, 64)
+    assert pre.camera_sizes(rig) == [(96, 64), (96, 44)]
+    imgs = {"FRONT": np.full((128, 192, 3), 200, np.uint8), "SIDE_LEFT": np.full((88, 192, 3), 200, np.uint8)}
+    x = pre.images(imgs, rig)
+    assert x.shape == (2, 3, 64, 96)
+    v = (200 / 255 - 0.485) / 0.229
+    assert x[0, 0].min() == pytest.approx(v, rel=1e-5)                  # the front camera fills its canvas
+    assert x[1, 0, :44].min() == pytest.approx(v, rel=1e-5) and np.all(x[1, :, 44:] == 0)   # the side: padded below
+    m = pre.ego2img(rig)
+    p = side.cam2ego @ np.array([0.5, 0.2, 8.0, 1.0])   # a point 8 m in front of SIDE_LEFT
+    uv_native, _, ok = side.project(p[None, :3])
+    h = m[1] @ p
+    assert ok[0] and h[:2] / h[2] == pytest.approx(uv_native[0] * 0.5, rel=1e-5)   # same scale on both axes
+    # a rig of one image size fills every canvas, as before (nuScenes)
+    assert pre.camera_sizes(Rig.nuscenes_like(160, 90)) == [(96, 64)] * 6
 
 
 def test_cli_help_runs():

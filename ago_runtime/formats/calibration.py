@@ -1,8 +1,8 @@
 """Calibration files and camera-image folders for `ago infer --images DIR`.
 
-An images folder holds the six surround images named by their nuScenes camera names
-(`CAM_FRONT.jpg`, `CAM_FRONT_RIGHT.png`, ... ; .jpg, .jpeg or .png) and, optionally, a
-`calib.json` with the rig:
+An images folder holds one image per camera of the rig, named by the camera (`CAM_FRONT.jpg`,
+`CAM_FRONT_RIGHT.png`, ... for nuScenes' six; `FRONT.jpg` ... for a rig of other names; .jpg, .jpeg
+or .png) and, optionally, a `calib.json` with the rig:
 
     {
       "format": "ago-calibration",
@@ -11,9 +11,13 @@ An images folder holds the six surround images named by their nuScenes camera na
         "CAM_FRONT": {"intrinsics": [[fx, 0, cx], [0, fy, cy], [0, 0, 1]],   # pixels, 3x3
                       "cam2ego": [[...4 numbers...] x 4],                    # 4x4, metres
                       "width": 1600, "height": 900},                         # image size K refers to
-        ... the other five cameras ...
+        ... the other cameras ...
       }
     }
+
+Which cameras: the bundle's rig names them (its order is the model's input order); a calib.json
+with a camera the bundle's rig lacks, or without one it takes, is refused naming the camera. A
+calib.json read on its own gives its cameras in the file's order.
 
 `cameras` may also be a list of objects each with a `"name"` (the layout `Rig.to_dict` writes).
 Camera frame: x right, y down, z forward; ego frame: x forward, y left, z up (see camera.py).
@@ -35,7 +39,7 @@ import cv2
 import numpy as np
 
 from ago_runtime.atomic import write_json
-from ago_runtime.geometry.camera import CAMERA_NAMES, Camera, Rig
+from ago_runtime.geometry.camera import CAMERA_NAMES, MAX_CAMERAS, Camera, Rig
 from ago_runtime.errors import AgoInputError
 from ago_runtime.formats.image_files import decode_image
 from ago_runtime.readers import read_json
@@ -58,8 +62,9 @@ def save_calibration(path: str | Path, rig: Rig) -> None:
     write_json(path, {"format": CALIB_FORMAT, "version": CALIB_VERSION, "cameras": cams})
 
 
-def load_calibration(path: str | Path) -> Rig:
-    """Read and check a calib.json -> Rig (cameras in CAMERA_NAMES order)."""
+def load_calibration(path: str | Path, names=None) -> Rig:
+    """Read and check a calib.json -> Rig: its cameras in `names`' order (a bundle's rig: a missing or an
+    extra camera is refused, naming it), or in the file's order without `names`."""
     path = Path(path)
     d = read_json(path, missing="calibration file not found")
     if not isinstance(d, dict) or "cameras" not in d:
@@ -75,13 +80,21 @@ def load_calibration(path: str | Path) -> Rig:
             raise AgoInputError(path, "each camera in a 'cameras' list needs a 'name'") from None
     if not isinstance(entries, dict):
         raise AgoInputError(path, "'cameras' must be an object keyed by camera name or a list")
-    missing = [n for n in CAMERA_NAMES if n not in entries]
-    extra = sorted(set(entries) - set(CAMERA_NAMES))
-    if missing or extra:
-        raise AgoInputError(path, f"calibration needs exactly the six nuScenes cameras; missing {missing}, extra {extra}")
+    if names is not None:
+        for n in names:
+            if n not in entries:
+                raise AgoInputError(path, f"camera {n}: the bundle's rig takes it and the calibration has none")
+        for n in entries:
+            if n not in names:
+                raise AgoInputError(path, f"camera {n}: not a camera of the bundle's rig ({', '.join(names)})")
+    order = list(names) if names is not None else list(entries)
+    if not 1 <= len(order) <= MAX_CAMERAS:
+        raise AgoInputError(path, f"calibration needs 1..{MAX_CAMERAS} cameras, got {len(order)}")
     cams = []
-    for name in CAMERA_NAMES:
+    for name in order:
         e = entries[name]
+        if not isinstance(e, dict):
+            raise AgoInputError(path, f"{name}: a camera entry must be an object")
         try:
             k = np.asarray(e["intrinsics"], dtype=np.float64)
             m = np.asarray(e["cam2ego"], dtype=np.float64)
@@ -91,7 +104,10 @@ def load_calibration(path: str | Path) -> Rig:
         if k.shape != (3, 3) or m.shape != (4, 4):
             raise AgoInputError(path, f"{name}: intrinsics must be 3x3 and cam2ego 4x4, got {k.shape} and {m.shape}")
         cams.append(Camera(name, k, m, w, h))
-    rig = Rig(cams)
+    try:
+        rig = Rig(cams)
+    except AgoInputError as e:
+        raise AgoInputError(path, e.problem) from None
     rig.validate(str(path))
     return rig
 
@@ -115,32 +131,36 @@ def read_image(path: str | Path) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
-def find_camera_images(folder: str | Path) -> dict[str, Path]:
-    """camera name -> image path in `folder`; refuses a missing, duplicated or unknown CAM_* image."""
+def find_camera_images(folder: str | Path, names=CAMERA_NAMES) -> dict[str, Path]:
+    """camera name -> image path in `folder` for the cameras `names` (default nuScenes' six); refuses a
+    missing or duplicated camera image, and a CAM_* image or an image named like a camera of `names`
+    in another case that is not one of them."""
     folder = Path(folder)
+    names = list(names)
     if not folder.is_dir():
         raise AgoInputError(folder, "images folder not found")
     found: dict[str, list[Path]] = {}
     unknown = []
+    upper = {n.upper() for n in names}
     for p in sorted(folder.iterdir()):
         if p.suffix.lower() not in IMAGE_SUFFIXES or not p.is_file():
             continue
-        if p.stem in CAMERA_NAMES:
+        if p.stem in names:
             found.setdefault(p.stem, []).append(p)
-        elif p.stem.upper().startswith("CAM_"):
+        elif p.stem.upper().startswith("CAM_") or p.stem.upper() in upper:
             unknown.append(p.name)
     if unknown:
-        raise AgoInputError(folder, f"extra camera image(s) {unknown}; expected only {list(CAMERA_NAMES)}")
+        raise AgoInputError(folder, f"extra camera image(s) {unknown}; expected only {names}")
     dups = {n: [q.name for q in ps] for n, ps in found.items() if len(ps) > 1}
     if dups:
         raise AgoInputError(folder, f"more than one image for a camera: {dups}")
-    missing = [n for n in CAMERA_NAMES if n not in found]
+    missing = [n for n in names if n not in found]
     if missing:
         parent = folder.resolve().parent
         if any(p.is_dir() and p.name.startswith("v1.0") for p in parent.iterdir()):   # e.g. DATAROOT/samples
             raise AgoInputError(folder, f"is inside a nuScenes dataroot: pass the dataroot itself, {parent}")
-        raise AgoInputError(folder, f"missing camera image(s) {missing} (expected files like CAM_FRONT.jpg)")
-    return {n: found[n][0] for n in CAMERA_NAMES}
+        raise AgoInputError(folder, f"missing camera image(s) {missing} (expected files like {names[0]}.jpg)")
+    return {n: found[n][0] for n in names}
 
 
 def fit_rig_to_images(rig: Rig, images: dict[str, np.ndarray], paths: dict[str, Path] | None = None) -> Rig:
@@ -162,21 +182,29 @@ def fit_rig_to_images(rig: Rig, images: dict[str, np.ndarray], paths: dict[str, 
     return Rig(cams)
 
 
-def load_images_folder(folder: str | Path, fallback_rig: Rig | None = None) -> tuple[dict[str, np.ndarray], Rig, dict[str, Path]]:
+def load_images_folder(folder: str | Path, fallback_rig: Rig | None = None,
+                       names=None) -> tuple[dict[str, np.ndarray], Rig, dict[str, Path]]:
     """Read an images folder -> (images RGB uint8 by camera, rig fitted to the images, image paths).
 
-    Without a calib.json, `fallback_rig` (the bundle's training rig) is used with a warning.
+    The cameras: `names` (the bundle's rig), else `fallback_rig`'s, else the calib.json's. Without a
+    calib.json, `fallback_rig` (the bundle's training rig) is used with a warning.
     """
     folder = Path(folder)
-    paths = find_camera_images(folder)
     calib = folder / CALIB_FILE
+    if names is None and fallback_rig is not None:
+        names = fallback_rig.names
     if calib.is_file():
-        rig = load_calibration(calib)
+        rig = load_calibration(calib, names)
     elif fallback_rig is not None:
+        if not folder.is_dir():
+            raise AgoInputError(folder, "images folder not found")
         warnings.warn(f"{folder}: no {CALIB_FILE}; using the bundle's training rig (predictions will be wrong "
                       "if your cameras sit elsewhere)", AgoInputWarning, stacklevel=2)
-        rig = fallback_rig
+        rig = fallback_rig.ordered_as(names) if names is not None else fallback_rig
     else:
+        if not folder.is_dir():
+            raise AgoInputError(folder, "images folder not found")
         raise AgoInputError(calib, "calibration file not found")
+    paths = find_camera_images(folder, rig.names)
     images = {name: read_image(p) for name, p in paths.items()}
     return images, fit_rig_to_images(rig, images, paths), paths

@@ -7,7 +7,8 @@ or any `gts_root`), `synthetic/{semantic,depth}/<CAM>/<image stem>.png` (what `a
 and `splits.json`.
 
 Gives, per keyframe (sample), a `Frame`:
-- `images[cam]`: (H, W, 3) uint8 RGB for the six cameras (CAMERA_NAMES order in the rig), with their paths;
+- `images[cam]`: (H, W, 3) uint8 RGB for the camera channels of the sensor table (nuScenes' six in
+  CAMERA_NAMES order, then any others in the table's order: the rig), with their paths;
 - `rig`: intrinsics and cam2ego from each camera's calibrated_sensor; width/height from the image
   (from sample_data when images are not loaded);
 - `ego2global`: the ego pose of the keyframe's LIDAR_TOP sample_data (4x4, metres);
@@ -198,9 +199,18 @@ class NuScenesDataset:
 
         # channel of every calibrated sensor, keyframe sample_data per (sample, channel)
         channel_of_calib = {}
+        camera_channels = []   # in the sensor table's order
         for token, rec in self._calibrated.items():
             sensor = self._ref("sensor", t["sensor"], rec.get("sensor_token"), "calibrated_sensor")
             channel_of_calib[token] = sensor["channel"]
+        for sensor in t["sensor"].values():
+            if sensor.get("modality") == "camera" and sensor.get("channel") not in camera_channels:
+                camera_channels.append(sensor.get("channel"))
+        # the rig: the camera channels of the sensor table (nuScenes' six in CAMERA_NAMES order, then others)
+        self.camera_names: list[str] = ([c for c in CAMERA_NAMES if c in camera_channels]
+                                        + [c for c in camera_channels if c not in CAMERA_NAMES])
+        if not self.camera_names:
+            raise AgoInputError(self.table_dir / "sensor.json", "no camera sensor (modality 'camera')")
         self._key_data: dict[str, dict[str, dict]] = {}
         self.num_nonkey_lidar = 0   # non-key LIDAR_TOP sweeps listed in sample_data.json
         for rec in self._sample_data.values():
@@ -222,7 +232,7 @@ class NuScenesDataset:
                 raise AgoInputError(self.table_dir / "sample.json",
                                     f"sample {rec['token']} points at an unknown scene {rec.get('scene_token')!r}")
             have = self._key_data.get(rec["token"], {})
-            for channel in (*CAMERA_NAMES, LIDAR_CHANNEL):
+            for channel in (*self.camera_names, LIDAR_CHANNEL):
                 if channel not in have:
                     raise AgoInputError(self.table_dir / "sample_data.json",
                                         f"sample {rec['token']} ({scene}) has no keyframe {channel}")
@@ -413,7 +423,7 @@ class NuScenesDataset:
 
         cameras, images, paths = [], {}, {}
         extras: dict = {}
-        for cam in CAMERA_NAMES:
+        for cam in self.camera_names:
             rec = data[cam]
             calib = self._ref("calibrated_sensor", self._calibrated, rec["calibrated_sensor_token"], "sample_data")
             intrinsic = np.asarray(calib.get("camera_intrinsic") or [], dtype=np.float64)
@@ -436,7 +446,10 @@ class NuScenesDataset:
             cameras.append(Camera(cam, intrinsic, cam2ego, width, height))
             if self.load_extras:
                 self._read_extras(extras, cam, path, (height, width))
-        rig = Rig(cameras)
+        try:
+            rig = Rig(cameras)
+        except AgoInputError as e:
+            raise AgoInputError(self.table_dir / "sensor.json", e.problem) from None
         rig.validate(str(self.table_dir / "calibrated_sensor.json"))
 
         gt = None

@@ -91,8 +91,10 @@ def default_attributes(category: str, velocity: np.ndarray) -> tuple[str, ...]:
 class NuScenesWriter:
     """Collects scenes and keyframes, writes sample files at once and the tables at `close()`."""
 
-    def __init__(self, root: str | Path, version: str = "v1.0-trainval"):
+    def __init__(self, root: str | Path, version: str = "v1.0-trainval", camera_names=CAMERA_NAMES):
+        """camera_names: the rig's camera channels (default nuScenes' six), each sample gives these cameras."""
         self.root = Path(root)
+        self.camera_names = tuple(camera_names)
         self.version = version
         self._closed = False
         self._scenes: dict[str, dict] = {}          # scene token -> scene record (+ private keys)
@@ -108,7 +110,7 @@ class NuScenesWriter:
         self._last_ann: dict[tuple[str, str], str] = {}     # (scene token, instance id) -> annotation token
         self._trajectories: dict[str, dict[str, list]] = {}  # location -> scene token -> ego xy positions
         self._sensors = {ch: {"token": _token("sensor", ch), "channel": ch, "modality": "camera"}
-                         for ch in CAMERA_NAMES}
+                         for ch in self.camera_names}
         self._sensors[LIDAR_CHANNEL] = {"token": _token("sensor", LIDAR_CHANNEL), "channel": LIDAR_CHANNEL,
                                         "modality": "lidar"}
         self._category_tokens = {name: _token("category", name) for name in CATEGORY_NAMES}
@@ -157,6 +159,8 @@ class NuScenesWriter:
                                            f"({timestamp_us} after {self._by_token[scene['_samples'][-1]]['timestamp']})")
         self._check_poses(f"scene {scene['name']!r} at {timestamp_us}", ego2global, lidar2ego)
         rig.validate(str(self.root))
+        if tuple(rig.names) != self.camera_names:
+            raise AgoInputError(self.root, f"the rig's cameras {rig.names} are not the writer's {list(self.camera_names)}")
         points = np.asarray(lidar_points)
         if points.ndim != 2 or points.shape[1] != 5:
             raise AgoInputError(self.root, f"lidar_points must be (N, 5), got {points.shape}")

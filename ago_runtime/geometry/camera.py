@@ -22,6 +22,9 @@ from ago_runtime.errors import AgoInputError
 ROTATION_TOLERANCE = 1e-2
 MAX_CAMERA_OFFSET_M = 1e3   # a camera (cam2ego translation) farther than this from the ego origin is refused
 
+MAX_CAMERAS = 12
+
+# nuScenes' six cameras, in the order nuScenes readers build their rig
 CAMERA_NAMES: tuple[str, ...] = (
     "CAM_FRONT",
     "CAM_FRONT_RIGHT",
@@ -109,18 +112,40 @@ class Camera:
 
 @dataclass
 class Rig:
-    """Six cameras in CAMERA_NAMES order."""
+    """The cameras of one vehicle, in the order the model takes them: 1..MAX_CAMERAS cameras with distinct
+    names, each with its own image size. Readers of nuScenes data build it in CAMERA_NAMES order; a
+    calib.json or a dataset of another rig gives its own names and order."""
 
     cameras: list[Camera] = field(default_factory=list)
 
     def __post_init__(self):
         names = [c.name for c in self.cameras]
-        if sorted(names) != sorted(CAMERA_NAMES):
-            missing = sorted(set(CAMERA_NAMES) - set(names))
-            extra = sorted(set(names) - set(CAMERA_NAMES))
-            raise AgoInputError(None, f"a rig needs the six nuScenes cameras; missing {missing}, extra {extra}")
-        by_name = {c.name: c for c in self.cameras}
-        self.cameras = [by_name[n] for n in CAMERA_NAMES]
+        if not 1 <= len(names) <= MAX_CAMERAS:
+            raise AgoInputError(None, f"a rig needs 1..{MAX_CAMERAS} cameras, got {len(names)}")
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise AgoInputError(None, f"camera {dup[0]}: named more than once in the rig")
+        bad = [n for n in names if not isinstance(n, str) or not n or len(n) > 64 or not n.replace("_", "").isalnum()]
+        if bad:
+            raise AgoInputError(None, f"camera {bad[0]!r}: a camera name is 1..64 letters, digits or '_'")
+        self.cameras = list(self.cameras)
+
+    @property
+    def names(self) -> list[str]:
+        return [c.name for c in self.cameras]
+
+    def ordered_as(self, names, source=None) -> "Rig":
+        """The same cameras in the order `names` gives (a bundle's rig); a camera missing here or one that
+        `names` does not list is refused, naming it."""
+        names = list(names)
+        have = self.names
+        for n in names:
+            if n not in have:
+                raise AgoInputError(source, f"camera {n}: the bundle's rig takes it and the calibration has none")
+        for n in have:
+            if n not in names:
+                raise AgoInputError(source, f"camera {n}: not a camera of the bundle's rig ({', '.join(names)})")
+        return Rig([self[n] for n in names])
 
     def __getitem__(self, name: str) -> Camera:
         return {c.name: c for c in self.cameras}[name]
@@ -129,11 +154,8 @@ class Rig:
         return iter(self.cameras)
 
     def ego2img(self) -> np.ndarray:
-        """(6, 4, 4) float32 projection matrices in CAMERA_NAMES order."""
+        """(V, 4, 4) float32 projection matrices in the rig's order."""
         return np.stack([c.ego2img for c in self.cameras]).astype(np.float32)
-
-    def scaled(self, width: int, height: int) -> "Rig":
-        return Rig([c.scaled(width, height) for c in self.cameras])
 
     def validate(self, source: str | None = None) -> None:
         for c in self.cameras:

@@ -67,6 +67,7 @@ def open_frames(images: Path, sample, info: Optional[Path], fallback_rig, skip=N
     `allow_outside_root`: file names in the data files may leave the data root (ago_runtime.paths).
     `shard`: (K, N) from `--shard K/N`, the K-th of N contiguous runs of a dataset's frames (ago_runtime.shards)."""
     from ago_runtime.formats.calibration import find_camera_images, load_images_folder
+    from ago_runtime.geometry.camera import CAMERA_NAMES
     from ago_runtime.shards import shard_indices
 
     wanted = [sample] if isinstance(sample, str) else list(sample or [])
@@ -104,7 +105,7 @@ def open_frames(images: Path, sample, info: Optional[Path], fallback_rig, skip=N
     if wanted or shard is not None:
         raise AgoInputError("--sample" if wanted else "--shard", f"{images} is an images folder (one frame), "
                                                                 "not a dataset")
-    find_camera_images(images)   # a folder inside a nuScenes dataroot: the error names the dataroot
+    find_camera_images(images, fallback_rig.names if fallback_rig is not None else CAMERA_NAMES)   # inside a dataroot: named
 
     def folder_frame():
         imgs, rig, _ = load_images_folder(images, fallback_rig=fallback_rig)

@@ -1,4 +1,4 @@
-"""`Predictor`: a bundle + six images + a rig + a prompt bank -> an occupancy prediction. No torch.
+"""`Predictor`: a bundle + a frame's camera images + its rig + a prompt bank -> an occupancy prediction. No torch.
 
     p = Predictor("bundle_dir")                       # or Predictor(Bundle.load(...))
     pred = p.predict(images, rig, bank)               # images: dict camera -> (H, W, 3) uint8 RGB
@@ -111,15 +111,16 @@ def bank_key(bank) -> str:
 
 
 def prepare_inputs(bundle: Bundle, images: dict[str, np.ndarray], rig: Rig, source=None) -> tuple[np.ndarray, np.ndarray]:
-    """Six images + their rig -> a bundle's model inputs: images (1, 6, 3, H, W) float32, ego2img (1, 6, 4, 4)
+    """A frame's images + its rig -> a bundle's model inputs: images (1, V, 3, H, W) float32, ego2img (1, V, 4, 4)
     float32 (needs the bundle only, no sessions: `ago infer` reads its first frame while they open). A frame
     whose cameras are not the bundle's rig's is refused, naming the camera."""
     bundle.contract.rig.check_cameras(images.keys(), source)
     bundle.contract.rig.check_cameras([c.name for c in rig.cameras], source)
+    rig = rig.ordered_as(bundle.contract.rig.names, source)   # the model's camera order
     rig.validate(source)
     rig = fit_rig_to_images(rig, images)
     pre = bundle.preprocess
-    x = pre.images(images, source)[None]
+    x = pre.images(images, rig, source)[None]
     m = pre.ego2img(rig)[None]
     if not np.isfinite(m).all():
         raise AgoInputError(source, "calibration gives non-finite projection matrices")
@@ -205,7 +206,7 @@ class Predictor:
     # ---- prediction ------------------------------------------------------------------------
     def predict(self, images: dict[str, np.ndarray], rig: Rig, bank=None, identifier: Identifier | str | None = None,
                 source=None, volumes: bool = False) -> Prediction:
-        """Six images (dict camera -> RGB uint8) + their rig + a bank (default: the bundle's) -> Prediction."""
+        """A frame's images (dict camera -> RGB uint8) + their rig + a bank (default: the bundle's) -> Prediction."""
         bank = bank if bank is not None else self.bundle.load_bank()
         identifier = Identifier.parse(identifier, "identifier") if identifier else self.bundle.identifier_for(bank)
         folded = self.fold_with_reference(bank) if volumes else self.fold(bank)

@@ -1,9 +1,10 @@
 """CLI verb `ago synth`: write a procedural synthetic driving dataset in the nuScenes layout.
 
 `ago synth --out data/synth --scenes N --frames M [--seed S] [--rig nuscenes|waymo|front]
-[--image-size 800x450] [--grid 200x200x16] [--sweeps-between K]`
+[--layout nuscenes|occ3d-waymo] [--image-size 800x450] [--grid 200x200x16] [--sweeps-between K]`
 --rig nuscenes (default): six cameras, nuScenes layout. --rig waymo: Waymo's five cameras (two image
-heights), --rig front: its front camera alone; both write the Occ3D-Waymo layout (synth/rigs.py).
+heights), --rig front: its front camera alone; both write the Occ3D-Waymo layout unless
+`--layout nuscenes` asks for the nuScenes layout (synth/rigs.py).
 Needs numpy + opencv only (no torch). Deterministic given the seed.
 """
 
@@ -32,6 +33,9 @@ def register(app: typer.Typer) -> None:
         rig: str = typer.Option("nuscenes", "--rig",
                                 help="cameras: nuscenes (six, nuScenes layout), waymo (five, Occ3D-Waymo layout) "
                                      "or front (Waymo's front camera alone, Occ3D-Waymo layout)"),
+        layout: str = typer.Option(None, "--layout",
+                                   help="dataset layout: nuscenes or occ3d-waymo (default: the rig's own; "
+                                        "--layout nuscenes writes any rig with Occ3D-nuScenes labels)"),
         image_size: str = typer.Option(None, "--image-size",
                                        help="camera image WIDTHxHEIGHT (default 800x450; waymo/front: 960x640, "
                                             "the side cameras as wide and 886/1280 as tall)"),
@@ -44,18 +48,20 @@ def register(app: typer.Typer) -> None:
         jobs: int = typer.Option(1, "--jobs", min=1, max=64,
                                  help="worker processes rendering scenes in parallel (same dataset for any value)"),
     ) -> None:
-        """Generate a synthetic city: six cameras, a 32-beam LiDAR, 3D boxes and Occ3D ground truth."""
+        """Generate a synthetic city: a camera rig, a 32-beam LiDAR, 3D boxes and Occ3D ground truth."""
         from ago_runtime.errors import AgoInputError
         from ago_runtime.outputs import check_output_dir
 
         from .config import SynthConfig, parse_size
         from .generate import write_dataset
-        from .rigs import DEFAULT_IMAGE_SIZE, RIGS
+        from .rigs import DEFAULT_IMAGE_SIZE, LAYOUT_OF_RIG, LAYOUTS, RIGS
 
         if rig not in RIGS:
             raise AgoInputError("--rig", f"{rig!r}: one of {', '.join(RIGS)}")
-        if rig != "nuscenes" and sweeps_between:
-            raise AgoInputError("--sweeps-between", "the Occ3D-Waymo layout (--rig waymo|front) has no LiDAR sweeps")
+        if layout is not None and layout not in LAYOUTS:
+            raise AgoInputError("--layout", f"{layout!r}: one of {', '.join(LAYOUTS)}")
+        if (layout or LAYOUT_OF_RIG[rig]) == "occ3d-waymo" and sweeps_between:
+            raise AgoInputError("--sweeps-between", "the Occ3D-Waymo layout has no LiDAR sweeps")
         w, h = parse_size(image_size, 2, "--image-size") if image_size is not None else DEFAULT_IMAGE_SIZE[rig]
         shape = parse_size(grid, 3, "--grid")
         if w > MAX_IMAGE_SIDE or h > MAX_IMAGE_SIDE:
@@ -66,7 +72,7 @@ def register(app: typer.Typer) -> None:
         check_output_dir(out, "--out")
         config = SynthConfig(seed=seed, num_scenes=scenes, frames_per_scene=frames, image_width=w, image_height=h,
                              grid_shape=shape, val_fraction=val_fraction, sweeps_between=sweeps_between,
-                             rig_name=rig)
+                             rig_name=rig, layout=layout or "")
         summary = write_dataset(config, out, jobs=jobs)
         typer.echo(f"wrote {summary['samples']} keyframes of {summary['scenes']} scenes "
                    f"({len(summary['splits']['train'])} train, {len(summary['splits']['val'])} val) to {out}")

@@ -11,11 +11,11 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from ago_runtime.geometry.camera import Camera, Rig
+from ago_runtime.geometry.camera import Rig
 from ago_runtime.errors import AgoInputError
 from ago_runtime.geometry.grid import Grid
 
-from .rigs import RIGS, make_rig
+from .rigs import LAYOUT_OF_RIG, LAYOUTS, RIGS, make_rig
 
 
 @dataclass
@@ -29,7 +29,8 @@ class SynthConfig:
     scene_prefix: str = "synth"
     version: str = "v1.0-trainval"
     # cameras
-    rig_name: str = "nuscenes"          # "nuscenes" (nuScenes layout), "waymo" or "front" (Occ3D-Waymo layout)
+    rig_name: str = "nuscenes"          # "nuscenes", "waymo" or "front" (synth/rigs.py)
+    layout: str = ""                    # "nuscenes" or "occ3d-waymo"; "" = the rig's own (LAYOUT_OF_RIG)
     image_width: int = 800
     image_height: int = 450
     image_noise_std: float = 3.0        # per-pixel Gaussian noise (8-bit levels)
@@ -79,7 +80,9 @@ class SynthConfig:
             problems.append("the LiDAR needs >= 1 beam and >= 8 azimuth steps")
         if self.rig_name not in RIGS:
             problems.append(f"rig must be one of {', '.join(RIGS)}, got {self.rig_name!r}")
-        elif self.rig_name != "nuscenes" and self.num_scenes > 1000:
+        elif self.layout not in ("",) + LAYOUTS:
+            problems.append(f"layout must be one of {', '.join(LAYOUTS)}, got {self.layout!r}")
+        elif self.layout_name() == "occ3d-waymo" and self.num_scenes > 1000:
             problems.append("the Occ3D-Waymo layout numbers scenes with three digits: at most 1000 scenes")
         if problems:
             raise AgoInputError("SynthConfig", "; ".join(problems))
@@ -88,9 +91,13 @@ class SynthConfig:
         """The Occ3D range [-40,-40,-1, 40,40,5.4] m cut into `grid_shape` voxels (default 0.4 m)."""
         return Grid.with_shape(self.grid_shape)
 
-    def rig(self) -> Rig | list[Camera]:
-        """A `Rig` for "nuscenes"; the cameras in file order for "waymo" / "front" (synth/rigs.py)."""
+    def rig(self) -> Rig:
+        """The cameras of `rig_name`, in file order (synth/rigs.py)."""
         return make_rig(self.rig_name, self.image_width, self.image_height)
+
+    def layout_name(self) -> str:
+        """The dataset layout written: `layout`, or the rig's own (nuscenes -> nuScenes, waymo/front -> Occ3D-Waymo)."""
+        return self.layout or LAYOUT_OF_RIG[self.rig_name]
 
     def lidar2ego(self) -> np.ndarray:
         """(4, 4): nuScenes' LIDAR_TOP mounting; LiDAR x = ego right (-y), LiDAR y = ego forward."""

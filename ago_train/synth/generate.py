@@ -11,8 +11,8 @@
   between the previous keyframe and this one (empty by default and for the first keyframe).
 `write_dataset(config, out)` writes every scene through `ago_runtime.formats.nuscenes_writer.NuScenesWriter`
 (the last `val_fraction` of the scenes form the val split) and returns a small summary dict.
-With `config.rig_name` "waymo" or "front" the frames hold that rig's cameras (a list, synth/rigs.py),
-`gt` is `Occ3DWaymoLabels` (synth/waymo_labels.py) and `write_dataset` writes the Occ3D-Waymo layout
+The frames hold the cameras of `config.rig_name` (synth/rigs.py). With the Occ3D-Waymo layout (`config.layout_name()`,
+the default of the "waymo" and "front" rigs) `gt` is `Occ3DWaymoLabels` (synth/waymo_labels.py) and `write_dataset` writes it
 through `ago_runtime.formats.occ3d_waymo_writer.Occ3DWaymoWriter` (no LiDAR files, boxes or extras).
 
 Global frame = the world frame shifted by GLOBAL_OFFSET so that every pose is positive (nuScenes maps
@@ -102,7 +102,7 @@ def generate_scene(config: SynthConfig, scene_index: int, world: World | None = 
                                "ego2global": _to_global(pose_k),
                                "lidar_points": scan_lidar(world, prims_k, aabb_k, config, pose_k, rng_k,
                                                           lidar_dirs).points})
-        gt_of = occupancy_gt if config.rig_name == "nuscenes" else occupancy_gt_waymo
+        gt_of = occupancy_gt if config.layout_name() == "nuscenes" else occupancy_gt_waymo
         gt = gt_of(world, prims, ego2world, grid, rig, depth, scan.origin_world, scan.points_world,
                    config.gt_samples_per_axis)
         # annotations
@@ -186,11 +186,11 @@ def write_dataset(config: SynthConfig, out: str | Path, progress: bool = True, j
 
     `jobs` > 1 renders whole scenes in that many worker processes (each scene depends only on
     (seed, scene index), so the dataset is byte-for-byte the same); the writer stays in this process.
-    `config.rig_name` "waymo" / "front": the Occ3D-Waymo layout instead (`write_waymo_layout`)."""
-    if config.rig_name != "nuscenes":
+    `config.layout_name()` "occ3d-waymo": the Occ3D-Waymo layout instead (`write_waymo_layout`)."""
+    if config.layout_name() == "occ3d-waymo":
         return write_waymo_layout(config, out, progress=progress, jobs=jobs)
     out = Path(out)
-    writer = NuScenesWriter(out, version=config.version)
+    writer = NuScenesWriter(out, version=config.version, camera_names=config.rig().names)
     val = set(config.val_scene_indices())
     splits = {"train": [], "val": []}
     counts = {"samples": 0, "annotations": 0, "lidar_points": 0}

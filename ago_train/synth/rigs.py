@@ -7,17 +7,20 @@
   heights) as tall with the same focal length, so a shorter vertical field of view. The mounting
   positions and the field of view are our choices (no source we read states them);
 - `front`: FRONT alone.
-`waymo` and `front` write the Occ3D-Waymo layout with labels in `OCC3D_WAYMO` (docs/dataset_format.md;
-the labels: synth/waymo_labels.py).
+`waymo` and `front` write the Occ3D-Waymo layout with labels in `OCC3D_WAYMO` by default (docs/dataset_format.md;
+the labels: synth/waymo_labels.py); `--layout nuscenes` writes any rig in the nuScenes layout instead
+(its cameras as the sensor channels, Occ3D-nuScenes labels), the layout a custom rig is usually converted to.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from ago_runtime.geometry.camera import Camera, Rig, level_camera
+from ago_runtime.geometry.camera import Rig, level_camera
 
 RIGS = ("nuscenes", "waymo", "front")
+LAYOUTS = ("nuscenes", "occ3d-waymo")
+LAYOUT_OF_RIG = {"nuscenes": "nuscenes", "waymo": "occ3d-waymo", "front": "occ3d-waymo"}
 WAYMO_CAMERAS = ("FRONT", "FRONT_LEFT", "FRONT_RIGHT", "SIDE_LEFT", "SIDE_RIGHT")
 SIDE_HEIGHT_RATIO = 886 / 1280
 WAYMO_HFOV_DEG = 50.4
@@ -31,8 +34,8 @@ _WAYMO_MOUNT = {  # name: (x, y, z, yaw_deg) in the ego frame (ours)
 }
 
 
-def make_rig(name: str, width: int, height: int) -> Rig | list[Camera]:
-    """`Rig` (six nuScenes cameras) for "nuscenes"; the list of cameras, in file order, for "waymo" / "front"."""
+def make_rig(name: str, width: int, height: int) -> Rig:
+    """The rig `name`: six nuScenes cameras, Waymo's five (file order) or Waymo's front camera alone."""
     if name == "nuscenes":
         return Rig.nuscenes_like(width, height)
     names = WAYMO_CAMERAS if name == "waymo" else WAYMO_CAMERAS[:1]
@@ -42,4 +45,4 @@ def make_rig(name: str, width: int, height: int) -> Rig | list[Camera]:
         x, y, z, yaw = _WAYMO_MOUNT[cam]
         h = side_h if cam.startswith("SIDE") else height
         cams.append(level_camera(cam, x, y, z, np.deg2rad(yaw), np.deg2rad(WAYMO_HFOV_DEG), width, h))
-    return cams
+    return Rig(cams)
