@@ -11,8 +11,10 @@ from __future__ import annotations
 from pathlib import Path
 
 
-def random_checkpoint(path: str | Path, config="tiny", prompts: str = "cw", seed: int = 0) -> Path:
-    """config: a ModelConfig or a preset name ("tiny", "cpu", "full"; "cpu"/"full" without ImageNet weights)."""
+def random_checkpoint(path: str | Path, config="tiny", prompts: str = "cw", seed: int = 0, rig=None) -> Path:
+    """config: a ModelConfig or a preset name ("tiny", "cpu", "full"; "cpu"/"full" without ImageNet weights).
+    rig: the training rig to record (a `Rig`; the model then takes its cameras), else none is recorded
+    (export falls back to nuScenes' six)."""
     import torch
 
     from ago_runtime.vocab.bank import load_prompt_bank
@@ -23,11 +25,15 @@ def random_checkpoint(path: str | Path, config="tiny", prompts: str = "cw", seed
     if isinstance(config, str):
         config = ModelConfig.preset(config)
         config.pretrained = False
+    if rig is not None:
+        config.num_cameras = len(rig.cameras)
     torch.manual_seed(seed)
     model = config.build()
     space = parse_prompt_file(prompts)
     bank = load_prompt_bank(space)
+    extra = {"rig": rig.to_dict()} if rig is not None else {}
     return save_checkpoint(path, {
+        **extra,
         "model": model.state_dict(), "model_config": config.to_dict(), "step": 0, "epoch": 0,
         "label_space": {"name": space.name, "prompt_text": Path(space.source).read_text(encoding="utf-8"),
                         "class_names": list(space.class_names), "num_classes": space.num_classes,

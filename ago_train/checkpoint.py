@@ -202,3 +202,15 @@ def check_resume_model(ckpt: dict, path: str | Path, model_config: dict) -> None
     if diff:
         raise AgoInputError(path, "cannot resume: model settings differ from this run's "
                                   f"({', '.join(diff[:8])}); use the run's own config or another --out")
+
+
+def checkpoint_camera_names(ckpt: dict, path: str | Path | None = None) -> list[str] | None:
+    """The cameras the checkpoint's model takes, in its input order (its training rig), or None for a checkpoint
+    without a rig record (it then takes each frame's cameras as they come, as before rigs were recorded)."""
+    rig = ckpt.get("rig")
+    if not isinstance(rig, dict) or not isinstance(rig.get("cameras"), list):
+        return None
+    names = [c.get("name") for c in rig["cameras"] if isinstance(c, dict)]
+    if len(names) != len(rig["cameras"]) or not all(isinstance(n, str) for n in names):
+        raise AgoInputError(path, "checkpoint rig record: every camera needs a name")
+    return names

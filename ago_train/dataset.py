@@ -140,8 +140,11 @@ class OccSampleDataset(torch.utils.data.Dataset):
     def __init__(self, frames, pseudo: PseudoLabelSet | None, num_classes: int, grid: Grid,
                  preprocess: Preprocess, gt_lut: np.ndarray | None = None, with_gt: bool = False,
                  with_embeds: bool = True, color_jitter: float = 0.0, seed: int = 0, feature_cache=None,
-                 memory_bytes: int = 0, augment: str = "none"):
+                 memory_bytes: int = 0, augment: str = "none", camera_names: Sequence[str] | None = None):
+        """camera_names: the model's cameras in its input order (its checkpoint's rig); every frame's rig is put
+        in that order and a frame whose cameras differ is refused, naming the camera. None: each frame's own."""
         self.frames = frames
+        self.camera_names = list(camera_names) if camera_names is not None else None
         self.pseudo = pseudo
         self.num_classes = int(num_classes)
         self.grid = grid
@@ -188,8 +191,8 @@ class OccSampleDataset(torch.utils.data.Dataset):
         item = dict(base)
         if self.feature_cache is not None:   # the cache keeps its own in-memory copy of recent frames
             item["prefix"] = [torch.from_numpy(m) for m in
-                              self.feature_cache.frame_prefix(base["_image_paths"], self.frames[i].rig, base["_source"],
-                                                             flip=t.flip_y)]
+                              self.feature_cache.frame_prefix(base["_image_paths"], self.rig_of(self.frames[i]),
+                                                             base["_source"], flip=t.flip_y)]
         if t.identity:
             return item
         shape = tuple(self.grid.shape)
@@ -205,18 +208,25 @@ class OccSampleDataset(torch.utils.data.Dataset):
                 item[key] = t.volume(item[key])
         return item
 
+    def rig_of(self, frame):
+        """The frame's rig in the model's camera order (`camera_names`)."""
+        if self.camera_names is None:
+            return frame.rig
+        return frame.rig.ordered_as(self.camera_names, f"{frame.scene}/{frame.token}")
+
     def _load(self, i: int) -> dict:
         frame = self.frames[i]
         source = f"{frame.scene}/{frame.token}"
+        rig = self.rig_of(frame)
         item = {
-            "ego2img": torch.from_numpy(self.preprocess.ego2img(frame.rig)),
+            "ego2img": torch.from_numpy(self.preprocess.ego2img(rig)),
             "token": frame.token,
             "scene": frame.scene,
             "_image_paths": dict(frame.image_paths),
             "_source": source,
         }
         if self.feature_cache is None:
-            images = self.preprocess.images(frame.images, frame.rig, source=source)
+            images = self.preprocess.images(frame.images, rig, source=source)
             if self.color_jitter > 0:
                 rng = np.random.default_rng([self.seed, self.epoch, int(i)])
                 a = 1.0 + rng.uniform(-self.color_jitter, self.color_jitter, size=(len(images), 1, 1, 1)).astype(np.float32)

@@ -30,7 +30,7 @@ from ago_runtime.geometry.preprocess import Preprocess
 from ago_runtime.predict.contract import Identifier
 from ago_runtime.vocab.prompts import LabelSpace, parse_prompt_file, parse_prompt_text
 
-from .checkpoint import load_checkpoint
+from .checkpoint import checkpoint_camera_names, load_checkpoint
 from .dataset import FrameList, OccSampleDataset, collate
 from .distributed import pick_device
 
@@ -183,7 +183,9 @@ def evaluate(ckpt_path: str | Path, data: str | Path, split: str = "val", prompt
     grid = mcfg.grid_obj()
     pre = Preprocess(mcfg.image_width, mcfg.image_height)
     dataset = OccSampleDataset(FrameList(ds, indices), None, K, grid, pre,
-                               gt_lut=label_space.gt_lut(free_index=K), with_gt=True)
+                               gt_lut=label_space.gt_lut(free_index=K), with_gt=True,
+                               camera_names=checkpoint_camera_names(ckpt, ckpt_path))
+    dataset.rig_of(ds[indices[0]])   # a frame of another rig is refused before any work
     names = list(label_space.class_names) + ["free"]
     metric = OccupancyMetric(names, free_index=K)
     loader = torch.utils.data.DataLoader(dataset, batch_size=1, shuffle=False, collate_fn=collate)

@@ -207,14 +207,15 @@ class Trainer:
         # the rig comes from the data: the model takes as many cameras as the training frames have
         first_rig = ds[indices[0]].rig
         if len(first_rig.cameras) != cfg.model.num_cameras:
-            print(f"note: the training data's rig has {len(first_rig.cameras)} cameras ({', '.join(first_rig.names)}); "
+            print(f"note: the training data's rig has {len(first_rig.cameras)} camera(s) ({', '.join(first_rig.names)}); "
                   f"model.num_cameras {cfg.model.num_cameras} -> {len(first_rig.cameras)}", file=sys.stderr, flush=True)
             cfg = self.cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model,
                                                                                 num_cameras=len(first_rig.cameras)))
         self.preprocess = Preprocess(cfg.model.image_width, cfg.model.image_height)
         self.dataset = OccSampleDataset(FrameList(ds, indices), self.pseudo, K, self.grid, self.preprocess,
                                         with_embeds=True, color_jitter=cfg.color_jitter, seed=cfg.seed,
-                                        memory_bytes=cfg.item_memory_mb << 20, augment=cfg.augment)
+                                        memory_bytes=cfg.item_memory_mb << 20, augment=cfg.augment,
+                                        camera_names=first_rig.names)
         # the camera rig of the training data (native image size), for export (a typical rig to trace with)
         self.rig_record = plain(first_rig.to_dict())
         self.sampler = DistributedSampler(self.dataset, num_replicas=info.world_size, rank=info.rank,

@@ -7,6 +7,9 @@
 #   parity-checked, with its bundle card)
 #   -> ago_runtime/assets/default_bundle/ + assets/demo_frame/
 #
+# Another rig (issue 38): RIG=front|waymo LAYOUT=nuscenes (ago synth --rig/--layout) trains the same recipe on that
+# rig's cameras; set the model's canvas to the rig's aspect with MODEL_SIZE=WxH (e.g. 384x256 for Waymo's 3:2
+# front camera). Only the default rig's bundle is copied into the package (INSTALL=1 forces, INSTALL=0 skips).
 # Needs the training extra (scripts/setup.sh). Each step's time is printed (measured runs, by stage:
 # benchmarks/results/training_cpu.md); every step resumes or reuses what an interrupted run left. Usage:
 #   bash scripts/make_default_bundle.sh [WORK_DIR]
@@ -32,6 +35,12 @@ GRID="${GRID:-100x100x8}"
 # synthetic GT's grid; `ago eval --readout gt`, docs/training.md). READOUT_GRID= (empty) keeps the model grid.
 READOUT_GRID="${READOUT_GRID-200x200x16}"
 JOBS="${JOBS:-2}"
+RIG="${RIG:-nuscenes}"
+LAYOUT="${LAYOUT:-nuscenes}"
+MODEL_SIZE="${MODEL_SIZE:-}"
+INSTALL="${INSTALL:-$([ "$RIG" = nuscenes ] && echo 1 || echo 0)}"
+MODEL_SET=()
+[ -n "$MODEL_SIZE" ] && MODEL_SET=(--set "model.image_width=${MODEL_SIZE%x*}" --set "model.image_height=${MODEL_SIZE#*x}")
 ASSETS="$REPO/ago_runtime/assets"
 AGO="python -m ago_runtime"
 export AGO_NO_PROGRESS="${AGO_NO_PROGRESS:-0}"
@@ -41,7 +50,7 @@ stamp() { echo "   ($(( (SECONDS - START) / 60 )) min $(( (SECONDS - START) % 60
 mkdir -p "$WORK"
 echo "== 1/6 synthetic data ($SCENES scenes x $FRAMES frames, seed 0) -> $WORK/synth"
 [ -f "$WORK/synth/splits.json" ] || { rm -rf "$WORK/synth"; $AGO synth --out "$WORK/synth" --scenes "$SCENES" \
-    --frames "$FRAMES" --seed 0 --image-size "$IMAGE_SIZE" --grid 200x200x16 --jobs "$JOBS"; }
+    --frames "$FRAMES" --seed 0 --image-size "$IMAGE_SIZE" --grid 200x200x16 --jobs "$JOBS" --rig "$RIG" --layout "$LAYOUT"; }
 stamp
 
 echo "== 2/6 pseudo-labels ($PROMPTS, grid $GRID, train split) -> $WORK/pseudo"
@@ -53,7 +62,7 @@ echo "== 3/6 train ($PRESET preset, $STEPS steps) -> $WORK/train"
 RESUME=""
 [ -f "$WORK/train/last.pt" ] && RESUME="--resume"
 $AGO train --config "$PRESET" --data "$WORK/synth" --pseudo "$WORK/pseudo" --prompts "$PROMPTS" --out "$WORK/train" \
-    --set max_steps="$STEPS" --set ckpt_every=250 --set "snapshot_steps=$SNAPSHOTS" $RESUME
+    --set max_steps="$STEPS" --set ckpt_every=250 --set "snapshot_steps=$SNAPSHOTS" "${MODEL_SET[@]}" $RESUME
 stamp
 
 echo "== 4/6 evaluate on the val split (the bundle card reports it)"
@@ -68,6 +77,7 @@ $AGO export "$WORK/train/last.pt" -o "$WORK/bundle" "${READOUT_EXPORT[@]}" \
     --card-note "a demonstration model trained by scripts/make_default_bundle.sh on the SYNTHETIC world only"
 stamp
 
+if [ "$INSTALL" != 1 ]; then echo "done: bundle in $WORK/bundle (INSTALL=0: not copied into the package)"; exit 0; fi
 echo "== 6/6 copy into $ASSETS"
 mkdir -p "$ASSETS"
 rm -rf "$ASSETS/default_bundle.new" && cp -r "$WORK/bundle" "$ASSETS/default_bundle.new"

@@ -61,9 +61,9 @@ def test_rig_of_any_cameras_refuses_what_does_not_fit_and_bad_calibration():
     rig = Rig.nuscenes_like(160, 90)
     five = Rig([c for c in rig if c.name != "CAM_BACK"])           # any 1..12 distinct cameras make a rig
     assert five.names == [c for c in CAMERA_NAMES if c != "CAM_BACK"]
-    with pytest.raises(AgoInputError, match="camera CAM_BACK: the bundle's rig takes it"):
+    with pytest.raises(AgoInputError, match="camera CAM_BACK: the model's rig takes it"):
         five.ordered_as(CAMERA_NAMES, "calib.json")                 # ... but not the rig a bundle was trained for
-    with pytest.raises(AgoInputError, match="camera CAM_BACK: not a camera of the bundle's rig"):
+    with pytest.raises(AgoInputError, match="camera CAM_BACK: not a camera of the model's rig"):
         rig.ordered_as(five.names)
     assert rig.ordered_as(list(reversed(CAMERA_NAMES))).names == list(reversed(CAMERA_NAMES))
     with pytest.raises(AgoInputError, match="CAM_FRONT: named more than once"):

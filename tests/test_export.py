@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ago_runtime.geometry.camera import CAMERA_NAMES
+from ago_runtime.geometry.camera import CAMERA_NAMES, Rig
 
 torch = pytest.importorskip("torch")
 onnx = pytest.importorskip("onnx")
@@ -121,7 +121,7 @@ def _torch_labels_on_random_frame(ckpt, bundle_dir, seed: int, grid_shape=None):
     pred = Predictor(b)
     bank = b.load_bank()
     rng = np.random.default_rng(seed)
-    rig = b.rig.scaled(400, 225)
+    rig = Rig([c.scaled(400, 225) for c in b.rig])
     images = {c.name: rng.integers(0, 255, (225, 400, 3), dtype=np.uint8) for c in rig}
     x, m = pred.prepare(images, rig)
     with torch.no_grad():

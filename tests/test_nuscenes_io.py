@@ -28,7 +28,8 @@ from ago_runtime.formats.nuscenes_schema import (CATEGORY_NAMES, TABLE_NAMES, ma
                                          quaternion_to_matrix, record_to_matrix)
 from ago_runtime.formats.nuscenes_writer import BoxAnnotation, NuScenesWriter
 from ago_runtime.formats.occ3d import Occ3DLabels
-from ago_runtime.pictures.projection_overlay import LAYOUT, render_depth_overlay
+from ago_runtime.pictures.projection_overlay import render_depth_overlay
+from ago_runtime.pictures.render import RIG_LAYOUT as LAYOUT
 
 from conftest import shared_path
 

@@ -174,8 +174,22 @@ def test_rig_mosaic_layout():
         for c, name in enumerate(row):
             assert np.array_equal(out[r * 180 + 150, c * 320 + 160], colours[name]), name
     del images["CAM_BACK"]
-    out = render.rig_mosaic(images, width=960)
+    out = render.rig_mosaic(images, width=960, layout=render.RIG_LAYOUT)
     assert np.all(out[180 + 170, 320 + 300] == 40)
+
+
+def test_rig_mosaic_of_another_rig_keeps_each_aspect():
+    """Waymo's five cameras (two heights): rows of three in the rig's order; the shorter side images keep
+    their aspect (padded dark below, not stretched)."""
+    names = ["FRONT", "FRONT_LEFT", "FRONT_RIGHT", "SIDE_LEFT", "SIDE_RIGHT"]
+    assert render.mosaic_layout(names) == (("FRONT", "FRONT_LEFT", "FRONT_RIGHT"), ("SIDE_LEFT", "SIDE_RIGHT"))
+    images = {n: np.full((100 if n.startswith("FRONT") else 70, 150, 3), 30 * i + 60, np.uint8)
+              for i, n in enumerate(names)}
+    out = render.rig_mosaic(images, width=900)
+    assert out.shape == (200 + 140, 900, 3)
+    assert np.all(out[200 + 130, 300 + 150] == 30 * 4 + 60)        # SIDE_RIGHT's own pixels up to its height
+    assert np.all(out[200 + 130, 600 + 150] == 255)                # no third tile on the second row
+    assert render.mosaic_layout(["FRONT"]) == (("FRONT",),)
 
 
 def test_save_png_rgb_roundtrip(tmp_path):

@@ -80,19 +80,10 @@ def load_calibration(path: str | Path, names=None) -> Rig:
             raise AgoInputError(path, "each camera in a 'cameras' list needs a 'name'") from None
     if not isinstance(entries, dict):
         raise AgoInputError(path, "'cameras' must be an object keyed by camera name or a list")
-    if names is not None:
-        for n in names:
-            if n not in entries:
-                raise AgoInputError(path, f"camera {n}: the bundle's rig takes it and the calibration has none")
-        for n in entries:
-            if n not in names:
-                raise AgoInputError(path, f"camera {n}: not a camera of the bundle's rig ({', '.join(names)})")
-    order = list(names) if names is not None else list(entries)
-    if not 1 <= len(order) <= MAX_CAMERAS:
-        raise AgoInputError(path, f"calibration needs 1..{MAX_CAMERAS} cameras, got {len(order)}")
+    if not 1 <= len(entries) <= MAX_CAMERAS:
+        raise AgoInputError(path, f"calibration needs 1..{MAX_CAMERAS} cameras, got {len(entries)}")
     cams = []
-    for name in order:
-        e = entries[name]
+    for name, e in entries.items():
         if not isinstance(e, dict):
             raise AgoInputError(path, f"{name}: a camera entry must be an object")
         try:
@@ -106,6 +97,7 @@ def load_calibration(path: str | Path, names=None) -> Rig:
         cams.append(Camera(name, k, m, w, h))
     try:
         rig = Rig(cams)
+        rig = rig.ordered_as(names) if names is not None else rig
     except AgoInputError as e:
         raise AgoInputError(path, e.problem) from None
     rig.validate(str(path))

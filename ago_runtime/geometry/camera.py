@@ -135,16 +135,16 @@ class Rig:
         return [c.name for c in self.cameras]
 
     def ordered_as(self, names, source=None) -> "Rig":
-        """The same cameras in the order `names` gives (a bundle's rig); a camera missing here or one that
-        `names` does not list is refused, naming it."""
+        """The same cameras in the order `names` gives (the rig a model was trained for); a camera missing here
+        or one that `names` does not list is refused, naming it."""
         names = list(names)
         have = self.names
         for n in names:
             if n not in have:
-                raise AgoInputError(source, f"camera {n}: the bundle's rig takes it and the calibration has none")
+                raise AgoInputError(source, f"camera {n}: the model's rig takes it and it is missing here")
         for n in have:
             if n not in names:
-                raise AgoInputError(source, f"camera {n}: not a camera of the bundle's rig ({', '.join(names)})")
+                raise AgoInputError(source, f"camera {n}: not a camera of the model's rig ({', '.join(names)})")
         return Rig([self[n] for n in names])
 
     def __getitem__(self, name: str) -> Camera:

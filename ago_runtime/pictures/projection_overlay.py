@@ -1,9 +1,10 @@
-"""A picture to check calibration by eye: the keyframe LiDAR projected into the six cameras.
+"""A picture to check calibration by eye: the keyframe LiDAR projected into the rig's cameras.
 
-Takes a `Frame` (images, rig, sweeps[0]); gives a PNG with the six images in the rig layout
+Takes a `Frame` (images, rig, sweeps[0]); gives a PNG with the images in rows (`render.mosaic_layout`:
+nuScenes' six as
     CAM_FRONT_LEFT  CAM_FRONT  CAM_FRONT_RIGHT
     CAM_BACK_LEFT   CAM_BACK   CAM_BACK_RIGHT
-each downscaled to `tile_width` pixels wide, with every LiDAR point that lands in the image drawn at
+any other rig three to a row in its own order), each downscaled to `tile_width` pixels wide, with every LiDAR point that lands in the image drawn at
 its pixel, coloured by its depth along the optical axis (turbo colour map: red near, blue at
 `max_depth` metres and beyond). Points go LiDAR frame -> ego (lidar2ego) -> `Camera.project`, i.e. the
 same geometry the rest of ago uses; if the calibration or a convention were wrong, the points would
@@ -21,11 +22,7 @@ from ago_runtime.atomic import write_bytes
 from ago_runtime.errors import AgoInputError
 from ago_runtime.formats.frame import Frame
 from ago_runtime.formats.nuscenes import read_jpeg_rgb
-
-LAYOUT: tuple[tuple[str, ...], ...] = (
-    ("CAM_FRONT_LEFT", "CAM_FRONT", "CAM_FRONT_RIGHT"),
-    ("CAM_BACK_LEFT", "CAM_BACK", "CAM_BACK_RIGHT"),
-)
+from ago_runtime.pictures.render import mosaic_layout
 
 
 def depth_colors(depth: np.ndarray, max_depth: float) -> np.ndarray:
@@ -40,7 +37,7 @@ def render_depth_overlay(frame: Frame, out_png: str | Path | None = None, tile_w
     """Draw the overlay; write it to `out_png` (PNG) when given. Returns the (H, W, 3) uint8 RGB picture."""
     points_ego = frame.lidar.points_ego()
     rows = []
-    for row in LAYOUT:
+    for row in mosaic_layout(frame.rig.names):
         tiles = []
         for name in row:
             cam = frame.rig[name]
@@ -68,7 +65,10 @@ def render_depth_overlay(frame: Frame, out_png: str | Path | None = None, tile_w
                         (255, 255, 255), 1, cv2.LINE_AA)
             tiles.append(tile)
         height = max(t.shape[0] for t in tiles)
-        rows.append(np.concatenate([np.pad(t, ((0, height - t.shape[0]), (0, 0), (0, 0))) for t in tiles], axis=1))
+        row_img = np.concatenate([np.pad(t, ((0, height - t.shape[0]), (0, 0), (0, 0))) for t in tiles], axis=1)
+        rows.append(row_img)
+    width = max(r.shape[1] for r in rows)
+    rows = [np.pad(r, ((0, 0), (0, width - r.shape[1]), (0, 0))) for r in rows]
     picture = np.concatenate(rows, axis=0)
     if out_png is not None:
         ok, png = cv2.imencode(".png", np.ascontiguousarray(picture[..., ::-1]))

@@ -11,7 +11,7 @@ What it takes and gives:
   than sides.
 - `scalar_bev(volume)`: a float volume (entropy, confidence) reduced over z, colour-mapped, with a
   colour bar.
-- `rig_mosaic(images)`: six camera images in the nuScenes 2 x 3 layout with names.
+- `rig_mosaic(images)`: a rig's camera images in rows with names (nuScenes' six: the 2 x 3 layout).
 - `side_by_side`, `legend`, `prediction_vs_gt`: panels assembled into one figure.
 - `save_png(path, rgb)`: written atomically (cv2 wants BGR; converted here).
 
@@ -41,9 +41,19 @@ BACKGROUND = (255, 255, 255)
 TEXT = (20, 20, 20)
 FONT = cv2.FONT_HERSHEY_SIMPLEX
 
-# Where the six cameras go in `rig_mosaic` (rows top to bottom, columns left to right).
+# Where nuScenes' six cameras go in `rig_mosaic` (rows top to bottom, columns left to right).
 RIG_LAYOUT = (("CAM_FRONT_LEFT", "CAM_FRONT", "CAM_FRONT_RIGHT"),
               ("CAM_BACK_LEFT", "CAM_BACK", "CAM_BACK_RIGHT"))
+MOSAIC_COLUMNS = 3
+
+
+def mosaic_layout(names) -> tuple[tuple[str, ...], ...]:
+    """Rows of camera names for a picture of a rig: nuScenes' six as RIG_LAYOUT (front row, back row); any
+    other rig in its own order, MOSAIC_COLUMNS to a row."""
+    names = list(names)
+    if sorted(names) == sorted(c for row in RIG_LAYOUT for c in row):
+        return RIG_LAYOUT
+    return tuple(tuple(names[i:i + MOSAIC_COLUMNS]) for i in range(0, len(names), MOSAIC_COLUMNS))
 
 
 # ---------------------------------------------------------------------------------------- colours
@@ -541,24 +551,26 @@ def prediction_vs_gt(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None =
     return stack_vertical(rows)
 
 
-def rig_mosaic(images: Mapping[str, np.ndarray], width: int = 1800, layout=RIG_LAYOUT) -> np.ndarray:
-    """Six camera images (RGB) in a 2 x 3 grid (front row, back row) with camera names; `width` px wide.
-
-    Each tile keeps its image's aspect ratio (taken from the first image); a missing camera is a
-    dark tile saying so.
+def rig_mosaic(images: Mapping[str, np.ndarray], width: int = 1800, layout=None) -> np.ndarray:
+    """A rig's camera images (RGB) in rows (`mosaic_layout`: nuScenes' 2 x 3, front row and back row) with
+    camera names; `width` px wide. Each tile keeps its own image's aspect ratio (a row is as tall as its
+    tallest tile, shorter ones padded dark below); a camera of `layout` with no image is a dark tile saying so.
     """
-    ncol = len(layout[0])
+    layout = mosaic_layout(images.keys()) if layout is None else layout
+    ncol = max(len(row) for row in layout)
     tile_w = width // ncol
     first = next((np.asarray(images[c]) for row in layout for c in row if c in images), None)
-    aspect = first.shape[0] / first.shape[1] if first is not None else 9 / 16
-    tile_h = int(round(tile_w * aspect))
+    default_aspect = first.shape[0] / first.shape[1] if first is not None else 9 / 16
     rows = []
     for row in layout:
         tiles = []
         for name in row:
             if name in images:
-                tile = cv2.resize(_as_rgb(images[name]), (tile_w, tile_h), interpolation=cv2.INTER_AREA)
+                img = _as_rgb(images[name])
+                tile_h = max(1, int(round(tile_w * img.shape[0] / img.shape[1])))
+                tile = cv2.resize(img, (tile_w, tile_h), interpolation=cv2.INTER_AREA)
             else:
+                tile_h = int(round(tile_w * default_aspect))
                 tile = np.full((tile_h, tile_w, 3), 40, dtype=np.uint8)
                 cv2.putText(tile, "missing", (10, tile_h // 2), FONT, 0.8, (220, 220, 220), 2, cv2.LINE_AA)
             tile = np.ascontiguousarray(tile)
@@ -568,7 +580,10 @@ def rig_mosaic(images: Mapping[str, np.ndarray], width: int = 1800, layout=RIG_L
             cv2.rectangle(tile, (4, 4), (4 + tw + 10, 4 + th + base + 8), (0, 0, 0), -1)
             cv2.putText(tile, label, (9, 4 + th + 4), FONT, fs, (255, 255, 255), 2, cv2.LINE_AA)
             tiles.append(tile)
-        rows.append(np.concatenate(tiles, axis=1))
+        height = max(t.shape[0] for t in tiles)
+        row_img = np.concatenate([np.pad(t, ((0, height - t.shape[0]), (0, 0), (0, 0)), constant_values=40)
+                                  for t in tiles], axis=1)
+        rows.append(np.pad(row_img, ((0, 0), (0, ncol * tile_w - row_img.shape[1]), (0, 0)), constant_values=255))
     return np.concatenate(rows, axis=0)
 
 

@@ -36,7 +36,7 @@ from ago_runtime.scoring.metric import OccupancyMetric
 from ago_runtime.geometry.preprocess import Preprocess
 from ago_runtime.vocab.prompts import LabelSpace, parse_prompt_file
 
-from ..checkpoint import load_checkpoint
+from ..checkpoint import checkpoint_camera_names, load_checkpoint
 from ..dataset import FrameList, OccSampleDataset, collate
 from ..evaluate import (_pct, _to_gt_resolution, bank_for, checkpoint_adapted_stats, checkpoint_scales, load_model,
                         scored_subsets, scored_voxels)
@@ -148,7 +148,9 @@ def evaluate_views(ckpt_path: str | Path, data: str | Path, views: list[View], s
     pre = Preprocess(mcfg.image_width, mcfg.image_height)
     # GT is loaded once (in the Occ3D ids) and mapped into each view's label space here
     dataset = OccSampleDataset(FrameList(ds, indices), None, 17, grid, pre, gt_lut=np.arange(256, dtype=np.uint8),
-                               with_gt=True)
+                               with_gt=True,
+                               camera_names=checkpoint_camera_names(ckpt, ckpt_path))
+    dataset.rig_of(ds[indices[0]])   # a frame of another rig is refused before any work
     metrics = {v.name: OccupancyMetric(list(banks[v.name].space.class_names) + ["free"],
                                        free_index=banks[v.name].space.num_classes) for v in views}
     luts = {v.name: banks[v.name].space.gt_lut(free_index=banks[v.name].space.num_classes) for v in views}
