@@ -174,13 +174,13 @@ def train_bank(ckpt: dict, space: LabelSpace, source) -> PromptBank:
         encoder_id=str(b["encoder_id"]), encoder_variant=str(b.get("encoder_variant", "checkpoint")),
         encoder_hash=str(b["encoder_hash"]), dim=int(emb.shape[1]), source_hash=space.sha256,
         label_space=space.name, known=[c for c in space.class_names if c in space.known],
-        occ3d_ids=[c.occ3d_ids for c in space.classes])
+        occ3d_ids=[c.occ3d_ids for c in space.classes], class_table=space.table)
 
 
 def label_space_spec(space: LabelSpace) -> LabelSpaceSpec:
     return LabelSpaceSpec(space.name, space.sha256,
                           [LabelClass(c.name, [int(i) for i in c.occ3d_ids], c.name in space.known, list(c.phrases))
-                           for c in space.classes])
+                           for c in space.classes], space.table)
 
 
 # ---- parity frame --------------------------------------------------------------------------

@@ -303,3 +303,31 @@ def test_prompt_files_name_their_class_table():
         parse_prompt_text("car: car\n@table: occ3d_waymo\n")
     with pytest.raises(AgoInputError, match=r"'driveable_surface' is not an occ3d_waymo class name"):
         parse_prompt_text("@table: occ3d_waymo\nroad [driveable_surface]: road\n")
+
+
+def test_a_waymo_prompt_bank_carries_its_table_to_the_prediction_files(tmp_path):
+    """A bank of an `@table: occ3d_waymo` prompt file keeps its table through save/load; the prediction's
+    Occ3D-style output is in that table's dense order (free = 15 where the files store 23) with its names."""
+    from ago_runtime.classes import OCC3D_WAYMO
+    from ago_runtime.predict.predictor import occ3d_lookup
+    from ago_runtime.vocab.bank import PromptBank, build_bank
+    from ago_runtime.vocab.prompts import parse_prompt_file
+
+    space = parse_prompt_file(ROOT / "prompts" / "waymo" / "ow_waymo.txt")
+
+    class Enc:   # a stand-in encoder: what the bank stores does not depend on the vectors
+        encoder_id, variant, dim, weights_hash = "test", "test", 4, "0" * 64
+
+        def encode(self, texts):
+            rng = np.random.default_rng(len(texts))
+            v = rng.normal(size=(len(texts), 4)).astype(np.float32)
+            return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+    bank = build_bank(space, Enc())
+    assert bank.class_table == "occ3d_waymo"
+    back = PromptBank.load(bank.save(tmp_path / "w.npz"))
+    assert back.class_table == "occ3d_waymo"
+    lut = occ3d_lookup(back)
+    assert lut[-1] == OCC3D_WAYMO.free_index == 15
+    k = back.class_names.index("sidewalk")
+    assert OCC3D_WAYMO.label_names[lut[k]] == "walkable"

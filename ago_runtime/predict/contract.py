@@ -215,6 +215,7 @@ class LabelSpaceSpec:
     name: str | None
     sha256: str
     classes: list[LabelClass]
+    table: str = "occ3d_nuscenes"   # the class table the classes' occ3d_ids index (ago_runtime.classes)
 
     @property
     def class_names(self) -> list[str]:
@@ -229,7 +230,12 @@ class LabelSpaceSpec:
             raise ValueError(f"label_space.classes must list 1 to {MAX_INFER_CLASSES} classes")
         out = [LabelClass(_need(c, "name", str, "label_space.classes"), [int(i) for i in c.get("occ3d_ids", [])],
                           bool(c.get("known", True)), [str(p) for p in c.get("phrases", [])]) for c in classes]
-        return cls(d.get("name"), str(d.get("sha256", "")), out)
+        from ago_runtime.classes import SHIPPED_TABLES
+
+        table = str(d.get("table", "occ3d_nuscenes"))
+        if table not in SHIPPED_TABLES:
+            raise ValueError(f"label_space.table must be one of {', '.join(SHIPPED_TABLES)}, got {table!r}")
+        return cls(d.get("name"), str(d.get("sha256", "")), out, table)
 
 
 @dataclass

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ago_runtime.classes import FREE, OCC3D_CLASSES
+from ago_runtime.classes import SHIPPED_TABLES
 from ago_runtime.errors import AgoInputError
 from ago_runtime.formats.calibration import fit_rig_to_images
 from ago_runtime.geometry.camera import Rig
@@ -52,7 +52,9 @@ class Prediction:
     branch: np.ndarray             # (X, Y, Z) uint8: 0 = original (main) branch, 1 = adapted branch
     identifier: Identifier
     grid: Grid
-    occ3d: np.ndarray | None = None   # (X, Y, Z) uint8 Occ3D ids (free = 17) when every class is one Occ3D class
+    occ3d: np.ndarray | None = None   # (X, Y, Z) uint8 in `class_table`'s dense order (Occ3D-nuScenes: its ids, free = 17)
+                                      # when every class is one class of the table
+    class_table: str = "occ3d_nuscenes"   # the bank's class table (ago_runtime.classes.SHIPPED_TABLES)
     timings: dict = field(default_factory=dict)   # seconds: preprocess, encoder, heads
     unexplained: np.ndarray | None = None   # (X, Y, Z) float32 unexplained-obstacle score (volumes=True)
     occupancy: np.ndarray | None = None     # (X, Y, Z) float32 p_occ against prompted + reference classes
@@ -72,9 +74,12 @@ class Prediction:
     def output_arrays(self, volumes: bool = False) -> dict[str, np.ndarray]:
         """The arrays of an Occ3D-format prediction file (see docs/runtime.md)."""
         if self.occ3d is not None:
-            out = {"semantics": self.occ3d, "class_names": np.array(OCC3D_CLASSES, dtype=str),
-                   "free_index": np.array(FREE, np.int64), "bank_semantics": self.semantics,
+            table = SHIPPED_TABLES[self.class_table]
+            out = {"semantics": self.occ3d, "class_names": np.array(table.label_names, dtype=str),
+                   "free_index": np.array(table.free_index, np.int64), "bank_semantics": self.semantics,
                    "bank_class_names": np.array(self.label_names, dtype=str)}
+            if self.class_table != "occ3d_nuscenes":   # (nuScenes files stay as they were)
+                out["class_table"] = np.array(self.class_table)
         else:
             out = {"semantics": self.semantics, "class_names": np.array(self.label_names, dtype=str),
                    "free_index": np.array(self.free_index, np.int64)}
@@ -95,13 +100,17 @@ UNEXPLAINED_THRESHOLD = 0.5
 
 
 def occ3d_lookup(bank) -> np.ndarray | None:
-    """(K+1,) uint8 bank index -> Occ3D id (free -> 17) when every bank class is exactly one Occ3D class."""
+    """(K+1,) uint8 bank index -> the class's index in the bank's class table, dense order (`ClassTable.label_names`:
+    the table's classes, then free; for Occ3D-nuScenes the Occ3D ids, free = 17; for Occ3D-Waymo its ids 0..14,
+    free = 15 where the files store 23) when every bank class is exactly one class of the table."""
+    table = SHIPPED_TABLES[bank.class_table]
+    dense = table.dense_lut()
     ids = []
     for ids_k in bank.occ3d_ids:
-        if len(ids_k) != 1:
+        if len(ids_k) != 1 or dense[int(ids_k[0])] < 0:
             return None
-        ids.append(int(ids_k[0]))
-    return np.array(ids + [FREE], dtype=np.uint8)
+        ids.append(int(dense[int(ids_k[0])]))
+    return np.array(ids + [table.free_index], dtype=np.uint8)
 
 
 def bank_key(bank) -> str:
@@ -261,7 +270,7 @@ class Predictor:
             semantics=sem, class_names=list(bank.class_names), free_index=K,
             entropy=out["entropy"].reshape(shape), confidence=out["confidence"].reshape(shape),
             branch=out["branch"].reshape(shape), identifier=identifier, grid=self.grid,
-            occ3d=lut[sem] if lut is not None else None,
+            occ3d=lut[sem] if lut is not None else None, class_table=bank.class_table,
             unexplained=out["unexplained"].reshape(shape) if "unexplained" in out else None,
             occupancy=out["occupancy"].reshape(shape) if "occupancy" in out else None)
 

@@ -64,8 +64,9 @@ class PromptBank:
     source_hash: str = ""           # sha256 of the prompt file bytes
     label_space: str = ""
     known: list[str] = field(default_factory=list)
-    occ3d_ids: list[tuple[int, ...]] = field(default_factory=list)   # per class
+    occ3d_ids: list[tuple[int, ...]] = field(default_factory=list)   # per class, ids in `class_table`
     format_version: int = FORMAT_VERSION
+    class_table: str = "occ3d_nuscenes"   # the label table occ3d_ids index (ago_runtime.classes.SHIPPED_TABLES)
 
     def __post_init__(self):
         self.embeddings = np.asarray(self.embeddings, dtype=np.float32)
@@ -76,6 +77,10 @@ class PromptBank:
         self._validate(None)
 
     def _validate(self, path) -> None:
+        from ago_runtime.classes import SHIPPED_TABLES
+
+        if self.class_table not in SHIPPED_TABLES:
+            raise AgoInputError(path, f"class table {self.class_table!r} is not one of {', '.join(SHIPPED_TABLES)}")
         p, k = len(self.phrases), len(self.class_names)
         if self.embeddings.ndim != 2 or self.embeddings.shape != (p, self.dim):
             raise AgoInputError(path, f"embeddings have shape {self.embeddings.shape}, expected ({p}, {self.dim})")
@@ -142,7 +147,9 @@ class PromptBank:
                 "encoder_variant": self.encoder_variant, "encoder_hash": self.encoder_hash,
                 "dim": int(self.dim), "normalised": bool(self.normalised), "template": self.template,
                 "source_hash": self.source_hash, "label_space": self.label_space,
-                "known": list(self.known), "occ3d_ids": [list(t) for t in self.occ3d_ids]}
+                "known": list(self.known), "occ3d_ids": [list(t) for t in self.occ3d_ids],
+                # only another table is written, so banks of Occ3D-nuScenes prompt files stay as they were
+                **({"class_table": self.class_table} if self.class_table != "occ3d_nuscenes" else {})}
 
     def save(self, path: str | Path) -> Path:
         path = Path(path)
@@ -191,6 +198,7 @@ class PromptBank:
             bank.known = [str(k) for k in meta["known"]]
             bank.occ3d_ids = [tuple(int(i) for i in ids) for ids in meta["occ3d_ids"]]
             bank.format_version = FORMAT_VERSION
+            bank.class_table = str(meta.get("class_table", "occ3d_nuscenes"))
         except (KeyError, TypeError, ValueError) as e:
             raise AgoInputError(path, f"prompt bank metadata incomplete: {e}") from None
         bank._validate(path)
@@ -234,7 +242,7 @@ def build_bank(label_space: LabelSpace, encoder, template: str = DEFAULT_TEMPLAT
         normalised=bool(np.allclose(norms, 1.0, atol=1e-3)), template=template,
         source_hash=label_space.sha256, label_space=label_space.name,
         known=[c for c in label_space.class_names if c in label_space.known],
-        occ3d_ids=[c.occ3d_ids for c in label_space.classes])
+        occ3d_ids=[c.occ3d_ids for c in label_space.classes], class_table=label_space.table)
 
 
 def bank_cache_key(source_hash: str, encoder_hash: str, template: str) -> str:
