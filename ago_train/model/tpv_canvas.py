@@ -14,7 +14,7 @@ What is restructured:
 - the offsets and attention-weight linears of an attention run as one matrix product, their rows
   reordered (x offsets, y offsets, weights) by `fused_linear` (differentiable: training updates the
   original linears; the export's constant folding turns the reorder into one weight);
-- one grid_sample per attention: the six cameras' FPN levels sit in one zero-framed "camera canvas"
+- one grid_sample per attention: the V cameras' FPN levels sit in one zero-framed "camera canvas"
   (per level a strip of six maps, each with a one-pixel zero frame; strips stacked vertically) and
   the three TPV value maps in one "plane canvas"; sample positions are clamped into their map's
   frame, which reproduces grid_sample's zero padding exactly, values and gradients (nothing bleeds
