@@ -174,7 +174,7 @@ def train_bank(ckpt: dict, space: LabelSpace, source) -> PromptBank:
         encoder_id=str(b["encoder_id"]), encoder_variant=str(b.get("encoder_variant", "checkpoint")),
         encoder_hash=str(b["encoder_hash"]), dim=int(emb.shape[1]), source_hash=space.sha256,
         label_space=space.name, known=[c for c in space.class_names if c in space.known],
-        occ3d_ids=[c.occ3d_ids for c in space.classes])
+        occ3d_ids=[c.occ3d_ids for c in space.classes], table=space.table)
 
 
 def label_space_spec(space: LabelSpace) -> LabelSpaceSpec:
@@ -209,11 +209,11 @@ def parity_frame(spec: str | Path | None, real_frame: bool, rig: Rig) -> tuple[d
     spec = Path(spec)
     if not spec.is_dir():
         raise AgoInputError("--parity-frame", f"{spec}: folder not found (an images folder, a folder with "
-                            "mmdet3d_info.pkl, or a nuScenes dataroot)")
-    if any(p.is_dir() and p.name.startswith("v1.0") for p in spec.iterdir()):   # a nuScenes dataroot: its first keyframe
-        from ago_runtime.formats.nuscenes import NuScenesDataset
+                            "mmdet3d_info.pkl, a nuScenes dataroot or an Occ3D-Waymo layout root)")
+    from ago_runtime.formats.datasets import dataset_layout, open_dataset
 
-        frame = NuScenesDataset(spec, load_extras=False)[0]
+    if dataset_layout(spec) is not None:   # a nuScenes or Occ3D-Waymo dataset root: its first keyframe
+        frame = open_dataset(spec, load_extras=False)[0]
         return frame.images, frame.rig, f"{spec} (sample {frame.token})"
     if (spec / "mmdet3d_info.pkl").is_file():
         from ago_runtime.formats.mmdet3d_info import load_mmdet3d_info

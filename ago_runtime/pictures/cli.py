@@ -94,23 +94,26 @@ def _load_grid(path: Path) -> tuple[np.ndarray, np.ndarray | None, ClassTable | 
 
 
 def _rig_picture(root: Path, sample: str | None, index: int | None) -> np.ndarray:
-    """The six camera images of one sample of a nuScenes-layout dataset in the 2 x 3 rig layout,
-    with the sample's Occ3D GT as a BEV beside it when the dataset has one."""
+    """The camera images of one sample of a dataset (nuScenes layout: the six in the 2 x 3 rig layout;
+    Occ3D-Waymo layout: its cameras in one row), with the sample's GT as a BEV beside it when there is one."""
     from ago_runtime.pictures import render
-    from ago_runtime.formats.nuscenes import NuScenesDataset
+    from ago_runtime.formats.datasets import open_dataset
+    from ago_runtime.geometry.camera import CAMERA_NAMES
 
     if (sample is None) == (index is None):
         raise AgoInputError(root, "a dataset folder needs exactly one of --sample TOKEN or --index I")
-    ds = NuScenesDataset(root, load_extras=False)
+    ds = open_dataset(root, load_extras=False)
     if index is None:
         index = ds.index_of(sample)
     if not 0 <= index < len(ds):
         raise AgoInputError(root, f"--index {index} out of range (the dataset has {len(ds)} samples)")
     frame = ds[index]
-    rig = render.rig_mosaic(frame.images)
+    # nuScenes' six cameras in their 2 x 3 layout; any other rig (Occ3D-Waymo's five) in one row, in its order
+    layout = render.RIG_LAYOUT if set(frame.rig.names) == set(CAMERA_NAMES) else (tuple(frame.rig.names),)
+    rig = render.rig_mosaic(frame.images, layout=layout)
     title = f"{frame.scene}  sample {frame.token}"
     if frame.gt is None:
         return render.side_by_side([(title, rig)])
     scale = max(1, int(round(rig.shape[0] / frame.gt.shape[0])))
-    bev = render.bev_image(frame.gt.semantics, scale=scale, mask=frame.gt.mask_camera)
+    bev = render.bev_image(frame.gt.semantics, scale=scale, mask=frame.gt.mask_camera, table=ds.class_table)
     return render.side_by_side([(title, rig), ("Occ3D GT (BEV, forward = up)", bev)])

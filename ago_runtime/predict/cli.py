@@ -89,10 +89,10 @@ def open_frames(images: Path, sample, info: Optional[Path], fallback_rig, skip=N
     images = Path(images)
     if not images.is_dir():
         raise AgoInputError(images, "images folder not found")
-    if any(p.is_dir() and p.name.startswith("v1.0") for p in images.iterdir()):
-        from ago_runtime.formats.nuscenes import NuScenesDataset
+    from ago_runtime.formats.datasets import dataset_layout, open_dataset
 
-        ds = NuScenesDataset(images, load_extras=False, allow_outside_root=allow_outside_root)
+    if dataset_layout(images) is not None:   # a nuScenes or Occ3D-Waymo dataset root
+        ds = open_dataset(images, load_extras=False, allow_outside_root=allow_outside_root)
         indices = list(ds.indices_of(wanted) if wanted else range(len(ds)))
         indices = shard_indices(indices, shard)   # --shard K/N: before resume's skip, so shards never change
         indices = [i for i in indices if skip is None or not skip(ds.sample_tokens[i])]
