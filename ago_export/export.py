@@ -174,7 +174,7 @@ def train_bank(ckpt: dict, space: LabelSpace, source) -> PromptBank:
         encoder_id=str(b["encoder_id"]), encoder_variant=str(b.get("encoder_variant", "checkpoint")),
         encoder_hash=str(b["encoder_hash"]), dim=int(emb.shape[1]), source_hash=space.sha256,
         label_space=space.name, known=[c for c in space.class_names if c in space.known],
-        occ3d_ids=[c.occ3d_ids for c in space.classes], table=space.table)
+        occ3d_ids=[c.occ3d_ids for c in space.classes])
 
 
 def label_space_spec(space: LabelSpace) -> LabelSpaceSpec:
@@ -199,8 +199,8 @@ def synthetic_frame(rig: Rig, seed: int = 0) -> tuple[dict[str, np.ndarray], Rig
 
 
 def parity_frame(spec: str | Path | None, real_frame: bool, rig: Rig) -> tuple[dict[str, np.ndarray], Rig, str]:
-    """The frame parity runs on: an images folder, a folder with an mmdet3d_info.pkl or a nuScenes dataroot (its
-    first keyframe); by default the real nuScenes keyframe next to the repo when present, else a synthetic frame."""
+    """The frame parity runs on: an images folder, a folder with an mmdet3d_info.pkl or a dataset root (nuScenes or
+    Occ3D-Waymo layout: its first keyframe); by default the real nuScenes keyframe next to the repo when present, else a synthetic frame."""
     if (spec is None and real_frame and (DEFAULT_REAL_FRAME / "mmdet3d_info.pkl").is_file()
             and sorted(rig.names) == sorted(CAMERA_NAMES)):   # the real keyframe has nuScenes' six cameras
         spec = DEFAULT_REAL_FRAME

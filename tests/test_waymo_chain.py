@@ -121,9 +121,9 @@ def test_infer_and_metric_on_the_waymo_layout(chain):
     pred = sorted(p.name for p in (chain / "pred").glob("*.npz"))
     assert pred == [f"{p}{s:03d}{f:03d}.npz" for p, s in ((0, 0), (1, 0)) for f in range(3)]
     with np.load(chain / "pred" / "1000001.npz") as z:
-        assert [str(c) for c in z["class_names"]] == WAYMO_NAMES + ["free"] and int(z["free_index"]) == 15
-        assert "bank_semantics" not in z.files       # a Waymo bank has no Occ3D-nuScenes ids to write
-        assert z["semantics"].shape == (20, 20, 4) and z["semantics"].max() <= 15
+        # the labels in the bank's classes (the Waymo table's 15, then free), what `ago metric --prompts` reads
+        assert [str(c) for c in z["bank_class_names"]] == WAYMO_NAMES + ["free"]
+        assert z["bank_semantics"].shape == (20, 20, 4) and z["bank_semantics"].max() <= 15
     m = json.loads((chain / "m.json").read_text())
     assert m["class_names"] == WAYMO_NAMES + ["free"] and m["frames"] == 6 and m["skipped_frames"] == []
     assert m["counts"]["free"]["gt"] > 0

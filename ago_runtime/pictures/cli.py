@@ -6,7 +6,7 @@
     truth side by side (voxels outside the GT's mask_camera washed out). --classes: a class table
     (occ3d_nuscenes, occ3d_waymo or a JSON file, see ago_runtime/classes.py) for the labels' ids.
 `ago show DATASET_DIR (--sample TOKEN | --index I) [--out out.png]`
-    the six camera images of one nuScenes-layout sample in the 2 x 3 rig layout.
+    the camera images of one dataset sample (nuScenes or Occ3D-Waymo layout), with its ground truth as a BEV.
 (`ago metric`, which scores such grids, is in ago_runtime/scoring/cli.py.)
 """
 
@@ -28,7 +28,7 @@ from ago_runtime.scoring.metric import to_gt_resolution
 def register(app: typer.Typer) -> None:
     @app.command("show")
     def show(
-        path: Path = typer.Argument(..., help="labels.npz (key 'semantics'), or a nuScenes-layout dataset folder"),
+        path: Path = typer.Argument(..., help="labels.npz (key 'semantics'), or a dataset folder (nuScenes or Occ3D-Waymo layout)"),
         out: Path = typer.Option(Path("ago_show.png"), "--out", "-o", help="PNG to write"),
         gt: Optional[Path] = typer.Option(None, "--gt", help="ground-truth labels.npz: draw prediction vs GT"),
         view: str = typer.Option("both", "--view", help="bev | voxels | both"),
@@ -94,11 +94,10 @@ def _load_grid(path: Path) -> tuple[np.ndarray, np.ndarray | None, ClassTable | 
 
 
 def _rig_picture(root: Path, sample: str | None, index: int | None) -> np.ndarray:
-    """The camera images of one sample of a dataset (nuScenes layout: the six in the 2 x 3 rig layout;
-    Occ3D-Waymo layout: its cameras in one row), with the sample's GT as a BEV beside it when there is one."""
+    """The camera images of one sample of a dataset (nuScenes or Occ3D-Waymo layout) in `render.rig_mosaic`'s
+    layout, with the sample's GT as a BEV (in the dataset's class table) beside it when there is one."""
     from ago_runtime.pictures import render
     from ago_runtime.formats.datasets import open_dataset
-    from ago_runtime.geometry.camera import CAMERA_NAMES
 
     if (sample is None) == (index is None):
         raise AgoInputError(root, "a dataset folder needs exactly one of --sample TOKEN or --index I")
@@ -108,9 +107,7 @@ def _rig_picture(root: Path, sample: str | None, index: int | None) -> np.ndarra
     if not 0 <= index < len(ds):
         raise AgoInputError(root, f"--index {index} out of range (the dataset has {len(ds)} samples)")
     frame = ds[index]
-    # nuScenes' six cameras in their 2 x 3 layout; any other rig (Occ3D-Waymo's five) in one row, in its order
-    layout = render.RIG_LAYOUT if set(frame.rig.names) == set(CAMERA_NAMES) else (tuple(frame.rig.names),)
-    rig = render.rig_mosaic(frame.images, layout=layout)
+    rig = render.rig_mosaic(frame.images)
     title = f"{frame.scene}  sample {frame.token}"
     if frame.gt is None:
         return render.side_by_side([(title, rig)])

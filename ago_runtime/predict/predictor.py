@@ -95,10 +95,7 @@ UNEXPLAINED_THRESHOLD = 0.5
 
 
 def occ3d_lookup(bank) -> np.ndarray | None:
-    """(K+1,) uint8 bank index -> Occ3D id (free -> 17) when every bank class is exactly one Occ3D(-nuScenes) class
-    (a bank of another class table, e.g. Occ3D-Waymo, has none: its predictions stay in the bank's classes)."""
-    if bank.table != "occ3d_nuscenes":
-        return None
+    """(K+1,) uint8 bank index -> Occ3D id (free -> 17) when every bank class is exactly one Occ3D class."""
     ids = []
     for ids_k in bank.occ3d_ids:
         if len(ids_k) != 1:

@@ -26,7 +26,6 @@ from pathlib import Path
 import numpy as np
 
 from ago_runtime.atomic import save_npz
-from ago_runtime.classes import SHIPPED_TABLES
 from ago_runtime.errors import AgoInputError
 from ago_runtime.readers import check_npz
 from ago_runtime.vocab.prompts import LabelSpace, parse_prompt_file
@@ -67,7 +66,6 @@ class PromptBank:
     known: list[str] = field(default_factory=list)
     occ3d_ids: list[tuple[int, ...]] = field(default_factory=list)   # per class
     format_version: int = FORMAT_VERSION
-    table: str = "occ3d_nuscenes"   # the class table `occ3d_ids` index (LabelSpace.table)
 
     def __post_init__(self):
         self.embeddings = np.asarray(self.embeddings, dtype=np.float32)
@@ -144,9 +142,7 @@ class PromptBank:
                 "encoder_variant": self.encoder_variant, "encoder_hash": self.encoder_hash,
                 "dim": int(self.dim), "normalised": bool(self.normalised), "template": self.template,
                 "source_hash": self.source_hash, "label_space": self.label_space,
-                "known": list(self.known), "occ3d_ids": [list(t) for t in self.occ3d_ids],
-                # only another table is written, so an Occ3D-nuScenes bank's file is the one before tables existed
-                **({"table": self.table} if self.table != "occ3d_nuscenes" else {})}
+                "known": list(self.known), "occ3d_ids": [list(t) for t in self.occ3d_ids]}
 
     def save(self, path: str | Path) -> Path:
         path = Path(path)
@@ -194,9 +190,6 @@ class PromptBank:
             bank.label_space = str(meta["label_space"])
             bank.known = [str(k) for k in meta["known"]]
             bank.occ3d_ids = [tuple(int(i) for i in ids) for ids in meta["occ3d_ids"]]
-            bank.table = meta.get("table", "occ3d_nuscenes")
-            if bank.table not in SHIPPED_TABLES:
-                raise ValueError(f"unknown class table {str(bank.table)[:40]!r}")
             bank.format_version = FORMAT_VERSION
         except (KeyError, TypeError, ValueError) as e:
             raise AgoInputError(path, f"prompt bank metadata incomplete: {e}") from None
@@ -241,7 +234,7 @@ def build_bank(label_space: LabelSpace, encoder, template: str = DEFAULT_TEMPLAT
         normalised=bool(np.allclose(norms, 1.0, atol=1e-3)), template=template,
         source_hash=label_space.sha256, label_space=label_space.name,
         known=[c for c in label_space.class_names if c in label_space.known],
-        occ3d_ids=[c.occ3d_ids for c in label_space.classes], table=label_space.table)
+        occ3d_ids=[c.occ3d_ids for c in label_space.classes])
 
 
 def bank_cache_key(source_hash: str, encoder_hash: str, template: str) -> str:
@@ -287,9 +280,7 @@ def load_prompt_bank(prompts: "str | Path | LabelSpace", encoder=None, cache_dir
     path = cache_dir / f"{stem}-{bank_cache_key(space.sha256, encoder.weights_hash, template)}.npz"
     if path.is_file():
         try:
-            cached = PromptBank.load(path)
-            if cached.table == space.table:   # an entry from before banks recorded their table is remade
-                return cached
+            return PromptBank.load(path)
         except AgoInputError:
             pass  # a damaged cache entry is rebuilt below
     bank = build_bank(space, encoder, template)

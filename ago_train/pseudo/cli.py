@@ -1,6 +1,7 @@
 """`ago pseudo-labels`: 3-D pseudo-labels (and voxel image embeddings) from 2-D masks and features.
 
-Reads a nuScenes-format dataset, labels every keyframe of a split with a segmenter (`files`: masks
+Reads a dataset (nuScenes or Occ3D-Waymo layout: `ago_runtime.formats.datasets.open_dataset`; the prompt
+file's class table must be the data's), labels every keyframe of a split with a segmenter (`files`: masks
 written by Grounded SAM, see docs/vlm_files.md; `sim`: the SIMULATED segmenter, synthetic data only),
 lifts image features with an embedder (`files`, `sim` or `none`), and writes the folder
 described in ago_train/pseudo/generate.py. Two counts set the LiDAR used per sample: `--keyframes`
@@ -149,7 +150,7 @@ def resolve_sweeps(ds, sweeps: int | None) -> tuple[int, str | None]:
 def register(app: typer.Typer) -> None:
     @app.command("pseudo-labels")
     def pseudo_labels(
-        data: Path = typer.Option(..., "--data", help="nuScenes-format dataset folder (real or `ago synth`)."),
+        data: Path = typer.Option(..., "--data", help="dataset folder, nuScenes or Occ3D-Waymo layout (real or `ago synth`)."),
         out: Path = typer.Option(..., "--out", help="Output folder (resumable; refused if made with other settings)."),
         prompts: str = typer.Option("cw", "--prompts", help="Prompt file (path or shipped name: cw, ow_pretrain, ow)."),
         segmenter: str = typer.Option(None, "--segmenter", help="files (label maps, docs/vlm_files.md), sim "
