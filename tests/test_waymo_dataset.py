@@ -212,3 +212,17 @@ def test_frame_mask_camera_is_final_voxel_state_and_infov(waymo_root, tmp_path):
     assert np.array_equal(gt.semantics, sem)
     assert np.array_equal(gt.mask_camera, final & infov) and not np.array_equal(gt.mask_camera, final)
     assert np.array_equal(gt.mask_lidar, lidar)
+
+
+def test_front_camera_rig_in_the_waymo_layout(tmp_path):
+    """`ago synth --rig front` (N = 1) writes the same layout with one camera; the reader gives one-camera frames."""
+    root = tmp_path / "f"
+    write_dataset(SynthConfig(**{**TINY, "rig_name": "front", "num_scenes": 1, "frames_per_scene": 2}), root,
+                  progress=False)
+    ds = open_dataset(root)
+    f = ds[1]
+    assert ds.camera_names == ["FRONT"] and f.rig.names == ["FRONT"] and list(f.images) == ["FRONT"]
+    assert sorted(f.extras["semantic"]) == ["FRONT"] and len(f.lidar.points) > 0 and f.gt.shape == (40, 40, 4)
+    # the camera mask lies in the one camera's field of view (infov): nothing behind the car is scored
+    xs = Grid.with_shape(f.gt.shape).axis_centres()[0]
+    assert f.gt.mask_camera.any() and not f.gt.mask_camera[xs < -1].any()
