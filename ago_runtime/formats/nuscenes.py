@@ -56,6 +56,7 @@ from ago_runtime.geometry.grid import Grid
 from ago_runtime.formats.nuscenes_schema import LIDAR_CHANNEL, check_table, record_to_matrix
 from ago_runtime.paths import inside_root
 from ago_runtime.formats.occ3d import Occ3DLabels, labels_path
+from ago_runtime.formats.scenes import indices_of, neighbour_indices, scene_spans
 from ago_runtime.formats.synthetic_maps import read_synthetic_maps
 
 # The tables the reader needs (the other seven of nuScenes' thirteen may be absent).
@@ -230,13 +231,7 @@ class NuScenesDataset:
         self.sample_tokens: list[str] = [tok for _, _, tok in order]
         self._scene_names: list[str] = [scene for scene, _, _ in order]
         self._index = {tok: i for i, tok in enumerate(self.sample_tokens)}
-        # [start, end) of each index's scene (indices of one scene are contiguous)
-        self._scene_span: list[tuple[int, int]] = []
-        start = 0
-        for i in range(1, len(order) + 1):
-            if i == len(order) or self._scene_names[i] != self._scene_names[start]:
-                self._scene_span.extend([(start, i)] * (i - start))
-                start = i
+        self._scene_span = scene_spans(self._scene_names)   # [start, end) of each index's scene
 
     # ------------------------------------------------------------------ lookups
     def _ref(self, table: str, records: dict, token, referrer: str) -> dict:
@@ -257,19 +252,8 @@ class NuScenesDataset:
     def indices_of(self, names: list[str]) -> list[int]:
         """Dataset indices of sample tokens and/or scene names (a scene: its keyframes in time order), in the
         order given; every name that is neither is listed in one AgoInputError."""
-        out, unknown = [], []
-        scenes = set(self._scene_names)
-        for name in names:
-            if name in self._index:
-                out.append(self._index[name])
-            elif name in scenes:
-                out += [i for i, s in enumerate(self._scene_names) if s == name]
-            else:
-                unknown.append(name)
-        if unknown:
-            raise AgoInputError(self.table_dir / "sample.json", f"no sample token or scene name "
-                                f"{', '.join(map(repr, unknown))}")
-        return out
+        return indices_of(names, self._index, self._scene_names, self.table_dir / "sample.json",
+                          "sample token or scene name")
 
     def scene_of(self, i: int) -> str:
         return self._scene_names[i]
@@ -318,17 +302,7 @@ class NuScenesDataset:
     def neighbours(self, i: int, count: int, interval: int) -> list[int]:
         """Up to `count` keyframe indices of i's scene at offsets +interval*k, -interval*k (k = 1, 2, ...),
         nearest first (+ before -); a side that reaches its scene end stops and the other goes on."""
-        if count < 0 or interval < 1:
-            raise AgoInputError(None, f"neighbours needs count >= 0 and interval >= 1, got {count}, {interval}")
-        start, end = self._scene_span[i]
-        out: list[int] = []
-        k = 1
-        while len(out) < count and (i + k * interval < end or i - k * interval >= start):
-            for j in (i + k * interval, i - k * interval):
-                if start <= j < end and len(out) < count:
-                    out.append(j)
-            k += 1
-        return out
+        return neighbour_indices(self._scene_span[i], i, count, interval)
 
     # ------------------------------------------------------------------ non-key LiDAR sweeps
     def nonkey_sweep_records(self, i: int, count: int | None = None) -> list[dict]:

@@ -41,6 +41,7 @@ from ago_runtime.formats.nuscenes import default_split_positions, read_jpeg_rgb,
 from ago_runtime.formats.nuscenes_schema import check_rigid
 from ago_runtime.formats.occ3d_waymo import Occ3DWaymoLabels, gt_path, sample_of
 from ago_runtime.formats.occ3d_waymo_writer import SPLIT_PREFIX, VELODYNE_COLUMNS, image_name, velodyne_name
+from ago_runtime.formats.scenes import indices_of, neighbour_indices, scene_spans
 from ago_runtime.formats.synthetic_maps import read_synthetic_maps
 from ago_runtime.geometry.camera import MAX_CAMERAS, Camera, Rig
 from ago_runtime.geometry.grid import Grid
@@ -105,12 +106,7 @@ class Occ3DWaymoDataset:
         self.sample_tokens: list[str] = [s for *_, s in order]
         self._scene_names: list[str] = [f"{_SPLIT_OF_PREFIX[p]}/{scene:03d}" for p, scene, _, _ in order]
         self._index = {tok: i for i, tok in enumerate(self.sample_tokens)}
-        self._scene_span: list[tuple[int, int]] = []
-        start = 0
-        for i in range(1, len(order) + 1):
-            if i == len(order) or self._scene_names[i] != self._scene_names[start]:
-                self._scene_span.extend([(start, i)] * (i - start))
-                start = i
+        self._scene_span = scene_spans(self._scene_names)
 
     # ------------------------------------------------------------------ cam_infos.json checks
     def _camera_names(self, names) -> list[str]:
@@ -157,18 +153,7 @@ class Occ3DWaymoDataset:
     def indices_of(self, names: list[str]) -> list[int]:
         """Dataset indices of sample names and/or scene names (`training/000`: its keyframes in order), in the
         order given; every name that is neither is listed in one AgoInputError."""
-        out, unknown = [], []
-        scenes = set(self._scene_names)
-        for name in names:
-            if name in self._index:
-                out.append(self._index[name])
-            elif name in scenes:
-                out += [i for i, s in enumerate(self._scene_names) if s == name]
-            else:
-                unknown.append(name)
-        if unknown:
-            raise AgoInputError(self.infos_path, f"no sample or scene {', '.join(map(repr, unknown))}")
-        return out
+        return indices_of(names, self._index, self._scene_names, self.infos_path, "sample or scene")
 
     def scene_of(self, i: int) -> str:
         return self._scene_names[i]
@@ -208,17 +193,7 @@ class Occ3DWaymoDataset:
     def neighbours(self, i: int, count: int, interval: int) -> list[int]:
         """Up to `count` keyframe indices of i's scene at offsets +interval*k, -interval*k (k = 1, 2, ...),
         nearest first (+ before -); a side that reaches its scene end stops and the other goes on."""
-        if count < 0 or interval < 1:
-            raise AgoInputError(None, f"neighbours needs count >= 0 and interval >= 1, got {count}, {interval}")
-        start, end = self._scene_span[i]
-        out: list[int] = []
-        k = 1
-        while len(out) < count and (i + k * interval < end or i - k * interval >= start):
-            for j in (i + k * interval, i - k * interval):
-                if start <= j < end and len(out) < count:
-                    out.append(j)
-            k += 1
-        return out
+        return neighbour_indices(self._scene_span[i], i, count, interval)
 
     def nonkey_sweeps(self, i: int, count: int | None = None) -> list[LidarSweep]:
         return []
