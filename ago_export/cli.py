@@ -18,7 +18,8 @@ def register(app: typer.Typer) -> None:
         parity_frame: Optional[Path] = typer.Option(
             None, "--parity-frame",
             help="frame for the ORT-vs-torch parity check: an images folder (CAM_*.jpg + calib.json), a "
-                 "folder with mmdet3d_info.pkl, or a nuScenes dataroot (its first keyframe); default: the real "
+                 "folder with mmdet3d_info.pkl, or a dataset root (nuScenes or Occ3D-Waymo layout: its first keyframe); "
+                 "default: the real "
                  "nuScenes keyframe in ../shared when present (printed as a note)"),
         no_real_frame: bool = typer.Option(False, "--no-real-frame", help="check parity on a synthetic frame"),
         bank: Optional[list[str]] = typer.Option(
@@ -56,7 +57,7 @@ def register(app: typer.Typer) -> None:
             raise AgoInputError("--parity-frame", "and --no-real-frame ask for two parity frames; give one")
         if parity_frame is not None and not parity_frame.is_dir():   # before any export work
             raise AgoInputError("--parity-frame", f"{parity_frame}: folder not found (an images folder, a folder "
-                                "with mmdet3d_info.pkl, or a nuScenes dataroot)")
+                                "with mmdet3d_info.pkl, or a dataset root)")
         if bank and train_bank_only:
             raise AgoInputError("--bank-prompts", "and --train-bank-only contradict each other; give one")
         for name in bank or []:   # every prompt file named must exist and parse, before the export

@@ -199,8 +199,8 @@ def synthetic_frame(rig: Rig, seed: int = 0) -> tuple[dict[str, np.ndarray], Rig
 
 
 def parity_frame(spec: str | Path | None, real_frame: bool, rig: Rig) -> tuple[dict[str, np.ndarray], Rig, str]:
-    """The frame parity runs on: an images folder, a folder with an mmdet3d_info.pkl or a nuScenes dataroot (its
-    first keyframe); by default the real nuScenes keyframe next to the repo when present, else a synthetic frame."""
+    """The frame parity runs on: an images folder, a folder with an mmdet3d_info.pkl or a dataset root (nuScenes or
+    Occ3D-Waymo layout: its first keyframe); by default the real nuScenes keyframe next to the repo when present, else a synthetic frame."""
     if (spec is None and real_frame and (DEFAULT_REAL_FRAME / "mmdet3d_info.pkl").is_file()
             and sorted(rig.names) == sorted(CAMERA_NAMES)):   # the real keyframe has nuScenes' six cameras
         spec = DEFAULT_REAL_FRAME
@@ -209,11 +209,11 @@ def parity_frame(spec: str | Path | None, real_frame: bool, rig: Rig) -> tuple[d
     spec = Path(spec)
     if not spec.is_dir():
         raise AgoInputError("--parity-frame", f"{spec}: folder not found (an images folder, a folder with "
-                            "mmdet3d_info.pkl, or a nuScenes dataroot)")
-    if any(p.is_dir() and p.name.startswith("v1.0") for p in spec.iterdir()):   # a nuScenes dataroot: its first keyframe
-        from ago_runtime.formats.nuscenes import NuScenesDataset
+                            "mmdet3d_info.pkl, a nuScenes dataroot or an Occ3D-Waymo layout root)")
+    from ago_runtime.formats.datasets import dataset_layout, open_dataset
 
-        frame = NuScenesDataset(spec, load_extras=False)[0]
+    if dataset_layout(spec) is not None:   # a nuScenes or Occ3D-Waymo dataset root: its first keyframe
+        frame = open_dataset(spec, load_extras=False)[0]
         return frame.images, frame.rig, f"{spec} (sample {frame.token})"
     if (spec / "mmdet3d_info.pkl").is_file():
         from ago_runtime.formats.mmdet3d_info import load_mmdet3d_info

@@ -25,6 +25,7 @@ import torch
 
 from ago_runtime.atomic import write_json, write_text
 from ago_runtime.errors import AgoInputError
+from ago_runtime.formats.datasets import check_label_table
 from ago_runtime.scoring.metric import OccupancyMetric, upsample_nearest
 from ago_runtime.geometry.preprocess import Preprocess
 from ago_runtime.predict.contract import Identifier
@@ -136,13 +137,12 @@ NO_GT_FIX = ("to score without Occ3D labels: `ago export` the checkpoint, `ago i
 
 
 def check_has_gt(ds, indices: list[int], data) -> None:
-    """Every frame to score has an Occ3D labels.npz; otherwise one error naming the first missing file and the fix."""
-    from ago_runtime.formats.occ3d import labels_path
-
+    """Every frame to score has its ground-truth file (an Occ3D labels.npz, an Occ3D-Waymo _04.npz); otherwise one
+    error naming the first missing file and the fix."""
     if ds.gts_root is None:
         raise AgoInputError(data, f"no Occ3D ground truth (no gts/ folder; --gts DIR names another); {NO_GT_FIX}")
     for i in indices:
-        path = labels_path(ds.gts_root, ds.scene_of(i), ds.sample_tokens[i])
+        path = ds.gt_file(i)
         if not path.is_file():
             raise AgoInputError(path, f"no Occ3D ground truth for this frame; {NO_GT_FIX}")
 
@@ -175,6 +175,7 @@ def evaluate(ckpt_path: str | Path, data: str | Path, split: str = "val", prompt
     if max_frames is not None and (not isinstance(max_frames, int) or max_frames < 1):
         raise AgoInputError("--max-frames", f"must be >= 1 (or left out for every frame), got {max_frames!r}")
     ds, indices = open_frames(data, gts, split)
+    check_label_table(ds, label_space)   # GT ids and the label space's table agree (nuScenes / Occ3D-Waymo)
     if max_frames is not None:
         indices = indices[:max_frames]
     if not indices:

@@ -31,6 +31,7 @@ from torch.utils.data import DataLoader, DistributedSampler
 
 from ago_runtime.atomic import write_text
 from ago_runtime.errors import AgoInputError
+from ago_runtime.formats.datasets import check_label_table
 from ago_runtime.geometry.preprocess import Preprocess
 from ago_runtime.vocab.prompts import LabelSpace, parse_prompt_file
 
@@ -43,13 +44,14 @@ from .train_config import TrainConfig
 
 # ---- pieces shared with evaluation --------------------------------------------------------------
 def open_frames(data: str | Path, gts: str | None, split: str, load_images: bool = True):
-    """The NuScenesDataset at `data` (GT from `gts` or <data>/gts when present) and its indices in `split`."""
-    from ago_runtime.formats.nuscenes import NuScenesDataset
+    """The dataset at `data` (`ago_runtime.formats.datasets.open_dataset`: the nuScenes or the Occ3D-Waymo
+    layout; GT from `gts`, else where the layout keeps it) and its indices in `split`."""
+    from ago_runtime.formats.datasets import open_dataset
 
     root = Path(data)
     if not root.exists():
         raise AgoInputError(root, "dataset root not found (make a synthetic one with `ago synth`)")
-    ds = NuScenesDataset(root, gts_root=gts, load_images=load_images, load_extras=False)
+    ds = open_dataset(root, gts_root=gts, load_images=load_images, load_extras=False)
     indices = ds.split(split)
     note = ds.split_note(split)
     if note:   # no splits.json: say which default split is used
@@ -196,6 +198,7 @@ class Trainer:
 
         use_cache = cfg.uses_feature_cache()
         ds, indices = open_frames(cfg.data, cfg.gts, cfg.train_split, load_images=not use_cache)
+        check_label_table(ds, self.label_space)   # the pseudo-labels' classes index the data's class table
         if cfg.frame_tokens is not None:
             wanted = set(cfg.frame_tokens)
             indices = [i for i in indices if ds.sample_tokens[i] in wanted]

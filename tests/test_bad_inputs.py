@@ -472,7 +472,7 @@ def test_scrambled_jpegs_are_refused_as_measured():
 
 def test_png_header_size_is_checked_before_decoding(tmp_path):
     from ago_runtime.errors import AgoInputError
-    from ago_runtime.formats.nuscenes import read_png
+    from ago_runtime.formats.synthetic_maps import read_png
 
     ok, png = cv2.imencode(".png", np.zeros((4, 4), np.uint8))
     b = bytearray(png.tobytes())

@@ -133,7 +133,7 @@ def test_cli_writes_the_occ3d_waymo_layout(tmp_path):
     r = CliRunner().invoke(app, ["synth", "--rig", "front", "--out", str(front), "--scenes", "1", "--frames", "1",
                                  "--image-size", "64x48", "--grid", "25x25x4"])
     assert r.exit_code == 0, r.output
-    assert sorted(p.name for p in (front / "kitti_format" / "training").iterdir()) == ["image_0"]
+    assert sorted(p.name for p in (front / "kitti_format" / "training").iterdir()) == ["image_0", "velodyne"]
     for args, what in ((["--rig", "rear"], "--rig"), (["--rig", "waymo", "--sweeps-between", "2"], "--sweeps-between")):
         bad = CliRunner().invoke(app, ["synth", "--out", str(tmp_path / "bad"), *args])
         assert isinstance(bad.exception, AgoInputError) and what in str(bad.exception)

@@ -46,6 +46,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ago_runtime.classes import OCC3D_NUSCENES
 from ago_runtime.geometry.camera import CAMERA_NAMES, Camera, Rig
 from ago_runtime.errors import AgoInputError
 from ago_runtime.formats.image_files import decode_image
@@ -55,8 +56,9 @@ from ago_runtime.geometry.grid import Grid
 from ago_runtime.formats.nuscenes_schema import LIDAR_CHANNEL, check_table, record_to_matrix
 from ago_runtime.paths import inside_root
 from ago_runtime.formats.occ3d import Occ3DLabels, labels_path
+from ago_runtime.formats.scenes import indices_of, neighbour_indices, scene_spans
+from ago_runtime.formats.synthetic_maps import read_synthetic_maps
 
-POINT_BYTES = 5 * 4  # float32 x, y, z, intensity, ring
 # The tables the reader needs (the other seven of nuScenes' thirteen may be absent).
 READ_TABLES = ("sensor", "calibrated_sensor", "ego_pose", "scene", "sample", "sample_data")
 # Without splits.json: this fraction of each scene's first keyframes is "train", the rest "val".
@@ -90,8 +92,9 @@ def read_jpeg_rgb(path: str | Path) -> np.ndarray:
     return np.ascontiguousarray(bgr[..., ::-1])
 
 
-def read_lidar_bin(path: str | Path) -> np.ndarray:
-    """A nuScenes .pcd.bin (float32, N x 5) -> (N, 5) float32; refuses sizes not a multiple of 20 bytes."""
+def read_lidar_bin(path: str | Path, columns: int = 5, fields: str = "x, y, z, intensity, ring") -> np.ndarray:
+    """A float32 point file of `columns` values per point (nuScenes' .pcd.bin: 5; the Occ3D-Waymo KITTI-format
+    velodyne .bin: 6) -> (N, columns) float32; refuses sizes not a multiple of a point's bytes."""
     path = Path(path)
     if not path.is_file():
         raise AgoInputError(path, "LiDAR file not found")
@@ -99,29 +102,14 @@ def read_lidar_bin(path: str | Path) -> np.ndarray:
     if size > max_array_bytes():   # a real sweep is ~2 MB; refused by size before a byte is read
         raise AgoInputError(path, f"LiDAR file of {size} bytes, more than ago reads ({max_array_bytes()}; "
                                   "$AGO_MAX_ARRAY_BYTES sets the limit)")
-    if size % POINT_BYTES:
-        raise AgoInputError(path, f"size {size} bytes is not a multiple of {POINT_BYTES} "
-                                  "(float32 x, y, z, intensity, ring per point)")
-    points = np.fromfile(path, dtype=np.float32).reshape(-1, 5)
+    point_bytes = 4 * columns
+    if size % point_bytes:
+        raise AgoInputError(path, f"size {size} bytes is not a multiple of {point_bytes} "
+                                  f"(float32 {fields} per point)")
+    points = np.fromfile(path, dtype=np.float32).reshape(-1, columns)
     if not np.all(np.isfinite(points[:, :3])):
         raise AgoInputError(path, "LiDAR points contain NaN or inf")
     return points
-
-
-def read_png(path: str | Path, dtype: type, hw: tuple[int, int] | None = None) -> np.ndarray:
-    """A single-channel PNG -> (H, W) array of `dtype` (uint8 or uint16), checked against `hw`."""
-    path = Path(path)
-    try:
-        data = path.read_bytes()
-    except OSError as e:
-        raise AgoInputError(path, f"cannot read the PNG ({e})") from None
-    array = decode_image(data, path, cv2.IMREAD_UNCHANGED)
-    if array.ndim != 2 or array.dtype != dtype:
-        raise AgoInputError(path, f"expected a single-channel {np.dtype(dtype).name} PNG, "
-                                  f"got shape {array.shape} {array.dtype}")
-    if hw is not None and array.shape != tuple(hw):
-        raise AgoInputError(path, f"size {array.shape} does not match its image {tuple(hw)}")
-    return array
 
 
 def load_table(table_dir: Path, name: str) -> list[dict]:
@@ -147,6 +135,8 @@ def find_version(root: Path) -> str:
 # ---------------------------------------------------------------------------- the dataset
 class NuScenesDataset:
     """Indexable keyframes of a nuScenes-format dataset, ordered by scene name, then timestamp."""
+
+    class_table = OCC3D_NUSCENES   # the ids of its ground truth and synthetic maps (formats.datasets.check_label_table)
 
     def __init__(self, root: str | Path, version: str | None = None, gts_root: str | Path | None = None,
                  load_images: bool = True, load_extras: bool = True, num_sweeps: int = 0,
@@ -241,13 +231,7 @@ class NuScenesDataset:
         self.sample_tokens: list[str] = [tok for _, _, tok in order]
         self._scene_names: list[str] = [scene for scene, _, _ in order]
         self._index = {tok: i for i, tok in enumerate(self.sample_tokens)}
-        # [start, end) of each index's scene (indices of one scene are contiguous)
-        self._scene_span: list[tuple[int, int]] = []
-        start = 0
-        for i in range(1, len(order) + 1):
-            if i == len(order) or self._scene_names[i] != self._scene_names[start]:
-                self._scene_span.extend([(start, i)] * (i - start))
-                start = i
+        self._scene_span = scene_spans(self._scene_names)   # [start, end) of each index's scene
 
     # ------------------------------------------------------------------ lookups
     def _ref(self, table: str, records: dict, token, referrer: str) -> dict:
@@ -268,19 +252,8 @@ class NuScenesDataset:
     def indices_of(self, names: list[str]) -> list[int]:
         """Dataset indices of sample tokens and/or scene names (a scene: its keyframes in time order), in the
         order given; every name that is neither is listed in one AgoInputError."""
-        out, unknown = [], []
-        scenes = set(self._scene_names)
-        for name in names:
-            if name in self._index:
-                out.append(self._index[name])
-            elif name in scenes:
-                out += [i for i, s in enumerate(self._scene_names) if s == name]
-            else:
-                unknown.append(name)
-        if unknown:
-            raise AgoInputError(self.table_dir / "sample.json", f"no sample token or scene name "
-                                f"{', '.join(map(repr, unknown))}")
-        return out
+        return indices_of(names, self._index, self._scene_names, self.table_dir / "sample.json",
+                          "sample token or scene name")
 
     def scene_of(self, i: int) -> str:
         return self._scene_names[i]
@@ -329,17 +302,7 @@ class NuScenesDataset:
     def neighbours(self, i: int, count: int, interval: int) -> list[int]:
         """Up to `count` keyframe indices of i's scene at offsets +interval*k, -interval*k (k = 1, 2, ...),
         nearest first (+ before -); a side that reaches its scene end stops and the other goes on."""
-        if count < 0 or interval < 1:
-            raise AgoInputError(None, f"neighbours needs count >= 0 and interval >= 1, got {count}, {interval}")
-        start, end = self._scene_span[i]
-        out: list[int] = []
-        k = 1
-        while len(out) < count and (i + k * interval < end or i - k * interval >= start):
-            for j in (i + k * interval, i - k * interval):
-                if start <= j < end and len(out) < count:
-                    out.append(j)
-            k += 1
-        return out
+        return neighbour_indices(self._scene_span[i], i, count, interval)
 
     # ------------------------------------------------------------------ non-key LiDAR sweeps
     def nonkey_sweep_records(self, i: int, count: int | None = None) -> list[dict]:
@@ -370,6 +333,16 @@ class NuScenesDataset:
         if not self.num_nonkey_lidar:
             return 0
         return max(len(self.nonkey_sweep_records(i)) for i in range(len(self)))
+
+    def gt_file(self, i: int) -> Path | None:
+        """Where keyframe i's Occ3D labels.npz is (whether or not it exists); None without a GT folder."""
+        if self.gts_root is None:
+            return None
+        return labels_path(self.gts_root, self._scene_names[i], self.sample_tokens[i])
+
+    def has_lidar(self) -> bool:
+        """Every keyframe lists a LIDAR_TOP file (checked when the tables are read)."""
+        return True
 
     def nonkey_sweep_files_present(self) -> bool:
         """Whether the files of the listed non-key sweeps exist (a keyframes-only download lacks sweeps/)."""
@@ -463,9 +436,4 @@ class NuScenesDataset:
                      gt=gt, extras=extras)
 
     def _read_extras(self, extras: dict, cam: str, image_path: Path, hw: tuple[int, int]) -> None:
-        semantic = self.root / "synthetic" / "semantic" / cam / f"{image_path.stem}.png"
-        if semantic.is_file():
-            extras.setdefault("semantic", {})[cam] = read_png(semantic, np.uint8, hw)
-        depth = self.root / "synthetic" / "depth" / cam / f"{image_path.stem}.png"
-        if depth.is_file():
-            extras.setdefault("depth", {})[cam] = read_png(depth, np.uint16, hw).astype(np.float32) / 100.0
+        read_synthetic_maps(self.root, extras, cam, image_path.stem, hw)

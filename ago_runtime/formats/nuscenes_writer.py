@@ -45,6 +45,7 @@ from ago_runtime.errors import AgoInputError
 from ago_runtime.formats.nuscenes_schema import (ATTRIBUTES, CATEGORIES, CATEGORY_NAMES, LIDAR_CHANNEL, TABLE_NAMES,
                               VISIBILITY_LEVELS, check_rigid, matrix_to_record, yaw_to_quaternion)
 from ago_runtime.formats.occ3d import Occ3DLabels, labels_path
+from ago_runtime.formats.synthetic_maps import write_png, write_synthetic_maps
 
 JPEG_QUALITY = 95
 MAP_RESOLUTION = 0.1      # metres per map-mask pixel, as nuScenes
@@ -250,26 +251,10 @@ class NuScenesWriter:
         return token
 
     def _write_extras(self, extras: dict, cam: str, stem: str, hw: tuple[int, int]) -> None:
-        semantic = (extras.get("semantic") or {}).get(cam)
-        if semantic is not None:
-            semantic = np.asarray(semantic)
-            if semantic.shape != hw:
-                raise AgoInputError(self.root, f"{cam} semantic map must be {hw}, got {semantic.shape}")
-            self._write_png(f"synthetic/semantic/{cam}/{stem}.png", semantic.astype(np.uint8))
-        depth = (extras.get("depth") or {}).get(cam)
-        if depth is not None:
-            depth = np.asarray(depth, dtype=np.float64)
-            if depth.shape != hw:
-                raise AgoInputError(self.root, f"{cam} depth map must be {hw}, got {depth.shape}")
-            depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0)
-            centimetres = np.clip(np.round(depth * 100.0), 0, 65535).astype(np.uint16)
-            self._write_png(f"synthetic/depth/{cam}/{stem}.png", centimetres)
+        write_synthetic_maps(self.root, extras, cam, stem, hw)
 
     def _write_png(self, relative: str, array: np.ndarray) -> None:
-        ok, png = cv2.imencode(".png", array)
-        if not ok:
-            raise AgoInputError(self.root / relative, "cv2 could not encode the PNG")
-        write_bytes(self.root / relative, png.tobytes())
+        write_png(self.root / relative, array)
 
     def _calibrated_sensor(self, scene: dict, channel: str, sensor2ego: np.ndarray, intrinsic: list) -> str:
         record = matrix_to_record(sensor2ego)

@@ -22,7 +22,7 @@ import numpy as np
 from ago_runtime.atomic import save_npz
 from ago_runtime.classes import OCC3D_WAYMO, ClassTable
 from ago_runtime.errors import AgoInputError
-from ago_runtime.formats.occ3d import read_voxel_arrays
+from ago_runtime.formats.occ3d import Occ3DLabels, read_voxel_arrays
 
 KEYS = ("voxel_label", "origin_voxel_state", "final_voxel_state", "infov")
 SPLITS = ("training", "validation", "test")
@@ -63,6 +63,12 @@ class Occ3DWaymoLabels:
                                     + (f" with values {a.min()}..{a.max()}" if np.issubdtype(a.dtype, np.number) and a.size else ""))
         return cls(sem.astype(np.uint8), *(arrays[k].astype(np.uint8) for k in KEYS[1:]))
 
+    def as_occ3d(self) -> Occ3DLabels:
+        """The labels as every consumer of a `Frame.gt` reads them: semantics = `voxel_label` (Waymo ids, free 23),
+        mask_lidar = `origin_voxel_state`, mask_camera = `final_voxel_state & infov`: the mask Occ3D-Waymo's
+        loaders train and score with (CVT-Occ's `LoadOccGTFromFileWaymo`, use_camera_mask and use_infov_mask on)."""
+        return Occ3DLabels(self.semantics, self.mask_lidar, (self.mask_camera & self.mask_fov).astype(np.uint8))
+
     def save(self, path: str | Path) -> None:
         """Write the four arrays under Occ3D-Waymo's keys (uint8), atomically."""
         save_npz(path, voxel_label=self.semantics.astype(np.uint8),
@@ -90,6 +96,12 @@ def gt_path(root: str | Path, split: str, scene: int, frame: int, voxel_size: st
     if not (0 <= int(scene) <= 999 and 0 <= int(frame) <= 999):
         raise AgoInputError(f"{scene}/{frame}", "scene and frame are numbers 0..999 (three digits in file names)")
     return Path(root) / split / f"{int(scene):03d}" / f"{int(frame):03d}{VOXEL_SUFFIX[voxel_size]}.npz"
+
+
+def sample_of(split: str, scene: int, frame: int) -> str:
+    """`<p><scene:03d><frame:03d>` (p = 0 training, 1 validation, 2 test): the mmdet3d KITTI-format sample name
+    Occ3D-Waymo loaders parse (characters 1..3 the scene, 4..6 the frame)."""
+    return f"{SPLITS.index(split)}{int(scene):03d}{int(frame):03d}"
 
 
 def list_gt_files(root: str | Path, split: str, voxel_size: str = "0.4") -> list[tuple[int, int, Path]]:

@@ -6,7 +6,7 @@
     truth side by side (voxels outside the GT's mask_camera washed out). --classes: a class table
     (occ3d_nuscenes, occ3d_waymo or a JSON file, see ago_runtime/classes.py) for the labels' ids.
 `ago show DATASET_DIR (--sample TOKEN | --index I) [--out out.png]`
-    the six camera images of one nuScenes-layout sample in the 2 x 3 rig layout.
+    the camera images of one dataset sample (nuScenes or Occ3D-Waymo layout), with its ground truth as a BEV.
 (`ago metric`, which scores such grids, is in ago_runtime/scoring/cli.py.)
 """
 
@@ -28,7 +28,7 @@ from ago_runtime.scoring.metric import to_gt_resolution
 def register(app: typer.Typer) -> None:
     @app.command("show")
     def show(
-        path: Path = typer.Argument(..., help="labels.npz (key 'semantics'), or a nuScenes-layout dataset folder"),
+        path: Path = typer.Argument(..., help="labels.npz (key 'semantics'), or a dataset folder (nuScenes or Occ3D-Waymo layout)"),
         out: Path = typer.Option(Path("ago_show.png"), "--out", "-o", help="PNG to write"),
         gt: Optional[Path] = typer.Option(None, "--gt", help="ground-truth labels.npz: draw prediction vs GT"),
         view: str = typer.Option("both", "--view", help="bev | voxels | both"),
@@ -94,14 +94,14 @@ def _load_grid(path: Path) -> tuple[np.ndarray, np.ndarray | None, ClassTable | 
 
 
 def _rig_picture(root: Path, sample: str | None, index: int | None) -> np.ndarray:
-    """The six camera images of one sample of a nuScenes-layout dataset in the 2 x 3 rig layout,
-    with the sample's Occ3D GT as a BEV beside it when the dataset has one."""
+    """The camera images of one sample of a dataset (nuScenes or Occ3D-Waymo layout) in `render.rig_mosaic`'s
+    layout, with the sample's GT as a BEV (in the dataset's class table) beside it when there is one."""
     from ago_runtime.pictures import render
-    from ago_runtime.formats.nuscenes import NuScenesDataset
+    from ago_runtime.formats.datasets import open_dataset
 
     if (sample is None) == (index is None):
         raise AgoInputError(root, "a dataset folder needs exactly one of --sample TOKEN or --index I")
-    ds = NuScenesDataset(root, load_extras=False)
+    ds = open_dataset(root, load_extras=False)
     if index is None:
         index = ds.index_of(sample)
     if not 0 <= index < len(ds):
@@ -112,5 +112,5 @@ def _rig_picture(root: Path, sample: str | None, index: int | None) -> np.ndarra
     if frame.gt is None:
         return render.side_by_side([(title, rig)])
     scale = max(1, int(round(rig.shape[0] / frame.gt.shape[0])))
-    bev = render.bev_image(frame.gt.semantics, scale=scale, mask=frame.gt.mask_camera)
+    bev = render.bev_image(frame.gt.semantics, scale=scale, mask=frame.gt.mask_camera, table=ds.class_table)
     return render.side_by_side([(title, rig), ("Occ3D GT (BEV, forward = up)", bev)])

@@ -3,7 +3,8 @@
 Inputs (`--images DIR`):
 - an images folder: one image per camera of the bundle's rig, named by camera (`CAM_FRONT.jpg` ...), and a `calib.json`
   (docs/runtime.md; without it the bundle's training rig is used, with a warning);
-- a nuScenes-layout dataset (a `v1.0-*` table folder): every keyframe, or `--sample TOKEN|SCENE`
+- a dataset (a nuScenes layout with its `v1.0-*` table folder, or the Occ3D-Waymo layout with its
+  `cam_infos.json`: `formats.datasets.open_dataset`): every keyframe, or `--sample TOKEN|SCENE`
   (repeatable: several tokens and/or scene names in one run, the bundle loaded once);
 - with `--info PKL`: an mmdetection3d info file, DIR (default: the pkl's folder) the data root.
 
@@ -89,10 +90,10 @@ def open_frames(images: Path, sample, info: Optional[Path], fallback_rig, skip=N
     images = Path(images)
     if not images.is_dir():
         raise AgoInputError(images, "images folder not found")
-    if any(p.is_dir() and p.name.startswith("v1.0") for p in images.iterdir()):
-        from ago_runtime.formats.nuscenes import NuScenesDataset
+    from ago_runtime.formats.datasets import dataset_layout, open_dataset
 
-        ds = NuScenesDataset(images, load_extras=False, allow_outside_root=allow_outside_root)
+    if dataset_layout(images) is not None:   # a nuScenes or Occ3D-Waymo dataset root
+        ds = open_dataset(images, load_extras=False, allow_outside_root=allow_outside_root)
         indices = list(ds.indices_of(wanted) if wanted else range(len(ds)))
         indices = shard_indices(indices, shard)   # --shard K/N: before resume's skip, so shards never change
         indices = [i for i in indices if skip is None or not skip(ds.sample_tokens[i])]
@@ -282,7 +283,7 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
 def register(app: typer.Typer) -> None:
     @app.command("infer")
     def infer_cmd(
-        images: Optional[Path] = typer.Option(None, "--images", help="images folder, nuScenes dataset, or data root for --info"),
+        images: Optional[Path] = typer.Option(None, "--images", help="images folder, dataset (nuScenes or Occ3D-Waymo layout), or data root for --info"),
         prompts: Optional[str] = typer.Option(None, "--prompts", help="prompt file (e.g. prompts/ow.txt); default: the bundle's training classes"),
         bank: Optional[str] = typer.Option(None, "--bank", help="a prompt bank .npz, or the name of a bank in the bundle"),
         bundle: Optional[Path] = typer.Option(None, "--bundle", help="bundle folder (default: $AGO_BUNDLE, then the shipped one)"),
@@ -339,7 +340,7 @@ def register(app: typer.Typer) -> None:
     def retrieve_cmd(
         phrase: str = typer.Option(..., "--phrase", help='what to look for, e.g. "traffic cone"'),
         images: Path = typer.Option(..., "--images", help="images folder (six CAM_*.jpg + calib.json) or a "
-                                    "nuScenes dataroot"),
+                                    "dataset root (nuScenes or Occ3D-Waymo layout)"),
         sample: Optional[str] = typer.Option(None, "--sample", help="a dataroot's sample token or scene name "
                                              "(default: its first keyframe)"),
         bundle: Optional[Path] = typer.Option(None, "--bundle", help="bundle folder"),

@@ -11,7 +11,10 @@
     mIoU is over the file's classes, and its @known line gives "known" / "unknown" subsets.
 Both mIoUs are reported (camera mask / every voxel; `--no-mask` picks the per-class table), and RayIoU
 (`ago_runtime.scoring.ray_iou`).
-`--lidar DATAROOT` scores predictions of a nuScenes dataset's keyframes against their own LiDAR
+`--gt` may also be an Occ3D-Waymo folder (`<split>/<scene>/<frame>_04.npz`, e.g. an `ago synth --rig waymo` root):
+    tokens are the sample names, mask_camera is `final_voxel_state & infov`, and `--prompts` must be a prompt
+    file of `@table: occ3d_waymo` (free, id 23, is scored as the last label).
+`--lidar DATAROOT` scores predictions of a dataset's keyframes (nuScenes or Occ3D-Waymo layout) against their own LiDAR
 (`ago_runtime.scoring.lidar_agreement`): no Occ3D labels needed.
 """
 
@@ -29,25 +32,43 @@ from ago_runtime.formats.occ3d import load_semantics
 from ago_runtime.scoring.metric import _pct, to_gt_resolution
 
 
-def find_gt_files(gt_root: Path) -> dict[str, Path]:
-    """sample token -> GT labels.npz under `gt_root` (Occ3D layout `<scene>/<token>/labels.npz`)."""
+def find_gt_files(gt_root: Path) -> dict[str, tuple[str, Path]]:
+    """sample token -> (scene, GT file) under `gt_root`: Occ3D-nuScenes `<scene>/<token>/labels.npz` (searched
+    recursively), else Occ3D-Waymo `<split>/<scene>/<frame>_04.npz` (token = the sample name `<p><scene><frame>`,
+    scene = `<split>/<scene>`, as `Occ3DWaymoDataset` names them)."""
+    from ago_runtime.formats.occ3d_waymo import SPLITS, list_gt_files, sample_of
+
     if not gt_root.is_dir():
         raise AgoInputError(gt_root, "ground-truth folder not found")
+    out: dict[str, tuple[str, Path]] = {}
     files = sorted(gt_root.rglob("labels.npz"))
     if not files:
-        raise AgoInputError(gt_root, "no labels.npz found (expected <scene>/<token>/labels.npz)")
-    out: dict[str, Path] = {}
+        for split in SPLITS:
+            if (gt_root / split).is_dir():
+                for scene, frame, f in list_gt_files(gt_root, split):
+                    out[sample_of(split, scene, frame)] = (f"{split}/{scene:03d}", f)
+        if out:
+            return out
+        raise AgoInputError(gt_root, "no labels.npz found (expected <scene>/<token>/labels.npz, or Occ3D-Waymo's "
+                            "<split>/<scene>/<frame>_04.npz)")
     for f in files:
         token = f.parent.name
         if token in out:
-            raise AgoInputError(f, f"sample token {token} appears twice (also {out[token]})")
-        out[token] = f
+            raise AgoInputError(f, f"sample token {token} appears twice (also {out[token][1]})")
+        out[token] = (f.parent.parent.name, f)
     return out
 
 
-def find_prediction(pred_root: Path, gt_file: Path) -> Path | None:
-    """The prediction file for the GT file's sample token, or None."""
-    return find_prediction_for(pred_root, gt_file.parent.parent.name, gt_file.parent.name)
+def load_gt(path: Path):
+    """An `Occ3DLabels` from an Occ3D-nuScenes labels.npz or an Occ3D-Waymo `_04.npz` (its ids kept, mask_camera
+    = final_voxel_state & infov: `Occ3DWaymoLabels.as_occ3d`), with the class table of its ids."""
+    from ago_runtime.classes import OCC3D_NUSCENES, OCC3D_WAYMO
+    from ago_runtime.formats.occ3d import Occ3DLabels
+    from ago_runtime.formats.occ3d_waymo import Occ3DWaymoLabels
+
+    if path.name != "labels.npz":
+        return Occ3DWaymoLabels.load(path).as_occ3d(), OCC3D_WAYMO
+    return Occ3DLabels.load(path), OCC3D_NUSCENES
 
 
 def find_prediction_for(pred_root: Path, scene: str, token: str) -> Path | None:
@@ -121,14 +142,13 @@ def parse_origin(text: str) -> tuple[float, float, float]:
 
 def score_against_gt(pred: Path, gt: Path, space, m_mask, m_all, rays, allow_missing: bool) -> list[str]:
     """Accumulate the Occ3D metric with and without the camera mask, and RayIoU; returns skipped tokens."""
-    from ago_runtime.formats.occ3d import Occ3DLabels
     from ago_runtime.geometry.grid import Grid
     from ago_runtime.progress import track
 
     gts = find_gt_files(gt)
     pairs, missing = [], []
-    for token, gt_file in gts.items():
-        p = find_prediction(pred, gt_file)
+    for token, (scene, gt_file) in gts.items():
+        p = find_prediction_for(pred, scene, token)
         if p is None:
             missing.append(token)
         else:
@@ -140,7 +160,11 @@ def score_against_gt(pred: Path, gt: Path, space, m_mask, m_all, rays, allow_mis
         raise AgoInputError(pred, "no prediction matches any GT frame")
     gt_lut = None if space is None else space.gt_lut(free_index=space.num_classes)
     for gt_file, p in track(pairs, description="scoring (frames)", total=len(pairs)):
-        labels = Occ3DLabels.load(gt_file)
+        labels, table = load_gt(gt_file)
+        scored_in = space.table if space is not None else "occ3d_nuscenes"   # without --prompts: Occ3D-nuScenes ids
+        if table.name != scored_in:
+            raise AgoInputError(gt_file, f"holds {table.name} labels, not {scored_in} ones: give --prompts with a "
+                                f"prompt file of '@table: {table.name}' (e.g. --prompts waymo/cw_waymo)")
         sem, _ = load_semantics(p)
         gt_sem = labels.semantics
         if space is not None:
@@ -160,14 +184,17 @@ def score_against_lidar(pred: Path, dataroot: Path, agreement, allow_missing: bo
     """Accumulate the LiDAR measures (`scoring.lidar_agreement`) of every keyframe of the dataset that has a
     prediction; returns the tokens skipped for lack of one."""
     from ago_runtime.classes import FREE
-    from ago_runtime.formats.nuscenes import NuScenesDataset
+    from ago_runtime.formats.datasets import dataset_layout, open_dataset
     from ago_runtime.geometry.grid import Grid
     from ago_runtime.progress import track
     from ago_runtime.scoring.lidar_agreement import score_frame
 
-    if not (dataroot.is_dir() and any(p.is_dir() and p.name.startswith("v1.0") for p in dataroot.iterdir())):
-        raise AgoInputError(dataroot, "--lidar takes a nuScenes dataroot (the folder holding v1.0-*/ and samples/)")
-    ds = NuScenesDataset(dataroot, load_images=False, load_extras=False)
+    if dataset_layout(dataroot) is None:
+        raise AgoInputError(dataroot, "--lidar takes a nuScenes dataroot (the folder holding v1.0-*/ and samples/) "
+                            "or an Occ3D-Waymo layout root (cam_infos.json, kitti_format/<split>/velodyne/)")
+    ds = open_dataset(dataroot, load_images=False, load_extras=False)
+    if not ds.has_lidar():
+        raise AgoInputError(dataroot, "--lidar: the dataset has no LiDAR files")
     pairs, missing = [], []
     for i, token in enumerate(ds.sample_tokens):
         p = find_prediction_for(pred, ds.scene_of(i), token)

@@ -31,6 +31,7 @@ from ago_runtime.classes import FREE, IGNORE, NUM_SEMANTIC, OCC3D_CLASSES, SHIPP
 from ago_runtime.errors import AgoInputError, AgoNote
 
 PROMPTS_DIR = Path(__file__).resolve().parents[2] / "prompts"
+SHIPPED_FOLDERS = (Path("."), Path("waymo"))   # prompts/ and prompts/waymo/ (Occ3D-Waymo label spaces)
 _CLASS_LINE = re.compile(r"^(?P<name>[^\[\]:@#]+?)\s*(?:\[(?P<ids>[^\]]*)\])?\s*:(?P<phrases>.*)$")
 _NAME_OK = re.compile(r"^[\w][\w \-./']*$")
 
@@ -337,10 +338,11 @@ def resolve_prompt_file(name_or_path: str | Path, option: str | None = None) -> 
     if p.exists():
         raise AgoInputError(where, f"{value} is a folder, not a prompt file")
     shipped = ", ".join(shipped_label_spaces())
-    if p.parent not in (Path("."), Path("prompts")) or p.suffix not in ("", ".txt"):
+    folder = Path(*p.parent.parts[1:]) if p.parent.parts[:1] == ("prompts",) else p.parent
+    if folder not in SHIPPED_FOLDERS or p.suffix not in ("", ".txt"):
         raise AgoInputError(where, f"{value}: prompt file not found (a shipped one is named without a folder, "
-                                   f"e.g. ow; shipped: {shipped})")
-    candidate = PROMPTS_DIR / (p.name if p.suffix == ".txt" else f"{p.name}.txt")
+                                   f"e.g. ow, or waymo/<name>; shipped: {shipped})")
+    candidate = PROMPTS_DIR / folder / (p.name if p.suffix == ".txt" else f"{p.name}.txt")
     if not candidate.is_file():
         raise AgoInputError(where, f"{value}: prompt file not found, nor a shipped label space of that name "
                                    f"(shipped: {shipped})")
@@ -367,5 +369,6 @@ def parse_prompt_file(path: str | Path, max_tokens: int | None = None, option: s
 
 
 def shipped_label_spaces() -> list[str]:
-    """Names of the prompt files shipped in prompts/ (cw, ow, ow_pretrain, veon_...)."""
+    """Names of the prompt files shipped in prompts/ (cw, ow, ow_pretrain, veon_...; the Occ3D-Waymo ones in
+    prompts/waymo/ are found as waymo/<name> but not listed here: export ships a bank for each listed one)."""
     return sorted(q.stem for q in PROMPTS_DIR.glob("*.txt"))

@@ -182,14 +182,14 @@ class ExperimentRunner:
         if path.is_file():
             return read_json(path)
         from ago_runtime.scoring.metric import OccupancyMetric, upsample_nearest
-        from ago_runtime.formats.nuscenes import NuScenesDataset
+        from ago_runtime.formats.datasets import open_dataset
         from ago_runtime.vocab.prompts import parse_prompt_file
 
         from ..pseudo.generate import load_pseudo_labels, load_voxel_embeds
         from ..trainer import build_text_bank
 
         pdir = self.pseudo("cw")
-        ds = NuScenesDataset(self.data, load_images=False)
+        ds = open_dataset(self.data, load_images=False)
         metric = OccupancyMetric()
         space = parse_prompt_file("cw")
         bank = build_text_bank(space)

@@ -633,7 +633,7 @@ def _caption(text: str, width: int) -> np.ndarray:
 
 def render_frames(out: Path, profile: ExperimentProfile) -> list[np.ndarray]:
     from ago_runtime.scoring.metric import upsample_nearest
-    from ago_runtime.formats.nuscenes import NuScenesDataset
+    from ago_runtime.formats.datasets import open_dataset
     from ago_runtime.vocab.prompts import parse_prompt_file
     from ago_runtime.pictures.render import legend, side_by_side, voxel_view
 
@@ -643,7 +643,7 @@ def render_frames(out: Path, profile: ExperimentProfile) -> list[np.ndarray]:
     if not cw_dir.is_dir():
         return []
     data = Path(profile.data) if profile.external_data else out / profile.data
-    ds = NuScenesDataset(data, load_images=False)
+    ds = open_dataset(data, load_images=False)
     ow_names = list(parse_prompt_file("ow").class_names)
     cw_names = list(parse_prompt_file("cw").class_names)
     pseudo_dir = Path(profile.pseudo["cw"]) if profile.external_data else out / profile.pseudo["cw"]

@@ -1,6 +1,7 @@
 """`ago pseudo-labels`: 3-D pseudo-labels (and voxel image embeddings) from 2-D masks and features.
 
-Reads a nuScenes-format dataset, labels every keyframe of a split with a segmenter (`files`: masks
+Reads a dataset (nuScenes or Occ3D-Waymo layout: `ago_runtime.formats.datasets.open_dataset`; the prompt
+file's class table must be the data's), labels every keyframe of a split with a segmenter (`files`: masks
 written by Grounded SAM, see docs/vlm_files.md; `sim`: the SIMULATED segmenter, synthetic data only),
 lifts image features with an embedder (`files`, `sim` or `none`), and writes the folder
 described in ago_train/pseudo/generate.py. Two counts set the LiDAR used per sample: `--keyframes`
@@ -45,7 +46,7 @@ def build_backends(prompts: str, segmenter: str, masks: Path | None, embedder: s
             raise AgoInputError("--masks", "--segmenter files needs --masks DIR (layout: docs/vlm_files.md)")
         seg = FileSegmenter(masks, space)
     elif segmenter == "sim":
-        seg = SimulatedSegmenter(space, SimSegmenterConfig(seed=seed))
+        seg = SimulatedSegmenter(space, SimSegmenterConfig.for_table(space.table, seed=seed))
     elif segmenter == "boxes":
         from .boxes import BoxSegmenter
 
@@ -59,6 +60,9 @@ def build_backends(prompts: str, segmenter: str, masks: Path | None, embedder: s
             raise AgoInputError("--feats", "--embedder files needs --feats DIR (layout: docs/vlm_files.md)")
         emb = FileImageEmbedder(feats)
     elif embedder == "sim":
+        if space.table != "occ3d_nuscenes":
+            raise AgoInputError("--embedder", f"sim embeds Occ3D-nuScenes classes only (cw.txt), not the {space.table} "
+                                "classes of this prompt file: use --embedder none or files")
         class_text, sky = simulated_text_embeddings()
         emb = SimulatedImageEmbedder(class_text, SimEmbedderConfig(seed=seed), sky_text=sky)
     else:
@@ -146,7 +150,7 @@ def resolve_sweeps(ds, sweeps: int | None) -> tuple[int, str | None]:
 def register(app: typer.Typer) -> None:
     @app.command("pseudo-labels")
     def pseudo_labels(
-        data: Path = typer.Option(..., "--data", help="nuScenes-format dataset folder (real or `ago synth`)."),
+        data: Path = typer.Option(..., "--data", help="dataset folder, nuScenes or Occ3D-Waymo layout (real or `ago synth`)."),
         out: Path = typer.Option(..., "--out", help="Output folder (resumable; refused if made with other settings)."),
         prompts: str = typer.Option("cw", "--prompts", help="Prompt file (path or shipped name: cw, ow_pretrain, ow)."),
         segmenter: str = typer.Option(None, "--segmenter", help="files (label maps, docs/vlm_files.md), sim "
@@ -179,7 +183,7 @@ def register(app: typer.Typer) -> None:
                                          "readable back with --segmenter files --masks DIR."),
     ):
         """Lift 2-D masks (and image features) into 3-D pseudo-labels with the LiDAR (keyframes + non-key sweeps)."""
-        from ago_runtime.formats.nuscenes import NuScenesDataset
+        from ago_runtime.formats.datasets import check_label_table, open_dataset
         from ago_runtime.outputs import check_output_dir
 
         from .generate import PseudoLabelConfig, generate
@@ -195,7 +199,11 @@ def register(app: typer.Typer) -> None:
         segmenter, masks, embedder, feats, notes = resolve_defaults(Path(data), segmenter, masks, embedder, feats)
         space, seg, emb = build_backends(prompts, segmenter, masks, embedder, feats, seed, Path(data), write_masks)
         needs_extras = segmenter == "sim" or embedder == "sim"
-        ds = NuScenesDataset(data, load_images=False, load_extras=needs_extras)
+        ds = open_dataset(data, load_images=False, load_extras=needs_extras)
+        check_label_table(ds, space)
+        if not ds.has_lidar():
+            raise AgoInputError(data, "no LiDAR files (kitti_format/<split>/velodyne/<sample>.bin): pseudo-labels "
+                                "lift 2-D masks with the LiDAR")
         indices, split_note = resolve_split(ds, split)
         nonkey, sweep_note = resolve_sweeps(ds, sweeps)
         notes += [n for n in (split_note, sweep_note) if n]
@@ -230,7 +238,7 @@ def register(app: typer.Typer) -> None:
         """Pseudo-labels with GT for the seen classes (VEON's X/Y protocol, the paper's Tab. F): a voxel whose GT
         holds a seen class gets it, one the pseudo-labels call a seen class without GT support is ignored, the
         rest stays (ago_train/pseudo/seen_gt.py)."""
-        from ago_runtime.formats.nuscenes import NuScenesDataset
+        from ago_runtime.formats.datasets import check_label_table, open_dataset
         from ago_runtime.outputs import check_output_dir
         from ago_runtime.progress import track
         from ago_runtime.vocab.prompts import parse_prompt_file, resolve_prompt_file
@@ -239,7 +247,8 @@ def register(app: typer.Typer) -> None:
 
         check_output_dir(out, "--out")
         space = parse_prompt_file(resolve_prompt_file(prompts))
-        ds = NuScenesDataset(data, load_images=False, load_extras=False)
+        ds = open_dataset(data, load_images=False, load_extras=False)
+        check_label_table(ds, space)
         indices, split_note = resolve_split(ds, split)
         if split_note:
             typer.echo(f"note: using {split_note}")

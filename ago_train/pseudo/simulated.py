@@ -1,10 +1,12 @@
 """SIMULATED 2-D vision-language backends for synthetic data (no neural network involved).
 
 Synthetic frames (`ago synth`) carry per-pixel truth: `frame.extras["semantic"][cam]` ((H, W) uint8
-Occ3D id, 255 = sky / nothing) and `frame.extras["depth"][cam]` ((H, W) float32 metres, 0 = none).
+label id of the dataset's class table: Occ3D-nuScenes ids in the nuScenes layout, Occ3D-Waymo ids in the
+Occ3D-Waymo layout; 255 = sky / nothing) and `frame.extras["depth"][cam]` ((H, W) float32 metres, 0 = none).
 These classes turn that truth into what a real model would give, with its typical failures:
 
-- `SimulatedSegmenter(label_space, SimSegmenterConfig())`: stands in for Grounded SAM. Occ3D ids
+- `SimulatedSegmenter(label_space, SimSegmenterConfig())`: stands in for Grounded SAM. Label ids (of
+  the label space's table, `@table`: the pixels must be of that table, `formats.datasets.check_label_table`)
   -> label-space classes (ids outside the label space: no label), then, in this order:
   confusions between related classes (whole instance for object classes, a blob for surfaces;
   only when both classes are in the label space and differ there), missed instances (connected
@@ -31,13 +33,19 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ago_runtime.classes import NUM_SEMANTIC, OCC3D_CLASSES, OCC3D_ID
+from ago_runtime.classes import NUM_SEMANTIC, OCC3D_CLASSES
 from ago_runtime.errors import AgoInputError
 from ago_runtime.formats.frame import Frame
 from ago_runtime.vocab.prompts import LabelSpace
 
 NO_LABEL = 255
 THING_IDS = frozenset(range(1, 11))  # barrier .. truck: countable objects; the rest are surfaces/stuff
+# the countable objects of each shipped class table, by name (Occ3D-nuScenes: THING_IDS)
+THING_NAMES = {
+    "occ3d_nuscenes": tuple(OCC3D_CLASSES[i] for i in sorted(THING_IDS)),
+    "occ3d_waymo": ("general_object", "vehicle", "pedestrian", "sign", "bicyclist", "traffic_light", "pole",
+                    "construction_cone", "bicycle", "motorcycle"),
+}
 
 DEFAULT_CONFUSIONS: tuple[tuple[str, str], ...] = (
     ("driveable_surface", "sidewalk"),
@@ -54,6 +62,21 @@ DEFAULT_CONFUSIONS: tuple[tuple[str, str], ...] = (
     ("barrier", "traffic_cone"),
     ("others", "manmade"),
 )
+# the same kinds of mix-ups between Occ3D-Waymo classes (ours: Waymo has one vehicle class, walkable covers
+# sidewalk and terrain, and it splits poles, signs, traffic lights and tree trunks off)
+WAYMO_CONFUSIONS: tuple[tuple[str, str], ...] = (
+    ("road", "walkable"),
+    ("walkable", "vegetation"),
+    ("building", "vegetation"),
+    ("vegetation", "tree_trunk"),
+    ("pole", "tree_trunk"),
+    ("sign", "traffic_light"),
+    ("bicycle", "motorcycle"),
+    ("bicyclist", "pedestrian"),
+    ("general_object", "construction_cone"),
+    ("general_object", "building"),
+)
+CONFUSIONS = {"occ3d_nuscenes": DEFAULT_CONFUSIONS, "occ3d_waymo": WAYMO_CONFUSIONS}
 
 
 def image_seed(frame: Frame, camera: str, seed: int) -> int:
@@ -102,6 +125,11 @@ class SimSegmenterConfig:
         return d
 
     @classmethod
+    def for_table(cls, table: str, seed: int = 0) -> "SimSegmenterConfig":
+        """The defaults with the confusion pairs of a shipped class table (`LabelSpace.table`)."""
+        return cls(seed=seed, confusion_pairs=CONFUSIONS[table])
+
+    @classmethod
     def perfect(cls, seed: int = 0) -> "SimSegmenterConfig":
         """No degradation at all: the rendered truth mapped to the label space (an upper bound)."""
         return cls(seed=seed, confusion_rate=0.0, miss_object=0.0, miss_surface=0.0, miss_small=0.0,
@@ -116,19 +144,25 @@ class SimulatedSegmenter:
     def __init__(self, label_space: LabelSpace, config: SimSegmenterConfig | None = None):
         self.label_space = label_space
         self.config = config or SimSegmenterConfig()
+        table = label_space.class_table   # the pixels' ids are this table's
         lut = label_space.gt_lut().astype(np.int64)
-        self.lut2d = np.full(256, NO_LABEL, dtype=np.uint8)  # Occ3D id -> class, free/sky/unmapped -> 255
-        for i in range(NUM_SEMANTIC):
+        self.lut2d = np.full(256, NO_LABEL, dtype=np.uint8)  # label id -> class, free/sky/unmapped -> 255
+        for i in table.ids:
             if lut[i] < label_space.num_classes:
                 self.lut2d[i] = lut[i]
-        # directed confusions a -> b between Occ3D ids whose classes both exist and differ
+        # directed confusions a -> b between label ids whose classes both exist and differ
+        unknown = sorted({n for pair in self.config.confusion_pairs for n in pair} - set(table.names))
+        if unknown:
+            raise AgoInputError(label_space.source or label_space.name, f"confusion pairs name {unknown}, not classes "
+                                f"of the label space's table {table.name} (SimSegmenterConfig.for_table)")
         self.confusions: list[tuple[int, int]] = []
         for a, b in self.config.confusion_pairs:
-            ia, ib = OCC3D_ID[a], OCC3D_ID[b]
+            ia, ib = table.id_of(a), table.id_of(b)
             ca, cb = self.lut2d[ia], self.lut2d[ib]
             if ca != NO_LABEL and cb != NO_LABEL and ca != cb:
                 self.confusions += [(ia, ib), (ib, ia)]
-        self.is_object = np.array([bool(c.occ3d_ids) and set(c.occ3d_ids) <= THING_IDS
+        self.thing_ids = frozenset(table.id_of(n) for n in THING_NAMES[table.name])
+        self.is_object = np.array([bool(c.occ3d_ids) and set(c.occ3d_ids) <= self.thing_ids
                                    for c in label_space.classes] + [False], dtype=bool)
 
     def config_dict(self) -> dict:
@@ -164,7 +198,7 @@ class SimulatedSegmenter:
             hit = rng.random(n - 1) < cfg.confusion_rate / 2   # each pair is listed in both directions
             if not hit.any():
                 continue
-            if a in THING_IDS:     # a whole instance is taken for the other class
+            if a in self.thing_ids:     # a whole instance is taken for the other class
                 sem[np.r_[False, hit][comp]] = b
             else:                  # a blob of the surface is
                 for k in np.flatnonzero(hit) + 1:

@@ -5,7 +5,7 @@
   rig (Rig at the configured image size), images {cam: (H,W,3) uint8 RGB},
   lidar_points (N,5) float32 LiDAR frame [x,y,z,intensity,ring], lidar2ego (4,4),
   annotations [BoxAnnotation] (global frame), gt (Occ3DLabels on config.grid()),
-  extras {"semantic": {cam: (H,W) uint8 Occ3D id, 255 = sky}, "depth": {cam: (H,W) float32 m, 0 = none}},
+  extras {"semantic": {cam: (H,W) uint8 id of gt's class table, 255 = sky}, "depth": {cam: (H,W) float32 m, 0 = none}},
   lidar_classes (N,) uint8 Occ3D class of each LiDAR return (for checks),
   sweeps [{timestamp_us, ego2global, lidar_points}]: the `config.sweeps_between` non-key LiDAR sweeps
   between the previous keyframe and this one (empty by default and for the first keyframe).
@@ -13,7 +13,8 @@
 (the last `val_fraction` of the scenes form the val split) and returns a small summary dict.
 The frames hold the cameras of `config.rig_name` (synth/rigs.py). With the Occ3D-Waymo layout (`config.layout_name()`,
 the default of the "waymo" and "front" rigs) `gt` is `Occ3DWaymoLabels` (synth/waymo_labels.py) and `write_dataset` writes it
-through `ago_runtime.formats.occ3d_waymo_writer.Occ3DWaymoWriter` (no LiDAR files, boxes or extras).
+through `ago_runtime.formats.occ3d_waymo_writer.Occ3DWaymoWriter` (keyframe LiDAR in the ego frame, per-pixel
+extras with Occ3D-Waymo ids (`waymo_labels.waymo_pixel_labels`); no boxes, no non-key sweeps).
 
 Global frame = the world frame shifted by GLOBAL_OFFSET so that every pose is positive (nuScenes maps
 put global (0, 0) at their bottom-left corner).
@@ -35,6 +36,7 @@ from .lidar import lidar_directions, scan_lidar
 from .occupancy import occupancy_gt, occupancy_gt_waymo
 from .raycast import PrimitiveSet
 from .render import CameraRays, render_camera
+from .waymo_labels import waymo_pixel_labels
 from .world import World, build_world
 
 GLOBAL_OFFSET = np.array([400.0, 400.0, 0.0])
@@ -73,6 +75,7 @@ def generate_scene(config: SynthConfig, scene_index: int, world: World | None = 
     scene_rng = np.random.default_rng([config.seed, scene_index, 3])
     exposure = {cam.name: scene_rng.uniform(0.92, 1.08) for cam in rig}
     n_obj = len(world.obj_category)
+    waymo = config.layout_name() != "nuscenes"
     for f in range(config.frames_per_scene):
         time_s = f * config.keyframe_interval_s
         rng = np.random.default_rng([config.seed, scene_index, f, 11])
@@ -84,6 +87,8 @@ def generate_scene(config: SynthConfig, scene_index: int, world: World | None = 
         for cam in rig:
             rgb, sem, dep, ids, any_hits = render_camera(world, prims, aabb, cam, rays[cam.name], ego2world, rng,
                                                          config.image_noise_std, exposure[cam.name])
+            if waymo:   # per-pixel ids in the ground truth's table (Occ3D-Waymo), refined by material as its voxels
+                sem = waymo_pixel_labels(sem, ids, prims.material)
             images[cam.name], semantic[cam.name], depth[cam.name] = rgb, sem, dep
             hit_ids = ids[ids >= 0]
             # object index -1 (scenery) goes to the last, unused slot
@@ -102,7 +107,7 @@ def generate_scene(config: SynthConfig, scene_index: int, world: World | None = 
                                "ego2global": _to_global(pose_k),
                                "lidar_points": scan_lidar(world, prims_k, aabb_k, config, pose_k, rng_k,
                                                           lidar_dirs).points})
-        gt_of = occupancy_gt if config.layout_name() == "nuscenes" else occupancy_gt_waymo
+        gt_of = occupancy_gt_waymo if waymo else occupancy_gt
         gt = gt_of(world, prims, ego2world, grid, rig, depth, scan.origin_world, scan.points_world,
                    config.gt_samples_per_axis)
         # annotations
@@ -160,7 +165,7 @@ def write_waymo_layout(config: SynthConfig, out: str | Path, progress: bool = Tr
     val = set(config.val_scene_indices())
     splits = {"train": [], "val": []}
     number = {"training": 0, "validation": 0}
-    samples = 0
+    samples = points = 0
 
     def frames():
         for s, scene in _scenes(config, jobs):
@@ -174,11 +179,14 @@ def write_waymo_layout(config: SynthConfig, out: str | Path, progress: bool = Tr
     total = config.num_scenes * config.frames_per_scene
     it = track(frames(), "synth", total=total) if progress else frames()
     for split, index, fr in it:
-        writer.add_frame(split, index, fr["frame_index"], fr["ego2global"], fr["rig"], fr["images"], fr["gt"])
+        writer.add_frame(split, index, fr["frame_index"], fr["ego2global"], fr["rig"], fr["images"], fr["gt"],
+                         timestamp_us=fr["timestamp_us"], lidar_points=fr["lidar_points"], lidar2ego=fr["lidar2ego"],
+                         extras=fr["extras"])
         samples += 1
+        points += len(fr["lidar_points"])
     writer.close(splits)
     return {"out": str(out), "scenes": config.num_scenes, "splits": splits, "samples": samples,
-            "annotations": 0, "lidar_points": 0}
+            "annotations": 0, "lidar_points": points}
 
 
 def write_dataset(config: SynthConfig, out: str | Path, progress: bool = True, jobs: int = 1) -> dict:

@@ -5,7 +5,8 @@ The world is built in Occ3D-nuScenes classes plus a material per primitive; `way
 and poles are the manmade primitives of those materials, tree trunks the bark of trees, bicyclists the
 person riding a bicycle. Where Waymo has no such class the choice is ours: barrier and others ->
 general_object, terrain -> walkable, other_flat -> road, a person on a motorcycle -> motorcycle.
-`fov_mask` is Occ3D-Waymo's `infov`.
+`waymo_pixel_labels` gives the same ids per rendered pixel (the Occ3D-Waymo layout's synthetic/semantic
+maps); `fov_mask` is Occ3D-Waymo's `infov`.
 """
 
 from __future__ import annotations
@@ -44,6 +45,18 @@ def waymo_label_of(cls: np.ndarray, material: np.ndarray) -> np.ndarray:
     rider = np.isin(material, (M_PERSON, M_SKIN))
     out[(cls == C["bicycle"]) & rider] = W["bicyclist"]      # the person on a bicycle
     return out
+
+
+def waymo_pixel_labels(semantic: np.ndarray, primitive: np.ndarray, material: np.ndarray) -> np.ndarray:
+    """A rendered (H, W) map of Occ3D-nuScenes ids (255 = sky) and the (H, W) primitive index of each pixel
+    (negative: ground or sky; `material` indexes by it) -> (H, W) uint8 Occ3D-Waymo ids, 255 kept: the rule
+    the ground truth's voxels follow (`waymo_label_of`), so a pixel and the voxel it shows agree."""
+    semantic = np.asarray(semantic, np.uint8)
+    mat = np.full(semantic.shape, -1, np.int64)
+    hit = primitive >= 0
+    mat[hit] = np.asarray(material)[primitive[hit]]
+    out = waymo_label_of(semantic.ravel(), mat.ravel()).reshape(semantic.shape)
+    return np.where(semantic == 255, np.uint8(255), out).astype(np.uint8)
 
 
 def fov_mask(grid: Grid, cameras) -> np.ndarray:
