@@ -221,6 +221,12 @@ class LabelSpaceSpec:
     def class_names(self) -> list[str]:
         return [c.name for c in self.classes]
 
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        if self.table == "occ3d_nuscenes":   # (bundles of Occ3D-nuScenes label spaces stay as they were)
+            del d["table"]
+        return d
+
     @classmethod
     def from_dict(cls, d: dict) -> "LabelSpaceSpec":
         from ago_runtime.vocab.bank import MAX_INFER_CLASSES
@@ -272,7 +278,7 @@ class BundleContract:
             "created_utc": self.created_utc, "checkpoint": self.checkpoint, "model": self.model,
             "grid": self.grid, "model_grid": self.model_grid, "preprocess": self.preprocess,
             "rig": self.rig.to_dict(), "training_rig": self.training_rig, "rig_source": self.rig_source,
-            "label_space": asdict(self.label_space), "text_encoder": asdict(self.text_encoder),
+            "label_space": self.label_space.to_dict(), "text_encoder": asdict(self.text_encoder),
             "identifier": self.identifier.value, "default_bank": self.default_bank, "banks": self.banks,
             "bank_notes": self.bank_notes, "files": {k: asdict(v) for k, v in self.files.items()},
             "voxel_stages": [s.to_dict() for s in self.voxel_stages],
