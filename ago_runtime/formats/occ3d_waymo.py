@@ -87,6 +87,17 @@ def is_waymo_file(path: str | Path) -> bool:
         return False
 
 
+def load_ground_truth(path: str | Path) -> tuple[Occ3DLabels, ClassTable]:
+    """A ground-truth file of either layout -> (`Occ3DLabels`, the class table of its ids): an Occ3D-Waymo
+    `_04.npz` (key `voxel_label`; ids kept, free 23, mask_camera = final_voxel_state & infov:
+    `Occ3DWaymoLabels.as_occ3d`) or an Occ3D-nuScenes `labels.npz`."""
+    from ago_runtime.classes import OCC3D_NUSCENES
+
+    if is_waymo_file(path):
+        return Occ3DWaymoLabels.load(path).as_occ3d(), OCC3D_WAYMO
+    return Occ3DLabels.load(path), OCC3D_NUSCENES
+
+
 def gt_path(root: str | Path, split: str, scene: int, frame: int, voxel_size: str = "0.4") -> Path:
     """`<root>/<split>/<scene:03d>/<frame:03d>_04.npz` (voxel_size "0.4") or `<frame:03d>.npz` ("0.1")."""
     if split not in SPLITS:

@@ -18,10 +18,10 @@ from typing import Optional
 import numpy as np
 import typer
 
-from ago_runtime.classes import FREE, OCC3D_CLASSES, OCC3D_COLORS, OCC3D_WAYMO, ClassTable, load_class_table
+from ago_runtime.classes import FREE, OCC3D_CLASSES, OCC3D_COLORS, ClassTable, load_class_table
 from ago_runtime.errors import AgoInputError
 from ago_runtime.formats.occ3d import load_semantics
-from ago_runtime.formats.occ3d_waymo import Occ3DWaymoLabels, is_waymo_file
+from ago_runtime.formats.occ3d_waymo import is_waymo_file, load_ground_truth
 from ago_runtime.scoring.metric import to_gt_resolution
 
 
@@ -87,8 +87,8 @@ def _load_grid(path: Path) -> tuple[np.ndarray, np.ndarray | None, ClassTable | 
     """(semantics, mask_camera or None, class table or None = today's Occ3D-nuScenes default) of a grid file:
     an Occ3D-Waymo ground-truth file (key voxel_label) comes with OCC3D_WAYMO."""
     if path.is_file() and is_waymo_file(path):
-        labels = Occ3DWaymoLabels.load(path)
-        return labels.semantics, labels.mask_camera.astype(bool), OCC3D_WAYMO
+        labels, table = load_ground_truth(path)
+        return labels.semantics, labels.mask_camera.astype(bool), table
     sem, mask = load_semantics(path)
     return sem, mask, None
 

@@ -29,6 +29,7 @@ import typer
 
 from ago_runtime.errors import AgoInputError
 from ago_runtime.formats.occ3d import load_semantics
+from ago_runtime.formats.occ3d_waymo import load_ground_truth
 from ago_runtime.scoring.metric import _pct, to_gt_resolution
 
 
@@ -57,18 +58,6 @@ def find_gt_files(gt_root: Path) -> dict[str, tuple[str, Path]]:
             raise AgoInputError(f, f"sample token {token} appears twice (also {out[token][1]})")
         out[token] = (f.parent.parent.name, f)
     return out
-
-
-def load_gt(path: Path):
-    """An `Occ3DLabels` from an Occ3D-nuScenes labels.npz or an Occ3D-Waymo `_04.npz` (its ids kept, mask_camera
-    = final_voxel_state & infov: `Occ3DWaymoLabels.as_occ3d`), with the class table of its ids."""
-    from ago_runtime.classes import OCC3D_NUSCENES, OCC3D_WAYMO
-    from ago_runtime.formats.occ3d import Occ3DLabels
-    from ago_runtime.formats.occ3d_waymo import Occ3DWaymoLabels
-
-    if path.name != "labels.npz":
-        return Occ3DWaymoLabels.load(path).as_occ3d(), OCC3D_WAYMO
-    return Occ3DLabels.load(path), OCC3D_NUSCENES
 
 
 def find_prediction_for(pred_root: Path, scene: str, token: str) -> Path | None:
@@ -160,7 +149,7 @@ def score_against_gt(pred: Path, gt: Path, space, m_mask, m_all, rays, allow_mis
         raise AgoInputError(pred, "no prediction matches any GT frame")
     gt_lut = None if space is None else space.gt_lut(free_index=space.num_classes)
     for gt_file, p in track(pairs, description="scoring (frames)", total=len(pairs)):
-        labels, table = load_gt(gt_file)
+        labels, table = load_ground_truth(gt_file)
         scored_in = space.table if space is not None else "occ3d_nuscenes"   # without --prompts: Occ3D-nuScenes ids
         if table.name != scored_in:
             raise AgoInputError(gt_file, f"holds {table.name} labels, not {scored_in} ones: give --prompts with a "

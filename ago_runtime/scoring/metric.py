@@ -217,8 +217,11 @@ class OccupancyMetric:
         for i, c in enumerate(self.class_names):
             v = _pct(iou[i])
             lines.append(f"| {c} | {'n/a' if v is None else f'{v:.2f}'} | {cnt[c]['gt']} | {cnt[c]['pred']} |")
-        means = [("**mIoU**", self.miou()), ("mIoU (1..16 / without first class)", self.miou_1_16()),
-                 ("mIoU* (without others, other_flat)", self.miou_star()), ("geometry IoU", self.geometry_iou())]
+        means = [("**mIoU**", self.miou())]
+        if self.semantic_names[:1] == ["others"]:   # Occ3D-nuScenes' variants (not for another table, e.g. Waymo's)
+            means += [("mIoU (1..16 / without first class)", self.miou_1_16()),
+                      ("mIoU* (without others, other_flat)", self.miou_star())]
+        means.append(("geometry IoU", self.geometry_iou()))
         for name, sub in (subsets or {}).items():
             means.append((f"mIoU ({name})", self.miou(sub)))
         for name, val in means:

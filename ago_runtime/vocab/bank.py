@@ -264,7 +264,7 @@ def load_prompt_bank(prompts: "str | Path | LabelSpace", encoder=None, cache_dir
        (`bundle_text_encoder`).
     3. The cache: `cache_dir` (default ~/.cache/ago/banks, $AGO_CACHE_DIR/banks), file
        `<label space>-<key>.npz`, key = hash of (bank format, prompt file sha256, encoder weights sha256,
-       template); a damaged entry is rebuilt.
+       template); a damaged entry, or one whose class table is not the prompt file's, is rebuilt.
     4. Otherwise `build_bank` encodes the phrases with `encoder` (default: default_text_encoder()) and
        the bank is saved in the cache.
     """
@@ -288,7 +288,9 @@ def load_prompt_bank(prompts: "str | Path | LabelSpace", encoder=None, cache_dir
     path = cache_dir / f"{stem}-{bank_cache_key(space.sha256, encoder.weights_hash, template)}.npz"
     if path.is_file():
         try:
-            return PromptBank.load(path)
+            cached = PromptBank.load(path)
+            if cached.class_table == space.table:   # (entries made before banks recorded their table are rebuilt)
+                return cached
         except AgoInputError:
             pass  # a damaged cache entry is rebuilt below
     bank = build_bank(space, encoder, template)

@@ -53,13 +53,14 @@ def show(bank_or_file: str = typer.Argument(..., help="a bank (.npz) or a prompt
     echo(f"label space {bank.label_space!r}: {bank.num_classes} classes, {bank.num_phrases} phrases; "
          f"encoder {bank.encoder_id} ({bank.encoder_variant}, dim {bank.dim}, "
          f"weights sha256 {bank.encoder_hash[:12]}); template {bank.template!r}")
-    from ago_runtime.classes import OCC3D_CLASSES
+    from ago_runtime.classes import SHIPPED_TABLES
 
+    table = SHIPPED_TABLES[bank.class_table]
     known = bank.known_mask()
     width = max(len(n) for n in bank.class_names)
-    echo(f"\n{'#':>3}  {'class':<{width}}  known  Occ3D -> phrases")
+    echo(f"\n{'#':>3}  {'class':<{width}}  known  {table.name} -> phrases")
     for k, name in enumerate(bank.class_names):
-        occ = ", ".join(OCC3D_CLASSES[i] for i in bank.occ3d_ids[k]) or "(open vocabulary)"
+        occ = ", ".join(table.name_of(i) for i in bank.occ3d_ids[k]) or "(open vocabulary)"
         phr = ", ".join(p for p, c in zip(bank.phrases, bank.phrase_class) if c == k)
         echo(f"{k:>3}  {name:<{width}}  {'yes' if known[k] else 'no ':<5}  [{occ}] -> {phr}")
     sim = bank.class_similarity()

@@ -26,7 +26,7 @@ import numpy as np
 from ago_runtime.atomic import atomic_path, save_npz, write_text
 from ago_runtime.classes import IGNORE
 from ago_runtime.errors import AgoInputError
-from ago_runtime.formats.occ3d import labels_path, load_semantics
+from ago_runtime.formats.occ3d_waymo import load_ground_truth
 
 from .generate import PseudoLabelDir, load_pseudo_labels, sample_dir
 
@@ -99,7 +99,7 @@ def write_seen_gt_folder(ds, pseudo_dir: str | Path, out_dir: str | Path, label_
             counts["skipped"] += 1
             continue
         sem, ml, mc = load_pseudo_labels(pseudo_dir, scene, token)
-        gt, _ = load_semantics(labels_path(ds.gts_root, scene, token))
+        gt = load_ground_truth(ds.gt_file(i))[0].semantics   # either layout; ids of the label space's table
         mixed = mix_seen_gt(sem, lut[gt], seen)
         counts["from_gt"] += int(((mixed != sem) & (mixed != IGNORE)).sum())
         counts["ignored"] += int(((mixed == IGNORE) & (sem != IGNORE)).sum())
