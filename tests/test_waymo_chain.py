@@ -135,3 +135,23 @@ def test_the_chain_refuses_a_label_space_of_another_table(chain):
     assert not (chain / "bad").exists()
     one_error(ago(["metric", "--pred", "pred", "--gt", "w"], chain), "occ3d_waymo", "--prompts")
     one_error(ago(["eval", "--ckpt", "run/last.pt", "--data", "w", "--prompts", "cw"], chain), "occ3d_waymo")
+
+
+def test_seen_gt_mixes_the_waymo_ground_truth_in(chain):
+    """`ago seen-gt` on the Occ3D-Waymo layout: the seen classes come from its `_04.npz` files (Waymo ids)."""
+    text = (chain.parent / "cw_waymo_seen.txt")
+    from ago_runtime.vocab.prompts import resolve_prompt_file
+
+    src = resolve_prompt_file(PROMPTS).read_text(encoding="utf-8")
+    lines = [ln for ln in src.splitlines() if not ln.startswith("@known")]
+    at = max(i for i, ln in enumerate(lines) if ln.startswith("@")) + 1
+    text.write_text("\n".join(lines[:at] + ["@known: vehicle, road"] + lines[at:]) + "\n", encoding="utf-8")
+    ok(ago(["seen-gt", "--data", "w", "--pseudo", "pl", "--prompts", text, "--out", "pl_seen"], chain))
+    meta = json.loads((chain / "pl_seen" / "meta.json").read_text())
+    assert sorted(meta["seen_gt"]["seen"]) == ["road", "vehicle"]
+    assert len(list((chain / "pl_seen").rglob("labels.npz"))) == len(list((chain / "pl").rglob("labels.npz"))) > 0
+    changed = 0
+    for f in (chain / "pl").rglob("labels.npz"):
+        with np.load(f) as a, np.load(chain / "pl_seen" / f.relative_to(chain / "pl")) as b:
+            changed += int((a["semantics"] != b["semantics"]).sum())
+    assert changed > 0   # the seen classes' voxels were taken from the GT files
