@@ -1,26 +1,111 @@
-"""Dynamic int8 quantisation of an exported encoder (onnxruntime.quantization.quantize_dynamic).
+"""int8 quantisation of an exported encoder: dynamic (MatMul/Gemm) or static QDQ (the convolutions).
 
-Takes an fp32 ONNX file; writes an ONNX file whose MatMul/Gemm weights are int8 (activations are
-quantised on the fly per batch). Convolutions and GridSample stay float32. The result is parity-
-checked by the exporter against the looser INT8_TOLERANCE (ago_export.parity).
+- `quantize_encoder` (dynamic, onnxruntime.quantization.quantize_dynamic): takes an fp32 ONNX file; writes
+  one whose MatMul/Gemm weights are int8 (activations are quantised on the fly per batch). Convolutions and
+  GridSample stay float32. What `ago export --int8` writes.
+- `quantize_planes_static` (static, onnxruntime.quantization.quantize_static): takes planes.onnx and
+  calibration feeds (real preprocessed frames, ago_export.calibration_frames); writes a QDQ graph whose
+  convolutions (the image backbone, the FPN and the TPV convolutions) run on int8 activations and int8
+  per-channel weights. The activation ranges are the min/max seen on the calibration frames. GridSample,
+  the attention MatMuls/Gemms and everything else stay float32.
+
+Settings (onnxruntime's guidance for x86 CPUs, in quantize_static's docstring): QDQ format; activations
+uint8 (asymmetric), weights int8 (symmetric), per channel; reduce_range off (full 8-bit weights, right on
+CPUs with VNNI: AVX512-VNNI or AVX-VNNI; CPUs without VNNI may saturate their int16 sums and lose accuracy).
+"Clip" is quantised with "Conv": the backbone's ReLU6 after a convolution is then folded into that
+convolution's output range ([0, 6] instead of the pre-activation's range, which is ~20x wider in
+EfficientNet-Lite with its batch norms folded into the weights). The graph is shape-inferred and optimised
+first (`quant_pre_process`).
+
+Whether the result is accurate enough is measured, not assumed: benchmarks/int8_static.py and
+benchmarks/results/int8_static.md.
 """
 
 from __future__ import annotations
 
+import logging
+import tempfile
+from contextlib import contextmanager
 from pathlib import Path
+
+import numpy as np
+
+from ago_runtime.atomic import atomic_path
+from ago_runtime.errors import AgoInputError
+
+STATIC_OP_TYPES = ["Conv", "Clip"]   # Clip: see the module doc (ReLU6 folded into the conv's output range)
+
+
+@contextmanager
+def _quiet_root_logger():
+    """onnxruntime.quantization logs hints (e.g. about pre-processing) on the root logger."""
+    root = logging.getLogger()
+    level = root.level
+    root.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        root.setLevel(level)
 
 
 def quantize_encoder(fp32_path: str | Path, int8_path: str | Path) -> Path:
-    import logging
-
+    """Dynamic int8 of the MatMul/Gemm weights (see the module doc)."""
     from onnxruntime.quantization import QuantType, quantize_dynamic
 
-    root = logging.getLogger()
-    level = root.level
-    root.setLevel(logging.ERROR)   # quantize_dynamic logs a pre-processing hint on the root logger
-    try:
+    with _quiet_root_logger():
         quantize_dynamic(str(fp32_path), str(int8_path), weight_type=QuantType.QInt8,
                          op_types_to_quantize=["MatMul", "Gemm"])
-    finally:
-        root.setLevel(level)
     return Path(int8_path)
+
+
+def check_feeds(fp32_path: str | Path, feeds: list[dict[str, np.ndarray]]) -> None:
+    """Each feed must give every graph input, float32, of the graph's static shape: else one AgoInputError
+    naming --calibration-data."""
+    import onnx
+
+    if not feeds:
+        raise AgoInputError("--calibration-data", "no calibration frames")
+    graph = onnx.load(str(fp32_path), load_external_data=False).graph
+    want = {i.name: tuple(d.dim_value if d.HasField("dim_value") else None for d in i.type.tensor_type.shape.dim)
+            for i in graph.input}
+    for k, feed in enumerate(feeds):
+        if set(feed) != set(want):
+            raise AgoInputError("--calibration-data", f"frame {k} gives inputs {sorted(feed)}; the graph takes "
+                                f"{sorted(want)}")
+        for name, shape in want.items():
+            a = np.asarray(feed[name])
+            fits = a.ndim == len(shape) and all(s is None or s == n for s, n in zip(shape, a.shape))
+            if a.dtype != np.float32 or not fits:
+                raise AgoInputError("--calibration-data", f"frame {k}: {name} is {a.dtype} {a.shape}; the graph "
+                                    f"takes float32 {shape}")
+            if not np.isfinite(a).all():
+                raise AgoInputError("--calibration-data", f"frame {k}: {name} holds NaN or inf")
+
+
+def quantize_planes_static(fp32_path: str | Path, out_path: str | Path, feeds: list[dict[str, np.ndarray]],
+                           keep_float: list[str] | None = None) -> Path:
+    """Static QDQ int8 of planes.onnx's convolutions, calibrated on `feeds` (see the module doc).
+
+    keep_float: node names left in float32 (e.g. a sensitive convolution). The file appears at out_path only
+    when quantisation finished (temp name + rename)."""
+    from onnxruntime.quantization import (CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType,
+                                          quantize_static)
+    from onnxruntime.quantization.shape_inference import quant_pre_process
+
+    check_feeds(fp32_path, feeds)
+
+    class Feeds(CalibrationDataReader):
+        def __init__(self):
+            self.it = iter(feeds)
+
+        def get_next(self):
+            return next(self.it, None)
+
+    with tempfile.TemporaryDirectory(prefix="ago-qdq-") as tmp, atomic_path(out_path) as part, _quiet_root_logger():
+        pre = Path(tmp) / "pre.onnx"
+        quant_pre_process(str(fp32_path), str(pre))
+        quantize_static(str(pre), str(part), Feeds(), quant_format=QuantFormat.QDQ,
+                        activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, per_channel=True,
+                        reduce_range=False, calibrate_method=CalibrationMethod.MinMax,
+                        op_types_to_quantize=STATIC_OP_TYPES, nodes_to_exclude=list(keep_float or []))
+    return Path(out_path)
