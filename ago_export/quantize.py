@@ -83,16 +83,22 @@ def check_feeds(fp32_path: str | Path, feeds: list[dict[str, np.ndarray]]) -> No
 
 
 def quantize_planes_static(fp32_path: str | Path, out_path: str | Path, feeds: list[dict[str, np.ndarray]],
-                           keep_float: list[str] | None = None) -> Path:
+                           keep_float: list[str] | None = None,
+                           uncalibrated_range: tuple[float, float] | None = None) -> Path:
     """Static QDQ int8 of planes.onnx's convolutions, calibrated on `feeds` (see the module doc).
 
     keep_float: node names left in float32 (e.g. a sensitive convolution). The file appears at out_path only
-    when quantisation finished (temp name + rename)."""
+    when quantisation finished (temp name + rename).
+    uncalibrated_range (benchmarks of random-weight graphs only, where the ranges do not matter): no
+    calibration run, `feeds` unused; every quantised activation gets this range, a Clip's output [0, 6].
+    onnxruntime's calibrator runs the graph with its optimisations off, which at the paper's scale needs more
+    memory than the optimised graph (benchmarks/results/int8_static_paper.md)."""
     from onnxruntime.quantization import (CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType,
                                           quantize_static)
     from onnxruntime.quantization.shape_inference import quant_pre_process
 
-    check_feeds(fp32_path, feeds)
+    if uncalibrated_range is None:
+        check_feeds(fp32_path, feeds)
 
     class Feeds(CalibrationDataReader):
         def __init__(self):
@@ -104,8 +110,31 @@ def quantize_planes_static(fp32_path: str | Path, out_path: str | Path, feeds: l
     with tempfile.TemporaryDirectory(prefix="ago-qdq-") as tmp, atomic_path(out_path) as part, _quiet_root_logger():
         pre = Path(tmp) / "pre.onnx"
         quant_pre_process(str(fp32_path), str(pre))
-        quantize_static(str(pre), str(part), Feeds(), quant_format=QuantFormat.QDQ,
+        cache = None
+        if uncalibrated_range is not None:
+            cache = Path(tmp) / "ranges.json"
+            _write_fixed_ranges(pre, cache, uncalibrated_range)
+        quantize_static(str(pre), str(part), None if cache else Feeds(), quant_format=QuantFormat.QDQ,
                         activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, per_channel=True,
                         reduce_range=False, calibrate_method=CalibrationMethod.MinMax,
-                        op_types_to_quantize=STATIC_OP_TYPES, nodes_to_exclude=list(keep_float or []))
+                        op_types_to_quantize=STATIC_OP_TYPES, nodes_to_exclude=list(keep_float or []),
+                        calibration_cache_path=cache)
     return Path(out_path)
+
+
+def _write_fixed_ranges(graph_path: Path, cache: Path, value_range: tuple[float, float]) -> None:
+    """onnxruntime's calibration cache with one range for the activations of every Conv and Clip ([0, 6]
+    for a Clip's output)."""
+    import onnx
+    from onnxruntime.quantization.calibrate import CalibrationMethod, TensorData, TensorsData, save_tensors_data
+
+    graph = onnx.load(str(graph_path)).graph
+    weights = {i.name for i in graph.initializer}
+    ranges = {}
+    for node in graph.node:
+        if node.op_type in STATIC_OP_TYPES:
+            for name in (node.input[0], node.output[0]):
+                if name not in weights and name not in ranges:
+                    lo, hi = (0.0, 6.0) if node.op_type == "Clip" and name == node.output[0] else value_range
+                    ranges[name] = TensorData(lowest=np.float32(lo), highest=np.float32(hi))
+    save_tensors_data(TensorsData(CalibrationMethod.MinMax, ranges), cache)

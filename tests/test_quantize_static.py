@@ -172,3 +172,16 @@ def test_calibration_frames_from_a_real_nuscenes_scene():
     assert feeds[0]["images"].shape == (1, 6, 3, 32, 64) and feeds[0]["images"].dtype == np.float32
     assert feeds[0]["ego2img"].shape == (1, 6, 4, 4)
     assert not np.allclose(feeds[0]["images"], feeds[-1]["images"])
+
+
+def test_uncalibrated_range_sets_every_activation_range_without_frames(tmp_path):
+    """Benchmarks of random-weight graphs: no calibration run, the fixed range everywhere, a Clip's [0, 6]."""
+    fp32 = tiny_graph(tmp_path / "tiny.onnx")
+    out = quantize_planes_static(fp32, tmp_path / "fixed.onnx", [], uncalibrated_range=(-8.0, 8.0))
+    model = onnx.load(str(out))
+    inits = {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}
+    scales = {n.input[0]: float(inits[n.input[1]]) for n in model.graph.node if n.op_type == "QuantizeLinear"}
+    conv1, conv2 = (next(n for n in model.graph.node if n.name.startswith(c)) for c in ("conv1", "conv2"))
+    assert scales["x"] == pytest.approx(16 / 255, rel=1e-3)
+    assert scales[conv1.output[0]] == pytest.approx(6 / 255, rel=1e-3)
+    assert scales[conv2.output[0]] == pytest.approx(16 / 255, rel=1e-3)
