@@ -6,19 +6,18 @@
 - `quantize_planes_static` (static, onnxruntime.quantization.quantize_static): takes planes.onnx and
   calibration feeds (real preprocessed frames, ago_export.calibration_frames); writes a QDQ graph whose
   convolutions (the image backbone, the FPN and the TPV convolutions) run on int8 activations and int8
-  per-channel weights. The activation ranges are the min/max seen on the calibration frames. GridSample,
-  the attention MatMuls/Gemms and everything else stay float32.
+  per-channel weights. The activation ranges are the min/max seen on the calibration frames (or their
+  percentiles). GridSample, the attention MatMuls/Gemms and everything else stay float32. Not used by
+  `ago export`: its labels agree with fp32 on fewer voxels than fp32 parity demands
+  (benchmarks/results/int8_static.md); benchmarks/int8_static.py measures it.
 
 Settings (onnxruntime's guidance for x86 CPUs, in quantize_static's docstring): QDQ format; activations
 uint8 (asymmetric), weights int8 (symmetric), per channel; reduce_range off (full 8-bit weights, right on
 CPUs with VNNI: AVX512-VNNI or AVX-VNNI; CPUs without VNNI may saturate their int16 sums and lose accuracy).
 "Clip" is quantised with "Conv": the backbone's ReLU6 after a convolution is then folded into that
-convolution's output range ([0, 6] instead of the pre-activation's range, which is ~20x wider in
-EfficientNet-Lite with its batch norms folded into the weights). The graph is shape-inferred and optimised
-first (`quant_pre_process`).
-
-Whether the result is accurate enough is measured, not assumed: benchmarks/int8_static.py and
-benchmarks/results/int8_static.md.
+convolution's output range ([0, 6] instead of the pre-activation's range, far wider in EfficientNet-Lite
+with its batch norms folded into the weights). The graph is shape-inferred and optimised first
+(`quant_pre_process`).
 """
 
 from __future__ import annotations
@@ -84,11 +83,13 @@ def check_feeds(fp32_path: str | Path, feeds: list[dict[str, np.ndarray]]) -> No
 
 def quantize_planes_static(fp32_path: str | Path, out_path: str | Path, feeds: list[dict[str, np.ndarray]],
                            keep_float: list[str] | None = None,
-                           uncalibrated_range: tuple[float, float] | None = None) -> Path:
+                           uncalibrated_range: tuple[float, float] | None = None, method: str = "minmax") -> Path:
     """Static QDQ int8 of planes.onnx's convolutions, calibrated on `feeds` (see the module doc).
 
     keep_float: node names left in float32 (e.g. a sensitive convolution). The file appears at out_path only
     when quantisation finished (temp name + rename).
+    method: "minmax" (each activation's range: the min and max over the frames) or "percentile" (the 0.001 and
+    99.999 percentiles; keeps every activation of every frame in memory while calibrating: few frames only).
     uncalibrated_range (benchmarks of random-weight graphs only, where the ranges do not matter): no
     calibration run, `feeds` unused; every quantised activation gets this range, a Clip's output [0, 6].
     onnxruntime's calibrator runs the graph with its optimisations off, which at the paper's scale needs more
@@ -97,6 +98,9 @@ def quantize_planes_static(fp32_path: str | Path, out_path: str | Path, feeds: l
                                           quantize_static)
     from onnxruntime.quantization.shape_inference import quant_pre_process
 
+    methods = {"minmax": CalibrationMethod.MinMax, "percentile": CalibrationMethod.Percentile}
+    if method not in methods:
+        raise AgoInputError("calibration method", f"{method!r}; expected one of {sorted(methods)}")
     if uncalibrated_range is None:
         check_feeds(fp32_path, feeds)
 
@@ -116,7 +120,8 @@ def quantize_planes_static(fp32_path: str | Path, out_path: str | Path, feeds: l
             _write_fixed_ranges(pre, cache, uncalibrated_range)
         quantize_static(str(pre), str(part), None if cache else Feeds(), quant_format=QuantFormat.QDQ,
                         activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, per_channel=True,
-                        reduce_range=False, calibrate_method=CalibrationMethod.MinMax,
+                        reduce_range=False,
+                        calibrate_method=CalibrationMethod.MinMax if cache else methods[method],
                         op_types_to_quantize=STATIC_OP_TYPES, nodes_to_exclude=list(keep_float or []),
                         calibration_cache_path=cache)
     return Path(out_path)

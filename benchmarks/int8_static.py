@@ -33,6 +33,10 @@ scale, and random weights make ranges meaningless); the planes graph alone of ea
 opening one variant's session at a time (one paper-scale session holds GBs), timed on the real parity frame
 (else the first keyframe of ../shared's nuScenes scene). Labels are not compared.
 
+--sweep: the label agreement of static variants (SWEEP: which convolutions stay float32, how many calibration
+frames, minmax or percentile ranges) on every 4th frame of --split, with a rough planes CPU-time ratio.
+
+    python benchmarks/int8_static.py --sweep --data DIR [--out FILE]
     python benchmarks/int8_static.py --paper-scale [--reps 2] [--bundle B (an exported random `full` bundle)]
         [--out benchmarks/results/int8_static_paper.md]
 """
@@ -182,12 +186,88 @@ def paper_scale(args) -> str:
     return "\n".join(L) + "\n"
 
 
+SWEEP = [   # (what stays float32: node-name prefixes, "depthwise" for every grouped Conv), calibration frames, method
+    ((), 4, "minmax"),
+    ((), 24, "minmax"),
+    ((), 4, "percentile"),
+    (("/backbone/stem/",), 16, "minmax"),
+    (("/backbone/stem/", "depthwise"), 16, "minmax"),
+    (EARLY_CONVS, 16, "minmax"),
+    ((*EARLY_CONVS, "/backbone/stage16."), 16, "minmax"),
+]
+
+
+def float_nodes(planes: Path, keep: tuple[str, ...]) -> list[str]:
+    """Conv nodes named by `keep` (name prefixes; "depthwise": every Conv with group > 1)."""
+    import onnx
+
+    out = []
+    for n in onnx.load(str(planes)).graph.node:
+        grouped = any(a.name == "group" and a.i > 1 for a in n.attribute)
+        if n.op_type == "Conv" and (n.name.startswith(tuple(k for k in keep if k != "depthwise"))
+                                    or ("depthwise" in keep and grouped)):
+            out.append(n.name)
+    return out
+
+
+def sweep(args) -> str:
+    """--sweep: label agreement with fp32 (every 4th frame of --split) of static variants (SWEEP) -> markdown."""
+    from ago_export.calibration_frames import planes_feeds, read_frames
+    from ago_export.quantize import quantize_encoder, quantize_planes_static
+    from ago_runtime.formats.nuscenes import NuScenesDataset
+    from ago_runtime.predict.bundle import Bundle
+    from ago_runtime.predict.predictor import Predictor
+
+    os.environ["AGO_NO_ORT_CACHE"] = "1"
+    started = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+    b = Bundle.load(args.bundle)
+    planes, stages = b.encoder_graphs()
+    fp32 = Predictor(args.bundle)
+    bank = fp32.bundle.load_bank()
+    identifier = fp32.bundle.identifier_for(bank)
+    ds = NuScenesDataset(args.data, load_extras=False)
+    indices = ds.split(args.split)[::4]
+    inputs = [fp32.prepare(ds[i].images, ds[i].rig) for i in indices]
+    ref = [fp32.predict_arrays(x, m, bank, identifier).semantics for x, m in inputs]
+    parity = read_frames(PARITY_FRAME, 1, b.rig) if (PARITY_FRAME / "mmdet3d_info.pkl").is_file() else []
+    L = ["## Sweep: what stays float32, calibration frames and method (labels only)\n",
+         f"Command: `python benchmarks/int8_static.py --sweep --bundle {args.bundle} --data {args.data} --split "
+         f"{args.split}` ({started}); labels compared with fp32 on {len(indices)} frames (every 4th of the split); "
+         "calibration: the parity frame plus N frames of the train split; voxel stages dynamic int8 (they feed only "
+         "the adapted branch). Planes CPU time: median of 3 runs each, alternating with fp32 (rough: loaded machine).\n",
+         "| float32 | calibration frames | method | float Convs | labels = fp32 | planes CPU fp32 / variant |",
+         "|---|---:|---|---:|---:|---:|"]
+    with tempfile.TemporaryDirectory(prefix="ago-int8-sweep-") as tmp:
+        tmp = Path(tmp)
+        stage_dyn = {st.spec.file: quantize_encoder(st.path, tmp / f"{st.spec.file}.dyn.onnx") for st in stages}
+        for k, (keep, count, method) in enumerate(SWEEP):
+            frames = parity + read_frames(args.data, count, b.rig, split=args.calibration_split)
+            nodes = float_nodes(planes.path, keep)
+            out = quantize_planes_static(planes.path, tmp / f"planes.{k}.onnx", planes_feeds(frames, b.preprocess),
+                                         keep_float=nodes, method=method)
+            p = Predictor(variant_bundle(args.bundle, tmp / f"v{k}", out, stage_dyn), int8=True)
+            same = np.mean([(p.predict_arrays(x, m, bank, identifier).semantics == r).mean()
+                            for (x, m), r in zip(inputs, ref)])
+            t: dict[str, list] = {"fp32": [], "q": []}
+            for _ in range(3):
+                for name, q in (("fp32", fp32), ("q", p)):
+                    c = time.process_time()
+                    q.encoder.plane_maps(*inputs[0])
+                    t[name].append(time.process_time() - c)
+            what = " + ".join(k.strip("/.").replace("backbone/", "") for k in keep) or "nothing"
+            L.append(f"| {what} | {len(frames)} | {method} | {len(nodes)} | {same:.4%} | "
+                     f"{statistics.median(t['fp32']) / statistics.median(t['q']):.2f}x |")
+            print(L[-1], flush=True)
+    return "\n".join(L) + "\n"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--bundle", type=Path, default=None,
                     help="default: the shipped default bundle; with --paper-scale: a random `full` bundle made here")
     ap.add_argument("--data", type=Path, default=None, help="nuScenes-layout dataset with Occ3D GT (ago synth)")
     ap.add_argument("--paper-scale", action="store_true", help="speed of the planes graph of a random `full` bundle")
+    ap.add_argument("--sweep", action="store_true", help="labels of static variants (SWEEP) on a few frames")
     ap.add_argument("--split", default="val")
     ap.add_argument("--calibration-split", default="train")
     ap.add_argument("--calibration-frames", type=int, default=16)
@@ -206,6 +286,14 @@ def main() -> None:
     if args.data is None:
         ap.error("--data is required (or --paper-scale)")
     args.bundle = args.bundle or REPO / "ago_runtime" / "assets" / "default_bundle"
+    if args.sweep:
+        text = sweep(args)
+        if args.out:
+            from ago_runtime.atomic import write_text
+
+            write_text(args.out, text)
+        print(text)
+        return
     from ago_export.calibration_frames import planes_feeds, read_frames
     from ago_runtime.classes import FREE, IGNORE
     from ago_runtime.formats.nuscenes import NuScenesDataset

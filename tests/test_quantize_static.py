@@ -139,6 +139,8 @@ def test_bad_calibration_feeds_are_one_line_errors_and_write_nothing(tmp_path):
             quantize_planes_static(fp32, out, feeds)
         msg = str(e.value)
         assert msg.startswith("--calibration-data: ") and problem in msg and "\n" not in msg
+    with pytest.raises(AgoInputError, match="calibration method: 'entropy'; expected one of"):
+        quantize_planes_static(fp32, out, [feed(0)], method="entropy")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["tiny.onnx"]   # no output, no temp file left
 
 
