@@ -141,7 +141,8 @@ def paper_scale(args) -> str:
             bundle = tmp / "bundle"
         export_s = time.perf_counter() - t
         b = Bundle.load(bundle)
-        frames = read_frames(PARITY_FRAME if (PARITY_FRAME / "mmdet3d_info.pkl").is_file() else NUSCENES_SCENE, 1, b.rig)
+        source = PARITY_FRAME if (PARITY_FRAME / "mmdet3d_info.pkl").is_file() else NUSCENES_SCENE
+        frames = read_frames(source, 1, b.rig)
         feeds = planes_feeds(frames, b.preprocess)
         planes = Path(bundle) / "planes.onnx"
         t = time.perf_counter()
@@ -172,7 +173,8 @@ def paper_scale(args) -> str:
     best = {v: (min(a for a, _ in ts), min(c for _, c in ts)) for v, ts in times.items()}
     L = ["# fp32 vs dynamic int8 vs static (QDQ) int8 at the paper's scale (speed only)\n",
          f"Command: `python benchmarks/int8_static.py --paper-scale --reps {args.reps}"
-         f"{f' --bundle {args.bundle}' if args.bundle else ''}` ({started}; load average {load_start} -> {load_end}).  ",
+         f"{f' --bundle {args.bundle}' if args.bundle else ''}` ({started}; load average {load_start} -> "
+         f"{load_end}).  ",
          "`full` preset (1600x928 input, 200x200x16 grid), random weights (cost only), exported without the parity "
          f"check; static graphs with every activation range fixed to {UNCALIBRATED_RANGE} (Clip outputs [0, 6]), "
          f"not calibrated; timed on {frames[0][2]}. The planes graph "
@@ -234,7 +236,8 @@ def sweep(args) -> str:
          f"Command: `python benchmarks/int8_static.py --sweep --bundle {args.bundle} --data {args.data} --split "
          f"{args.split}` ({started}); labels compared with fp32 on {len(indices)} frames (every 4th of the split); "
          "calibration: the parity frame plus N frames of the train split; voxel stages dynamic int8 (they feed only "
-         "the adapted branch). Planes CPU time: median of 3 runs each, alternating with fp32 (rough: loaded machine).\n",
+         "the adapted branch). Planes CPU time: median of 3 runs each, alternating with fp32 (rough: loaded "
+         "machine).\n",
          "| float32 | calibration frames | method | float Convs | labels = fp32 | planes CPU fp32 / variant |",
          "|---|---:|---|---:|---:|---:|"]
     with tempfile.TemporaryDirectory(prefix="ago-int8-sweep-") as tmp:

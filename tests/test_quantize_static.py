@@ -35,7 +35,8 @@ def tiny_graph(path: Path) -> Path:
     ]
     inits = [numpy_helper.from_array(w1, "w1"), numpy_helper.from_array(np.zeros(8, np.float32), "b1"),
              numpy_helper.from_array(w2, "w2"), numpy_helper.from_array(np.full(8, 0.1, np.float32), "b2"),
-             numpy_helper.from_array(np.array(0, np.float32), "lo"), numpy_helper.from_array(np.array(6, np.float32), "hi")]
+             numpy_helper.from_array(np.array(0, np.float32), "lo"),
+             numpy_helper.from_array(np.array(6, np.float32), "hi")]
     graph = helper.make_graph(nodes, "tiny", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 3, 16, 16]),
                                               helper.make_tensor_value_info("grid", TensorProto.FLOAT, [1, 8, 8, 2])],
                               [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, 8, 8, 8])], inits)
