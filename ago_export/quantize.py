@@ -1,26 +1,145 @@
-"""Dynamic int8 quantisation of an exported encoder (onnxruntime.quantization.quantize_dynamic).
+"""int8 quantisation of an exported encoder: dynamic (MatMul/Gemm) or static QDQ (the convolutions).
 
-Takes an fp32 ONNX file; writes an ONNX file whose MatMul/Gemm weights are int8 (activations are
-quantised on the fly per batch). Convolutions and GridSample stay float32. The result is parity-
-checked by the exporter against the looser INT8_TOLERANCE (ago_export.parity).
+- `quantize_encoder` (dynamic, onnxruntime.quantization.quantize_dynamic): takes an fp32 ONNX file; writes
+  one whose MatMul/Gemm weights are int8 (activations are quantised on the fly per batch). Convolutions and
+  GridSample stay float32. What `ago export --int8` writes.
+- `quantize_planes_static` (static, onnxruntime.quantization.quantize_static): takes planes.onnx and
+  calibration feeds (real preprocessed frames, ago_export.calibration_frames); writes a QDQ graph whose
+  convolutions (the image backbone, the FPN and the TPV convolutions) run on int8 activations and int8
+  per-channel weights. The activation ranges are the min/max seen on the calibration frames (or their
+  percentiles). GridSample, the attention MatMuls/Gemms and everything else stay float32. Not used by
+  `ago export`: its labels agree with fp32 on fewer voxels than fp32 parity demands
+  (benchmarks/results/int8_static.md); benchmarks/int8_static.py measures it.
+
+Settings (onnxruntime's guidance for x86 CPUs, in quantize_static's docstring): QDQ format; activations
+uint8 (asymmetric), weights int8 (symmetric), per channel; reduce_range off (full 8-bit weights, right on
+CPUs with VNNI: AVX512-VNNI or AVX-VNNI; CPUs without VNNI may saturate their int16 sums and lose accuracy).
+"Clip" is quantised with "Conv": the backbone's ReLU6 after a convolution is then folded into that
+convolution's output range ([0, 6] instead of the pre-activation's range, far wider in EfficientNet-Lite
+with its batch norms folded into the weights). The graph is shape-inferred and optimised first
+(`quant_pre_process`).
 """
 
 from __future__ import annotations
 
+import logging
+import tempfile
+from contextlib import contextmanager
 from pathlib import Path
+
+import numpy as np
+
+from ago_runtime.atomic import atomic_path
+from ago_runtime.errors import AgoInputError
+
+STATIC_OP_TYPES = ["Conv", "Clip"]   # Clip: see the module doc (ReLU6 folded into the conv's output range)
+
+
+@contextmanager
+def _quiet_root_logger():
+    """onnxruntime.quantization logs hints (e.g. about pre-processing) on the root logger."""
+    root = logging.getLogger()
+    level = root.level
+    root.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        root.setLevel(level)
 
 
 def quantize_encoder(fp32_path: str | Path, int8_path: str | Path) -> Path:
-    import logging
-
+    """Dynamic int8 of the MatMul/Gemm weights (see the module doc)."""
     from onnxruntime.quantization import QuantType, quantize_dynamic
 
-    root = logging.getLogger()
-    level = root.level
-    root.setLevel(logging.ERROR)   # quantize_dynamic logs a pre-processing hint on the root logger
-    try:
+    with _quiet_root_logger():
         quantize_dynamic(str(fp32_path), str(int8_path), weight_type=QuantType.QInt8,
                          op_types_to_quantize=["MatMul", "Gemm"])
-    finally:
-        root.setLevel(level)
     return Path(int8_path)
+
+
+def check_feeds(fp32_path: str | Path, feeds: list[dict[str, np.ndarray]]) -> None:
+    """Each feed must give every graph input, float32, of the graph's static shape: else one AgoInputError
+    naming --calibration-data."""
+    import onnx
+
+    if not feeds:
+        raise AgoInputError("--calibration-data", "no calibration frames")
+    graph = onnx.load(str(fp32_path), load_external_data=False).graph
+    want = {i.name: tuple(d.dim_value if d.HasField("dim_value") else None for d in i.type.tensor_type.shape.dim)
+            for i in graph.input}
+    for k, feed in enumerate(feeds):
+        if set(feed) != set(want):
+            raise AgoInputError("--calibration-data", f"frame {k} gives inputs {sorted(feed)}; the graph takes "
+                                f"{sorted(want)}")
+        for name, shape in want.items():
+            a = np.asarray(feed[name])
+            fits = a.ndim == len(shape) and all(s is None or s == n for s, n in zip(shape, a.shape))
+            if a.dtype != np.float32 or not fits:
+                raise AgoInputError("--calibration-data", f"frame {k}: {name} is {a.dtype} {a.shape}; the graph "
+                                    f"takes float32 {shape}")
+            if not np.isfinite(a).all():
+                raise AgoInputError("--calibration-data", f"frame {k}: {name} holds NaN or inf")
+
+
+def quantize_planes_static(fp32_path: str | Path, out_path: str | Path, feeds: list[dict[str, np.ndarray]],
+                           keep_float: list[str] | None = None,
+                           uncalibrated_range: tuple[float, float] | None = None, method: str = "minmax") -> Path:
+    """Static QDQ int8 of planes.onnx's convolutions, calibrated on `feeds` (see the module doc).
+
+    keep_float: node names left in float32 (e.g. a sensitive convolution). The file appears at out_path only
+    when quantisation finished (temp name + rename).
+    method: "minmax" (each activation's range: the min and max over the frames) or "percentile" (the 0.001 and
+    99.999 percentiles; keeps every activation of every frame in memory while calibrating: few frames only).
+    uncalibrated_range (benchmarks of random-weight graphs only, where the ranges do not matter): no
+    calibration run, `feeds` unused; every quantised activation gets this range, a Clip's output [0, 6].
+    onnxruntime's calibrator runs the graph with its optimisations off, which at the paper's scale needs more
+    memory than the optimised graph (benchmarks/results/int8_static_paper.md)."""
+    from onnxruntime.quantization import (CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType,
+                                          quantize_static)
+    from onnxruntime.quantization.shape_inference import quant_pre_process
+
+    methods = {"minmax": CalibrationMethod.MinMax, "percentile": CalibrationMethod.Percentile}
+    if method not in methods:
+        raise AgoInputError("calibration method", f"{method!r}; expected one of {sorted(methods)}")
+    if uncalibrated_range is None:
+        check_feeds(fp32_path, feeds)
+
+    class Feeds(CalibrationDataReader):
+        def __init__(self):
+            self.it = iter(feeds)
+
+        def get_next(self):
+            return next(self.it, None)
+
+    with tempfile.TemporaryDirectory(prefix="ago-qdq-") as tmp, atomic_path(out_path) as part, _quiet_root_logger():
+        pre = Path(tmp) / "pre.onnx"
+        quant_pre_process(str(fp32_path), str(pre))
+        cache = None
+        if uncalibrated_range is not None:
+            cache = Path(tmp) / "ranges.json"
+            _write_fixed_ranges(pre, cache, uncalibrated_range)
+        quantize_static(str(pre), str(part), None if cache else Feeds(), quant_format=QuantFormat.QDQ,
+                        activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, per_channel=True,
+                        reduce_range=False,
+                        calibrate_method=CalibrationMethod.MinMax if cache else methods[method],
+                        op_types_to_quantize=STATIC_OP_TYPES, nodes_to_exclude=list(keep_float or []),
+                        calibration_cache_path=cache)
+    return Path(out_path)
+
+
+def _write_fixed_ranges(graph_path: Path, cache: Path, value_range: tuple[float, float]) -> None:
+    """onnxruntime's calibration cache with one range for the activations of every Conv and Clip ([0, 6]
+    for a Clip's output)."""
+    import onnx
+    from onnxruntime.quantization.calibrate import CalibrationMethod, TensorData, TensorsData, save_tensors_data
+
+    graph = onnx.load(str(graph_path)).graph
+    weights = {i.name for i in graph.initializer}
+    ranges = {}
+    for node in graph.node:
+        if node.op_type in STATIC_OP_TYPES:
+            for name in (node.input[0], node.output[0]):
+                if name not in weights and name not in ranges:
+                    lo, hi = (0.0, 6.0) if node.op_type == "Clip" and name == node.output[0] else value_range
+                    ranges[name] = TensorData(lowest=np.float32(lo), highest=np.float32(hi))
+    save_tensors_data(TensorsData(CalibrationMethod.MinMax, ranges), cache)
