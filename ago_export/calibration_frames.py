@@ -41,17 +41,17 @@ def read_frames(source: str | Path, max_frames: int, fallback_rig: Rig | None = 
         raise AgoInputError(OPTION, f"{source}: folder not found (a nuScenes dataroot such as `ago synth` "
                             "writes, a folder with mmdet3d_info.pkl, or an images folder)")
     try:
-        if any(p.is_dir() and p.name.startswith("v1.0") for p in source.iterdir()):
-            from ago_runtime.formats.nuscenes import NuScenesDataset
+        from ago_runtime.formats.datasets import dataset_layout, open_dataset
 
-            ds = NuScenesDataset(source, load_extras=False)
+        if dataset_layout(source) is not None:   # a nuScenes dataroot or an Occ3D-Waymo layout
+            ds = open_dataset(source, load_extras=False)
             indices = ds.split(split) if split else list(range(len(ds)))
             if not indices:
                 raise AgoInputError(OPTION, f"{source}: no keyframes" + (f" in split {split!r}" if split else ""))
             frames = [ds[indices[i]] for i in spread(len(indices), max_frames)]
             return [(f.images, f.rig, f"{source} (sample {f.token})") for f in frames]
         if split:
-            raise AgoInputError(OPTION, f"{source}: a split ({split!r}) needs a nuScenes dataroot")
+            raise AgoInputError(OPTION, f"{source}: a split ({split!r}) needs a dataset (nuScenes or Occ3D-Waymo layout)")
         if (source / "mmdet3d_info.pkl").is_file():
             from ago_runtime.formats.mmdet3d_info import load_mmdet3d_info
 
@@ -77,7 +77,7 @@ def planes_feeds(frames: list[tuple[dict[str, np.ndarray], Rig, str]], pre: Prep
     feeds = []
     for images, rig, name in frames:
         try:
-            feeds.append({"images": pre.images(images, name)[None], "ego2img": pre.ego2img(rig)[None]})
+            feeds.append({"images": pre.images(images, rig, name)[None], "ego2img": pre.ego2img(rig)[None]})
         except AgoInputError as e:
             raise AgoInputError(OPTION, str(e)) from None
     return feeds
