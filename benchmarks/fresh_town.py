@@ -62,7 +62,7 @@ def main(argv=None) -> dict:
         iou = m["iou"].get(c)
         rows.append(f"| {c} | {'n/a' if iou is None else f'{iou:.2f}'} | {gt} | {pr} |")
     obj = {c: m["iou"].get(c) for c in OBJECTS if c in m["iou"]}
-    zero = [c for c, v in obj.items() if not v]
+    zero = [c for c, v in obj.items() if v is not None and not v]   # None: absent from GT and prediction
     cmd = "python benchmarks/fresh_town.py " + " ".join(argv if argv is not None else sys.argv[1:])
     verdict = lambda ok: "met" if ok else "**missed**"   # noqa: E731
     text = f"""# A bundle on a town it never saw, through the torch-free runtime
@@ -77,7 +77,7 @@ Bundle card: {card.removeprefix('bundle: ')}
 | mIoU >= 14 | {m['mIoU']:.2f} | {verdict(m['mIoU'] >= 14)} |
 | geometry IoU >= 30 | {m['geometry_IoU']:.2f} | {verdict(m['geometry_IoU'] >= 30)} |
 | occupancy ratio (predicted / GT occupied in the camera mask) within 0.5-2 | {ratio:.2f} | {verdict(0.5 <= ratio <= 2)} |
-| object classes above 0 ({', '.join(OBJECTS)}) | {' / '.join(f'{v:.2f}' for v in obj.values())} | {verdict(not zero)}{' (' + ', '.join(zero) + ' at 0)' if zero else ''} |
+| object classes above 0 ({', '.join(OBJECTS)}) | {' / '.join('n/a' if v is None else f'{v:.2f}' for v in obj.values())} | {verdict(not zero)}{' (' + ', '.join(zero) + ' at 0)' if zero else ''} |
 
 | class | IoU (%) | GT voxels | predicted voxels |
 |---|---:|---:|---:|
