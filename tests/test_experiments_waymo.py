@@ -101,8 +101,10 @@ def test_tiny_tab_g_and_h_beside_the_papers_ago_rows(waymo_experiments):
 
     g = res["tables"]["tabG"]
     assert not g["missing"] and g["classes"] == list(OCC3D_WAYMO.names)
-    (ours,) = _ours(g["rows"])
+    (ours, pseudo) = _ours(g["rows"])
+    assert ours["method"].startswith("ago") and pseudo["method"].startswith("pseudo-labels themselves")
     assert _in_range(ours["mIoU"]) and _in_range(ours["geometry_IoU"])
+    assert _in_range(pseudo["mIoU"]) and pseudo["mIoU"] > 0     # the supervision's own score on the val frames
     assert list(ours["iou"]) == list(OCC3D_WAYMO.names)
     assert all(v is None or _in_range(v) for v in ours["iou"].values())
     assert sum(v is not None for v in ours["iou"].values()) >= 8          # classes of the val GT were scored

@@ -257,6 +257,42 @@ class ExperimentRunner:
         write_json(path, r)
         return r
 
+    def ensure_waymo_pseudo_score(self) -> dict:
+        """The Waymo cw pseudo-labels' own scores on the val frames of the Waymo city (Tab. G's reference row),
+        in the closed Waymo label space: unlabelled voxels count as free, as in Tab. 1's row."""
+        path = self.out / "data_scores_waymo.json"
+        if path.is_file():
+            return read_json(path)
+        from ago_runtime.formats.datasets import open_dataset
+        from ago_runtime.scoring.metric import OccupancyMetric, upsample_nearest
+        from ago_runtime.vocab.prompts import parse_prompt_file
+
+        from ..pseudo.generate import load_pseudo_labels
+
+        pdir = self.pseudo("cw", "waymo")
+        space = parse_prompt_file(shipped_prompts(PROMPTS["waymo"]["cw"]))
+        K = space.num_classes
+        metric = OccupancyMetric(list(space.class_names) + ["free"], free_index=K)
+        lut = space.gt_lut(free_index=K)
+        ds = open_dataset(self.data_of("waymo"), load_images=False)
+        frames = 0
+        for i in ds.split(self.profile.eval_split):
+            scene, token = ds.scene_of(i), ds.sample_tokens[i]
+            try:
+                sem, _ml, _mc = load_pseudo_labels(pdir, scene, token)
+            except AgoInputError:
+                continue                                   # a frame without pseudo-labels
+            gt = ds[i].gt
+            fac = tuple(g // q for g, q in zip(gt.semantics.shape, sem.shape))
+            sem = np.where(sem < K, sem, K).astype(np.uint8)   # the pseudo format's free (17) and unknown (255)
+            metric.update(upsample_nearest(sem, fac), lut[gt.semantics], gt.mask_camera.astype(bool))
+            frames += 1
+        summ = metric.summary()
+        r = {"pseudo_cw_val": {"mIoU": summ["mIoU"], "geometry_IoU": summ["geometry_IoU"], "iou": summ["iou"],
+                               "frames": frames}}
+        write_json(path, r)
+        return r
+
     # ---- training ----------------------------------------------------------------------
     def train_config(self, spec: RunSpec):
         from ..losses import LossConfig
@@ -394,6 +430,8 @@ class ExperimentRunner:
             waymo_spaces.add("ow_pretrain")   # a few-shot run fine-tunes the pretraining run
         if waymo_spaces:
             self.ensure_data(waymo_spaces, "waymo")
+        if "tabG" in experiments and not self.profile.external_data:
+            self.ensure_waymo_pseudo_score()
         if "cw" in spaces and not self.profile.external_data:
             self.ensure_data_scores()
         if self.records is not None:

@@ -281,6 +281,11 @@ def table_g(out: Path, profile: ExperimentProfile, paper: dict | None = None) ->
         t["rows"].append({"method": "ago (ours, synthetic Waymo city)", "mIoU": view["mIoU"],
                           "geometry_IoU": view["geometry_IoU"],
                           "iou": {c: view["metric"]["iou"].get(c) for c in t["classes"]}})
+    scores = out / "data_scores_waymo.json"
+    if v is not None and scores.is_file():
+        ps = read_json(scores)["pseudo_cw_val"]
+        t["rows"].append({"method": "pseudo-labels themselves (val frames)", "mIoU": ps["mIoU"],
+                          "geometry_IoU": ps["geometry_IoU"], "iou": {c: ps["iou"].get(c) for c in t["classes"]}})
     for r in _paper_ago_rows(paper, "tabG_waymo_closed_world"):
         t["rows"].append({"method": "paper: AGO (ours), Tab. G", "mIoU": r["mIoU"], "geometry_IoU": None,
                           "iou": {c: r["iou"].get(c) for c in t["classes"]}, "paper": True})
@@ -332,7 +337,7 @@ def _names(classes: list[str]) -> str:
 
 def waymo_g_note(t: dict) -> list[str]:
     """One sentence on what agrees and what does not between our Tab. G row and the paper's, from their numbers."""
-    ours = [r for r in t["rows"] if not r.get("paper") and r["mIoU"] is not None]
+    ours = [r for r in t["rows"] if r["method"].startswith("ago") and r["mIoU"] is not None]
     paper = [r for r in t["rows"] if r.get("paper")]
     if not ours or not paper:
         return []
