@@ -132,6 +132,45 @@ TABLES = {
          "consistency": "known / unknown / mIoU are the means of the columns as in Table 2, to 0.01 in every row"}),
 }
 
+# Occ3D-Waymo (Tables G and H): the paper's headers -> the class names the driver scores. Tab. G's are the
+# Occ3D-Waymo class table's (ago_runtime.classes.OCC3D_WAYMO), Tab. H's the open-world prompt files'
+# (prompts/waymo/ow_waymo.txt, ow_waymo_pretrain.txt: they use the paper's own names).
+WAYMO_CLOSED_CLASSES = {"GO": "general_object", "vehicle": "vehicle", "bicyclist": "bicyclist",
+                        "pedestrian": "pedestrian", "sign": "sign", "traffic light": "traffic_light",
+                        "pole": "pole", "construction cone": "construction_cone", "bicycle": "bicycle",
+                        "motorcycle": "motorcycle", "building": "building", "vegetation": "vegetation",
+                        "tree trunk": "tree_trunk", "road": "road", "sidewalk": "walkable"}
+WAYMO_OPEN_CLASSES = ("pedestrian", "road", "sidewalk", "vehicle", "cycle", "bicycle", "motorcycle", "bicyclist",
+                      "sign", "traffic light", "pole", "construction cone", "building", "vegetation", "tree trunk")
+WAYMO_OPEN_CLASS_GROUPS = {
+    "known": ["pedestrian", "road", "sidewalk", "vehicle"],
+    "known_supercategories": ["cycle"],
+    "unknown_refined": ["bicycle", "motorcycle"],
+    "unknown": ["bicyclist", "sign", "traffic light", "pole", "construction cone", "building", "vegetation",
+                "tree trunk"],
+}
+TABLES.update({
+    "tabG_waymo_closed_world": (
+        "tab:selfsupervised_waymo_benchmark",
+        {"Method": "method", "Image Backbone": "image_backbone", "mIoU": "mIoU",
+         **{h: f"iou.{c}" for h, c in WAYMO_CLOSED_CLASSES.items()}},
+        {"caption": "Self-supervised 3D occupancy on Occ3D-Waymo (15 classes); a dagger marks the authors' "
+                    "retraining; per-class keys are the Occ3D-Waymo class table's names (GO = general_object, "
+                    "sidewalk = walkable)",
+         "ambiguity": "'GO' is not expanded in the paper; read as Occ3D-Waymo's general object",
+         "consistency": "mIoU is the mean of the 15 class columns, to 0.01 in every row"}),
+    "tabH_waymo_open_world": (
+        "tab:open_world_waymo_benchmark",
+        {**OPEN_WORLD_COLUMNS, **{h: f"iou.{h}" for h in WAYMO_OPEN_CLASSES}},
+        {"caption": "Open world on Occ3D-Waymo: pretraining on pedestrian, road, sidewalk, vehicle and the "
+                    "supercategory cycle, zero-shot evaluation and few-shot finetuning on 14 classes (GO "
+                    "excluded); per-class IoU, known (k.) / unknown (u.) / all mIoU",
+         "class_groups": WAYMO_OPEN_CLASS_GROUPS,
+         "consistency": "k. / u. mIoU are the means of the known / unknown columns that have a value (5 / 8 in "
+                        "Pretraining; pedestrian, road, sidewalk, vehicle / the other 10 in the other stages) "
+                        "and mIoU of all of them, to 0.01 in every row"}),
+})
+
 TOP = {
     "source": "the paper's LaTeX source (main paper and supplementary material), via shared/paper/paper_tables.md",
     "source_quality": "paper_source_verified",
@@ -142,8 +181,7 @@ TOP = {
     "cells": "'-' in the paper (no value in that stage) and empty cells are null; check mark true, cross false",
     "history": ["Until 2026-12-02 this file held a few numbers copied from a paper summary written by someone "
                 "other than the authors; they were replaced by the paper's own tables."],
-    "not_included": "Table A (subclass names, text) and the Occ3D-Waymo Tables G and H (the driver has no "
-                    "Waymo setting); they are in shared/paper/paper_tables.md",
+    "not_included": "Table A (subclass names, text); it is in shared/paper/paper_tables.md",
 }
 
 

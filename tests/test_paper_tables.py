@@ -115,7 +115,8 @@ def test_the_tables_the_driver_compares_against_are_all_there():
     assert labels == {"tab:selfsupervised_benchmark", "tab:open_world_benchmark", "tab:alignment_ablation",
                       "tab:ow_strategy_ablation", "tab:component_ablation", "tab:pseudo_label_eval",
                       "tab:image_bb_ep_reso_ablation", "tab:align_loss_ablation", "tab:mlp_layer_ablation",
-                      "tab:veon_comparison", "tab:detailed_open_world_exp"}
+                      "tab:veon_comparison", "tab:detailed_open_world_exp", "tab:selfsupervised_waymo_benchmark",
+                      "tab:open_world_waymo_benchmark"}
 
 
 @pytest.mark.parametrize("key", ["tab2_open_world", "supp_i_open_world_detailed"])
@@ -134,6 +135,27 @@ def test_open_world_subset_means_are_the_colour_groups(key):
             if (row["stage"], row["method"], name) in exceptions:
                 continue
             assert abs(sum(vals) / len(vals) - row[name]) <= 0.0051, (row["stage"], row["method"], name)
+
+
+def test_waymo_means_are_the_colour_groups_and_the_class_names_ours():
+    """Tab. H: k. / u. mIoU = means of the known / unknown columns (5 / 8 in Pretraining, 4 / 10 after); Tab. G:
+    mIoU = mean of its 15 classes, keyed by the Occ3D-Waymo class table's names."""
+    from ago_runtime.classes import OCC3D_WAYMO
+
+    tables = json_tables()
+    markdown_table(label_of(tables["tabH_waymo_open_world"]))   # skip without the source, like the cell test
+    h = tables["tabH_waymo_open_world"]
+    groups = h["class_groups"]
+    known, unknown = groups["known"] + groups["known_supercategories"], groups["unknown_refined"] + groups["unknown"]
+    for row in h["rows"]:
+        k = [row["iou"][c] for c in known if row["iou"][c] is not None]
+        u = [row["iou"][c] for c in unknown if row["iou"][c] is not None]
+        assert (len(k), len(u)) == ((5, 8) if row["stage"] == "Pretraining" else (4, 10))
+        for name, vals in (("known_mIoU", k), ("unknown_mIoU", u), ("mIoU", k + u)):
+            assert abs(sum(vals) / len(vals) - row[name]) <= 0.0051, (row["stage"], row["method"], name)
+    for row in tables["tabG_waymo_closed_world"]["rows"]:
+        assert sorted(row["iou"]) == sorted(OCC3D_WAYMO.names)
+        assert abs(sum(row["iou"].values()) / 15 - row["mIoU"]) <= 0.0051, row["method"]
 
 
 def test_provenance_is_the_papers_source():

@@ -1,6 +1,7 @@
 """CLI verb `ago experiments`: the paper's tables on the synthetic benchmark (ago_train/experiments/).
 
-    ago experiments run [tab1 tab2 tab3 tab4 tab5 supp figures | all] [--profile cpu] [--out runs/experiments]
+    ago experiments run [tab1 tab2 tab3 tab4 tab5 supp figures tabG tabH | all] [--profile cpu]
+                        [--out runs/experiments]   (tabG / tabH: Occ3D-Waymo, on their own synthetic city)
                         [--records DIR]     (run records reused on another machine: records.py)
     ago experiments report [--profile cpu] [--out runs/experiments]
     ago experiments list [--profile cpu]

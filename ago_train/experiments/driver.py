@@ -6,13 +6,15 @@
 Folder `<out>` (everything is cached there; rerunning a command skips what is done):
     profile.json                 the profile the folder was made with (a different one is refused)
     synth/, pseudo_*/            data (profiles that generate it)
+    synth_waymo/, pseudo_waymo_*/  the Occ3D-Waymo city and its pseudo-labels (Tab. G and H)
     runs/<run name>/             one training run each (config.json, log.jsonl, last.pt)
     runs/<run name>/views.json   its scores under the views the experiments asked for (+ stats)
     runs/<run name>/kept/*.npz   predicted volumes of the first val frames (for the renders)
     results.json, results.md, figures/*.png    written by `report` (and at the end of `run`)
 
 Experiments (EXPERIMENTS): tab1 (closed world), tab2 (open world, 3 stages), tab3 (paradigms),
-tab4 (identifier), tab5 (noise prompts, L_occ), supp (adapter depth, align loss), figures.
+tab4 (identifier), tab5 (noise prompts, L_occ), supp (adapter depth, align loss), figures, and on
+the Occ3D-Waymo city tabG (closed world) and tabH (open world: pretraining, zero-shot, few-shot).
 """
 
 from __future__ import annotations
@@ -33,11 +35,11 @@ from ago_runtime.predict.contract import Identifier
 from ago_runtime.readers import read_json
 
 from . import records
-from .plan import (ADAPTED_SCALES, FEWSHOT_VARIANTS, PARADIGMS, ExperimentProfile, RunSpec, cw_run, fewshot_run,
-                   ow_run)
+from .plan import (ADAPTED_SCALES, FEWSHOT_VARIANTS, PARADIGMS, PROMPTS, WAYMO_PRETRAIN_EVAL, ExperimentProfile,
+                   RunSpec, cw_run, fewshot_run, ow_run, profile_differences, shipped_prompts, waymo_run)
 from .scoring import View
 
-EXPERIMENTS = ("tab1", "tab2", "tab3", "tab4", "tab5", "supp", "figures")
+EXPERIMENTS = ("tab1", "tab2", "tab3", "tab4", "tab5", "supp", "figures", "tabG", "tabH")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -64,11 +66,17 @@ def runs_for(experiment: str, profile: ExperimentProfile) -> list[RunSpec]:
                 + [ow_run("ago", align_loss=a, seed=s) for a in ("mse", "l1") for s in seeds])
     if experiment == "figures":
         return [cw_run("ago"), ow_run("ago")]
+    if experiment == "tabG":
+        return [waymo_run("cw", s) for s in seeds]
+    if experiment == "tabH":
+        return [waymo_run("ow", s) for s in seeds] + [waymo_run("fewshot", s) for s in seeds]
     raise AgoInputError(None, f"unknown experiment {experiment!r}; choose from {list(EXPERIMENTS)}")
 
 
 def views_for(spec: RunSpec, ow_prompts: str) -> list[View]:
     """Every way a run is scored by any experiment (one forward pass per frame covers all)."""
+    if spec.dataset == "waymo":
+        return waymo_views(spec)
     variant = dict(spec.loss).get("variant", "ago")
     if spec.setting == "cw":
         views = [View("cw", "cw", Identifier.NONE)]
@@ -85,6 +93,19 @@ def views_for(spec: RunSpec, ow_prompts: str) -> list[View]:
     if variant == "ago" and not dict(spec.model) and len(spec.loss) == 1:   # the main ago runs (Tab. 2 / 4)
         views += [View(f"ow-min-entropy-x{s:g}", ow_prompts, Identifier.MIN_ENTROPY, adapted_scale=s)
                   for s in ADAPTED_SCALES]
+    return views
+
+
+def waymo_views(spec: RunSpec) -> list[View]:
+    """Tab. G: the closed-world run on the 15 Occ3D-Waymo classes. Tab. H: the pretraining run on the pretraining
+    stage's label space ("ow-pretrain": cycle whole, the unknown classes beside it) and zero-shot on the 14
+    classes of ow_waymo ("ow-min-entropy", AGO's identifier; "ow-none" without it); the few-shot runs on the 14."""
+    if spec.setting == "cw":
+        return [View("cw", shipped_prompts(PROMPTS["waymo"]["cw"]), Identifier.NONE)]
+    ow = shipped_prompts(PROMPTS["waymo"]["ow"])
+    views = [View("ow-min-entropy", ow, Identifier.MIN_ENTROPY), View("ow-none", ow, Identifier.NONE)]
+    if spec.setting == "ow":
+        views.insert(0, View("ow-pretrain", shipped_prompts(WAYMO_PRETRAIN_EVAL), Identifier.MIN_ENTROPY))
     return views
 
 
@@ -120,10 +141,12 @@ class ExperimentRunner:
         mine = self.profile.to_dict()
         if path.is_file():
             saved = read_json(path)
-            if saved != mine:
-                diff = sorted(k for k in set(saved) | set(mine) if saved.get(k) != mine.get(k))
+            diff = profile_differences(saved, mine)
+            if diff:
                 raise AgoInputError(path, f"this folder was made with another profile (differs in {diff}); "
                                     "use another --out")
+            if saved != mine:
+                write_json(path, mine)   # a folder made before the profile had some keys (plan.ADDED_KEYS)
         else:
             write_json(path, mine)
 
@@ -135,8 +158,13 @@ class ExperimentRunner:
     def data(self) -> Path:
         return self.path(self.profile.data)
 
-    def pseudo(self, space: str) -> Path:
-        return self.path(self.profile.pseudo[space])
+    def data_of(self, dataset: str) -> Path:
+        """The dataset folder of "nuscenes" (the profile's city) or "waymo" (its Occ3D-Waymo city)."""
+        return self.data if dataset == "nuscenes" else self.path(self.profile.waymo.data)
+
+    def pseudo(self, space: str, dataset: str = "nuscenes") -> Path:
+        folders = self.profile.pseudo if dataset == "nuscenes" else self.profile.waymo.pseudo
+        return self.path(folders[space])
 
     def run_dir(self, name: str) -> Path:
         return self.out / "runs" / name
@@ -149,28 +177,31 @@ class ExperimentRunner:
         if r.returncode != 0:
             raise AgoInputError(None, f"`ago {' '.join(args)}` failed: {(r.stderr or r.stdout).strip()[-400:]}")
 
-    def ensure_data(self, spaces: set[str]) -> None:
+    def ensure_data(self, spaces: set[str], dataset: str = "nuscenes") -> None:
+        """The dataset folder and the pseudo-labels of `spaces` ("cw", "ow_pretrain", "ow") of `dataset`."""
         p = self.profile
+        data = self.data_of(dataset)
         if p.external_data:
-            for need in [self.data] + [self.pseudo(s) for s in sorted(spaces)]:
+            for need in [data] + [self.pseudo(s, dataset) for s in sorted(spaces)]:
                 if not need.exists():
                     raise AgoInputError(need, f"profile {p.name!r} uses external data: make this folder first "
                                         "(docs/experiments.md)")
             return
         # worker processes for synth and pseudo-labels: the data is the same for any number
         jobs = str(max(1, min(os.cpu_count() or 1, 8)))
-        if not (self.data / "synth.done").is_file():
-            args = ["synth", "--out", str(self.data)]
-            for k, v in p.synth.items():
+        if not (data / "synth.done").is_file():
+            args = ["synth", "--out", str(data)]
+            for k, v in (p.synth if dataset == "nuscenes" else p.waymo.synth).items():
                 args += [f"--{k}", str(v)]
             self._ago(*args, "--jobs", jobs)
-        (self.data / "synth.done").write_text("done\n")
+        (data / "synth.done").write_text("done\n")
         for space in sorted(spaces):
-            done = self.pseudo(space) / "complete.json"
+            out = self.pseudo(space, dataset)
+            done = out / "complete.json"
             if done.is_file():
                 continue
             split = "all" if space == "cw" else p.train_split   # cw pseudo-labels on val too: their own mIoU
-            self._ago("pseudo-labels", "--data", str(self.data), "--out", str(self.pseudo(space)), "--prompts", space,
+            self._ago("pseudo-labels", "--data", str(data), "--out", str(out), "--prompts", PROMPTS[dataset][space],
                       "--segmenter", "sim", "--embedder", "sim", "--grid", p.pseudo_grid, "--keyframes", str(p.sweeps),
                       "--interval", str(p.interval), "--split", split, "--jobs", jobs)
             write_json(done, {"split": split})
@@ -226,6 +257,42 @@ class ExperimentRunner:
         write_json(path, r)
         return r
 
+    def ensure_waymo_pseudo_score(self) -> dict:
+        """The Waymo cw pseudo-labels' own scores on the val frames of the Waymo city (Tab. G's reference row),
+        in the closed Waymo label space: unlabelled voxels count as free, as in Tab. 1's row."""
+        path = self.out / "data_scores_waymo.json"
+        if path.is_file():
+            return read_json(path)
+        from ago_runtime.formats.datasets import open_dataset
+        from ago_runtime.scoring.metric import OccupancyMetric, upsample_nearest
+        from ago_runtime.vocab.prompts import parse_prompt_file
+
+        from ..pseudo.generate import load_pseudo_labels
+
+        pdir = self.pseudo("cw", "waymo")
+        space = parse_prompt_file(shipped_prompts(PROMPTS["waymo"]["cw"]))
+        K = space.num_classes
+        metric = OccupancyMetric(list(space.class_names) + ["free"], free_index=K)
+        lut = space.gt_lut(free_index=K)
+        ds = open_dataset(self.data_of("waymo"), load_images=False)
+        frames = 0
+        for i in ds.split(self.profile.eval_split):
+            scene, token = ds.scene_of(i), ds.sample_tokens[i]
+            try:
+                sem, _ml, _mc = load_pseudo_labels(pdir, scene, token)
+            except AgoInputError:
+                continue                                   # a frame without pseudo-labels
+            gt = ds[i].gt
+            fac = tuple(g // q for g, q in zip(gt.semantics.shape, sem.shape))
+            sem = np.where(sem < K, sem, K).astype(np.uint8)   # the pseudo format's free (17) and unknown (255)
+            metric.update(upsample_nearest(sem, fac), lut[gt.semantics], gt.mask_camera.astype(bool))
+            frames += 1
+        summ = metric.summary()
+        r = {"pseudo_cw_val": {"mIoU": summ["mIoU"], "geometry_IoU": summ["geometry_IoU"], "iou": summ["iou"],
+                               "frames": frames}}
+        write_json(path, r)
+        return r
+
     # ---- training ----------------------------------------------------------------------
     def train_config(self, spec: RunSpec):
         from ..losses import LossConfig
@@ -238,14 +305,15 @@ class ExperimentRunner:
             cfg = TrainConfig.from_dict({**cfg.to_dict(), **p.train_set})
         ow_loss = p.ow_loss if spec.setting in ("ow", "fewshot") else {}
         loss = LossConfig(**{**cfg.loss.to_dict(), **ow_loss, **dict(spec.loss)})
-        model = ModelConfig.from_dict({**cfg.model.to_dict(), **dict(spec.model)})
-        space = {"cw": "cw", "ow": "ow_pretrain", "fewshot": "ow"}[spec.setting]
-        changes = dict(data=str(self.data), pseudo=str(self.pseudo(space)), prompts=spec.prompts,
+        rig_model = p.waymo.model if spec.dataset == "waymo" else {}   # the Waymo rig's canvas
+        model = ModelConfig.from_dict({**cfg.model.to_dict(), **rig_model, **dict(spec.model)})
+        changes = dict(data=str(self.data_of(spec.dataset)), pseudo=str(self.pseudo(spec.space, spec.dataset)),
+                       prompts=spec.prompts,
                        out=str(self.run_dir(spec.name)), train_split=p.train_split, loss=loss, model=model,
                        seed=spec.seed, frame_tokens=None, init_from=None)
         if spec.setting == "fewshot":
             changes.update(init_from=str(self.run_dir(spec.init_from) / "last.pt"),
-                           frame_tokens=self.kshot_tokens(spec.seed), epochs=p.fewshot_epochs,
+                           frame_tokens=self.kshot_tokens(spec.seed, spec.dataset), epochs=p.fewshot_epochs,
                            max_steps=p.fewshot_steps)
         elif p.steps is not None:
             changes.update(max_steps=p.steps, epochs=max(cfg.epochs, 1000))
@@ -253,19 +321,20 @@ class ExperimentRunner:
             changes.update(ckpt_every=max(10, (p.steps or 100) // 4))
         return replace(cfg, **changes)
 
-    def kshot_tokens(self, seed: int) -> list[str]:
+    def kshot_tokens(self, seed: int, dataset: str = "nuscenes") -> list[str]:
         from ago_runtime.vocab.prompts import parse_prompt_file
 
         from ..dataset import PseudoLabelSet
         from ..open_world import select_kshot
         from ..trainer import open_frames
 
-        path = self.out / "kshot" / f"seed{seed}.json"
+        folder = self.out / "kshot" if dataset == "nuscenes" else self.out / "kshot" / dataset
+        path = folder / f"seed{seed}.json"
         if path.is_file():
             return read_json(path)["tokens"]
-        space = parse_prompt_file("ow")
-        pseudo = PseudoLabelSet.open(self.pseudo("ow"))
-        ds, indices = open_frames(str(self.data), None, self.profile.train_split)
+        space = parse_prompt_file(shipped_prompts(PROMPTS[dataset]["ow"]))
+        pseudo = PseudoLabelSet.open(self.pseudo("ow", dataset))
+        ds, indices = open_frames(str(self.data_of(dataset)), None, self.profile.train_split)
         frames = [(ds.scene_of(i), ds.sample_tokens[i]) for i in indices]
         tokens, counts = select_kshot(pseudo, frames, space.num_classes, self.profile.k, seed)
         write_json(path, {"seed": seed, "k": self.profile.k, "tokens": tokens,
@@ -283,7 +352,8 @@ class ExperimentRunner:
         if self.is_trained(spec):
             return
         if spec.init_from:
-            self.ensure_trained(RunSpec(spec.init_from, "ow", spec.loss, spec.model, seed=spec.seed))
+            self.ensure_trained(RunSpec(spec.init_from, "ow", spec.loss, spec.model, seed=spec.seed,
+                                        dataset=spec.dataset))
         cfg = self.train_config(spec)
         resume = (self.run_dir(spec.name) / "last.pt").is_file()
         self.log(f"train {spec.name}{' (resume)' if resume else ''}")
@@ -303,7 +373,8 @@ class ExperimentRunner:
 
         path = self.run_dir(spec.name) / "views.json"
         ow_prompts = str(self.out / "ow_known.txt")
-        if not Path(ow_prompts).is_file():   # ow.txt with `@known:` = the classes ow_pretrain covers
+        # ow.txt with `@known:` = the classes ow_pretrain covers (the nuScenes runs' open-world label space)
+        if spec.dataset == "nuscenes" and not Path(ow_prompts).is_file():
             known_prompt_file(OpenWorldConfig(base=None, pseudo_pretrain="", pseudo_full=""), self.out)
         views = [v if v.prompts != "cw" else replace(v, prompts=str(resolve_prompt_file("cw")))
                  for v in views_for(spec, ow_prompts)]
@@ -315,9 +386,12 @@ class ExperimentRunner:
         stats_view = {"cw": "cw", "ow": None, "fewshot": None}[spec.setting]
         if spec.setting == "ow" and any(v.name == "ow-min-entropy" for v in views):
             stats_view = "ow-min-entropy"
+        if spec.dataset == "waymo":
+            stats_view = None          # the figures are drawn from the nuScenes runs only
         self.log(f"score {spec.name}: {[v.name for v in views]}")
         t0 = time.time()
-        r = evaluate_views(self.run_dir(spec.name) / "last.pt", str(self.data), views, split=self.profile.eval_split,
+        r = evaluate_views(self.run_dir(spec.name) / "last.pt", str(self.data_of(spec.dataset)), views,
+                           split=self.profile.eval_split,
                            max_frames=self.profile.eval_max_frames, stats_view=stats_view,
                            keep_frames=self.profile.render_frames, quiet=self.quiet)
         kept_dir = self.run_dir(spec.name) / "kept"
@@ -344,12 +418,20 @@ class ExperimentRunner:
         for e in experiments:
             for s in runs_for(e, self.profile):
                 specs.setdefault(s.name, s)
-        spaces = {"cw" if s.setting == "cw" else "ow_pretrain" for s in specs.values()}
-        if any(s.setting == "fewshot" for s in specs.values()):
+        spaces = {"cw" if s.setting == "cw" else "ow_pretrain" for s in specs.values() if s.dataset == "nuscenes"}
+        if any(s.setting == "fewshot" and s.dataset == "nuscenes" for s in specs.values()):
             spaces.add("ow")
         if "tab1" in experiments or "figures" in experiments:
             spaces.add("cw")
-        self.ensure_data(spaces)
+        if spaces:
+            self.ensure_data(spaces)
+        waymo_spaces = {s.space for s in specs.values() if s.dataset == "waymo"}
+        if "ow" in waymo_spaces:
+            waymo_spaces.add("ow_pretrain")   # a few-shot run fine-tunes the pretraining run
+        if waymo_spaces:
+            self.ensure_data(waymo_spaces, "waymo")
+        if "tabG" in experiments and not self.profile.external_data:
+            self.ensure_waymo_pseudo_score()
         if "cw" in spaces and not self.profile.external_data:
             self.ensure_data_scores()
         if self.records is not None:

@@ -26,6 +26,8 @@ from ago_runtime.atomic import write_json
 from ago_runtime.errors import AgoInputError
 from ago_runtime.readers import read_json
 
+from .plan import profile_differences
+
 RUN_FILES = ("views.json", "done.json")
 
 
@@ -44,8 +46,10 @@ def data_fingerprint(data: Path) -> str:
 def recipe(runner, spec) -> dict:
     """The run's training config as a dict, with the machine's own paths written as names: the experiments
     folder as `<out>`, the dataset as `<data>`, each pseudo-label folder as `<pseudo:SPACE>`."""
-    places = {str(runner.out): "<out>", str(runner.data): "<data>"}
+    places = {str(runner.out): "<out>", str(runner.data): "<data>", str(runner.data_of("waymo")): "<data:waymo>"}
     places.update({str(runner.pseudo(space)): f"<pseudo:{space}>" for space in runner.profile.pseudo})
+    places.update({str(runner.pseudo(space, "waymo")): f"<pseudo:waymo:{space}>"
+                   for space in runner.profile.waymo.pseudo})
     longest_first = sorted(places, key=len, reverse=True)
 
     def rel(v):
@@ -66,18 +70,25 @@ def recipe(runner, spec) -> dict:
 def check_profile(runner, records: Path) -> None:
     """Before any work: refuse a records folder made with another profile."""
     path = records / "records.json"
-    if path.is_file() and read_json(path).get("profile") != runner.profile.to_dict():
+    if path.is_file() and profile_differences(read_json(path).get("profile") or {}, runner.profile.to_dict()):
         raise AgoInputError(records, "these run records were made with another profile; use another --records")
 
 
 def check_data(runner, records: Path) -> None:
     """Once the data exists: refuse records made on other data; start a records folder that does not exist."""
     path = records / "records.json"
-    mine = {"profile": runner.profile.to_dict(), "data": data_fingerprint(runner.data)}
+    mine = {"profile": runner.profile.to_dict()}
+    # one fingerprint per dataset that exists here ("data": the nuScenes-layout city, "data_waymo": the Waymo one)
+    for key, dataset in (("data", "nuscenes"), ("data_waymo", "waymo")):
+        if runner.data_of(dataset).is_dir():
+            mine[key] = data_fingerprint(runner.data_of(dataset))
     if path.is_file():
-        if read_json(path).get("data") != mine["data"]:
+        saved = read_json(path)
+        if any(k in saved and saved[k] != mine[k] for k in ("data", "data_waymo") if k in mine):
             raise AgoInputError(records, "these run records were made on other data (the dataset's metadata "
                                 "differs); use another --records")
+        if any(k not in saved for k in mine) or saved["profile"] != mine["profile"]:
+            write_json(path, {**saved, **mine})   # a dataset (or profile key) this folder did not have yet
     else:
         records.mkdir(parents=True, exist_ok=True)
         write_json(path, mine)

@@ -9,6 +9,8 @@ from its LaTeX source (via shared/paper/paper_tables.md, checked cell by cell; `
 "paper_source_verified"). Under each measured table the markdown prints the paper's table it is
 compared with, labelled with the paper's table number and LaTeX label. Tab. 2 also gets the paper's
 per-class cells averaged over this driver's known / unknown split, which differs from the paper's.
+Tab. G and H (Occ3D-Waymo) print the paper's AGO row beside each of ours, in the same columns, and one
+sentence on what agrees and what does not, made from the numbers of the two rows.
 """
 
 from __future__ import annotations
@@ -20,11 +22,11 @@ import cv2
 import numpy as np
 
 from ago_runtime.atomic import write_json, write_text
-from ago_runtime.classes import OCC3D_CLASSES
+from ago_runtime.classes import OCC3D_CLASSES, OCC3D_WAYMO
 from ago_runtime.readers import read_json
 
-from .plan import (ADAPTED_SCALES, FEWSHOT_VARIANTS, PARADIGMS, ExperimentProfile, cw_run, fewshot_run, ow_run,
-                   seeded)
+from .plan import (ADAPTED_SCALES, FEWSHOT_VARIANTS, PARADIGMS, PROMPTS, WAYMO_PRETRAIN_EVAL, ExperimentProfile,
+                   cw_run, fewshot_run, ow_run, seeded, shipped_prompts, waymo_run)
 
 PAPER_TABLES = Path(__file__).with_name("paper_tables.json")
 PAPER_NAMES = {"align": "POP-3D-like align", "grounding": "grounding only", "grounding+align": "grounding + align",
@@ -258,6 +260,136 @@ def table_i(out: Path, profile: ExperimentProfile) -> dict:
 
 
 # ---------------------------------------------------------------------------------------------
+# Occ3D-Waymo: Tab. G (closed world) and Tab. H (open world), each stage beside the paper's AGO row
+PAPER_AGO = "AGO (ours)"
+WAYMO_STAGES = (("pretraining", "Pretraining"), ("zero-shot", "Zero-shot Evaluation"),
+                ("few-shot", "Few-shot Finetuning"))
+
+
+def _paper_ago_rows(paper: dict | None, key: str) -> list[dict]:
+    """The paper's AGO rows of paper table `key` ([] without the paper's tables)."""
+    return [r for r in ((paper or {}).get(key) or {}).get("rows", []) if r.get("method") == PAPER_AGO]
+
+
+def table_g(out: Path, profile: ExperimentProfile, paper: dict | None = None) -> dict:
+    """Tab. G: the closed-world run on the synthetic Occ3D-Waymo city (15 classes), beside the paper's AGO row."""
+    t = {"title": "Tab. G — closed world, self-supervised, Occ3D-Waymo layout (15 classes, val split; mean of "
+                  f"seeds {list(profile.seeds)})", "classes": list(OCC3D_WAYMO.names), "rows": [], "missing": []}
+    v = _views(out, waymo_run("cw").name, profile.seeds, t["missing"])
+    if v is not None:
+        view = v["views"]["cw"]
+        t["rows"].append({"method": "ago (ours, synthetic Waymo city)", "mIoU": view["mIoU"],
+                          "geometry_IoU": view["geometry_IoU"],
+                          "iou": {c: view["metric"]["iou"].get(c) for c in t["classes"]}})
+    scores = out / "data_scores_waymo.json"
+    if v is not None and scores.is_file():
+        ps = read_json(scores)["pseudo_cw_val"]
+        t["rows"].append({"method": "pseudo-labels themselves (val frames)", "mIoU": ps["mIoU"],
+                          "geometry_IoU": ps["geometry_IoU"], "iou": {c: ps["iou"].get(c) for c in t["classes"]}})
+    for r in _paper_ago_rows(paper, "tabG_waymo_closed_world"):
+        t["rows"].append({"method": "paper: AGO (ours), Tab. G", "mIoU": r["mIoU"], "geometry_IoU": None,
+                          "iou": {c: r["iou"].get(c) for c in t["classes"]}, "paper": True})
+    return t
+
+
+def waymo_h_classes() -> tuple[list[str], list[str]]:
+    """Tab. H's columns: (known, unknown) class names in the paper's order, the pretraining stage's supercategory
+    (cycle) after the known classes of the evaluation label space (prompts/waymo/ow_waymo.txt)."""
+    from ago_runtime.vocab.prompts import parse_prompt_file
+
+    ev = parse_prompt_file(shipped_prompts(PROMPTS["waymo"]["ow"]))
+    pre = parse_prompt_file(shipped_prompts(WAYMO_PRETRAIN_EVAL))
+    known = [c for c in ev.class_names if c in ev.known]
+    known += [c for c in pre.class_names if c in pre.known and c not in known]
+    return known, [c for c in ev.class_names if c not in ev.known]
+
+
+def table_h(out: Path, profile: ExperimentProfile, paper: dict | None = None) -> dict:
+    """Tab. H: the open-world runs on the synthetic Occ3D-Waymo city in the paper's three stages (known / unknown /
+    all mIoU and per class), each beside the paper's AGO row of that stage."""
+    known, unknown = waymo_h_classes()
+    t = {"title": "Tab. H — open world, Occ3D-Waymo layout: pretraining on pedestrian, road, sidewalk, vehicle, "
+                  f"cycle; zero-shot and few-shot (k={profile.k}) on 14 classes (AGO's min-entropy identifier; "
+                  f"mean of seeds {list(profile.seeds)})",
+         "known": known, "unknown": unknown, "rows": [], "missing": []}
+    pre = _views(out, waymo_run("ow").name, profile.seeds, t["missing"])
+    few = _views_of(out, [waymo_run("fewshot", s).name for s in profile.seeds], t["missing"])
+    ours = {"pretraining": pre and pre["views"]["ow-pretrain"], "zero-shot": pre and pre["views"]["ow-min-entropy"],
+            "few-shot": few and few["views"]["ow-min-entropy"]}
+    papers = {r["stage"]: r for r in _paper_ago_rows(paper, "tabH_waymo_open_world")}
+    for stage, paper_stage in WAYMO_STAGES:
+        view = ours[stage]
+        if view:
+            t["rows"].append({"stage": stage, "method": "ago (ours, synthetic Waymo city)", **_row(view),
+                              "iou": {c: view["metric"]["iou"].get(c) for c in known + unknown}})
+        r = papers.get(paper_stage)
+        if r:
+            t["rows"].append({"stage": stage, "method": "paper: AGO (ours), Tab. H", "known": r["known_mIoU"],
+                              "unknown": r["unknown_mIoU"], "all": r["mIoU"],
+                              "iou": {c: r["iou"].get(c) for c in known + unknown}, "paper": True})
+    t["missing"] = sorted(set(t["missing"]))
+    return t
+
+
+def _names(classes: list[str]) -> str:
+    return ", ".join(classes) or "none"
+
+
+def waymo_g_note(t: dict) -> list[str]:
+    """One sentence on what agrees and what does not between our Tab. G row and the paper's, from their numbers."""
+    ours = [r for r in t["rows"] if r["method"].startswith("ago") and r["mIoU"] is not None]
+    paper = [r for r in t["rows"] if r.get("paper")]
+    if not ours or not paper:
+        return []
+    a, b = ours[0], paper[0]
+    both = [c for c in t["classes"] if a["iou"].get(c) is not None and b["iou"].get(c) is not None]
+    high_a = {c for c in both if a["iou"][c] > a["mIoU"]}
+    high_b = {c for c in both if b["iou"][c] > b["mIoU"]}
+    best_a = max(both, key=lambda c: a["iou"][c]) if both else None
+    best_b = max(both, key=lambda c: b["iou"][c]) if both else None
+    absent = [c for c in t["classes"] if a["iou"].get(c) is None]
+    return ["", f"What agrees and what does not: our mIoU is {float(a['mIoU']):.2f} against the paper's "
+                f"{b['mIoU']:.2f} ({float(a['mIoU']) - b['mIoU']:+.2f}); above its own mIoU in both rows: "
+                f"{_names([c for c in both if c in high_a & high_b])}; only in ours: "
+                f"{_names([c for c in both if c in high_a - high_b])}; only in the paper's: "
+                f"{_names([c for c in both if c in high_b - high_a])}; best class: ours {best_a}, the paper's "
+                f"{best_b}" + (f"; not in our val GT (no IoU): {_names(absent)}" if absent else "") + "."]
+
+
+def waymo_h_note(t: dict) -> list[str]:
+    """One sentence on what agrees and what does not between our Tab. H stages and the paper's, from the numbers."""
+    ours = {r["stage"]: r for r in t["rows"] if not r.get("paper")}
+    paper = {r["stage"]: r for r in t["rows"] if r.get("paper")}
+    stages = [s for s, _ in WAYMO_STAGES if s in ours and s in paper]
+    if not stages:
+        return []
+
+    def path(rows: dict, key: str) -> str:
+        return " -> ".join("–" if rows[s][key] is None else f"{float(rows[s][key]):.2f}" for s in stages)
+
+    def apart(rows: dict) -> int:
+        return sum(1 for s in stages if None not in (rows[s]["known"], rows[s]["unknown"])
+                   and rows[s]["known"] > rows[s]["unknown"])
+
+    text = (f"What agrees and what does not ({' -> '.join(stages)}): unknown mIoU ours {path(ours, 'unknown')}, "
+            f"the paper's {path(paper, 'unknown')}; known mIoU ours {path(ours, 'known')}, the paper's "
+            f"{path(paper, 'known')}; known above unknown in {apart(ours)} of our {len(stages)} stages and in "
+            f"{apart(paper)} of the paper's")
+    if "zero-shot" in stages and "few-shot" in stages:
+        z, f = ours["zero-shot"]["unknown"], ours["few-shot"]["unknown"]
+        pz, pf = paper["zero-shot"]["unknown"], paper["few-shot"]["unknown"]
+        if None not in (z, f):
+            same = (f > z) == (pf > pz)
+            spread = ""
+            if isinstance(z, SeedMean) and isinstance(f, SeedMean) and min(len(z.values), len(f.values)) > 1:
+                spread = ", above the seed spread" if _separated(f, z) else ", within the seed spread"
+            text += (f"; few-shot fine-tuning {'raises' if f > z else 'does not raise'} our unknown mIoU "
+                     f"({float(f) - float(z):+.2f}{spread}), {'as' if same else 'unlike'} the paper's "
+                     f"({pf - pz:+.2f})")
+    return ["", text + "."]
+
+
+# ---------------------------------------------------------------------------------------------
 def _md_table(header: list[str], rows: list[list]) -> list[str]:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     for r in rows:
@@ -366,6 +498,14 @@ def paper_columns(key: str) -> list[tuple[str, object]]:
                    (f"known, our split ({len(known)})", _regrouped(known)),
                    (f"unknown, our split ({len(unknown)})", _regrouped(unknown)),
                    (f"all ({len(known) + len(unknown)})", _regrouped(known + unknown))])
+    if key == "tabG_waymo_closed_world":
+        return ([("method", _num("method")), ("mIoU", _num("mIoU"))]
+                + [(c, _num(f"iou.{c}")) for c in OCC3D_WAYMO.names])
+    if key == "tabH_waymo_open_world":
+        known, unknown = waymo_h_classes()
+        return ([("stage", _num("stage")), ("method", _num("method")), ("k. mIoU", _num("known_mIoU")),
+                 ("u. mIoU", _num("unknown_mIoU")), ("mIoU", _num("mIoU"))]
+                + [(c, _num(f"iou.{c}")) for c in known + unknown])
     raise KeyError(key)
 
 
@@ -386,6 +526,10 @@ PAPER_BESIDE = {
                                             "refinements).")],
     "supp": [("supp_e_adapter_depth", "Each cell is known / unknown / mIoU, on the paper's split (see Tab. 2)."),
              ("supp_d_align_loss", "")],
+    "tabG": [("tabG_waymo_closed_world", "The paper's GO is Occ3D-Waymo's general object, its sidewalk the "
+                                         "table's walkable.")],
+    "tabH": [("tabH_waymo_open_world", "Pretraining rows score cycle whole (bicycle and motorcycle '–'), the "
+                                       "other stages bicycle and motorcycle (cycle '–'), as in our rows.")],
 }
 
 
@@ -499,6 +643,30 @@ def markdown(tables: dict, profile: ExperimentProfile, steps: dict, paper: dict 
         L += ["", "Known classes first (" + ", ".join(known) + "), then the unknown ones."]
         L += _missing(ti)
         L += paper_markdown(paper, "tabI")
+    tg = tables.get("tabG")
+    if tg is not None:
+        L += ["", f"## {tg['title']}", ""]
+        if tg["rows"]:
+            L += _md_table(["method", "mIoU", "geo IoU"] + tg["classes"],
+                           [[r["method"], r["mIoU"], r["geometry_IoU"]] + [_plain(r["iou"].get(c)) for c in tg["classes"]]
+                            for r in tg["rows"]])
+        L += waymo_g_note(tg)
+        L += _missing(tg)
+        L += paper_markdown(paper, "tabG")
+    th = tables.get("tabH")
+    if th is not None:
+        L += ["", f"## {th['title']}", ""]
+        if th["rows"]:
+            L += _md_table(["stage", "method"] + th["known"] + ["k. mIoU"] + th["unknown"] + ["u. mIoU", "mIoU"],
+                           [[r["stage"], r["method"]] + [_plain(r["iou"].get(c)) for c in th["known"]] + [r["known"]]
+                            + [_plain(r["iou"].get(c)) for c in th["unknown"]] + [r["unknown"], r["all"]]
+                            for r in th["rows"]])
+        ours = [r for r in th["rows"] if not r.get("paper")]
+        ref = [r for r in ours if r["stage"] == "zero-shot"]
+        L += spread_note(ours, "unknown", lambda r: r["stage"], ref[0], "unknown mIoU") if ref else []
+        L += waymo_h_note(th)
+        L += _missing(th)
+        L += paper_markdown(paper, "tabH")
     times = times or {}
     L += ["", "## Runs", "", "| run | optimiser steps | training wall s (its last session) | scoring wall s |",
           "|---|---|---|---|"]
@@ -687,9 +855,11 @@ def render_frames(out: Path, profile: ExperimentProfile) -> list[np.ndarray]:
 def write_report(out: str | Path, profile: ExperimentProfile) -> dict:
     out = Path(out)
     extra = read_json(out / "data_scores.json") if (out / "data_scores.json").is_file() else {}
+    paper = read_paper_tables()
     tables = {"tab1": table1(out, extra.get("pseudo_cw_val"), profile), "tab2": table2(out, profile),
               "tab3": table3(out, profile), "tab4": table4(out, profile), "tab5": table5(out, profile),
-              "supp": table_supp(out, profile), "tabI": table_i(out, profile)}
+              "supp": table_supp(out, profile), "tabI": table_i(out, profile),
+              "tabG": table_g(out, profile, paper), "tabH": table_h(out, profile, paper)}
     tables["figures"] = figures(out, profile, extra.get("gap_e3d"))
     steps = {p.parent.relative_to(out / "runs").as_posix(): read_json(p).get("steps")
              for p in sorted((out / "runs").glob("**/done.json"))} if (out / "runs").is_dir() else {}
@@ -698,7 +868,6 @@ def write_report(out: str | Path, profile: ExperimentProfile) -> dict:
         done, views = out / "runs" / name / "done.json", out / "runs" / name / "views.json"
         times[name] = {"train_s": read_json(done).get("wall_s_last_session"),
                        "eval_s": read_json(views).get("eval_s") if views.is_file() else None}
-    paper = read_paper_tables()
     md = markdown(tables, profile, steps, paper, times)
     result = {"profile": profile.to_dict(), "tables": _per_seed(tables), "steps": steps, "times": times,
               "paper": paper}

@@ -60,26 +60,30 @@ def build_backends(prompts: str, segmenter: str, masks: Path | None, embedder: s
             raise AgoInputError("--feats", "--embedder files needs --feats DIR (layout: docs/vlm_files.md)")
         emb = FileImageEmbedder(feats)
     elif embedder == "sim":
-        if space.table != "occ3d_nuscenes":
-            raise AgoInputError("--embedder", f"sim embeds Occ3D-nuScenes classes only (cw.txt), not the {space.table} "
-                                "classes of this prompt file: use --embedder none or files")
-        class_text, sky = simulated_text_embeddings()
+        class_text, sky = simulated_text_embeddings(space.table)
         emb = SimulatedImageEmbedder(class_text, SimEmbedderConfig(seed=seed), sky_text=sky)
     else:
         raise AgoInputError("--embedder", f"expected sim, files or none, got {embedder!r}")
     return space, seg, emb
 
 
-def simulated_text_embeddings():
-    """(class_text (17, 384), sky (384,)): MiniLM embeddings of cw.txt's phrases and of "sky"."""
+# the closed label space of each shipped class table, its classes in id order (the simulated embedder's texts)
+CLOSED_PROMPTS = {"occ3d_nuscenes": "cw", "occ3d_waymo": "waymo/cw_waymo"}
+
+
+def simulated_text_embeddings(table: str = "occ3d_nuscenes"):
+    """(class_text (K, 384), sky (384,)): MiniLM embeddings of the phrases of the class table's closed label space
+    (cw.txt: K = 17; waymo/cw_waymo.txt: K = 15), one row per class id, and of "sky"."""
+    from ago_runtime.classes import SHIPPED_TABLES
     from ago_runtime.vocab.bank import load_prompt_bank
+    from ago_runtime.vocab.prompts import PROMPTS_DIR
     from ago_runtime.vocab.text_encoder import default_text_encoder
 
     from .simulated import class_text_from_bank
 
     encoder = default_text_encoder()
-    bank = load_prompt_bank("cw", encoder=encoder)
-    return class_text_from_bank(bank), encoder.encode(["sky"])[0]
+    bank = load_prompt_bank(str(PROMPTS_DIR / f"{CLOSED_PROMPTS[table]}.txt"), encoder=encoder)
+    return class_text_from_bank(bank, len(SHIPPED_TABLES[table].names)), encoder.encode(["sky"])[0]
 
 
 def resolve_defaults(data: Path, segmenter: str | None, masks: Path | None, embedder: str | None,

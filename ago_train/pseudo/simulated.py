@@ -285,14 +285,16 @@ class SimEmbedderConfig:
         return d
 
 
-def class_text_from_bank(bank) -> np.ndarray:
-    """(17, C) float32: per Occ3D class 0..16 the normalised mean of its phrase embeddings in a cw.txt PromptBank."""
+def class_text_from_bank(bank, num_classes: int = NUM_SEMANTIC) -> np.ndarray:
+    """(K, C) float32: per class id 0..K-1 of a class table the normalised mean of its phrase embeddings in a
+    PromptBank of the table's closed label space in id order (cw.txt: the 17 Occ3D-nuScenes classes;
+    waymo/cw_waymo.txt: the 15 Occ3D-Waymo ones)."""
     emb = np.asarray(bank.embeddings, dtype=np.float32)
     pc = np.asarray(bank.phrase_class)
-    if len(bank.class_names) != NUM_SEMANTIC:
-        raise AgoInputError(None, f"the simulated embedder needs a bank of the 17 Occ3D classes (cw.txt), "
-                            f"got {len(bank.class_names)} classes")
-    out = np.stack([emb[pc == k].mean(axis=0) for k in range(NUM_SEMANTIC)])
+    if len(bank.class_names) != num_classes:
+        raise AgoInputError(None, f"the simulated embedder needs a bank of the table's {num_classes} classes in id "
+                            f"order (cw.txt, waymo/cw_waymo.txt), got {len(bank.class_names)} classes")
+    out = np.stack([emb[pc == k].mean(axis=0) for k in range(num_classes)])
     return out / np.linalg.norm(out, axis=1, keepdims=True)
 
 
@@ -310,8 +312,9 @@ def _fixed_rotation(dim: int, angle: float, rng: np.random.Generator) -> np.ndar
 class SimulatedImageEmbedder:
     """SIMULATION of CLIP-like dense image features on synthetic frames (see the module docstring).
 
-    class_text: (17, C) text embeddings, one per Occ3D class 0..16 (or a cw.txt PromptBank);
-    sky_text: optional (C,) embedding for sky / nothing pixels (else they carry only the offset).
+    class_text: (K, C) text embeddings, one per class id 0..K-1 of the pixels' class table (17 Occ3D-nuScenes
+    classes, 15 Occ3D-Waymo ones), or a cw.txt PromptBank; pixels of id >= K (free, sky, nothing) take
+    sky_text: an optional (C,) embedding for sky / nothing pixels (else they carry only the offset).
     """
 
     name = "simulated"
@@ -320,8 +323,9 @@ class SimulatedImageEmbedder:
         if not isinstance(class_text, np.ndarray):
             class_text = class_text_from_bank(class_text)
         t = np.asarray(class_text, dtype=np.float64)
-        if t.ndim != 2 or t.shape[0] != NUM_SEMANTIC:
-            raise ValueError(f"class_text must be (17, C), got {t.shape}")
+        if t.ndim != 2 or t.shape[0] < 2:
+            raise ValueError(f"class_text must be (K, C), one row per class, got {t.shape}")
+        self.num_classes = K = t.shape[0]
         t = t / np.linalg.norm(t, axis=1, keepdims=True)
         self.config = config or SimEmbedderConfig()
         self.class_text = t.astype(np.float32)
@@ -331,14 +335,14 @@ class SimulatedImageEmbedder:
         rot = _fixed_rotation(self.channels, np.deg2rad(cfg.rotation_deg), rng)
         # shared offset = offset_text * u + offset_other * v: u (unit) has the same cosine with every class
         # text (the least-norm solution of t @ u = 1), v (unit, random) is orthogonal to all of them
-        u = np.linalg.lstsq(t, np.ones(NUM_SEMANTIC), rcond=None)[0]
+        u = np.linalg.lstsq(t, np.ones(K), rcond=None)[0]
         u /= np.linalg.norm(u)
         v = rng.standard_normal(self.channels)
         v -= t.T @ np.linalg.lstsq(t.T, v, rcond=None)[0]
-        v = v / np.linalg.norm(v) if np.linalg.norm(v) > 1e-6 else np.zeros_like(v)  # (C <= 17: no room)
+        v = v / np.linalg.norm(v) if np.linalg.norm(v) > 1e-6 else np.zeros_like(v)  # (C <= K: no room)
         self.offset = cfg.offset_text * u + cfg.offset_other * v
         sky = np.zeros(self.channels) if sky_text is None else rot @ (sky_text / np.linalg.norm(sky_text))
-        # rows 0..16: Occ3D classes; row 17: sky / nothing
+        # rows 0..K-1: the table's classes; row K: sky / nothing
         self.pixel_embeddings = np.vstack([t @ rot.T, sky[None]]) + self.offset
         self.pixel_embeddings = self.pixel_embeddings.astype(np.float32)
 
@@ -349,12 +353,13 @@ class SimulatedImageEmbedder:
         sem, _ = _synthetic_maps(frame, camera, need_depth=False)
         cfg = self.config
         rows, cols = cfg.patch_grid
-        cls = np.where(sem < NUM_SEMANTIC, sem, NUM_SEMANTIC).astype(np.int64)
+        K = self.num_classes
+        cls = np.where(sem < K, sem, K).astype(np.int64)
         # fraction of each patch covered by each class (area pooling of one-hot maps)
-        frac = np.zeros((rows, cols, NUM_SEMANTIC + 1), dtype=np.float32)
+        frac = np.zeros((rows, cols, K + 1), dtype=np.float32)
         for k in np.unique(cls):
             frac[:, :, k] = cv2.resize((cls == k).astype(np.float32), (cols, rows), interpolation=cv2.INTER_AREA)
-        feats = frac.reshape(-1, NUM_SEMANTIC + 1) @ self.pixel_embeddings      # (rows*cols, C)
+        feats = frac.reshape(-1, K + 1) @ self.pixel_embeddings                 # (rows*cols, C)
         rng = np.random.default_rng(image_seed(frame, camera, cfg.seed))
         feats += rng.standard_normal(feats.shape).astype(np.float32) * (cfg.noise / np.sqrt(self.channels))
         feats = feats.reshape(rows, cols, self.channels)
