@@ -54,9 +54,5 @@ class Frame:
     def lidar(self) -> LidarSweep:
         return self.sweeps[0]
 
-    def image_stack(self) -> np.ndarray:
-        """(V, H, W, 3) uint8 in the rig's order (the cameras must share one image size)."""
-        return np.stack([self.images[c.name] for c in self.rig])
-
     def image_path(self, camera: str) -> Path:
         return Path(self.image_paths[camera])
