@@ -135,7 +135,9 @@ def main(argv=None) -> dict:
         lines.append(f"| pseudo-labels ({ceiling['frames']} {args.split} frames) | | {ceiling['mIoU']:.2f} | "
                      f"{ceiling['geometry_IoU']:.2f} | {ceiling['occupancy_ratio']:.2f} |" + (" | | |" if args.fresh else ""))
     last = rows[-1]
-    classes = ["car", "bus", "truck", "pedestrian", "barrier"]
+    # object classes of the run's label space (Occ3D-nuScenes' or Occ3D-Waymo's names)
+    classes = [c for c in ("car", "bus", "truck", "vehicle", "pedestrian", "bicyclist", "barrier", "sign")
+               if c in last["val"]["per_class"]]
     per = [f"{c} {last['val']['per_class'].get(c)}" for c in classes]
     per_f = [f"{c} {last['fresh']['per_class'].get(c)}" for c in classes] if args.fresh else []
     text = f"""# Learning curve: `{run}`
