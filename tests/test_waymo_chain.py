@@ -5,11 +5,7 @@
 
 from __future__ import annotations
 
-import contextlib
-import io
 import json
-import os
-from collections import namedtuple
 from pathlib import Path
 
 import numpy as np
@@ -20,55 +16,29 @@ pytest.importorskip("torch")
 from ago_runtime.classes import OCC3D_WAYMO  # noqa: E402
 from ago_runtime.formats.datasets import open_dataset  # noqa: E402
 from ago_train.synth.rigs import WAYMO_CAMERAS  # noqa: E402
+from test_bad_inputs import assert_one_error_line, run_ago  # noqa: E402
 
 PROMPTS = "waymo/cw_waymo"          # the shipped closed Occ3D-Waymo label space (15 classes, Tab. G)
 WAYMO_NAMES = list(OCC3D_WAYMO.names)
-Result = namedtuple("Result", "code stdout stderr")
 
 
-def ago(args, cwd: Path) -> Result:
-    """`ago ARGS` in-process in `cwd` -> (exit code, stdout, stderr)."""
-    from ago_runtime.cli import run
-
-    out, err = io.StringIO(), io.StringIO()
-    old = os.getcwd()
-    try:
-        os.chdir(cwd)
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            try:
-                code = run([str(a) for a in args])
-            except SystemExit as e:
-                code = e.code if isinstance(e.code, int) else 1
-    finally:
-        os.chdir(old)
-    return Result(code or 0, out.getvalue(), err.getvalue())
-
-
-def ok(r: Result) -> Result:
+def ok(r):
     assert r.code == 0, f"exit {r.code}\nstdout: {r.stdout[-3000:]}\nstderr: {r.stderr[-3000:]}"
     return r
-
-
-def one_error(r: Result, *needles: str) -> str:
-    lines = [ln for ln in r.stderr.splitlines() if ln.strip() and not ln.startswith("note:")]
-    assert r.code == 2 and len(lines) == 1 and lines[0].startswith("error: "), r
-    for n in needles:
-        assert n in lines[0], (n, lines[0])
-    return lines[0]
 
 
 @pytest.fixture(scope="module")
 def chain(tmp_path_factory) -> Path:
     d = tmp_path_factory.mktemp("waymo_chain")
-    ok(ago(["synth", "--rig", "waymo", "--out", "w", "--scenes", "2", "--frames", "3", "--image-size", "192x128",
+    ok(run_ago(["synth", "--rig", "waymo", "--out", "w", "--scenes", "2", "--frames", "3", "--image-size", "192x128",
             "--grid", "40x40x4", "--seed", "5"], d))
-    ok(ago(["pseudo-labels", "--data", "w", "--prompts", PROMPTS, "--out", "pl", "--grid", "20x20x4"], d))
-    ok(ago(["train", "--config", "tiny", "--data", "w", "--pseudo", "pl", "--prompts", PROMPTS, "--out", "run",
+    ok(run_ago(["pseudo-labels", "--data", "w", "--prompts", PROMPTS, "--out", "pl", "--grid", "20x20x4"], d))
+    ok(run_ago(["train", "--config", "tiny", "--data", "w", "--pseudo", "pl", "--prompts", PROMPTS, "--out", "run",
             "--set", "epochs=2"], d))
-    ok(ago(["eval", "--ckpt", "run/last.pt", "--data", "w", "--split", "val", "--out", "ev"], d))
-    ok(ago(["export", "run/last.pt", "-o", "bundle", "--parity-frame", "w"], d))
-    ok(ago(["infer", "--images", "w", "--bundle", "bundle", "--out", "pred"], d))
-    ok(ago(["metric", "--pred", "pred", "--gt", "w", "--prompts", PROMPTS, "--json", "m.json"], d))
+    ok(run_ago(["eval", "--ckpt", "run/last.pt", "--data", "w", "--split", "val", "--out", "ev"], d))
+    ok(run_ago(["export", "run/last.pt", "-o", "bundle", "--parity-frame", "w"], d))
+    ok(run_ago(["infer", "--images", "w", "--bundle", "bundle", "--out", "pred"], d))
+    ok(run_ago(["metric", "--pred", "pred", "--gt", "w", "--prompts", PROMPTS, "--json", "m.json"], d))
     return d
 
 
@@ -130,11 +100,11 @@ def test_infer_and_metric_on_the_waymo_layout(chain):
 
 
 def test_the_chain_refuses_a_label_space_of_another_table(chain):
-    one_error(ago(["pseudo-labels", "--data", "w", "--prompts", "cw", "--out", "bad"], chain), "--prompts",
+    assert_one_error_line(run_ago(["pseudo-labels", "--data", "w", "--prompts", "cw", "--out", "bad"], chain), "--prompts",
               "occ3d_waymo")
     assert not (chain / "bad").exists()
-    one_error(ago(["metric", "--pred", "pred", "--gt", "w"], chain), "occ3d_waymo", "--prompts")
-    one_error(ago(["eval", "--ckpt", "run/last.pt", "--data", "w", "--prompts", "cw"], chain), "occ3d_waymo")
+    assert_one_error_line(run_ago(["metric", "--pred", "pred", "--gt", "w"], chain), "occ3d_waymo", "--prompts")
+    assert_one_error_line(run_ago(["eval", "--ckpt", "run/last.pt", "--data", "w", "--prompts", "cw"], chain), "occ3d_waymo")
 
 
 def test_seen_gt_mixes_the_waymo_ground_truth_in(chain):
@@ -146,7 +116,7 @@ def test_seen_gt_mixes_the_waymo_ground_truth_in(chain):
     lines = [ln for ln in src.splitlines() if not ln.startswith("@known")]
     at = max(i for i, ln in enumerate(lines) if ln.startswith("@")) + 1
     text.write_text("\n".join(lines[:at] + ["@known: vehicle, road"] + lines[at:]) + "\n", encoding="utf-8")
-    ok(ago(["seen-gt", "--data", "w", "--pseudo", "pl", "--prompts", text, "--out", "pl_seen"], chain))
+    ok(run_ago(["seen-gt", "--data", "w", "--pseudo", "pl", "--prompts", text, "--out", "pl_seen"], chain))
     meta = json.loads((chain / "pl_seen" / "meta.json").read_text())
     assert sorted(meta["seen_gt"]["seen"]) == ["road", "vehicle"]
     assert len(list((chain / "pl_seen").rglob("labels.npz"))) == len(list((chain / "pl").rglob("labels.npz"))) > 0
