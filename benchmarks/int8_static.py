@@ -279,23 +279,13 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=None, help="markdown file to write")
     args = ap.parse_args()
     if args.paper_scale:
-        text = paper_scale(args)
-        if args.out:
-            from ago_runtime.atomic import write_text
-
-            write_text(args.out, text)
-        print(text)
+        emit(paper_scale(args), args.out)
         return
     if args.data is None:
         ap.error("--data is required (or --paper-scale)")
     args.bundle = args.bundle or REPO / "ago_runtime" / "assets" / "default_bundle"
     if args.sweep:
-        text = sweep(args)
-        if args.out:
-            from ago_runtime.atomic import write_text
-
-            write_text(args.out, text)
-        print(text)
+        emit(sweep(args), args.out)
         return
     from ago_export.calibration_frames import planes_feeds, read_frames
     from ago_runtime.classes import FREE, IGNORE
@@ -397,11 +387,15 @@ def main() -> None:
     L.append("Ratios against fp32 (wall; >1 = faster): " + "; ".join(
         f"{v}: planes {pl['fp32'][0] / pl[v][0]:.2f}x, frame {fr['fp32'][0] / fr[v][0]:.2f}x, "
         f"mIoU {miou[v] - miou['fp32']:+.2f} points" for v in VARIANTS[1:]) + ".")
-    text = "\n".join(L) + "\n"
-    if args.out:
+    emit("\n".join(L) + "\n", args.out)
+
+
+def emit(text: str, out: Path | None) -> None:
+    """Print the markdown and, with --out, write it (atomically)."""
+    if out:
         from ago_runtime.atomic import write_text
 
-        write_text(args.out, text)
+        write_text(out, text)
     print(text)
 
 
