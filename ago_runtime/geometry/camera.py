@@ -110,6 +110,18 @@ class Camera:
         return cls(d["name"], np.array(d["intrinsics"]), np.array(d["cam2ego"]), int(d["width"]), int(d["height"]))
 
 
+def check_camera_names(have, wanted, source=None, whose: str = "model's") -> None:
+    """Refuse cameras `have` that are not exactly `wanted` (a model's or bundle's rig, any order), naming the first
+    camera that differs: one the rig takes and `have` lacks, then one `have` has and the rig does not."""
+    have, wanted = list(have), list(wanted)
+    for n in wanted:
+        if n not in have:
+            raise AgoInputError(source, f"camera {n}: the {whose} rig takes it and it is missing here")
+    for n in have:
+        if n not in wanted:
+            raise AgoInputError(source, f"camera {n}: not a camera of the {whose} rig ({', '.join(wanted)})")
+
+
 @dataclass
 class Rig:
     """The cameras of one vehicle, in the order the model takes them: 1..MAX_CAMERAS cameras with distinct
@@ -136,15 +148,9 @@ class Rig:
 
     def ordered_as(self, names, source=None) -> "Rig":
         """The same cameras in the order `names` gives (the rig a model was trained for); a camera missing here
-        or one that `names` does not list is refused, naming it."""
+        or one that `names` does not list is refused, naming it (`check_camera_names`)."""
         names = list(names)
-        have = self.names
-        for n in names:
-            if n not in have:
-                raise AgoInputError(source, f"camera {n}: the model's rig takes it and it is missing here")
-        for n in have:
-            if n not in names:
-                raise AgoInputError(source, f"camera {n}: not a camera of the model's rig ({', '.join(names)})")
+        check_camera_names(self.names, names, source, whose="model's")
         return Rig([self[n] for n in names])
 
     def __getitem__(self, name: str) -> Camera:

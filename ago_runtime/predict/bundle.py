@@ -159,9 +159,7 @@ class Bundle:
             raise AgoInputError(meta_path, f"bundle metadata incomplete or malformed ({e.__class__.__name__}: {e})") from None
         _check_meta_sizes(contract, grid, meta_path)
         rig.validate(str(meta_path))
-        if sorted(contract.rig.names) != sorted(rig.names):
-            raise AgoInputError(meta_path, f"rig cameras {contract.rig.names} differ from the training rig's")
-        rig = rig.ordered_as(contract.rig.names, meta_path)
+        rig = rig.ordered_as(contract.rig.names, meta_path)   # the training rig's cameras are the rig section's
         for key, entry in contract.files.items():
             p = inside_root(root, entry.path, meta_path, f"bundle file {key!r}")
             if not p.is_file():

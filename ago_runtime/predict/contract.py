@@ -27,6 +27,7 @@ from dataclasses import asdict, dataclass, field
 from enum import Enum
 
 from ago_runtime.errors import AgoInputError
+from ago_runtime.geometry.camera import check_camera_names
 from ago_runtime.vocab.text_encoder import file_sha256
 
 __all__ = ["BUNDLE_FORMAT", "BUNDLE_FORMAT_VERSION", "BUNDLE_JSON", "Identifier", "Branch", "FileEntry",
@@ -156,13 +157,7 @@ class RigSpec:
 
     def check_cameras(self, names, source=None) -> None:
         """Refuse a frame whose cameras are not exactly this rig's, naming the first camera that differs."""
-        names = list(names)
-        for c in self.names:
-            if c not in names:
-                raise AgoInputError(source, f"camera {c}: the bundle's rig takes it and the frame has none")
-        for c in names:
-            if c not in self.names:
-                raise AgoInputError(source, f"camera {c}: not a camera of the bundle's rig ({', '.join(self.names)})")
+        check_camera_names(names, self.names, source, whose="bundle's")
 
     def to_dict(self) -> dict:
         return {"cameras": [asdict(c) for c in self.cameras]}

@@ -124,8 +124,7 @@ def prepare_inputs(bundle: Bundle, images: dict[str, np.ndarray], rig: Rig, sour
     float32 (needs the bundle only, no sessions: `ago infer` reads its first frame while they open). A frame
     whose cameras are not the bundle's rig's is refused, naming the camera."""
     bundle.contract.rig.check_cameras(images.keys(), source)
-    bundle.contract.rig.check_cameras([c.name for c in rig.cameras], source)
-    rig = rig.ordered_as(bundle.contract.rig.names, source)   # the model's camera order
+    rig = rig.ordered_as(bundle.contract.rig.names, source)   # the model's camera order (refuses another rig)
     rig.validate(source)
     rig = fit_rig_to_images(rig, images)
     pre = bundle.preprocess
