@@ -191,8 +191,8 @@ class OccSampleDataset(torch.utils.data.Dataset):
         item = dict(base)
         if self.feature_cache is not None:   # the cache keeps its own in-memory copy of recent frames
             item["prefix"] = [torch.from_numpy(m) for m in
-                              self.feature_cache.frame_prefix(base["_image_paths"], self.rig_of(self.frames[i]),
-                                                             base["_source"], flip=t.flip_y)]
+                              self.feature_cache.frame_prefix(base["_image_paths"], base["_rig"], base["_source"],
+                                                             flip=t.flip_y)]
         if t.identity:
             return item
         shape = tuple(self.grid.shape)
@@ -223,6 +223,7 @@ class OccSampleDataset(torch.utils.data.Dataset):
             "token": frame.token,
             "scene": frame.scene,
             "_image_paths": dict(frame.image_paths),
+            "_rig": rig,   # in the model's camera order (the cached prefix is read with it, no frame re-read)
             "_source": source,
         }
         if self.feature_cache is None:
