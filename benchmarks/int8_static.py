@@ -292,7 +292,7 @@ def main() -> None:
     from ago_runtime.formats.nuscenes import NuScenesDataset
     from ago_runtime.predict.bundle import Bundle
     from ago_runtime.predict.predictor import Predictor
-    from ago_runtime.scoring.metric import OccupancyMetric, upsample_nearest
+    from ago_runtime.scoring.metric import OccupancyMetric, to_gt_resolution
 
     load_start = " ".join(f"{x:.2f}" for x in os.getloadavg())
     started = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
@@ -336,10 +336,8 @@ def main() -> None:
                 agree[v] += int((labels[v] == labels["fp32"]).sum())
             n_vox += labels["fp32"].size
             gt = lut[f.gt.semantics]
-            factors = tuple(int(round(g / s)) for g, s in zip(gt.shape, labels["fp32"].shape))
             for v, lab in labels.items():
-                metrics[v].update(upsample_nearest(lab, factors) if factors != (1, 1, 1) else lab, gt,
-                                  f.gt.mask_camera)
+                metrics[v].update(to_gt_resolution(lab, gt.shape, f.token), gt, f.gt.mask_camera)
         # speed: one frame, rounds alternating between the variants
         f = ds[indices[0]]
         x, m = preds["fp32"].prepare(f.images, f.rig)
