@@ -46,7 +46,7 @@ from ago_runtime.predict.contract import (BUNDLE_FORMAT, BUNDLE_FORMAT_VERSION, 
                                           TextEncoderSpec, VoxelStageSpec, file_sha256)
 from ago_runtime.predict.encoder import SplitEncoder, StageGraph
 from ago_runtime.predict.heads import HeadWeights
-from ago_runtime.vocab.prompts import LabelSpace, parse_prompt_text, shipped_label_spaces
+from ago_runtime.vocab.prompts import LabelSpace, label_space_from_record, shipped_label_spaces
 
 from .card import write_card
 from .graphs import PlanesGraph, VoxelStageGraph, voxel_stages
@@ -150,17 +150,6 @@ def open_split_encoder(root: Path, files: dict[str, str], specs: list[VoxelStage
 
 
 # ---- label space and banks -----------------------------------------------------------------
-def label_space_of(ckpt: dict, source) -> LabelSpace:
-    ls = ckpt["label_space"]
-    try:
-        space = parse_prompt_text(ls["prompt_text"], name=ls.get("name"), source=f"{source} (label_space)")
-    except KeyError:
-        raise AgoInputError(source, "checkpoint label_space has no prompt_text") from None
-    if list(space.class_names) != list(ls.get("class_names", space.class_names)):
-        raise AgoInputError(source, "checkpoint label_space class names disagree with its prompt text")
-    return space
-
-
 def train_bank(ckpt: dict, space: LabelSpace, source) -> PromptBank:
     b = ckpt["bank"]
     emb = b["embeddings"].detach().cpu().numpy().astype(np.float32)
@@ -174,13 +163,13 @@ def train_bank(ckpt: dict, space: LabelSpace, source) -> PromptBank:
         encoder_id=str(b["encoder_id"]), encoder_variant=str(b.get("encoder_variant", "checkpoint")),
         encoder_hash=str(b["encoder_hash"]), dim=int(emb.shape[1]), source_hash=space.sha256,
         label_space=space.name, known=[c for c in space.class_names if c in space.known],
-        occ3d_ids=[c.occ3d_ids for c in space.classes], class_table=space.table)
+        occ3d_ids=[c.occ3d_ids for c in space.classes], class_table=space.class_table)
 
 
 def label_space_spec(space: LabelSpace) -> LabelSpaceSpec:
     return LabelSpaceSpec(space.name, space.sha256,
                           [LabelClass(c.name, [int(i) for i in c.occ3d_ids], c.name in space.known, list(c.phrases))
-                           for c in space.classes], space.table)
+                           for c in space.classes], space.class_table)
 
 
 # ---- parity frame --------------------------------------------------------------------------
@@ -255,7 +244,7 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
     """
     checkpoint, out = Path(checkpoint), Path(out)
     model, ckpt, cfg = load_model(checkpoint)
-    space = label_space_of(ckpt, checkpoint)
+    space = label_space_from_record(ckpt.get("label_space"), checkpoint)
     bank = train_bank(ckpt, space, checkpoint)
     heads = head_weights(model, ckpt.get("calibration"))
     if heads.embed_dim != bank.dim:

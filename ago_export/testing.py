@@ -18,7 +18,7 @@ def random_checkpoint(path: str | Path, config="tiny", prompts: str = "cw", seed
     import torch
 
     from ago_runtime.vocab.bank import load_prompt_bank
-    from ago_runtime.vocab.prompts import parse_prompt_file
+    from ago_runtime.vocab.prompts import label_space_record, parse_prompt_file
     from ago_train.checkpoint import save_checkpoint
     from ago_train.model import ModelConfig
 
@@ -35,9 +35,7 @@ def random_checkpoint(path: str | Path, config="tiny", prompts: str = "cw", seed
     return save_checkpoint(path, {
         **extra,
         "model": model.state_dict(), "model_config": config.to_dict(), "step": 0, "epoch": 0,
-        "label_space": {"name": space.name, "prompt_text": Path(space.source).read_text(encoding="utf-8"),
-                        "class_names": list(space.class_names), "num_classes": space.num_classes,
-                        "known": sorted(space.known)},
+        "label_space": label_space_record(space, Path(space.source).read_text(encoding="utf-8")),
         "bank": {"encoder_id": bank.encoder_id, "encoder_hash": bank.encoder_hash,
                  "embeddings": torch.from_numpy(bank.embeddings), "phrase_class": torch.from_numpy(bank.phrase_class),
                  "class_names": list(bank.class_names)},

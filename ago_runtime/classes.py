@@ -27,6 +27,10 @@ Shipped: `OCC3D_NUSCENES` (the ids and colours of `ago_runtime.classes`, unchang
 ("color" and "free_color" are optional: a class without one gets a distinct hue from a fixed series,
 free gets light grey.) Reading is bounded (MAX_TABLE_BYTES, MAX_CLASSES) and every problem is one
 AgoInputError naming the file.
+
+Where a table comes from: a dataset folder's `class_table.json` (TABLE_FILE), else its layout's; a prompt file's
+`@table:` line (a shipped name or a JSON file). Banks, checkpoints and bundles record it with `table_ref` (a
+shipped table by name, any other as its JSON form) and read it back with `table_from_ref`.
 """
 
 from __future__ import annotations
@@ -211,6 +215,11 @@ class ClassTable:
         """True when file ids already are the dense order (Occ3D-nuScenes)."""
         return self.ids == tuple(range(self.num_classes)) and self.free_id == self.num_classes
 
+    def dense(self) -> "ClassTable":
+        """This table in its dense order (ids 0..K-1, free K): the table of a prediction file's `semantics`."""
+        return ClassTable(self.name, self.names, tuple(range(self.num_classes)), self.free_index, self.colors,
+                          self.ignore_ids)
+
     # ---- by file id -------------------------------------------------------------------------------
     def palette_by_id(self) -> np.ndarray:
         """(max id + 1, 3) uint8 RGB indexed by the file label value (free included); unnamed values grey."""
@@ -273,9 +282,13 @@ class ClassTable:
         if not isinstance(name, str) or not name.strip() or len(name) > 100:
             raise AgoInputError(where, "'name' must be a text of 1..100 characters")
         try:
-            return cls(name.strip(), tuple(names), tuple(ids), d["free_id"], tuple(colors), tuple(ignore))
+            table = cls(name.strip(), tuple(names), tuple(ids), d["free_id"], tuple(colors), tuple(ignore))
         except ValueError as e:
             raise AgoInputError(where, str(e).split(": ", 1)[-1]) from None
+        if table.name in SHIPPED_TABLES and SHIPPED_TABLES[table.name] != table:
+            raise AgoInputError(where, f"'name' {table.name!r} is a shipped table's and this table differs from it: "
+                                "give yours another name")
+        return table
 
 
 def _is_int(v) -> bool:
@@ -319,14 +332,38 @@ OCC3D_WAYMO = ClassTable(
     (IGNORE,))
 
 SHIPPED_TABLES = {t.name: t for t in (OCC3D_NUSCENES, OCC3D_WAYMO)}
+TABLE_FILE = "class_table.json"   # a dataset root's own class table (formats.datasets.dataset_class_table)
 
 
-def load_class_table(name_or_path: str | Path) -> ClassTable:
-    """A shipped table by name ("occ3d_nuscenes", "occ3d_waymo"; hyphens allowed) or a JSON file (see the module docstring)."""
+def shipped_name(table: ClassTable) -> str | None:
+    """The shipped name of `table` when it is one of SHIPPED_TABLES (same content), else None."""
+    return table.name if SHIPPED_TABLES.get(table.name) == table else None
+
+
+def table_ref(table: ClassTable) -> str | dict:
+    """How banks and bundles record a class table: a shipped table by its name, any other by its JSON form."""
+    return shipped_name(table) or table.to_dict()
+
+
+def table_from_ref(ref, source: str | Path | None = None) -> ClassTable:
+    """The inverse of `table_ref` (a shipped name or a table's JSON form); AgoInputError naming `source`."""
+    if isinstance(ref, str):
+        if ref not in SHIPPED_TABLES:
+            raise AgoInputError(source, f"class table {ref!r} is not a shipped one ({', '.join(SHIPPED_TABLES)}) "
+                                "and its definition is not recorded")
+        return SHIPPED_TABLES[ref]
+    return ClassTable.from_dict(ref, source=source)
+
+
+def load_class_table(name_or_path: str | Path, relative_to: str | Path | None = None) -> ClassTable:
+    """A shipped table by name ("occ3d_nuscenes", "occ3d_waymo"; hyphens allowed) or a JSON file (see the module
+    docstring); a relative path is taken from the folder `relative_to` when given (a prompt file's folder)."""
     key = name_key(str(name_or_path))
-    if key in SHIPPED_TABLES and not Path(name_or_path).is_file():
-        return SHIPPED_TABLES[key]
     path = Path(name_or_path)
+    if relative_to is not None and not path.is_absolute():
+        path = Path(relative_to) / path
+    if key in SHIPPED_TABLES and not path.is_file():
+        return SHIPPED_TABLES[key]
     if not path.is_file():
         raise AgoInputError(path, f"class table not found (shipped: {', '.join(SHIPPED_TABLES)})")
     size = path.stat().st_size

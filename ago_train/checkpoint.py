@@ -7,7 +7,8 @@ A checkpoint holds ONLY tensors and plain python values (dict, list, str, int, f
 - "step", "epoch": optimiser steps done, epochs started
 - "rng": {"torch": uint8 tensor, "cuda": [uint8 tensors], "numpy": {...tensor + ints}, "python": [...]}
 - "model_config", "train_config", "loss_config": dicts
-- "label_space": {"name", "prompt_text", "class_names", "num_classes"}
+- "label_space": {"name", "prompt_file", "prompt_text", "class_names", "num_classes", "known"[, "class_table"]}
+  (`ago_runtime.vocab.prompts.label_space_record`; "class_table" when not Occ3D-nuScenes: a shipped name or the table)
 - "bank": {"encoder_id", "encoder_hash", "embeddings" (P, C) float32, "phrase_class" (P,) int64,
   "class_names", "encoder_variant"}: the label-space text embeddings, so export/eval need no text encoder
 - "preprocess": Preprocess.to_dict(); "rig": the first training frame's Rig.to_dict() (native size).

@@ -29,7 +29,7 @@ from ago_runtime.formats.datasets import check_label_table
 from ago_runtime.scoring.metric import OccupancyMetric, upsample_nearest
 from ago_runtime.geometry.preprocess import Preprocess
 from ago_runtime.predict.contract import Identifier
-from ago_runtime.vocab.prompts import LabelSpace, parse_prompt_file, parse_prompt_text
+from ago_runtime.vocab.prompts import LabelSpace, label_space_from_record, parse_prompt_file
 
 from .checkpoint import checkpoint_camera_names, load_checkpoint
 from .dataset import FrameList, OccSampleDataset, collate
@@ -54,9 +54,8 @@ def load_model(ckpt: dict, device: torch.device, path: str | Path | None = None)
     return cfg, model.to(device).eval()
 
 
-def checkpoint_label_space(ckpt: dict) -> LabelSpace:
-    rec = ckpt["label_space"]
-    return parse_prompt_text(rec["prompt_text"], name=rec.get("name"), source=rec.get("prompt_file"))
+def checkpoint_label_space(ckpt: dict, source="checkpoint") -> LabelSpace:
+    return label_space_from_record(ckpt.get("label_space"), source)
 
 
 def bank_for(ckpt: dict, label_space: LabelSpace) -> tuple[torch.Tensor, torch.Tensor]:

@@ -33,7 +33,7 @@ from ago_runtime.atomic import write_text
 from ago_runtime.errors import AgoInputError
 from ago_runtime.formats.datasets import check_label_table
 from ago_runtime.geometry.preprocess import Preprocess
-from ago_runtime.vocab.prompts import LabelSpace, parse_prompt_file
+from ago_runtime.vocab.prompts import LabelSpace, label_space_record, parse_prompt_file
 
 from . import distributed as D
 from .checkpoint import (check_resume_model, load_checkpoint, load_model_weights, plain, rng_state,
@@ -83,17 +83,6 @@ def bank_to_dict(bank) -> dict:
         "embeddings": torch.as_tensor(np.asarray(bank.embeddings, dtype=np.float32)),
         "phrase_class": torch.as_tensor(np.asarray(bank.phrase_class, dtype=np.int64)),
         "class_names": [str(c) for c in bank.class_names],
-    }
-
-
-def label_space_record(label_space: LabelSpace, prompt_path: Path) -> dict:
-    return {
-        "name": label_space.name,
-        "prompt_file": str(prompt_path),
-        "prompt_text": Path(prompt_path).read_text(encoding="utf-8"),
-        "class_names": list(label_space.class_names),
-        "num_classes": int(label_space.num_classes),
-        "known": sorted(label_space.known),
     }
 
 
@@ -381,7 +370,7 @@ class Trainer:
             "model_config": plain(cfg.model.to_dict()),
             "train_config": plain(cfg.to_dict()),
             "loss_config": plain(cfg.to_dict()["loss"]),
-            "label_space": label_space_record(self.label_space, self.prompt_path),
+            "label_space": label_space_record(self.label_space, Path(self.prompt_path).read_text(encoding="utf-8")),
             "bank": self.bank,
             "preprocess": plain(self.preprocess.to_dict()),
             "rig": self.rig_record,

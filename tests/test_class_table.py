@@ -324,9 +324,9 @@ def test_a_waymo_prompt_bank_carries_its_table_to_the_prediction_files(tmp_path)
             return v / np.linalg.norm(v, axis=1, keepdims=True)
 
     bank = build_bank(space, Enc())
-    assert bank.class_table == "occ3d_waymo"
+    assert bank.class_table == OCC3D_WAYMO
     back = PromptBank.load(bank.save(tmp_path / "w.npz"))
-    assert back.class_table == "occ3d_waymo"
+    assert back.class_table == OCC3D_WAYMO and json.loads(str(np.load(tmp_path / "w.npz")["meta"][0]))["class_table"] == "occ3d_waymo"
     lut = occ3d_lookup(back)
     assert lut[-1] == OCC3D_WAYMO.free_index == 15
     k = back.class_names.index("sidewalk")

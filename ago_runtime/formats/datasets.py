@@ -5,7 +5,8 @@
 - anything else: one AgoInputError naming the folder and both layouts.
 
 Both readers give `Frame`s and the same interface (len, [i], sample_tokens, scene_of, split, ...), and
-`class_table`: the class table their ground truth's ids belong to. `check_label_table(ds, space, option)`
+`class_table`: the class table their ground truth's ids belong to: the layout's (Occ3D-nuScenes, Occ3D-Waymo), or
+the folder's own `class_table.json` when it has one (`dataset_class_table`). `check_label_table(ds, space, option)`
 refuses a label space of another table (a nuScenes prompt file on Occ3D-Waymo data, or the reverse).
 """
 
@@ -54,9 +55,33 @@ def open_dataset(root: str | Path, gts_root: str | Path | None = None, load_imag
     raise AgoInputError(root, f"not a dataset root: expected {LAYOUTS}")
 
 
+def dataset_class_table(root: str | Path, default):
+    """The class table of the labels a dataset folder holds: its own `class_table.json` (`classes.TABLE_FILE`, a
+    class-table JSON file: `classes.load_class_table`) when it has one, else the layout's `default`."""
+    from ago_runtime.classes import TABLE_FILE, load_class_table
+
+    path = Path(root) / TABLE_FILE
+    return load_class_table(path) if path.is_file() else default
+
+
+def gt_folder_class_table(gt_root: str | Path):
+    """The class table a ground-truth folder declares: `class_table.json` in it or in the dataset folder holding it
+    (`<root>/gts`), else None (the files' layout says: Occ3D-nuScenes or Occ3D-Waymo)."""
+    for folder in (Path(gt_root), Path(gt_root).parent):
+        table = dataset_class_table(folder, None)
+        if table is not None:
+            return table
+    return None
+
+
 def check_label_table(ds, space, option: str = "--prompts") -> None:
     """AgoInputError naming `option` unless the label space `space` (a LabelSpace) indexes the class table
     of the dataset `ds`'s ground truth and synthetic maps."""
-    if space.table != ds.class_table.name:
-        raise AgoInputError(option, f"the prompt file's classes are {space.table} ones (@table) but {ds.root} holds "
-                            f"{ds.class_table.name} labels: use a prompt file with '@table: {ds.class_table.name}'")
+    from ago_runtime.classes import TABLE_FILE, shipped_name
+
+    if space.class_table != ds.class_table:
+        have = ds.class_table
+        use = shipped_name(have) or f"<the path of {Path(ds.root) / TABLE_FILE}>"
+        same_name = " (a table of the same name but other content)" if have.name == space.table else ""
+        raise AgoInputError(option, f"the prompt file's classes are {space.table} ones (@table){same_name} but "
+                            f"{ds.root} holds {have.name} labels: use a prompt file with '@table: {use}'")

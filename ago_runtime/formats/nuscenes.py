@@ -49,6 +49,7 @@ import numpy as np
 from ago_runtime.classes import OCC3D_NUSCENES
 from ago_runtime.geometry.camera import CAMERA_NAMES, Camera, Rig
 from ago_runtime.errors import AgoInputError
+from ago_runtime.formats.datasets import dataset_class_table
 from ago_runtime.formats.image_files import decode_image
 from ago_runtime.readers import max_array_bytes, read_json
 from ago_runtime.formats.frame import Frame, LidarSweep
@@ -136,12 +137,13 @@ def find_version(root: Path) -> str:
 class NuScenesDataset:
     """Indexable keyframes of a nuScenes-format dataset, ordered by scene name, then timestamp."""
 
-    class_table = OCC3D_NUSCENES   # the ids of its ground truth and synthetic maps (formats.datasets.check_label_table)
+    class_table = OCC3D_NUSCENES   # the layout's ids of ground truth and synthetic maps; a folder's class_table.json overrides it
 
     def __init__(self, root: str | Path, version: str | None = None, gts_root: str | Path | None = None,
                  load_images: bool = True, load_extras: bool = True, num_sweeps: int = 0,
                  grid: Grid | None = None, compensate_ego_motion: bool = True, allow_outside_root: bool = False):
         self.root = Path(root)
+        self.class_table = dataset_class_table(self.root, OCC3D_NUSCENES)   # the folder's class_table.json, if any
         self.allow_outside_root = allow_outside_root   # file names leaving the root (ago_runtime.paths)
         if not self.root.is_dir():
             raise AgoInputError(self.root, "dataset folder not found")

@@ -36,6 +36,7 @@ import numpy as np
 
 from ago_runtime.classes import OCC3D_WAYMO
 from ago_runtime.errors import AgoInputError
+from ago_runtime.formats.datasets import dataset_class_table
 from ago_runtime.formats.frame import Frame, LidarSweep
 from ago_runtime.formats.nuscenes import default_split_positions, read_jpeg_rgb, read_lidar_bin
 from ago_runtime.formats.nuscenes_schema import check_rigid
@@ -78,6 +79,7 @@ class Occ3DWaymoDataset:
                  load_extras: bool = True, num_sweeps: int = 0, grid: Grid | None = None,
                  allow_outside_root: bool = False):
         self.root = Path(root)
+        self.class_table = dataset_class_table(self.root, OCC3D_WAYMO)   # the folder's class_table.json, if any
         if not self.root.is_dir():
             raise AgoInputError(self.root, "dataset folder not found")
         self.gts_root = Path(gts_root) if gts_root is not None else self.root

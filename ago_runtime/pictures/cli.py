@@ -90,7 +90,27 @@ def _load_grid(path: Path) -> tuple[np.ndarray, np.ndarray | None, ClassTable | 
         labels, table = load_ground_truth(path)
         return labels.semantics, labels.mask_camera.astype(bool), table
     sem, mask = load_semantics(path)
-    return sem, mask, None
+    return sem, mask, prediction_table(path)
+
+
+def prediction_table(path: Path) -> ClassTable | None:
+    """The class table of an `ago infer` file written in another table than Occ3D-nuScenes (keys class_table,
+    class_names, class_colors: its dense order, free last), else None."""
+    from ago_runtime.errors import AgoInputError
+
+    if not path.is_file():
+        return None
+    with np.load(path, allow_pickle=False) as z:
+        if not {"class_table", "class_names", "class_colors"} <= set(z.files):
+            return None
+        name, names, colors = str(z["class_table"]), [str(c) for c in z["class_names"]], z["class_colors"]
+    if names[-1:] != ["free"] or colors.shape != (len(names), 3):
+        raise AgoInputError(path, "class_names must end with 'free' and class_colors give one RGB per name")
+    try:
+        return ClassTable(name, tuple(names[:-1]), tuple(range(len(names) - 1)), len(names) - 1,
+                          tuple(tuple(int(c) for c in row) for row in colors))
+    except ValueError as e:
+        raise AgoInputError(path, str(e)) from None
 
 
 def _rig_picture(root: Path, sample: str | None, index: int | None) -> np.ndarray:

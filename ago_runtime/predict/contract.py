@@ -26,6 +26,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 from enum import Enum
 
+from ago_runtime.classes import OCC3D_NUSCENES, ClassTable, table_from_ref, table_ref
 from ago_runtime.errors import AgoInputError
 from ago_runtime.geometry.camera import check_camera_names
 from ago_runtime.vocab.text_encoder import file_sha256
@@ -210,7 +211,7 @@ class LabelSpaceSpec:
     name: str | None
     sha256: str
     classes: list[LabelClass]
-    table: str = "occ3d_nuscenes"   # the class table the classes' occ3d_ids index (ago_runtime.classes)
+    table: ClassTable = OCC3D_NUSCENES   # the class table the classes' occ3d_ids index (ago_runtime.classes)
 
     @property
     def class_names(self) -> list[str]:
@@ -218,8 +219,9 @@ class LabelSpaceSpec:
 
     def to_dict(self) -> dict:
         d = asdict(self)
-        if self.table == "occ3d_nuscenes":   # (bundles of Occ3D-nuScenes label spaces stay as they were)
-            del d["table"]
+        del d["table"]
+        if self.table != OCC3D_NUSCENES:   # (bundles of Occ3D-nuScenes label spaces stay as they were)
+            d["table"] = table_ref(self.table)   # a shipped table's name, or the table itself
         return d
 
     @classmethod
@@ -231,11 +233,14 @@ class LabelSpaceSpec:
             raise ValueError(f"label_space.classes must list 1 to {MAX_INFER_CLASSES} classes")
         out = [LabelClass(_need(c, "name", str, "label_space.classes"), [int(i) for i in c.get("occ3d_ids", [])],
                           bool(c.get("known", True)), [str(p) for p in c.get("phrases", [])]) for c in classes]
-        from ago_runtime.classes import SHIPPED_TABLES
-
-        table = str(d.get("table", "occ3d_nuscenes"))
-        if table not in SHIPPED_TABLES:
-            raise ValueError(f"label_space.table must be one of {', '.join(SHIPPED_TABLES)}, got {table!r}")
+        try:
+            table = table_from_ref(d.get("table", "occ3d_nuscenes"), "label_space.table")
+        except AgoInputError as e:
+            raise ValueError(str(e)) from None
+        known_ids = set(table.ids)
+        for c in out:
+            if not set(c.occ3d_ids) <= known_ids:
+                raise ValueError(f"label_space.classes: {c.name!r} has ids {c.occ3d_ids} outside class table {table.name}")
         return cls(d.get("name"), str(d.get("sha256", "")), out, table)
 
 

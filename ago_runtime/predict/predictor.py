@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ago_runtime.classes import SHIPPED_TABLES
+from ago_runtime.classes import OCC3D_NUSCENES, ClassTable
 from ago_runtime.errors import AgoInputError
 from ago_runtime.formats.calibration import fit_rig_to_images
 from ago_runtime.geometry.camera import Rig
@@ -54,7 +54,7 @@ class Prediction:
     grid: Grid
     occ3d: np.ndarray | None = None   # (X, Y, Z) uint8 in `class_table`'s dense order (Occ3D-nuScenes: its ids, free = 17)
                                       # when every class is one class of the table
-    class_table: str = "occ3d_nuscenes"   # the bank's class table (ago_runtime.classes.SHIPPED_TABLES)
+    class_table: ClassTable = OCC3D_NUSCENES   # the bank's class table (ago_runtime.classes)
     timings: dict = field(default_factory=dict)   # seconds: preprocess, encoder, heads
     unexplained: np.ndarray | None = None   # (X, Y, Z) float32 unexplained-obstacle score (volumes=True)
     occupancy: np.ndarray | None = None     # (X, Y, Z) float32 p_occ against prompted + reference classes
@@ -74,12 +74,13 @@ class Prediction:
     def output_arrays(self, volumes: bool = False) -> dict[str, np.ndarray]:
         """The arrays of an Occ3D-format prediction file (see docs/runtime.md)."""
         if self.occ3d is not None:
-            table = SHIPPED_TABLES[self.class_table]
+            table = self.class_table
             out = {"semantics": self.occ3d, "class_names": np.array(table.label_names, dtype=str),
                    "free_index": np.array(table.free_index, np.int64), "bank_semantics": self.semantics,
                    "bank_class_names": np.array(self.label_names, dtype=str)}
-            if self.class_table != "occ3d_nuscenes":   # (nuScenes files stay as they were)
-                out["class_table"] = np.array(self.class_table)
+            if table != OCC3D_NUSCENES:   # (nuScenes files stay as they were)
+                out["class_table"] = np.array(table.name)
+                out["class_colors"] = table.dense_colors()   # RGB per dense label: `ago show` draws in them
         else:
             out = {"semantics": self.semantics, "class_names": np.array(self.label_names, dtype=str),
                    "free_index": np.array(self.free_index, np.int64)}
@@ -103,7 +104,7 @@ def occ3d_lookup(bank) -> np.ndarray | None:
     """(K+1,) uint8 bank index -> the class's index in the bank's class table, dense order (`ClassTable.label_names`:
     the table's classes, then free; for Occ3D-nuScenes the Occ3D ids, free = 17; for Occ3D-Waymo its ids 0..14,
     free = 15 where the files store 23) when every bank class is exactly one class of the table."""
-    table = SHIPPED_TABLES[bank.class_table]
+    table = bank.class_table
     dense = table.dense_lut()
     ids = []
     for ids_k in bank.occ3d_ids:

@@ -131,6 +131,8 @@ def parse_origin(text: str) -> tuple[float, float, float]:
 
 def score_against_gt(pred: Path, gt: Path, space, m_mask, m_all, rays, allow_missing: bool) -> list[str]:
     """Accumulate the Occ3D metric with and without the camera mask, and RayIoU; returns skipped tokens."""
+    from ago_runtime.classes import OCC3D_NUSCENES, shipped_name
+    from ago_runtime.formats.datasets import gt_folder_class_table
     from ago_runtime.geometry.grid import Grid
     from ago_runtime.progress import track
 
@@ -148,12 +150,15 @@ def score_against_gt(pred: Path, gt: Path, space, m_mask, m_all, rays, allow_mis
     if not pairs:
         raise AgoInputError(pred, "no prediction matches any GT frame")
     gt_lut = None if space is None else space.gt_lut(free_index=space.num_classes)
+    folder_table = gt_folder_class_table(gt)   # a class_table.json beside the GT, else the files' layout says
+    scored_in = space.class_table if space is not None else OCC3D_NUSCENES   # without --prompts: Occ3D-nuScenes ids
     for gt_file, p in track(pairs, description="scoring (frames)", total=len(pairs)):
         labels, table = load_ground_truth(gt_file)
-        scored_in = space.table if space is not None else "occ3d_nuscenes"   # without --prompts: Occ3D-nuScenes ids
-        if table.name != scored_in:
-            raise AgoInputError(gt_file, f"holds {table.name} labels, not {scored_in} ones: give --prompts with a "
-                                f"prompt file of '@table: {table.name}' (e.g. --prompts waymo/cw_waymo)")
+        table = folder_table or table
+        if table != scored_in:
+            use = shipped_name(table) or "<the path of its class_table.json>"
+            raise AgoInputError(gt_file, f"holds {table.name} labels, not {scored_in.name} ones: give --prompts with a "
+                                f"prompt file of '@table: {use}' (e.g. --prompts waymo/cw_waymo for occ3d_waymo)")
         sem, _ = load_semantics(p)
         gt_sem = labels.semantics
         if space is not None:

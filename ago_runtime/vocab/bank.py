@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ago_runtime.atomic import save_npz
+from ago_runtime.classes import OCC3D_NUSCENES, ClassTable, table_from_ref, table_ref
 from ago_runtime.errors import AgoInputError
 from ago_runtime.readers import check_npz
 from ago_runtime.vocab.prompts import LabelSpace, parse_prompt_file
@@ -66,7 +67,7 @@ class PromptBank:
     known: list[str] = field(default_factory=list)
     occ3d_ids: list[tuple[int, ...]] = field(default_factory=list)   # per class, ids in `class_table`
     format_version: int = FORMAT_VERSION
-    class_table: str = "occ3d_nuscenes"   # the label table occ3d_ids index (ago_runtime.classes.SHIPPED_TABLES)
+    class_table: ClassTable = OCC3D_NUSCENES   # the label table occ3d_ids index (ago_runtime.classes)
 
     def __post_init__(self):
         self.embeddings = np.asarray(self.embeddings, dtype=np.float32)
@@ -77,10 +78,6 @@ class PromptBank:
         self._validate(None)
 
     def _validate(self, path) -> None:
-        from ago_runtime.classes import SHIPPED_TABLES
-
-        if self.class_table not in SHIPPED_TABLES:
-            raise AgoInputError(path, f"class table {self.class_table!r} is not one of {', '.join(SHIPPED_TABLES)}")
         p, k = len(self.phrases), len(self.class_names)
         if self.embeddings.ndim != 2 or self.embeddings.shape != (p, self.dim):
             raise AgoInputError(path, f"embeddings have shape {self.embeddings.shape}, expected ({p}, {self.dim})")
@@ -92,6 +89,9 @@ class PromptBank:
             raise AgoInputError(path, "some class has no phrase")
         if len(self.occ3d_ids) != k:
             raise AgoInputError(path, f"occ3d_ids has {len(self.occ3d_ids)} entries for {k} classes")
+        strange = sorted({i for ids in self.occ3d_ids for i in ids} - set(self.class_table.ids))
+        if strange:
+            raise AgoInputError(path, f"occ3d_ids {strange[:8]} are not ids of its class table {self.class_table.name}")
         if not np.isfinite(self.embeddings).all():
             raise AgoInputError(path, "embeddings contain NaN or inf")
         # Segment layout for class_scores: phrases sorted by class (stable), start of each class.
@@ -149,7 +149,7 @@ class PromptBank:
                 "source_hash": self.source_hash, "label_space": self.label_space,
                 "known": list(self.known), "occ3d_ids": [list(t) for t in self.occ3d_ids],
                 # only another table is written, so banks of Occ3D-nuScenes prompt files stay as they were
-                **({"class_table": self.class_table} if self.class_table != "occ3d_nuscenes" else {})}
+                **({"class_table": table_ref(self.class_table)} if self.class_table != OCC3D_NUSCENES else {})}
 
     def save(self, path: str | Path) -> Path:
         path = Path(path)
@@ -198,7 +198,7 @@ class PromptBank:
             bank.known = [str(k) for k in meta["known"]]
             bank.occ3d_ids = [tuple(int(i) for i in ids) for ids in meta["occ3d_ids"]]
             bank.format_version = FORMAT_VERSION
-            bank.class_table = str(meta.get("class_table", "occ3d_nuscenes"))
+            bank.class_table = table_from_ref(meta.get("class_table", "occ3d_nuscenes"), path)
         except (KeyError, TypeError, ValueError) as e:
             raise AgoInputError(path, f"prompt bank metadata incomplete: {e}") from None
         bank._validate(path)
@@ -242,7 +242,7 @@ def build_bank(label_space: LabelSpace, encoder, template: str = DEFAULT_TEMPLAT
         normalised=bool(np.allclose(norms, 1.0, atol=1e-3)), template=template,
         source_hash=label_space.sha256, label_space=label_space.name,
         known=[c for c in label_space.class_names if c in label_space.known],
-        occ3d_ids=[c.occ3d_ids for c in label_space.classes], class_table=label_space.table)
+        occ3d_ids=[c.occ3d_ids for c in label_space.classes], class_table=label_space.class_table)
 
 
 def bank_cache_key(source_hash: str, encoder_hash: str, template: str) -> str:
@@ -277,7 +277,7 @@ def load_prompt_bank(prompts: "str | Path | LabelSpace", encoder=None, cache_dir
         stem = space.source.stem if space.source is not None else space.name
         if stem in bundle.banks:   # a shipped prompt file the bundle pre-built: check it is the same text
             shipped = bundle.load_bank(stem)
-            if shipped.source_hash == space.sha256:
+            if shipped.source_hash == space.sha256 and shipped.class_table == space.class_table:
                 return shipped
         encoder = encoder if encoder is not None else bundle_text_encoder(bundle)
     encoder = encoder if encoder is not None else default_text_encoder()
@@ -289,7 +289,7 @@ def load_prompt_bank(prompts: "str | Path | LabelSpace", encoder=None, cache_dir
     if path.is_file():
         try:
             cached = PromptBank.load(path)
-            if cached.class_table == space.table:   # (entries made before banks recorded their table are rebuilt)
+            if cached.class_table == space.class_table:   # (entries made before banks recorded their table are rebuilt)
                 return cached
         except AgoInputError:
             pass  # a damaged cache entry is rebuilt below

@@ -53,9 +53,7 @@ def show(bank_or_file: str = typer.Argument(..., help="a bank (.npz) or a prompt
     echo(f"label space {bank.label_space!r}: {bank.num_classes} classes, {bank.num_phrases} phrases; "
          f"encoder {bank.encoder_id} ({bank.encoder_variant}, dim {bank.dim}, "
          f"weights sha256 {bank.encoder_hash[:12]}); template {bank.template!r}")
-    from ago_runtime.classes import SHIPPED_TABLES
-
-    table = SHIPPED_TABLES[bank.class_table]
+    table = bank.class_table
     known = bank.known_mask()
     width = max(len(n) for n in bank.class_names)
     echo(f"\n{'#':>3}  {'class':<{width}}  known  {table.name} -> phrases")

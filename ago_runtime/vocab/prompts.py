@@ -6,7 +6,8 @@ A prompt file (UTF-8 text, see docs/prompts.md) lists one class per line:
     @name: cw                       (optional; default: the file name without .txt)
     @known: car, truck              (optional; the seen/known classes; default: all)
     @table: occ3d_waymo             (optional, before the classes; the class table names and [ids] are
-                                     looked up in: occ3d_nuscenes (default) or occ3d_waymo, ago_runtime.classes)
+                                     looked up in: occ3d_nuscenes (default), occ3d_waymo, or a class-table
+                                     JSON file, its path relative to the prompt file: ago_runtime.classes)
     car: car, van, suv              (an Occ3D class name -> that Occ3D id)
     vehicle [car, bus, truck]: car, bus, lorry     (a class grouping several Occ3D classes)
     traffic sign: traffic sign      (no Occ3D name -> open vocabulary: predicted, not scored)
@@ -19,6 +20,7 @@ Every problem raises one AgoInputError naming the file and the line.
 from __future__ import annotations
 
 import hashlib
+import json
 import re
 import warnings
 from functools import lru_cache
@@ -27,7 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ago_runtime.classes import FREE, IGNORE, NUM_SEMANTIC, OCC3D_CLASSES, SHIPPED_TABLES, name_key
+from ago_runtime.classes import (FREE, IGNORE, NUM_SEMANTIC, OCC3D_CLASSES, OCC3D_NUSCENES, SHIPPED_TABLES, ClassTable,
+                                 load_class_table, name_key, shipped_name, table_from_ref, table_ref)
 from ago_runtime.errors import AgoInputError, AgoNote
 
 PROMPTS_DIR = Path(__file__).resolve().parents[2] / "prompts"
@@ -50,6 +53,21 @@ def _table_id(table, name: str) -> int | None:
         return table.id_of(name)
     except KeyError:
         return None
+
+
+def _table_of(value: str, source, where, at: str) -> ClassTable:
+    """The class table an `@table:` line names: a shipped table (occ3d_nuscenes, occ3d_waymo) or a class-table JSON
+    file, a relative path taken from the prompt file's folder; one AgoInputError naming the prompt file and line."""
+    if value in SHIPPED_TABLES:
+        return SHIPPED_TABLES[value]
+    if not value.lower().endswith(".json"):
+        raise AgoInputError(where, f"{at}: unknown class table {value!r} (one of {', '.join(SHIPPED_TABLES)}, "
+                            "or a class-table .json file)")
+    folder = Path(source).parent if source is not None else None
+    try:
+        return load_class_table(value, relative_to=folder)
+    except AgoInputError as e:
+        raise AgoInputError(where, f"{at}: @table: {e}") from None
 
 
 def occ3d_id(name: str) -> int | None:
@@ -78,11 +96,12 @@ class LabelSpace:
     known: set[str] = field(default_factory=set)   # names of seen classes; empty set allowed
     source: Path | None = None
     sha256: str = ""
-    table: str = "occ3d_nuscenes"   # the class table `occ3d_ids` index (ago_runtime.classes.SHIPPED_TABLES)
+    class_table: ClassTable = OCC3D_NUSCENES   # the class table `occ3d_ids` index (@table; ago_runtime.classes)
 
     @property
-    def class_table(self):
-        return SHIPPED_TABLES[self.table]
+    def table(self) -> str:
+        """The class table's name (messages; `class_table` is the table itself)."""
+        return self.class_table.name
 
     @property
     def class_names(self) -> list[str]:
@@ -208,8 +227,11 @@ def _default_max_tokens() -> int:
 
 
 def parse_prompt_text(text: str | bytes, name: str | None = None, source: str | Path | None = None,
-                      max_tokens: int | None = None) -> LabelSpace:
-    """Parse prompt-file content (see the module docstring). `source` names it in errors."""
+                      max_tokens: int | None = None, table: ClassTable | None = None) -> LabelSpace:
+    """Parse prompt-file content (see the module docstring). `source` names it in errors. `table`: the class table
+    its `@table:` line stands for, as recorded beside the text (a checkpoint's, `label_space_from_record`), used
+    instead of reading the table file again."""
+    recorded = table
     where = str(source) if source is not None else "<prompt text>"
     raw = text.encode("utf-8") if isinstance(text, str) else bytes(text)
     if len(raw) > MAX_PROMPT_BYTES:
@@ -231,7 +253,9 @@ def parse_prompt_text(text: str | bytes, name: str | None = None, source: str | 
     known: set[str] | None = None
     known_line = 0
     space_name = name
-    table = SHIPPED_TABLES["occ3d_nuscenes"]
+    table = OCC3D_NUSCENES
+    table_line = False
+    table_text = b""   # a table file's bytes: part of the label space's hash
     for lineno, line in enumerate(text.splitlines(), start=1):
         line = line.split("#", 1)[0].strip()
         if not line:
@@ -251,10 +275,10 @@ def parse_prompt_text(text: str | bytes, name: str | None = None, source: str | 
             elif key == "table":
                 if classes:
                     raise AgoInputError(where, f"{at}: @table must come before the first class line")
-                if value.strip() not in SHIPPED_TABLES:
-                    raise AgoInputError(where, f"{at}: unknown class table {value.strip()!r} (one of "
-                                        f"{', '.join(SHIPPED_TABLES)})")
-                table = SHIPPED_TABLES[value.strip()]
+                table = recorded if recorded is not None else _table_of(value.strip(), source, where, at)
+                table_line = True
+                if shipped_name(table) is None:
+                    table_text = json.dumps(table.to_dict(), sort_keys=True).encode("utf-8")
             else:
                 raise AgoInputError(where, f"{at}: unknown directive @{key} (known: @name, @known, @table)")
             continue
@@ -309,6 +333,8 @@ def parse_prompt_text(text: str | bytes, name: str | None = None, source: str | 
         classes.append(PromptClass(cname, tuple(phrases), occ_ids))
     if not classes:
         raise AgoInputError(where, "no classes (the file is empty or only comments)")
+    if recorded is not None and not table_line and recorded != table:
+        raise AgoInputError(where, f"the recorded class table is {recorded.name} but the prompt text has no @table line")
     names = {name_key(c.name): c.name for c in classes}
     if known is None:
         known_names = {c.name for c in classes}
@@ -320,7 +346,7 @@ def parse_prompt_text(text: str | bytes, name: str | None = None, source: str | 
     if space_name is None:
         space_name = Path(source).stem if source is not None else "prompts"
     space = LabelSpace(space_name, classes, known_names, Path(source) if source is not None else None,
-                       hashlib.sha256(raw).hexdigest(), table.name)
+                       hashlib.sha256(raw + table_text).hexdigest(), table)
     space.check_consistency()
     return space
 
@@ -349,6 +375,30 @@ def resolve_prompt_file(name_or_path: str | Path, option: str | None = None) -> 
     warnings.warn(f"{option + ' ' if option else ''}{value}: no such file here; using the shipped {candidate}",
                   AgoNote, stacklevel=3)
     return candidate
+
+
+def label_space_record(space: LabelSpace, prompt_text: str) -> dict:
+    """What a checkpoint records of its label space: the prompt text, its classes and, when not Occ3D-nuScenes,
+    its class table (a shipped name or the table itself: `classes.table_ref`), so that the label space can be
+    rebuilt without the prompt file or its table file (`label_space_from_record`)."""
+    rec = {"name": space.name, "prompt_file": str(space.source) if space.source is not None else None,
+           "prompt_text": prompt_text, "class_names": list(space.class_names),
+           "num_classes": int(space.num_classes), "known": sorted(space.known)}
+    if space.class_table != OCC3D_NUSCENES:
+        rec["class_table"] = table_ref(space.class_table)
+    return rec
+
+
+def label_space_from_record(rec: dict, source) -> LabelSpace:
+    """The label space a checkpoint recorded (`label_space_record`); AgoInputError naming `source` when it is
+    incomplete or its class names disagree with its prompt text."""
+    if not isinstance(rec, dict) or not isinstance(rec.get("prompt_text"), str):
+        raise AgoInputError(source, "checkpoint label_space has no prompt_text")
+    table = table_from_ref(rec["class_table"], f"{source} (label_space.class_table)") if "class_table" in rec else None
+    space = parse_prompt_text(rec["prompt_text"], name=rec.get("name"), source=f"{source} (label_space)", table=table)
+    if list(space.class_names) != list(rec.get("class_names", space.class_names)):
+        raise AgoInputError(source, "checkpoint label_space class names disagree with its prompt text")
+    return space
 
 
 def parse_prompt_file(path: str | Path, max_tokens: int | None = None, option: str | None = None) -> LabelSpace:

@@ -18,6 +18,7 @@ import shlex
 import sys
 from pathlib import Path
 
+import numpy as np
 import typer
 
 
@@ -46,7 +47,7 @@ def build_backends(prompts: str, segmenter: str, masks: Path | None, embedder: s
             raise AgoInputError("--masks", "--segmenter files needs --masks DIR (layout: docs/vlm_files.md)")
         seg = FileSegmenter(masks, space)
     elif segmenter == "sim":
-        seg = SimulatedSegmenter(space, SimSegmenterConfig.for_table(space.table, seed=seed))
+        seg = SimulatedSegmenter(space, SimSegmenterConfig.for_table(space.class_table, seed=seed))
     elif segmenter == "boxes":
         from .boxes import BoxSegmenter
 
@@ -60,8 +61,8 @@ def build_backends(prompts: str, segmenter: str, masks: Path | None, embedder: s
             raise AgoInputError("--feats", "--embedder files needs --feats DIR (layout: docs/vlm_files.md)")
         emb = FileImageEmbedder(feats)
     elif embedder == "sim":
-        class_text, sky = simulated_text_embeddings(space.table)
-        emb = SimulatedImageEmbedder(class_text, SimEmbedderConfig(seed=seed), sky_text=sky)
+        class_text, sky = simulated_text_embeddings(space.class_table)
+        emb = SimulatedImageEmbedder(class_text, SimEmbedderConfig(seed=seed), sky_text=sky, ids=space.class_table.ids)
     else:
         raise AgoInputError("--embedder", f"expected sim, files or none, got {embedder!r}")
     return space, seg, emb
@@ -71,19 +72,26 @@ def build_backends(prompts: str, segmenter: str, masks: Path | None, embedder: s
 CLOSED_PROMPTS = {"occ3d_nuscenes": "cw", "occ3d_waymo": "waymo/cw_waymo"}
 
 
-def simulated_text_embeddings(table: str = "occ3d_nuscenes"):
+def simulated_text_embeddings(table="occ3d_nuscenes"):
     """(class_text (K, 384), sky (384,)): MiniLM embeddings of the phrases of the class table's closed label space
-    (cw.txt: K = 17; waymo/cw_waymo.txt: K = 15), one row per class id, and of "sky"."""
-    from ago_runtime.classes import SHIPPED_TABLES
+    (cw.txt: K = 17; waymo/cw_waymo.txt: K = 15), one row per class in the table's order, and of "sky". `table`: a
+    ClassTable or a shipped table's name; a table that is not shipped has no closed prompt file, so its rows embed
+    the class names themselves ("traffic_light" -> "traffic light")."""
+    from ago_runtime.classes import SHIPPED_TABLES, shipped_name
     from ago_runtime.vocab.bank import load_prompt_bank
     from ago_runtime.vocab.prompts import PROMPTS_DIR
     from ago_runtime.vocab.text_encoder import default_text_encoder
 
     from .simulated import class_text_from_bank
 
+    table = SHIPPED_TABLES[table] if isinstance(table, str) else table
     encoder = default_text_encoder()
-    bank = load_prompt_bank(str(PROMPTS_DIR / f"{CLOSED_PROMPTS[table]}.txt"), encoder=encoder)
-    return class_text_from_bank(bank, len(SHIPPED_TABLES[table].names)), encoder.encode(["sky"])[0]
+    sky = encoder.encode(["sky"])[0]
+    if shipped_name(table) is None:
+        text = np.asarray(encoder.encode([n.replace("_", " ") for n in table.names]), dtype=np.float32)
+        return text / np.linalg.norm(text, axis=1, keepdims=True), sky
+    bank = load_prompt_bank(str(PROMPTS_DIR / f"{CLOSED_PROMPTS[table.name]}.txt"), encoder=encoder)
+    return class_text_from_bank(bank, table.num_classes), sky
 
 
 def resolve_defaults(data: Path, segmenter: str | None, masks: Path | None, embedder: str | None,

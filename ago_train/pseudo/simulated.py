@@ -33,7 +33,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ago_runtime.classes import NUM_SEMANTIC, OCC3D_CLASSES
+from ago_runtime.classes import NUM_SEMANTIC, OCC3D_CLASSES, ClassTable, name_key, shipped_name
 from ago_runtime.errors import AgoInputError
 from ago_runtime.formats.frame import Frame
 from ago_runtime.vocab.prompts import LabelSpace
@@ -46,6 +46,17 @@ THING_NAMES = {
     "occ3d_waymo": ("general_object", "vehicle", "pedestrian", "sign", "bicyclist", "traffic_light", "pole",
                     "construction_cone", "bicycle", "motorcycle"),
 }
+
+
+def thing_names(table: ClassTable) -> tuple[str, ...]:
+    """The countable-object classes of `table`: a shipped table's THING_NAMES; for any other table, its classes whose
+    name is an object class of a shipped table ("car", "pedestrian", "vehicle", ...); the rest are surfaces."""
+    name = shipped_name(table)
+    if name is not None:
+        return THING_NAMES[name]
+    objects = {name_key(n) for names in THING_NAMES.values() for n in names}
+    return tuple(n for n in table.names if name_key(n) in objects)
+
 
 DEFAULT_CONFUSIONS: tuple[tuple[str, str], ...] = (
     ("driveable_surface", "sidewalk"),
@@ -125,9 +136,10 @@ class SimSegmenterConfig:
         return d
 
     @classmethod
-    def for_table(cls, table: str, seed: int = 0) -> "SimSegmenterConfig":
-        """The defaults with the confusion pairs of a shipped class table (`LabelSpace.table`)."""
-        return cls(seed=seed, confusion_pairs=CONFUSIONS[table])
+    def for_table(cls, table: ClassTable, seed: int = 0) -> "SimSegmenterConfig":
+        """The defaults with the confusion pairs of a shipped class table (`LabelSpace.class_table`); a table that is
+        not shipped has none (nothing says which of its classes look alike)."""
+        return cls(seed=seed, confusion_pairs=CONFUSIONS.get(shipped_name(table) or "", ()))
 
     @classmethod
     def perfect(cls, seed: int = 0) -> "SimSegmenterConfig":
@@ -161,7 +173,7 @@ class SimulatedSegmenter:
             ca, cb = self.lut2d[ia], self.lut2d[ib]
             if ca != NO_LABEL and cb != NO_LABEL and ca != cb:
                 self.confusions += [(ia, ib), (ib, ia)]
-        self.thing_ids = frozenset(table.id_of(n) for n in THING_NAMES[table.name])
+        self.thing_ids = frozenset(table.id_of(n) for n in thing_names(table))
         self.is_object = np.array([bool(c.occ3d_ids) and set(c.occ3d_ids) <= self.thing_ids
                                    for c in label_space.classes] + [False], dtype=bool)
 
@@ -312,14 +324,16 @@ def _fixed_rotation(dim: int, angle: float, rng: np.random.Generator) -> np.ndar
 class SimulatedImageEmbedder:
     """SIMULATION of CLIP-like dense image features on synthetic frames (see the module docstring).
 
-    class_text: (K, C) text embeddings, one per class id 0..K-1 of the pixels' class table (17 Occ3D-nuScenes
-    classes, 15 Occ3D-Waymo ones), or a cw.txt PromptBank; pixels of id >= K (free, sky, nothing) take
+    class_text: (K, C) text embeddings, one per class of the pixels' class table (17 Occ3D-nuScenes classes, 15
+    Occ3D-Waymo ones), or a cw.txt PromptBank; `ids`: the label id of each row (default 0..K-1); pixels of other
+    ids (free, sky, nothing) take
     sky_text: an optional (C,) embedding for sky / nothing pixels (else they carry only the offset).
     """
 
     name = "simulated"
 
-    def __init__(self, class_text, config: SimEmbedderConfig | None = None, sky_text: np.ndarray | None = None):
+    def __init__(self, class_text, config: SimEmbedderConfig | None = None, sky_text: np.ndarray | None = None,
+                 ids: tuple[int, ...] | None = None):
         if not isinstance(class_text, np.ndarray):
             class_text = class_text_from_bank(class_text)
         t = np.asarray(class_text, dtype=np.float64)
@@ -342,7 +356,9 @@ class SimulatedImageEmbedder:
         v = v / np.linalg.norm(v) if np.linalg.norm(v) > 1e-6 else np.zeros_like(v)  # (C <= K: no room)
         self.offset = cfg.offset_text * u + cfg.offset_other * v
         sky = np.zeros(self.channels) if sky_text is None else rot @ (sky_text / np.linalg.norm(sky_text))
-        # rows 0..K-1: the table's classes; row K: sky / nothing
+        # rows 0..K-1: the table's classes; row K: sky / nothing. Pixel label id -> row (`ids`: row k's label id)
+        self.row_of_id = np.full(256, K, dtype=np.int64)
+        self.row_of_id[list(range(K)) if ids is None else list(ids)] = np.arange(K)
         self.pixel_embeddings = np.vstack([t @ rot.T, sky[None]]) + self.offset
         self.pixel_embeddings = self.pixel_embeddings.astype(np.float32)
 
@@ -354,7 +370,7 @@ class SimulatedImageEmbedder:
         cfg = self.config
         rows, cols = cfg.patch_grid
         K = self.num_classes
-        cls = np.where(sem < K, sem, K).astype(np.int64)
+        cls = self.row_of_id[sem]
         # fraction of each patch covered by each class (area pooling of one-hot maps)
         frac = np.zeros((rows, cols, K + 1), dtype=np.float32)
         for k in np.unique(cls):
