@@ -165,9 +165,9 @@ def evaluate(ckpt_path: str | Path, data: str | Path, split: str = "val", prompt
     dev = pick_device(device)
     ckpt = load_checkpoint(ckpt_path, map_location="cpu")
     mcfg, model = load_model(ckpt, dev, ckpt_path)
-    label_space = parse_prompt_file(prompts) if prompts else checkpoint_label_space(ckpt)
+    label_space = parse_prompt_file(prompts) if prompts else checkpoint_label_space(ckpt, ckpt_path)
     K = label_space.num_classes
-    identifier = identifier or default_identifier(label_space, checkpoint_label_space(ckpt).class_names)
+    identifier = identifier or default_identifier(label_space, checkpoint_label_space(ckpt, ckpt_path).class_names)
     text, phrase_class = bank_for(ckpt, label_space)
     text, phrase_class = text.to(dev), phrase_class.to(dev)
 
