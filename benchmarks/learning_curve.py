@@ -59,15 +59,14 @@ def score(ckpt: Path, data: str, split: str, cache: Path) -> dict:
 def pseudo_ceiling(pseudo: str, data: str, split: str) -> dict:
     """The pseudo-labels of `split`'s frames scored against GT like a prediction (unknown -> free)."""
     from ago_runtime.scoring.metric import OccupancyMetric, upsample_nearest
-    from ago_runtime.formats.nuscenes import NuScenesDataset
-    from ago_runtime.vocab.prompts import parse_prompt_text
+    from ago_runtime.formats.datasets import open_dataset
     from ago_train.dataset import PseudoLabelSet
 
     p = PseudoLabelSet.open(pseudo)
-    ls = parse_prompt_text((Path(pseudo) / "label_space.txt").read_text(), name="pseudo")
+    ls = p.label_space()
     K = ls.num_classes
     lut = ls.gt_lut(free_index=K).astype(np.uint8)
-    ds = NuScenesDataset(data, load_images=False, load_extras=False)
+    ds = open_dataset(data, load_images=False, load_extras=False)
     m = OccupancyMetric(list(ls.class_names) + ["free"], free_index=K)
     n = 0
     for i in ds.split(split):

@@ -241,3 +241,13 @@ def test_show_draws_a_prediction_in_its_tables_colours(chain):
     r = run_ago(["show", pred, "--out", "shown.png"], chain)
     assert r.code == 0, r.stderr
     assert cv2.imread(str(chain / "shown.png")) is not None
+
+
+def test_the_pseudo_label_folder_records_the_table(chain):
+    from ago_train.pseudo.generate import PseudoLabelDir
+
+    pl = PseudoLabelDir(chain / "pl")
+    assert pl.meta["label_space"]["class_table"]["name"] == "my_table"
+    space = pl.label_space()   # label_space.txt has no table file beside it: the meta's record serves
+    assert not (chain / "pl" / "my_table.json").exists()
+    assert space.class_table == ClassTable.from_dict(MY_TABLE) and space.class_names == NAMES

@@ -33,7 +33,7 @@ import numpy as np
 
 from ago_runtime.atomic import save_npz, write_bytes, write_json
 from ago_runtime.geometry.camera import Rig
-from ago_runtime.classes import FREE, IGNORE
+from ago_runtime.classes import FREE, IGNORE, OCC3D_NUSCENES, table_ref
 from ago_runtime.errors import AgoInputError
 from ago_runtime.readers import read_json
 from ago_runtime.formats.frame import Frame
@@ -193,7 +193,7 @@ def load_voxel_embeds(out_dir: str | Path, scene: str, token: str) -> tuple[np.n
 class PseudoLabelDir:
     """A pseudo-label output folder: its meta.json and readers.
 
-    meta keys: format_version, label_space {name, classes, sha256, prompt_file}, grid (Grid.to_dict),
+    meta keys: format_version, label_space {name, classes, sha256, prompt_file[, class_table]}, grid (Grid.to_dict),
     segmenter {name, config}, embedder {name, config} or null, num_keyframes, interval, nonkey_sweeps,
     raycast, config (PseudoLabelConfig), free_index 17, ignore_index 255, created_by. (Folders written
     before non-key sweeps were read say `num_sweeps` for num_keyframes and have no nonkey_sweeps (= 0);
@@ -216,6 +216,17 @@ class PseudoLabelDir:
     @property
     def label_space_path(self) -> Path:
         return self.root / "label_space.txt"
+
+    def label_space(self):
+        """The label space of these pseudo-labels: label_space.txt (a copy of the prompt file) with the class table
+        meta.json records for it (a table file the prompt file names need not be beside the copy)."""
+        from ago_runtime.classes import table_from_ref
+        from ago_runtime.vocab.prompts import parse_prompt_text
+
+        ls = self.meta["label_space"]
+        table = table_from_ref(ls["class_table"], self.root / "meta.json") if "class_table" in ls else None
+        return parse_prompt_text(self.label_space_path.read_bytes(), name=ls.get("name"), source=self.label_space_path,
+                                 table=table)
 
     @property
     def has_embeds(self) -> bool:
@@ -311,7 +322,10 @@ def make_meta(label_space, segmenter, embedder, config: PseudoLabelConfig, comma
         "format_version": FORMAT_VERSION,
         "label_space": {"name": label_space.name, "classes": label_space.class_names,
                         "sha256": label_space.sha256,
-                        "prompt_file": str(label_space.source) if label_space.source else None},
+                        "prompt_file": str(label_space.source) if label_space.source else None,
+                        # another table than Occ3D-nuScenes is recorded (a shipped name or the table itself)
+                        **({"class_table": table_ref(label_space.class_table)}
+                           if label_space.class_table != OCC3D_NUSCENES else {})},
         "grid": config.grid.to_dict(),
         "segmenter": {"name": segmenter.name, "config": segmenter.config_dict()},
         "embedder": None if embedder is None else {"name": embedder.name, "config": embedder.config_dict(),
