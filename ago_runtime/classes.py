@@ -332,7 +332,7 @@ OCC3D_WAYMO = ClassTable(
     (IGNORE,))
 
 SHIPPED_TABLES = {t.name: t for t in (OCC3D_NUSCENES, OCC3D_WAYMO)}
-TABLE_FILE = "class_table.json"   # a dataset root's own class table (formats.datasets.dataset_class_table)
+TABLE_FILE = "class_table.json"   # a dataset root's own class table (dataset_class_table)
 
 
 def shipped_name(table: ClassTable) -> str | None:
@@ -370,3 +370,10 @@ def load_class_table(name_or_path: str | Path, relative_to: str | Path | None = 
     if size > MAX_TABLE_BYTES:
         raise AgoInputError(path, f"class table of {size} bytes (at most {MAX_TABLE_BYTES})")
     return ClassTable.from_dict(read_json(path, expect=dict), source=path)
+
+
+def dataset_class_table(root: str | Path, default):
+    """The class table of the labels a dataset folder holds: its own `class_table.json` (TABLE_FILE, a class-table
+    JSON file: `load_class_table`) when it has one, else the layout's `default`."""
+    path = Path(root) / TABLE_FILE
+    return load_class_table(path) if path.is_file() else default

@@ -6,7 +6,7 @@
 
 Both readers give `Frame`s and the same interface (len, [i], sample_tokens, scene_of, split, ...), and
 `class_table`: the class table their ground truth's ids belong to: the layout's (Occ3D-nuScenes, Occ3D-Waymo), or
-the folder's own `class_table.json` when it has one (`dataset_class_table`). `check_label_table(ds, space, option)`
+the folder's own `class_table.json` when it has one (`classes.dataset_class_table`). `check_label_table(ds, space, option)`
 refuses a label space of another table (a nuScenes prompt file on Occ3D-Waymo data, or the reverse).
 """
 
@@ -55,18 +55,11 @@ def open_dataset(root: str | Path, gts_root: str | Path | None = None, load_imag
     raise AgoInputError(root, f"not a dataset root: expected {LAYOUTS}")
 
 
-def dataset_class_table(root: str | Path, default):
-    """The class table of the labels a dataset folder holds: its own `class_table.json` (`classes.TABLE_FILE`, a
-    class-table JSON file: `classes.load_class_table`) when it has one, else the layout's `default`."""
-    from ago_runtime.classes import TABLE_FILE, load_class_table
-
-    path = Path(root) / TABLE_FILE
-    return load_class_table(path) if path.is_file() else default
-
-
 def gt_folder_class_table(gt_root: str | Path):
     """The class table a ground-truth folder declares: `class_table.json` in it or in the dataset folder holding it
     (`<root>/gts`), else None (the files' layout says: Occ3D-nuScenes or Occ3D-Waymo)."""
+    from ago_runtime.classes import dataset_class_table
+
     for folder in (Path(gt_root), Path(gt_root).parent):
         table = dataset_class_table(folder, None)
         if table is not None:

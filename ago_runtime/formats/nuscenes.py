@@ -46,10 +46,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ago_runtime.classes import OCC3D_NUSCENES
+from ago_runtime.classes import OCC3D_NUSCENES, dataset_class_table
 from ago_runtime.geometry.camera import CAMERA_NAMES, Camera, Rig
 from ago_runtime.errors import AgoInputError
-from ago_runtime.formats.datasets import dataset_class_table
 from ago_runtime.formats.image_files import decode_image
 from ago_runtime.readers import max_array_bytes, read_json
 from ago_runtime.formats.frame import Frame, LidarSweep

@@ -34,9 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ago_runtime.classes import OCC3D_WAYMO
+from ago_runtime.classes import OCC3D_WAYMO, dataset_class_table
 from ago_runtime.errors import AgoInputError
-from ago_runtime.formats.datasets import dataset_class_table
 from ago_runtime.formats.frame import Frame, LidarSweep
 from ago_runtime.formats.nuscenes import default_split_positions, read_jpeg_rgb, read_lidar_bin
 from ago_runtime.formats.nuscenes_schema import check_rigid
