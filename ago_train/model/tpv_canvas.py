@@ -203,6 +203,17 @@ class CanvasGeometry(nn.Module):
 
 
 # --------------------------------------------------------------------------- attentions, one frame
+def weighted_samples(canvas: torch.Tensor, grid: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """The attentions' read-out: bilinear samples (zero padding) of the canvas (heads, C, H, W) at grid
+    (heads, S, Q, 2), weighted by w (heads, S, Q) and summed over the S samples -> (heads, C, Q).
+
+    This form (samples-major, Mul + sum) is the fastest of those measured in onnxruntime at the paper's
+    scale: an einsum or a batched MatMul over the samples, and a query-major layout (heads, Q, S), were
+    slower there (benchmarks/results/tpv_weighted_sum.md)."""
+    sampled = F.grid_sample(canvas, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+    return (sampled * w.unsqueeze(1)).sum(2)
+
+
 def cross_view(attn, refs: CrossViewRefs, q: torch.Tensor, canvas: torch.Tensor, layout: CanvasLayout):
     """CrossViewHybridAttention `attn` of one query plane: q (Q, D), plane canvas (heads, D/heads, Hp, Wp)
     -> (Q, D)."""
@@ -214,8 +225,7 @@ def cross_view(attn, refs: CrossViewRefs, q: torch.Tensor, canvas: torch.Tensor,
     w = torch.softmax(logits, 1)
     grid = canvas_coords(refs.ref_x + off_x, refs.ref_y + off_y, -0.5, refs.hi_x, -0.5, refs.hi_y,
                          refs.base_x, 1.0, layout)                             # (h, J, Q, 2)
-    sampled = F.grid_sample(canvas, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
-    out = (sampled * w.unsqueeze(1)).sum(2)                                    # (h, D/h, Q)
+    out = weighted_samples(canvas, grid, w)                                    # (h, D/h, Q)
     return attn.output_proj(out.reshape(attn.dim, Q).t())
 
 
@@ -258,16 +268,14 @@ def image_attention(attn, q: torch.Tensor, canvas: torch.Tensor, geo: dict, layo
                              per_entry(geo["base_x"]), geo["base_y"].view(1, L, 1, 1), layout)   # (h, L, S, n, 2)
         grid = grid.view(h, L * S, -1, 2)
         w = (per_offset(w) * geo["weight"].reshape(-1).index_select(0, sel)).view(h, L * S, -1)
-        sampled = F.grid_sample(canvas, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
-        part = (sampled * w.unsqueeze(1)).sum(2)                                # (h, D/h, n_valid)
-        out = part.new_zeros(h, part.shape[1], Q).index_add(2, sel % Q, part)   # (h, D/h, Q)
+        part = weighted_samples(canvas, grid, w)                                # (h, D/h, n_valid)
+        to_query = (sel % Q).view(1, 1, -1).expand_as(part)   # scatter_add: ONNX ScatterElements(add)
+        out = part.new_zeros(h, part.shape[1], Q).scatter_add(2, to_query, part)   # (h, D/h, Q)
     else:
         grid = canvas_coords(geo["ref_x"] + off_x, geo["ref_y"] + off_y, -0.5, geo["hi_x"], -0.5, geo["hi_y"],
                              geo["base_x"], geo["base_y"], layout)             # (h, L, k, P, S, Q, 2)
-        w = (w * geo["weight"]).reshape(h, 1, -1, Q)                           # (h, 1, L*k*P*S, Q)
-        grid = grid.reshape(h, -1, Q, 2)
-        sampled = F.grid_sample(canvas, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
-        out = (sampled * w).sum(2)                                             # (h, D/h, Q)
+        w = (w * geo["weight"]).reshape(h, -1, Q)                              # (h, L*k*P*S, Q)
+        out = weighted_samples(canvas, grid.reshape(h, -1, Q, 2), w)           # (h, D/h, Q)
     return attn.output_proj(out.reshape(attn.dim, Q).t())
 
 
