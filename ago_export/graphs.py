@@ -117,7 +117,8 @@ class PlanesGraph(nn.Module):
         self.grid_shape = tuple(grid_shape) if grid_shape is not None else model.grid_shape
 
     def forward(self, images: torch.Tensor, ego2img: torch.Tensor):
-        return self.from_features(self.fpn(self.backbone(images[0])), ego2img)
+        # flatten, not images[0]: a Reshape onnxruntime runs in place, where [0] is a Gather that copies the images
+        return self.from_features(self.fpn(self.backbone(images.flatten(0, 1))), ego2img)
 
     def from_features(self, feats: list[torch.Tensor], ego2img: torch.Tensor):
         """FPN maps per level (V, D, H_l, W_l), ego2img (1, V, 4, 4) -> the three planes (see the class)."""

@@ -14,6 +14,8 @@ What is restructured:
 - the offsets and attention-weight linears of an attention run as one matrix product, their rows
   reordered (x offsets, y offsets, weights) by `fused_linear` (differentiable: training updates the
   original linears; the export's constant folding turns the reorder into one weight);
+- the image attentions sample only the (camera, pillar point, query) entries a camera sees (compact
+  form; `ago export` traces it too; the static form samples every entry, see `image_attention`);
 - one grid_sample per attention: the V cameras' FPN levels sit in one zero-framed "camera canvas"
   (per level a strip of six maps, each with a one-pixel zero frame; strips stacked vertically) and
   the three TPV value maps in one "plane canvas"; sample positions are clamped into their map's
@@ -209,7 +211,7 @@ def weighted_samples(canvas: torch.Tensor, grid: torch.Tensor, w: torch.Tensor) 
 
     This form (samples-major, Mul + sum) is the fastest of those measured in onnxruntime at the paper's
     scale: an einsum or a batched MatMul over the samples, and a query-major layout (heads, Q, S), were
-    slower there (benchmarks/results/tpv_weighted_sum.md)."""
+    slower there (benchmarks/results/tpv_sampling_forms.md)."""
     sampled = F.grid_sample(canvas, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
     return (sampled * w.unsqueeze(1)).sum(2)
 
@@ -236,9 +238,11 @@ def image_attention(attn, q: torch.Tensor, canvas: torch.Tensor, geo: dict, layo
 
     compact: sample only the (camera, pillar point, query) entries whose validity weight is > 0 and
     add them into their queries (the same sum: the others are multiplied by 0). Their number depends
-    on the frame (nonzero), so this is for eager torch only (training, `ago eval`); the export traces
-    the static form. On the `cpu` preset 54 % of the top plane's entries and 27 % of a side plane's
-    are valid, and grid_sample's backward is the largest part of a training step."""
+    on the frame (nonzero): traced to ONNX it gives NonZero / Gather / ScatterElements(add) and a
+    data-dependent sample count (what `ago export` writes; `--static-sampling` traces the static form,
+    compact=False). On the `cpu` and `full` presets with a nuScenes rig 54-55 % of the top plane's
+    entries and 27 % of a side plane's are valid; grid_sample's backward is the largest part of a
+    training step and GridSample the largest part of the exported encoder."""
     h, L, P, S = attn.heads, attn.levels, attn.pillar, attn.offsets_n
     points = L * P * S
     Q = q.shape[0]
@@ -308,7 +312,8 @@ def layer_forward(layer, queries: dict, cam_canvas: torch.Tensor, geo: dict, c: 
 def encode_frame(encoder, feats: list[torch.Tensor], ego2img: torch.Tensor, compact: bool | None = None) -> dict:
     """TPVEncoder `encoder` on one frame: FPN maps per level (V, D, H_l, W_l), ego2img (V, 4, 4) ->
     queries {"xy" | "xz" | "yz": (Q_p, D)} after the last layer (C order over the plane's rows, cols).
-    compact (`image_attention`): None = whenever no trace (ONNX export) is running."""
+    compact (`image_attention`): None = whenever no trace is running (ago_export.graphs.ExportTPV
+    passes it explicitly)."""
     if compact is None:
         compact = not (torch.jit.is_tracing() or torch.onnx.is_in_onnx_export())
     c = encoder.canvas
