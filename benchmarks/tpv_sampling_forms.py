@@ -14,8 +14,9 @@ Forms (all the same function; the encoder alone: FPN maps -> TPV queries, as ago
 The variants swap `tpv_canvas.weighted_samples` while they are traced. Random weights (offsets and attention
 weights drawn small, as after training's init), random FPN maps of the paper's sizes; the rig is the real
 nuScenes keyframe's of ../shared when present, else Rig.nuscenes_like(1600, 900). Each figure is the best and
-the median of the rounds (one run of each form per round, alternating); the op split is onnxruntime's profile
-of one more run per form.
+the median of the rounds; a round runs each form in a fresh child process in turn (one at a time: the static
+forms hold GBs): one run to warm up, then the best of two timed runs; the op split is onnxruntime's profile of
+the first round's last run (its profiling overhead included).
 """
 
 from __future__ import annotations
@@ -23,6 +24,9 @@ from __future__ import annotations
 import argparse
 import collections
 import json
+import os
+import subprocess
+import sys
 import tempfile
 import time
 import warnings
@@ -100,11 +104,7 @@ def op_split(profile_file: str, top: int = 6) -> list[tuple[str, float]]:
     return by_op.most_common(top)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--rounds", type=int, default=3)
-    ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "tpv_sampling_forms.md")
-    args = ap.parse_args()
+def build_model():
     cfg = ModelConfig.preset("full")
     cfg.pretrained = False
     torch.manual_seed(0)
@@ -113,16 +113,27 @@ def main() -> None:
         for name, p in model.encoder.named_parameters():
             if "sampling_offsets.weight" in name or "attention_weights.weight" in name:
                 p.normal_(0, 0.02)
+    return cfg, model
+
+
+def child_export(index: str, tmp: str) -> dict:
+    """Export form `index` to tmp/form<i>.onnx (the feeds: tmp/feeds.npz, made by the first call); its
+    outputs on the feeds -> tmp/out<i>.npz."""
+    cfg, model = build_model()
+    tmp_dir, i = Path(tmp), int(index)
     m, rig_name = frame_ego2img(cfg)
-    g = np.random.default_rng(0)
-    feats = [g.standard_normal((cfg.num_cameras, cfg.tpv_dim, cfg.image_height // s, cfg.image_width // s),
-                               dtype=np.float32) for s in tc.LEVEL_STRIDES]
-    feed = {"f0": feats[0], "f1": feats[1], "f2": feats[2], "ego2img": m}
+    if not (tmp_dir / "feeds.npz").is_file():
+        g = np.random.default_rng(0)
+        feats = [g.standard_normal((cfg.num_cameras, cfg.tpv_dim, cfg.image_height // s, cfg.image_width // s),
+                                   dtype=np.float32) for s in tc.LEVEL_STRIDES]
+        np.savez(tmp_dir / "feeds.npz", f0=feats[0], f1=feats[1], f2=feats[2], ego2img=m)
+    feed = dict(np.load(tmp_dir / "feeds.npz"))
     valid = {p: float((model.encoder.canvas.frames[p](torch.from_numpy(m))["weight"] > 0).float().mean())
              for p in tc.PLANES}
+    static, form = list(FORMS.values())[i]
 
     class Encoder(torch.nn.Module):
-        def __init__(self, static: bool):
+        def __init__(self):
             super().__init__()
             self.tpv = ExportTPV(model.encoder, static_sampling=static)
 
@@ -130,37 +141,76 @@ def main() -> None:
             q = self.tpv([f0, f1, f2], ego2img)
             return q["xy"], q["xz"], q["yz"]
 
-    tmp = Path(tempfile.mkdtemp(prefix="tpv-forms-"))
-    sessions, outputs = {}, {}
-    for i, (name, (static, form)) in enumerate(FORMS.items()):
-        path = tmp / f"form{i}.onnx"
-        tc.weighted_samples = form
-        try:
-            with warnings.catch_warnings(), torch.no_grad():
-                warnings.simplefilter("ignore")
-                torch.onnx.export(Encoder(static).eval(), tuple(torch.from_numpy(feed[k]) for k in feed), str(path),
-                                  dynamo=False, opset_version=17, input_names=list(feed), do_constant_folding=True)
-        finally:
-            tc.weighted_samples = SHIPPED_WEIGHTED_SAMPLES
-        sessions[name] = session(path)
-        outputs[name] = sessions[name].run(None, feed)
+    path = tmp_dir / f"form{i}.onnx"
+    tc.weighted_samples = form
+    try:
+        with warnings.catch_warnings(), torch.no_grad():
+            warnings.simplefilter("ignore")
+            torch.onnx.export(Encoder().eval(), tuple(torch.from_numpy(feed[k]) for k in feed), str(path),
+                              dynamo=False, opset_version=17, input_names=list(feed), do_constant_folding=True)
+    finally:
+        tc.weighted_samples = SHIPPED_WEIGHTED_SAMPLES
+    out = session(path).run(None, feed)
+    np.savez(tmp_dir / f"out{i}.npz", *out)
+    return {"valid": valid, "rig": rig_name}
+
+
+def child_time(path: str, profile_prefix: str) -> dict:
+    """One warm-up run, then the best of two timed runs (a session is reused frame after frame; with a profile
+    prefix: the op split of the last run)."""
+    feed = dict(np.load(Path(path).parent / "feeds.npz"))
+    s = session(Path(path), profile_prefix or None)
+    s.run(None, feed)
+    runs = []
+    for _ in range(2):
+        t = time.perf_counter()
+        s.run(None, feed)
+        runs.append(time.perf_counter() - t)
+    res = {"s": min(runs)}
+    if profile_prefix:
+        res["ops"] = op_split(s.end_profiling())
+    return res
+
+
+def run_child(*args: str) -> dict:
+    r = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--child", *args], capture_output=True,
+                       text=True, env={**os.environ, "PYTHONPATH": str(REPO)})
+    if r.returncode != 0:
+        raise SystemExit(f"child {args} failed:\n{r.stderr[-3000:]}")
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "tpv_sampling_forms.md")
+    ap.add_argument("--work", type=Path, help="folder for the exported forms (default: a new temp folder); forms "
+                                              "already there are reused")
+    ap.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        name, *rest = args.child
+        print(json.dumps({"export": child_export, "time": child_time}[name](*rest)))
+        return
+    tmp = args.work or Path(tempfile.mkdtemp(prefix="tpv-forms-"))
+    tmp.mkdir(parents=True, exist_ok=True)
+    for i, name in enumerate(FORMS):
+        if not (tmp / f"info{i}.json").is_file():
+            (tmp / f"info{i}.json").write_text(json.dumps(run_child("export", str(i), str(tmp))))
         print(f"exported {name}", flush=True)
+    info = json.loads((tmp / "info0.json").read_text())
+    valid, rig_name = info["valid"], info["rig"]
+    outputs = {n: list(np.load(tmp / f"out{i}.npz").values()) for i, n in enumerate(FORMS)}
     first = next(iter(FORMS))
     diff = {n: max(float(np.abs(a - b).max()) for a, b in zip(outputs[n], outputs[first])) for n in FORMS}
     times: dict = {n: [] for n in FORMS}
-    for r in range(args.rounds):
-        for n, s in sessions.items():
-            t = time.perf_counter()
-            s.run(None, feed)
-            times[n].append(time.perf_counter() - t)
-        print(f"round {r + 1}: " + ", ".join(f"{n} {times[n][-1]:.2f} s" for n in FORMS), flush=True)
     splits = {}
-    for i, name in enumerate(FORMS):
-        del sessions[name]
-        s = session(tmp / f"form{i}.onnx", str(tmp / f"prof{i}"))
-        s.run(None, feed)
-        s.run(None, feed)
-        splits[name] = op_split(s.end_profiling())
+    for r in range(args.rounds):
+        for i, n in enumerate(FORMS):
+            res = run_child("time", str(tmp / f"form{i}.onnx"), str(tmp / f"prof{i}") if r == 0 else "")
+            times[n].append(res["s"])
+            splits.setdefault(n, res.get("ops"))
+        print(f"round {r + 1}: " + ", ".join(f"{n} {times[n][-1]:.2f} s" for n in FORMS), flush=True)
     base = min(times["static (--static-sampling)"])
     lines = ["# The TPV encoder's sampling forms in onnxruntime (issue 39)", "",
              f"Command: `python benchmarks/tpv_sampling_forms.py --rounds {args.rounds}` "
@@ -169,7 +219,7 @@ def main() -> None:
              f"images in, random), {rig_name}: entries a camera sees: "
              + ", ".join(f"{p} {100 * v:.1f} %" for p, v in valid.items()) + ". "
              f"Best and median of {args.rounds} alternating rounds; max |difference| to the compact form's output.", "",
-             "| form | best (s) | median (s) | vs static | max abs diff | largest operators (s, profiled run) |",
+             "| form | best (s) | median (s) | vs static | max abs diff | largest operators (s, round 1, profiled) |",
              "|---|---:|---:|---:|---:|---|"]
     for n in FORMS:
         ops = ", ".join(f"{op} {s:.2f}" for op, s in splits[n])
