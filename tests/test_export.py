@@ -171,11 +171,14 @@ def test_failed_parity_keeps_existing_bundle(env, tmp_path):
 def test_cli_export_synthetic_frame_and_bad_checkpoint(env, tmp_path):
     out = tmp_path / "synth_bundle"
     r = subprocess.run([sys.executable, "-m", "ago_runtime", "export", str(env["ckpt"]), "-o", str(out),
-                        "--no-real-frame", "--train-bank-only"], capture_output=True, text=True, cwd=tmp_path)
+                        "--no-real-frame", "--train-bank-only", "--static-sampling"], capture_output=True, text=True,
+                       cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     meta = json.loads((out / "bundle.json").read_text())
-    assert meta["parity"]["fp32"]["frame"].startswith("synthetic")
+    assert meta["parity"]["fp32"]["frame"].startswith("synthetic") and meta["parity"]["fp32"]["ok"]
     assert set(meta["banks"]) == {"train"}
+    # --static-sampling: every entry sampled, no data-dependent shape (the default bundle of env has NonZero)
+    assert "NonZero" not in {n.op_type for n in onnx.load(str(out / "planes.onnx")).graph.node}
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"not a checkpoint")
     r = subprocess.run([sys.executable, "-m", "ago_runtime", "export", str(bad), "-o", str(tmp_path / "x")],
