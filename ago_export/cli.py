@@ -37,6 +37,11 @@ def register(app: typer.Typer) -> None:
         card_json: Optional[Path] = typer.Option(
             None, "--card-json", help='JSON object merged into the bundle card, e.g. {"val_scores": {"mIoU": 7.8}} '
                                       "(default: filled from the checkpoint, its log and <ckpt dir>/eval-val)"),
+        static_sampling: bool = typer.Option(
+            False, "--static-sampling",
+            help="planes.onnx samples every camera at every pillar point (the ones a camera does not see weighted "
+                 "by 0) instead of only the seen ones: the same function, no data-dependent shapes (NonZero), "
+                 "for runtimes that need static shapes; slower on CPU"),
     ) -> None:
         """Export a checkpoint to a self-describing ONNX bundle, parity-checked against torch."""
         from ago_runtime.errors import require_torch
@@ -72,4 +77,5 @@ def register(app: typer.Typer) -> None:
         prompts = [] if train_bank_only else bank
         export_bundle(checkpoint, out, int8=int8, parity_frame_dir=parity_frame,
                       real_frame=not no_real_frame, bank_prompts=prompts,
-                      log=lambda s: typer.echo(s, err=True), card=card, readout_grid=readout)
+                      log=lambda s: typer.echo(s, err=True), card=card, readout_grid=readout,
+                      static_sampling=static_sampling)

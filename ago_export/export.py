@@ -111,16 +111,17 @@ def _finish_onnx(path: Path, metadata: dict[str, str], doc: str) -> None:
 
 
 def export_onnx(model: nn.Module, out_dir: Path, cfg, metadata: dict[str, str],
-                grid_shape: tuple[int, int, int] | None = None) -> tuple[dict[str, str], list[VoxelStageSpec]]:
+                grid_shape: tuple[int, int, int] | None = None,
+                static_sampling: bool = False) -> tuple[dict[str, str], list[VoxelStageSpec]]:
     """Write planes.onnx and voxels_<i>.onnx (ago_export.graphs) into out_dir; returns ({key: file}, the
     voxel stages' contract entries, each with its file key). grid_shape: the read-out grid planes.onnx
-    upsamples to (default the model's)."""
+    upsamples to (default the model's). static_sampling: see ago_export.graphs.ExportTPV."""
     images = torch.zeros(1, cfg.num_cameras, 3, cfg.image_height, cfg.image_width)
     ego2img = torch.eye(4).expand(1, cfg.num_cameras, 4, 4).contiguous()
     files, specs = {"planes": "planes.onnx"}, []
     with warnings.catch_warnings(), torch.no_grad():
         warnings.simplefilter("ignore")
-        torch.onnx.export(PlanesGraph(model, grid_shape).eval(), (images, ego2img), str(out_dir / "planes.onnx"), dynamo=False,
+        torch.onnx.export(PlanesGraph(model, grid_shape, static_sampling).eval(), (images, ego2img), str(out_dir / "planes.onnx"), dynamo=False,
                           opset_version=OPSET, input_names=["images", "ego2img"],
                           output_names=["plane_xy", "plane_xz", "plane_yz"], do_constant_folding=True)
         for i, stage in enumerate(voxel_stages(model)):
@@ -226,7 +227,7 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
                   parity_frame_dir: str | Path | None = None, real_frame: bool = True,
                   bank_prompts: list[str] | None = None, tolerance: Tolerance = FP32_TOLERANCE,
                   int8_tolerance: Tolerance = INT8_TOLERANCE, log=print, parity: bool = True,
-                  card: dict | None = None, readout_grid: Grid | None = None) -> dict:
+                  card: dict | None = None, readout_grid: Grid | None = None, static_sampling: bool = False) -> dict:
     """Write a bundle for `checkpoint` at `out`; returns bundle.json's content.
 
     parity=False skips the ORT-vs-torch check (benchmarks only; not offered by the CLI);
@@ -241,6 +242,9 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
     default the model's training grid; a finer one (e.g. Occ3D's 200x200x16 for a 100x100x8 model) reads
     the same TPV planes at finer voxel centres (bilinear, as `ago eval --readout gt`). bundle.json "grid"
     is then the read-out grid, "model_grid" the training grid, and the card says both.
+
+    static_sampling (`ago export --static-sampling`): planes.onnx samples every (camera, pillar point) entry
+    instead of only those a camera sees (no data-dependent shapes; slower): ago_export.graphs.ExportTPV.
     """
     checkpoint, out = Path(checkpoint), Path(out)
     model, ckpt, cfg = load_model(checkpoint)
@@ -279,7 +283,7 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
                            "of the per-voxel MLP (y = x W^T + b)",
         }
         log(f"exporting the encoder to ONNX (opset {OPSET}) ...")
-        files, stages = export_onnx(model, tmp, cfg, metadata, grid.shape)
+        files, stages = export_onnx(model, tmp, cfg, metadata, grid.shape, static_sampling)
         np.savez(tmp / "heads.npz", **heads.to_arrays())
         (tmp / "banks").mkdir()
         bank.save(tmp / "banks" / "train.npz")

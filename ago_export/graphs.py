@@ -75,15 +75,24 @@ def fused_adapter(model) -> nn.Sequential:
 class ExportTPV(nn.Module):
     """The trained TPVEncoder in its canvas layout (ago_train/model/tpv_canvas.py: the same code
     training runs): FPN maps per level (V, D, H_l, W_l), ego2img (V, 4, 4) -> queries
-    {"xy" | "xz" | "yz": (Q_p, D)} after the last layer (C order over the plane's rows, cols)."""
+    {"xy" | "xz" | "yz": (Q_p, D)} after the last layer (C order over the plane's rows, cols).
 
-    def __init__(self, encoder):
+    static_sampling=False (the default) traces the image attentions' compact sampling, as training runs
+    it: only the (camera, pillar point, query) entries that a camera sees are sampled, so the graph holds
+    NonZero and ScatterElements(add) and the sample count depends on the frame (at the paper's scale on a
+    nuScenes rig 55 % of the top plane's entries and 27 % of a side plane's). static_sampling=True traces
+    the static form: every entry is sampled (the others weighted by 0), no data-dependent shapes, for
+    runtimes that need static shapes. Both compute the same function (tests/test_model.py,
+    tests/test_export.py)."""
+
+    def __init__(self, encoder, static_sampling: bool = False):
         super().__init__()   # encode_frame checks the FPN map sizes against the encoder's canvas layout
         self.encoder = encoder
         self.plane_hw = dict(encoder.plane_hw)
+        self.static_sampling = static_sampling
 
     def forward(self, feats: list[torch.Tensor], ego2img: torch.Tensor) -> dict:
-        return encode_frame(self.encoder, feats, ego2img)
+        return encode_frame(self.encoder, feats, ego2img, compact=not self.static_sampling)
 
 
 # --------------------------------------------------------------------------- the two graphs
@@ -94,12 +103,13 @@ class PlanesGraph(nn.Module):
     channels last. (Running the backbone one camera at a time instead of on the batch of six was
     measured and did not pay: benchmarks/results/runtime_rewrites.md.)"""
 
-    def __init__(self, model, grid_shape: tuple[int, int, int] | None = None):
+    def __init__(self, model, grid_shape: tuple[int, int, int] | None = None, static_sampling: bool = False):
         """grid_shape: the read-out grid the planes are upsampled to (default the model's grid; a finer one
-        over the same range reads the same planes at finer voxel centres, as AGOModel.forward(grid_shape=))."""
+        over the same range reads the same planes at finer voxel centres, as AGOModel.forward(grid_shape=)).
+        static_sampling: see ExportTPV."""
         super().__init__()
         self.backbone, self.fpn = model.backbone, model.fpn
-        self.tpv = ExportTPV(model.encoder)
+        self.tpv = ExportTPV(model.encoder, static_sampling)
         first = model.decoder.net[0]
         if not isinstance(first, nn.Linear):
             raise ValueError("the decoder must start with a linear layer")
@@ -107,7 +117,8 @@ class PlanesGraph(nn.Module):
         self.grid_shape = tuple(grid_shape) if grid_shape is not None else model.grid_shape
 
     def forward(self, images: torch.Tensor, ego2img: torch.Tensor):
-        return self.from_features(self.fpn(self.backbone(images[0])), ego2img)
+        # flatten, not images[0]: a Reshape onnxruntime runs in place, where [0] is a Gather that copies the images
+        return self.from_features(self.fpn(self.backbone(images.flatten(0, 1))), ego2img)
 
     def from_features(self, feats: list[torch.Tensor], ego2img: torch.Tensor):
         """FPN maps per level (V, D, H_l, W_l), ego2img (1, V, 4, 4) -> the three planes (see the class)."""

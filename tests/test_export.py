@@ -73,7 +73,9 @@ def test_onnx_files_check_and_carry_metadata(env):
         assert [i.name for i in model.graph.input] == inputs
         assert [o.name for o in model.graph.output] == outputs
         ops = {n.op_type for n in model.graph.node}
-        assert "Softplus" not in ops and "NonZero" not in ops     # no data-dependent shapes
+        assert "Softplus" not in ops
+        # planes.onnx samples only what the cameras see, as training does (ExportTPV): its one data-dependent shape
+        assert ("NonZero" in ops) == (name == "planes")
     assert {n.op_type for n in onnx.load(str(env["bundle"] / "voxels_0.onnx")).graph.node} <= {"MatMul", "Add", "Gemm"}
 
 
@@ -169,11 +171,14 @@ def test_failed_parity_keeps_existing_bundle(env, tmp_path):
 def test_cli_export_synthetic_frame_and_bad_checkpoint(env, tmp_path):
     out = tmp_path / "synth_bundle"
     r = subprocess.run([sys.executable, "-m", "ago_runtime", "export", str(env["ckpt"]), "-o", str(out),
-                        "--no-real-frame", "--train-bank-only"], capture_output=True, text=True, cwd=tmp_path)
+                        "--no-real-frame", "--train-bank-only", "--static-sampling"], capture_output=True, text=True,
+                       cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     meta = json.loads((out / "bundle.json").read_text())
-    assert meta["parity"]["fp32"]["frame"].startswith("synthetic")
+    assert meta["parity"]["fp32"]["frame"].startswith("synthetic") and meta["parity"]["fp32"]["ok"]
     assert set(meta["banks"]) == {"train"}
+    # --static-sampling: every entry sampled, no data-dependent shape (the default bundle of env has NonZero)
+    assert "NonZero" not in {n.op_type for n in onnx.load(str(out / "planes.onnx")).graph.node}
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"not a checkpoint")
     r = subprocess.run([sys.executable, "-m", "ago_runtime", "export", str(bad), "-o", str(tmp_path / "x")],
@@ -255,6 +260,46 @@ def test_export_tpv_equals_the_trained_encoder(k, offsets):
         rows, cols = model.encoder.plane_hw[p]
         ref = want[p][0].reshape(-1, rows * cols).t()            # (Q, D)
         assert torch.allclose(got[p], ref, atol=2e-5, rtol=1e-4), (p, float((got[p] - ref).abs().max()))
+
+
+@pytest.mark.parametrize("k,offsets", [(2, 1), (6, 2)])
+def test_compact_and_static_sampling_graphs_agree(tmp_path, k, offsets):
+    """planes.onnx traced with compact sampling (the default: only the entries a camera sees, NonZero) and
+    with --static-sampling (every entry, no data-dependent shapes) give the same planes in onnxruntime, on
+    frames other than the trace's: a nuScenes rig, the same rig moved, and a rig that sees nothing."""
+    ort = pytest.importorskip("onnxruntime")
+    import warnings
+
+    from ago_export.graphs import PlanesGraph
+    from ago_runtime.geometry.preprocess import Preprocess
+
+    cfg, model = _tpv_model(k, offsets)
+    example = (torch.zeros(1, 6, 3, cfg.image_height, cfg.image_width), torch.eye(4).expand(1, 6, 4, 4).contiguous())
+    sessions = {}
+    for static in (False, True):
+        path = tmp_path / f"planes_{static}.onnx"
+        with warnings.catch_warnings(), torch.no_grad():
+            warnings.simplefilter("ignore")
+            torch.onnx.export(PlanesGraph(model, static_sampling=static).eval(), example, str(path), dynamo=False,
+                              opset_version=17, input_names=["images", "ego2img"], do_constant_folding=True)
+        assert ("NonZero" in {n.op_type for n in onnx.load(str(path)).graph.node}) == (not static)
+        sessions[static] = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    m = torch.from_numpy(Preprocess(cfg.image_width, cfg.image_height).ego2img(Rig.nuscenes_like(1600, 900))[None])
+    moved = m.clone()
+    moved[..., :3, 3] += torch.tensor([3.0, -2.0, 0.5])
+    x = torch.randn(1, 6, 3, cfg.image_height, cfg.image_width, generator=torch.Generator().manual_seed(5))
+    seen = []
+    for ego2img in (m, moved, torch.zeros(1, 6, 4, 4)):
+        feed = {"images": x.numpy(), "ego2img": ego2img.numpy().astype(np.float32)}
+        compact, static = sessions[False].run(None, feed), sessions[True].run(None, feed)
+        with torch.no_grad():
+            want = PlanesGraph(model)(x, ego2img)          # eager torch: the compact form, as training
+            seen.append(int((model.encoder.canvas.frames["xz"](ego2img[0])["weight"] > 0).sum()))
+        for a, b, w in zip(compact, static, want):
+            assert np.abs(a - b).max() <= 1e-4 * max(1.0, float(np.abs(b).max()))
+            if k == 6:   # k < 6: onnxruntime's TopK may break a tie between cameras unlike torch's (both graphs alike)
+                assert np.abs(a - w.numpy()).max() <= 1e-4 * max(1.0, float(w.abs().max()))
+    assert seen[0] > 0 and seen[2] == 0
 
 
 def test_canvas_frames_keep_maps_apart():

@@ -21,7 +21,9 @@ point of the pillar (clamped to >= 1). No nonzero(), no boolean indexing, no dat
 shapes: either every camera is sampled densely, or (cameras_per_query < 6) each query keeps its k
 most visible cameras by a static-size TopK and samples them from a side-by-side "atlas" of the
 camera maps (identical result whenever no more than k cameras see the pillar; a nuScenes rig sees
-a vertical pillar with at most 2 cameras and a side pillar with at most 4).
+a vertical pillar with at most 2 cameras and a side pillar with at most 4). (That is this reference
+arithmetic; the canvas layout, which training and `ago export` run, samples only the entries whose
+validity weight is non-zero, a frame-dependent number: tpv_canvas.image_attention.)
 
 Cross-view hybrid attention: a query samples its own plane at learned offsets around itself and
 each other plane at `num_cross_view_points` points along the shared axis (plus learned offsets),

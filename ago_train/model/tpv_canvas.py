@@ -14,6 +14,8 @@ What is restructured:
 - the offsets and attention-weight linears of an attention run as one matrix product, their rows
   reordered (x offsets, y offsets, weights) by `fused_linear` (differentiable: training updates the
   original linears; the export's constant folding turns the reorder into one weight);
+- the image attentions sample only the (camera, pillar point, query) entries a camera sees (compact
+  form; `ago export` traces it too; the static form samples every entry, see `image_attention`);
 - one grid_sample per attention: the V cameras' FPN levels sit in one zero-framed "camera canvas"
   (per level a strip of six maps, each with a one-pixel zero frame; strips stacked vertically) and
   the three TPV value maps in one "plane canvas"; sample positions are clamped into their map's
@@ -203,6 +205,17 @@ class CanvasGeometry(nn.Module):
 
 
 # --------------------------------------------------------------------------- attentions, one frame
+def weighted_samples(canvas: torch.Tensor, grid: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """The attentions' read-out: bilinear samples (zero padding) of the canvas (heads, C, H, W) at grid
+    (heads, S, Q, 2), weighted by w (heads, S, Q) and summed over the S samples -> (heads, C, Q).
+
+    This form (samples-major, Mul + sum) is the fastest of those measured in onnxruntime at the paper's
+    scale: an einsum or a batched MatMul over the samples, and a query-major layout (heads, Q, S), were
+    slower there (benchmarks/results/tpv_sampling_forms.md)."""
+    sampled = F.grid_sample(canvas, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+    return (sampled * w.unsqueeze(1)).sum(2)
+
+
 def cross_view(attn, refs: CrossViewRefs, q: torch.Tensor, canvas: torch.Tensor, layout: CanvasLayout):
     """CrossViewHybridAttention `attn` of one query plane: q (Q, D), plane canvas (heads, D/heads, Hp, Wp)
     -> (Q, D)."""
@@ -214,8 +227,7 @@ def cross_view(attn, refs: CrossViewRefs, q: torch.Tensor, canvas: torch.Tensor,
     w = torch.softmax(logits, 1)
     grid = canvas_coords(refs.ref_x + off_x, refs.ref_y + off_y, -0.5, refs.hi_x, -0.5, refs.hi_y,
                          refs.base_x, 1.0, layout)                             # (h, J, Q, 2)
-    sampled = F.grid_sample(canvas, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
-    out = (sampled * w.unsqueeze(1)).sum(2)                                    # (h, D/h, Q)
+    out = weighted_samples(canvas, grid, w)                                    # (h, D/h, Q)
     return attn.output_proj(out.reshape(attn.dim, Q).t())
 
 
@@ -226,9 +238,11 @@ def image_attention(attn, q: torch.Tensor, canvas: torch.Tensor, geo: dict, layo
 
     compact: sample only the (camera, pillar point, query) entries whose validity weight is > 0 and
     add them into their queries (the same sum: the others are multiplied by 0). Their number depends
-    on the frame (nonzero), so this is for eager torch only (training, `ago eval`); the export traces
-    the static form. On the `cpu` preset 54 % of the top plane's entries and 27 % of a side plane's
-    are valid, and grid_sample's backward is the largest part of a training step."""
+    on the frame (nonzero): traced to ONNX it gives NonZero / Gather / ScatterElements(add) and a
+    data-dependent sample count (what `ago export` writes; `--static-sampling` traces the static form,
+    compact=False). On the `cpu` and `full` presets with a nuScenes rig 54-55 % of the top plane's
+    entries and 27 % of a side plane's are valid; grid_sample's backward is the largest part of a
+    training step and GridSample the largest part of the exported encoder."""
     h, L, P, S = attn.heads, attn.levels, attn.pillar, attn.offsets_n
     points = L * P * S
     Q = q.shape[0]
@@ -258,16 +272,14 @@ def image_attention(attn, q: torch.Tensor, canvas: torch.Tensor, geo: dict, layo
                              per_entry(geo["base_x"]), geo["base_y"].view(1, L, 1, 1), layout)   # (h, L, S, n, 2)
         grid = grid.view(h, L * S, -1, 2)
         w = (per_offset(w) * geo["weight"].reshape(-1).index_select(0, sel)).view(h, L * S, -1)
-        sampled = F.grid_sample(canvas, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
-        part = (sampled * w.unsqueeze(1)).sum(2)                                # (h, D/h, n_valid)
-        out = part.new_zeros(h, part.shape[1], Q).index_add(2, sel % Q, part)   # (h, D/h, Q)
+        part = weighted_samples(canvas, grid, w)                                # (h, D/h, n_valid)
+        to_query = (sel % Q).view(1, 1, -1).expand_as(part)   # scatter_add: ONNX ScatterElements(add)
+        out = part.new_zeros(h, part.shape[1], Q).scatter_add(2, to_query, part)   # (h, D/h, Q)
     else:
         grid = canvas_coords(geo["ref_x"] + off_x, geo["ref_y"] + off_y, -0.5, geo["hi_x"], -0.5, geo["hi_y"],
                              geo["base_x"], geo["base_y"], layout)             # (h, L, k, P, S, Q, 2)
-        w = (w * geo["weight"]).reshape(h, 1, -1, Q)                           # (h, 1, L*k*P*S, Q)
-        grid = grid.reshape(h, -1, Q, 2)
-        sampled = F.grid_sample(canvas, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
-        out = (sampled * w).sum(2)                                             # (h, D/h, Q)
+        w = (w * geo["weight"]).reshape(h, -1, Q)                              # (h, L*k*P*S, Q)
+        out = weighted_samples(canvas, grid.reshape(h, -1, Q, 2), w)           # (h, D/h, Q)
     return attn.output_proj(out.reshape(attn.dim, Q).t())
 
 
@@ -300,7 +312,8 @@ def layer_forward(layer, queries: dict, cam_canvas: torch.Tensor, geo: dict, c: 
 def encode_frame(encoder, feats: list[torch.Tensor], ego2img: torch.Tensor, compact: bool | None = None) -> dict:
     """TPVEncoder `encoder` on one frame: FPN maps per level (V, D, H_l, W_l), ego2img (V, 4, 4) ->
     queries {"xy" | "xz" | "yz": (Q_p, D)} after the last layer (C order over the plane's rows, cols).
-    compact (`image_attention`): None = whenever no trace (ONNX export) is running."""
+    compact (`image_attention`): None = whenever no trace is running (ago_export.graphs.ExportTPV
+    passes it explicitly)."""
     if compact is None:
         compact = not (torch.jit.is_tracing() or torch.onnx.is_in_onnx_export())
     c = encoder.canvas
