@@ -47,6 +47,24 @@ def run_ago(args, cwd: Path):
     return types.SimpleNamespace(code=code, stdout=out.getvalue(), stderr=err.getvalue())
 
 
+def ok(r):
+    """`r` (a run_ago result) when the command succeeded; else a failure showing its output."""
+    assert r.code == 0, f"exit {r.code}\nstdout: {r.stdout[-3000:]}\nstderr: {r.stderr[-3000:]}"
+    return r
+
+
+def run_chain(cwd: Path, data: str, prompts, gt: str) -> None:
+    """The whole chain on a synthetic dataset `data` (a folder in `cwd`): pseudo-labels (20x20x4) -> train (tiny, 2
+    epochs) -> eval (val) -> export -> infer -> metric against `gt`, in the folders pl, run, ev, bundle, pred, m.json."""
+    ok(run_ago(["pseudo-labels", "--data", data, "--prompts", prompts, "--out", "pl", "--grid", "20x20x4"], cwd))
+    ok(run_ago(["train", "--config", "tiny", "--data", data, "--pseudo", "pl", "--prompts", prompts, "--out", "run",
+                "--set", "epochs=2"], cwd))
+    ok(run_ago(["eval", "--ckpt", "run/last.pt", "--data", data, "--split", "val", "--out", "ev"], cwd))
+    ok(run_ago(["export", "run/last.pt", "-o", "bundle", "--parity-frame", data], cwd))
+    ok(run_ago(["infer", "--images", data, "--bundle", "bundle", "--out", "pred"], cwd))
+    ok(run_ago(["metric", "--pred", "pred", "--gt", gt, "--prompts", prompts, "--json", "m.json"], cwd))
+
+
 def snapshot(root: Path) -> dict:
     return {str(p.relative_to(root)): (p.stat().st_size, p.stat().st_mtime_ns)
             for p in root.rglob("*") if p.is_file()}

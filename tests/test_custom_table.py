@@ -17,7 +17,7 @@ import pytest
 
 from ago_runtime.classes import OCC3D_NUSCENES, OCC3D_WAYMO, ClassTable, load_class_table
 from ago_runtime.errors import AgoInputError
-from test_bad_inputs import assert_one_error_line, run_ago
+from test_bad_inputs import assert_one_error_line, ok, run_ago, run_chain
 
 # our own table: file id of each class, and the Occ3D-nuScenes classes relabelled into it
 MY_TABLE = {"name": "my_table", "free_id": 0, "ignore_ids": [255],
@@ -158,21 +158,11 @@ def test_the_bundle_contract_records_a_custom_table_and_checks_ids_against_it():
 def chain(tmp_path_factory) -> Path:
     pytest.importorskip("torch")
 
-    def ok(r):
-        assert r.code == 0, f"exit {r.code}\nstdout: {r.stdout[-3000:]}\nstderr: {r.stderr[-3000:]}"
-
     d = tmp_path_factory.mktemp("custom_table_chain")
     ok(run_ago(["synth", "--out", "s", "--scenes", "2", "--frames", "3", "--image-size", "192x108",
                 "--grid", "40x40x4", "--seed", "7"], d))
     relabel(d / "s")
-    prompts = write_prompts(d / "prompts")
-    ok(run_ago(["pseudo-labels", "--data", "s", "--prompts", prompts, "--out", "pl", "--grid", "20x20x4"], d))
-    ok(run_ago(["train", "--config", "tiny", "--data", "s", "--pseudo", "pl", "--prompts", prompts, "--out", "run",
-                "--set", "epochs=2"], d))
-    ok(run_ago(["eval", "--ckpt", "run/last.pt", "--data", "s", "--split", "val", "--out", "ev"], d))
-    ok(run_ago(["export", "run/last.pt", "-o", "bundle", "--parity-frame", "s"], d))
-    ok(run_ago(["infer", "--images", "s", "--bundle", "bundle", "--out", "pred"], d))
-    ok(run_ago(["metric", "--pred", "pred", "--gt", "s/gts", "--prompts", prompts, "--json", "m.json"], d))
+    run_chain(d, "s", write_prompts(d / "prompts"), gt="s/gts")
     return d
 
 

@@ -16,15 +16,10 @@ pytest.importorskip("torch")
 from ago_runtime.classes import OCC3D_WAYMO  # noqa: E402
 from ago_runtime.formats.datasets import open_dataset  # noqa: E402
 from ago_train.synth.rigs import WAYMO_CAMERAS  # noqa: E402
-from test_bad_inputs import assert_one_error_line, run_ago  # noqa: E402
+from test_bad_inputs import assert_one_error_line, ok, run_ago, run_chain  # noqa: E402
 
 PROMPTS = "waymo/cw_waymo"          # the shipped closed Occ3D-Waymo label space (15 classes, Tab. G)
 WAYMO_NAMES = list(OCC3D_WAYMO.names)
-
-
-def ok(r):
-    assert r.code == 0, f"exit {r.code}\nstdout: {r.stdout[-3000:]}\nstderr: {r.stderr[-3000:]}"
-    return r
 
 
 @pytest.fixture(scope="module")
@@ -32,13 +27,7 @@ def chain(tmp_path_factory) -> Path:
     d = tmp_path_factory.mktemp("waymo_chain")
     ok(run_ago(["synth", "--rig", "waymo", "--out", "w", "--scenes", "2", "--frames", "3", "--image-size", "192x128",
             "--grid", "40x40x4", "--seed", "5"], d))
-    ok(run_ago(["pseudo-labels", "--data", "w", "--prompts", PROMPTS, "--out", "pl", "--grid", "20x20x4"], d))
-    ok(run_ago(["train", "--config", "tiny", "--data", "w", "--pseudo", "pl", "--prompts", PROMPTS, "--out", "run",
-            "--set", "epochs=2"], d))
-    ok(run_ago(["eval", "--ckpt", "run/last.pt", "--data", "w", "--split", "val", "--out", "ev"], d))
-    ok(run_ago(["export", "run/last.pt", "-o", "bundle", "--parity-frame", "w"], d))
-    ok(run_ago(["infer", "--images", "w", "--bundle", "bundle", "--out", "pred"], d))
-    ok(run_ago(["metric", "--pred", "pred", "--gt", "w", "--prompts", PROMPTS, "--json", "m.json"], d))
+    run_chain(d, "w", PROMPTS, gt="w")
     return d
 
 
