@@ -29,8 +29,9 @@ free gets light grey.) Reading is bounded (MAX_TABLE_BYTES, MAX_CLASSES) and eve
 AgoInputError naming the file.
 
 Where a table comes from: a dataset folder's `class_table.json` (TABLE_FILE), else its layout's; a prompt file's
-`@table:` line (a shipped name or a JSON file). Banks, checkpoints and bundles record it with `table_ref` (a
-shipped table by name, any other as its JSON form) and read it back with `table_from_ref`.
+`@table:` line (a shipped name or a JSON file). Banks, checkpoints, pseudo-label folders and bundles record it with
+`table_record` (nothing for Occ3D-nuScenes, a shipped table by name, any other as its JSON form) and read it back
+with `table_from_ref`.
 """
 
 from __future__ import annotations
@@ -343,6 +344,12 @@ def shipped_name(table: ClassTable) -> str | None:
 def table_ref(table: ClassTable) -> str | dict:
     """How banks and bundles record a class table: a shipped table by its name, any other by its JSON form."""
     return shipped_name(table) or table.to_dict()
+
+
+def table_record(table: ClassTable, key: str = "class_table") -> dict:
+    """`{key: table_ref(table)}`, or {} for Occ3D-nuScenes: what a bank, checkpoint, pseudo-label folder or bundle
+    writes of its table (nothing for the default every reader assumes, so nuScenes files stay as they were)."""
+    return {} if table == OCC3D_NUSCENES else {key: table_ref(table)}
 
 
 def table_from_ref(ref, source: str | Path | None = None) -> ClassTable:

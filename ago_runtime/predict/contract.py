@@ -26,7 +26,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field
 from enum import Enum
 
-from ago_runtime.classes import OCC3D_NUSCENES, ClassTable, table_from_ref, table_ref
+from ago_runtime.classes import OCC3D_NUSCENES, ClassTable, table_from_ref, table_record
 from ago_runtime.errors import AgoInputError
 from ago_runtime.geometry.camera import check_camera_names
 from ago_runtime.vocab.text_encoder import file_sha256
@@ -220,9 +220,7 @@ class LabelSpaceSpec:
     def to_dict(self) -> dict:
         d = asdict(self)
         del d["table"]
-        if self.table != OCC3D_NUSCENES:   # (bundles of Occ3D-nuScenes label spaces stay as they were)
-            d["table"] = table_ref(self.table)   # a shipped table's name, or the table itself
-        return d
+        return {**d, **table_record(self.table, "table")}   # a shipped table's name, or the table itself
 
     @classmethod
     def from_dict(cls, d: dict) -> "LabelSpaceSpec":

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ago_runtime.atomic import save_npz
-from ago_runtime.classes import OCC3D_NUSCENES, ClassTable, table_from_ref, table_ref
+from ago_runtime.classes import OCC3D_NUSCENES, ClassTable, table_from_ref, table_record
 from ago_runtime.errors import AgoInputError
 from ago_runtime.readers import check_npz
 from ago_runtime.vocab.prompts import LabelSpace, parse_prompt_file
@@ -148,8 +148,7 @@ class PromptBank:
                 "dim": int(self.dim), "normalised": bool(self.normalised), "template": self.template,
                 "source_hash": self.source_hash, "label_space": self.label_space,
                 "known": list(self.known), "occ3d_ids": [list(t) for t in self.occ3d_ids],
-                # only another table is written, so banks of Occ3D-nuScenes prompt files stay as they were
-                **({"class_table": table_ref(self.class_table)} if self.class_table != OCC3D_NUSCENES else {})}
+                **table_record(self.class_table)}
 
     def save(self, path: str | Path) -> Path:
         path = Path(path)

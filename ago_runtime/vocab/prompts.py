@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from ago_runtime.classes import (FREE, IGNORE, NUM_SEMANTIC, OCC3D_CLASSES, OCC3D_NUSCENES, SHIPPED_TABLES, ClassTable,
-                                 load_class_table, name_key, shipped_name, table_from_ref, table_ref)
+                                 load_class_table, name_key, shipped_name, table_from_ref, table_record)
 from ago_runtime.errors import AgoInputError, AgoNote
 
 PROMPTS_DIR = Path(__file__).resolve().parents[2] / "prompts"
@@ -379,13 +379,11 @@ def resolve_prompt_file(name_or_path: str | Path, option: str | None = None) -> 
 
 def label_space_record(space: LabelSpace, prompt_text: str) -> dict:
     """What a checkpoint records of its label space: the prompt text, its classes and, when not Occ3D-nuScenes,
-    its class table (a shipped name or the table itself: `classes.table_ref`), so that the label space can be
+    its class table (a shipped name or the table itself: `classes.table_record`), so that the label space can be
     rebuilt without the prompt file or its table file (`label_space_from_record`)."""
     rec = {"name": space.name, "prompt_file": str(space.source) if space.source is not None else None,
            "prompt_text": prompt_text, "class_names": list(space.class_names),
-           "num_classes": int(space.num_classes), "known": sorted(space.known)}
-    if space.class_table != OCC3D_NUSCENES:
-        rec["class_table"] = table_ref(space.class_table)
+           "num_classes": int(space.num_classes), "known": sorted(space.known), **table_record(space.class_table)}
     return rec
 
 

@@ -33,7 +33,7 @@ import numpy as np
 
 from ago_runtime.atomic import save_npz, write_bytes, write_json
 from ago_runtime.geometry.camera import Rig
-from ago_runtime.classes import FREE, IGNORE, OCC3D_NUSCENES, table_ref
+from ago_runtime.classes import FREE, IGNORE, table_record
 from ago_runtime.errors import AgoInputError
 from ago_runtime.readers import read_json
 from ago_runtime.formats.frame import Frame
@@ -323,9 +323,7 @@ def make_meta(label_space, segmenter, embedder, config: PseudoLabelConfig, comma
         "label_space": {"name": label_space.name, "classes": label_space.class_names,
                         "sha256": label_space.sha256,
                         "prompt_file": str(label_space.source) if label_space.source else None,
-                        # another table than Occ3D-nuScenes is recorded (a shipped name or the table itself)
-                        **({"class_table": table_ref(label_space.class_table)}
-                           if label_space.class_table != OCC3D_NUSCENES else {})},
+                        **table_record(label_space.class_table)},
         "grid": config.grid.to_dict(),
         "segmenter": {"name": segmenter.name, "config": segmenter.config_dict()},
         "embedder": None if embedder is None else {"name": embedder.name, "config": embedder.config_dict(),
