@@ -42,6 +42,11 @@ def session_options(threads: int | None = None, optimize: bool = True) -> ort.Se
     # AGO_ORT_SPIN=1 turns spinning back on.
     if os.environ.get("AGO_ORT_SPIN", "0") != "1":
         so.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    # onnxruntime's memory pattern plans one arena block per input shape from the runs it has seen; the planes
+    # graph's sample tensors change size with the rig (it samples only what a camera sees), and with the
+    # pattern on, the first real frame after the warm-up ran 2-2.5x slower than later ones and the peak RSS
+    # was a third higher (benchmarks/results/mem_pattern.md); without it first and steady frames match.
+    so.enable_mem_pattern = False
     so.log_severity_level = 3
     return so
 
@@ -86,7 +91,7 @@ def open_device_session(path: Path, threads: int | None, sha256: str | None, dev
         engines = ago_cache_dir() / "trt" / f"{sha256[:32]}-{provider_tag(device, precision)}"
         engines.mkdir(parents=True, exist_ok=True)
     sess = _create(path, session_options(threads), provider_list(device, precision, engines))
-    check_session(sess, device, path)
+    check_session(sess, device, path, precision)
     return sess
 
 

@@ -84,7 +84,16 @@ def provider_list(device: Device, precision: Precision = Precision.FP32, engine_
         if engine_cache is not None:
             options.update(trt_engine_cache_enable=True, trt_engine_cache_path=str(engine_cache))
         return [("TensorrtExecutionProvider", options), "CUDAExecutionProvider"]
-    return [("OpenVINOExecutionProvider", {"precision": "FP16" if precision is Precision.FP16 else "FP32"})]
+    return [("OpenVINOExecutionProvider", openvino_options(precision))]
+
+
+def openvino_options(precision: Precision = Precision.FP32) -> dict:
+    """OpenVINO's device for a precision: its CPU device runs fp32 only (it does not start with FP16), so fp16
+    asks for OpenVINO's GPU device (an Intel GPU); on a machine without one the session falls back and
+    `check_session` refuses it."""
+    if precision is Precision.FP16:
+        return {"device_type": "GPU", "precision": "FP16"}
+    return {"device_type": "CPU", "precision": "FP32"}
 
 
 def check_device(device: Device, precision: Precision = Precision.FP32,
@@ -103,13 +112,17 @@ def check_device(device: Device, precision: Precision = Precision.FP32,
         raise AgoInputError("--device", f"tensorrt needs the CUDA provider beside it; install: {INSTALL[device]}")
 
 
-def check_session(session, device: Device, path) -> None:
+def check_session(session, device: Device, path, precision: Precision = Precision.FP32) -> None:
     """Refuse a session whose first provider is not the one asked for (a silent fall-back)."""
     got = session.get_providers()
     if not got or got[0] != MAIN_PROVIDER[device]:
+        if device is Device.OPENVINO and precision is Precision.FP16:
+            hint = ("fp16 runs on OpenVINO's GPU device (an Intel GPU) and this machine has none that OpenVINO "
+                    "can use; OpenVINO's CPU device runs fp32: use --precision fp32")
+        else:
+            hint = f"check the libraries it needs: {INSTALL.get(device, '')}"
         raise AgoInputError(path, f"onnxruntime could not start {MAIN_PROVIDER[device]} for this graph "
-                            f"(it made a session on {', '.join(got) or 'nothing'}); "
-                            f"check the libraries it needs: {INSTALL.get(device, '')}")
+                            f"(it made a session on {', '.join(got) or 'nothing'}); {hint}")
 
 
 def provider_tag(device: Device, precision: Precision = Precision.FP32) -> str:

@@ -69,6 +69,21 @@ def test_a_session_that_fell_back_to_the_cpu_is_refused():
         check_session(_Session(["CPUExecutionProvider"]), Device.CUDA, "planes.onnx")
 
 
+def test_openvino_runs_fp32_on_its_cpu_device_and_fp16_on_its_gpu_device():
+    # OpenVINO's CPU device does not start with FP16 (measured with onnxruntime-openvino 1.24.1: onnxruntime then
+    # quietly makes a CPU session), so fp16 asks for its GPU device, and a fall-back says so
+    (name, options), = provider_list(Device.OPENVINO)
+    assert name == "OpenVINOExecutionProvider" and options == {"device_type": "CPU", "precision": "FP32"}
+    (_, options), = provider_list(Device.OPENVINO, Precision.FP16)
+    assert options == {"device_type": "GPU", "precision": "FP16"}
+    check_session(_Session(["OpenVINOExecutionProvider", "CPUExecutionProvider"]), Device.OPENVINO, "planes.onnx",
+                  Precision.FP16)
+    with pytest.raises(AgoInputError, match=r"^planes.onnx: .*OpenVINO's GPU device.*use --precision fp32$"):
+        check_session(_Session(["CPUExecutionProvider"]), Device.OPENVINO, "planes.onnx", Precision.FP16)
+    with pytest.raises(AgoInputError, match=r"check the libraries it needs: bash scripts/setup.sh --device openvino"):
+        check_session(_Session(["CPUExecutionProvider"]), Device.OPENVINO, "planes.onnx")
+
+
 def _ago(args) -> tuple[int, str]:
     import contextlib
     import io
