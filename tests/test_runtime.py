@@ -664,6 +664,20 @@ def test_optimised_graph_cache_is_used_checked_and_remade(bundle_dir, frame_dir,
     assert not any(p.exists() for p in cached.values())
 
 
+def test_runtime_sessions_run_without_onnxruntime_memory_pattern(bundle_dir, tmp_path, monkeypatch):
+    """Every graph session of a Predictor runs with the memory pattern off, cached optimised graph or not:
+    with it on, the compact planes graph's first real frame after the warm-up ran 1.8x its steady time and
+    the peak RSS was 1.5x (benchmarks/results/mem_pattern.md)."""
+    from ago_runtime.predict.contract import Branch
+    from ago_runtime.predict.predictor import Predictor
+
+    monkeypatch.setenv("AGO_CACHE_DIR", str(tmp_path / "cache"))
+    for _ in range(2):                                # the first writes the optimised graphs, the second reads them
+        enc = Predictor(bundle_dir, warm_up=False).encoder
+        sessions = [enc.planes, enc.bank_product.session] + [s for s, _ in enc.sessions[Branch.MAIN]]
+        assert [s.get_session_options().enable_mem_pattern for s in sessions] == [False] * len(sessions)
+
+
 def _small_dataset(root: Path, frames: int = 4) -> list[str]:
     """A nuScenes-layout dataset of one scene with `frames` keyframes (smooth random images); -> tokens."""
     from ago_runtime.formats.nuscenes_writer import NuScenesWriter
