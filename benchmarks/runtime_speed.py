@@ -353,10 +353,10 @@ def frame_flops(config: str, phrases: int) -> dict:
         with FlopCounterMode(display=False) as fc:
             planes = pg(x, m)
         new_planes = fc.get_total_flops()
-        vg = VoxelsReference(model).eval()
+        vg = VoxelsReference(model).eval()       # the voxel stages of one x row; the bank products run beside them
         with FlopCounterMode(display=False) as fc:
-            vg(planes[0][:1], planes[1][:1], planes[2], torch.zeros(phrases, Dh), torch.zeros(phrases, Da))
-        new_voxels = fc.get_total_flops() * X
+            vg(planes[0][:1], planes[1][:1], planes[2])
+        new_voxels = fc.get_total_flops() * X + bank_flops
     return {"old_planes": old_planes, "old_voxels": old_voxels, "old_total": old_planes + old_voxels,
             "new_planes": new_planes, "new_voxels": new_voxels, "new_total": new_planes + new_voxels, "N": N,
             "C": C}
