@@ -40,26 +40,16 @@ RESULTS = REPO / "benchmarks" / "results" / "device_check.md"
 
 
 def child(bundle: str, device: str, precision: str, reps: int, labels_out: str) -> dict:
-    import numpy as np
-
     from ago_runtime.errors import AgoInputError
     from ago_runtime.predict.predictor import Predictor
-    from paper_scale import load_frame, peak_rss_mib, time_predictions
+    from paper_scale import predictor_frames
 
-    images, rig, frame_name = load_frame()
-    t = time.perf_counter()
     try:
-        p = Predictor(bundle, device=device, precision=precision)
+        p, *_, record = predictor_frames(lambda: Predictor(bundle, device=device, precision=precision), reps,
+                                         labels_out)
     except AgoInputError as e:
         return {"refused": str(e)}
-    open_s = time.perf_counter() - t
-    bank = p.bundle.load_bank()
-    identifier = p.bundle.identifier_for(bank)
-    x, m = p.prepare(images, rig)
-    first_s, steady, pred = time_predictions(p, x, m, bank, identifier, reps)
-    np.save(labels_out, pred.semantics)
-    return {"open_s": open_s, "first_s": first_s, "steady_s": float(np.median(steady)), "rss_mib": peak_rss_mib(),
-            "frame": frame_name, "identifier": str(identifier), "providers": p.encoder.planes.get_providers(),
+    return {**record, "providers": p.encoder.planes.get_providers(),
             "onnxruntime": __import__("onnxruntime").__version__}
 
 

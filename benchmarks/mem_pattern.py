@@ -28,11 +28,9 @@ RESULTS = REPO / "benchmarks" / "results" / "mem_pattern.md"
 
 
 def child(bundle: str, pattern: str, reps: int, labels_out: str) -> dict:
-    import numpy as np
-
     import ago_runtime.cache as cache
     import ago_runtime.predict.bank_product as bank_product
-    from paper_scale import load_frame, peak_rss_mib, time_predictions
+    from paper_scale import predictor_frames
 
     runtime_options = cache.session_options
 
@@ -44,17 +42,8 @@ def child(bundle: str, pattern: str, reps: int, labels_out: str) -> dict:
     cache.session_options = bank_product.session_options = options
     from ago_runtime.predict.predictor import Predictor
 
-    images, rig, frame_name = load_frame()
-    t = time.perf_counter()
-    p = Predictor(bundle)
-    open_s = time.perf_counter() - t
-    bank = p.bundle.load_bank()
-    identifier = p.bundle.identifier_for(bank)
-    x, m = p.prepare(images, rig)
-    first_s, steady, pred = time_predictions(p, x, m, bank, identifier, reps)
-    np.save(labels_out, pred.semantics)
-    return {"open_s": open_s, "first_s": first_s, "steady_s": float(np.median(steady)), "rss_mib": peak_rss_mib(),
-            "frame": frame_name, "identifier": str(identifier)}
+    *_, record = predictor_frames(lambda: Predictor(bundle), reps, labels_out)
+    return record
 
 
 def run_child(*args: str) -> dict:

@@ -67,6 +67,27 @@ def time_predictions(p, x, m, bank, identifier, reps: int):
     return first_s, steady, pred
 
 
+def predictor_frames(open_predictor, reps: int, labels_out: str):
+    """The frame of `load_frame()` through a Predictor: open it (`open_predictor()`, timed), predict once (first
+    frame) and `reps` times (steady), save the labels to `labels_out` (.npy).
+    -> (predictor, x, m, bank, last prediction, record: open_s, first_s, steady_s (median), steady_all_s, rss_mib
+    (peak RSS so far), frame, identifier)."""
+    import numpy as np
+
+    images, rig, frame_name = load_frame()
+    t = time.perf_counter()
+    p = open_predictor()
+    open_s = time.perf_counter() - t
+    bank = p.bundle.load_bank()
+    identifier = p.bundle.identifier_for(bank)
+    x, m = p.prepare(images, rig)
+    first_s, steady, pred = time_predictions(p, x, m, bank, identifier, reps)
+    np.save(labels_out, pred.semantics)
+    record = {"open_s": open_s, "first_s": first_s, "steady_s": float(np.median(steady)), "steady_all_s": steady,
+              "rss_mib": peak_rss_mib(), "frame": frame_name, "identifier": str(identifier)}
+    return p, x, m, bank, pred, record
+
+
 # ---------------------------------------------------------------------------- children (either tree)
 def child_checkpoint(path: str) -> dict:
     from ago_export.testing import random_checkpoint
@@ -90,17 +111,8 @@ def child_frame(bundle: str, reps: int, cache: str, labels_out: str, profile: st
 
     from ago_runtime.predict.predictor import Predictor
 
-    images, rig, frame_name = load_frame()
-    t = time.perf_counter()
-    p = Predictor(bundle)
-    open_s = time.perf_counter() - t
-    bank = p.bundle.load_bank()
-    identifier = p.bundle.identifier_for(bank)
-    x, m = p.prepare(images, rig)
-    first_s, steady, pred = time_predictions(p, x, m, bank, identifier, reps)
-    np.save(labels_out, pred.semantics)
-    rss = peak_rss_mib()          # before the second planes session below
-    # the planes graph alone, in a session of its own with the runtime's options
+    p, x, m, bank, pred, record = predictor_frames(lambda: Predictor(bundle), reps, labels_out)
+    # (record's peak RSS is taken before the second planes session below) the planes graph alone, in a session of its own with the runtime's options
     from ago_runtime.cache import session_options
 
     so = session_options()
@@ -116,9 +128,8 @@ def child_frame(bundle: str, reps: int, cache: str, labels_out: str, profile: st
         sess.run(None, feed)
         planes.append(time.perf_counter() - t)
     prof_file = sess.end_profiling() if profile else None
-    return {"open_s": open_s, "first_s": first_s, "steady_s": float(np.median(steady)), "steady_all_s": steady,
-            "planes_s": float(np.median(planes)), "rss_mib": rss, "identifier": str(identifier),
-            "frame": frame_name, "occupied_share": float((pred.semantics != bank.num_classes).mean()),
+    return {**record, "planes_s": float(np.median(planes)),
+            "occupied_share": float((pred.semantics != bank.num_classes).mean()),
             "shape": list(pred.semantics.shape), "profile": prof_file}
 
 
