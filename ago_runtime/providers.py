@@ -8,9 +8,9 @@ folded heads and the open-world identifier are numpy and stay on the CPU (docs/r
   next provider in the list, and without CUDA there that would be the CPU.
 - `check_device(device)`: refuses, before any work, a device whose provider this onnxruntime build does
   not have, naming what to install (never a silent fall-back to the CPU).
-- `check_session(session, device, path)`: refuses a session onnxruntime made on another provider than
-  the one asked for (onnxruntime-gpu lists CUDA even when the CUDA libraries are missing, then quietly
-  builds a CPU session).
+- `check_session(session, device, path, precision)`: refuses a session onnxruntime made on another provider
+  than the one asked for (onnxruntime-gpu lists CUDA even when the CUDA libraries are missing, then quietly
+  builds a CPU session; OpenVINO's CPU device does not start with fp16, see `openvino_options`).
 - `provider_tag(device, precision)`: the part of the optimised-graph cache key that names the provider.
 """
 
