@@ -43,9 +43,9 @@ def session_options(threads: int | None = None, optimize: bool = True) -> ort.Se
     if os.environ.get("AGO_ORT_SPIN", "0") != "1":
         so.add_session_config_entry("session.intra_op.allow_spinning", "0")
     # onnxruntime's memory pattern plans one arena block per input shape from the runs it has seen; the planes
-    # graph's sample tensors change size with the rig (it samples only what a camera sees), and with the
-    # pattern on, the first real frame after the warm-up ran 2-2.5x slower than later ones and the peak RSS
-    # was a third higher (benchmarks/results/mem_pattern.md); without it first and steady frames match.
+    # graph's sample tensors change size with what the cameras see (it samples only those entries), and with the
+    # pattern on, the first real frame after the warm-up ran 1.8-2.5x slower than later ones and the peak RSS
+    # was 1.5x (benchmarks/results/mem_pattern.md); without it first and steady frames match.
     so.enable_mem_pattern = False
     so.log_severity_level = 3
     return so
