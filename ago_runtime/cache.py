@@ -6,7 +6,7 @@ imports only onnxruntime, ago_runtime.errors and ago_runtime.providers).
   file's sha256 the optimised CPU graph is saved under `ago_cache_dir()/ort/` (keyed by graph, onnxruntime
   version, provider and CPU) by the first session and loaded with graph optimisation off by later ones,
   which then open several times faster; another device: `open_device_session`;
-- `session_options(threads, optimize)`: the runtime's options (idle worker threads do not spin).
+- `session_options(threads, optimize)`: the runtime's options (idle worker threads do not spin; no memory pattern).
 """
 
 from __future__ import annotations
