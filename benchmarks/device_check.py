@@ -83,7 +83,8 @@ def main() -> None:
     for item in args.python:
         device, sep, python = item.partition("=")
         if not sep or not Path(python).is_file():
-            sys.exit(f"error: --python: expected DEVICE=PATH to an interpreter, got {item!r}")
+            print(f"error: --python: expected DEVICE=PATH to an interpreter, got {item!r}", file=sys.stderr)
+            sys.exit(2)
         pythons[device] = python
     if args.child:
         bundle, device, precision, reps, labels = args.child
