@@ -166,7 +166,7 @@
       if (sc) {
         const v = sc.values[k];
         if (v < thr) continue;
-        rgb = heatRGB((v - sc.lo) / ((sc.hi - sc.lo) || 1));
+        rgb = heatRGB((v - thr) / ((sc.hi - thr) || 1));   // the whole scale over what is shown
       }
       const p = centre(V, V.idx[k]), o = 16 * n;
       m.fill(0, o, o + 16);
@@ -310,7 +310,7 @@
     $("mode").value = state.mode;
     if (s) {
       const thr = state.threshold[state.mode];
-      $("lo").textContent = s.lo.toPrecision(3);
+      $("lo").textContent = thr.toPrecision(3);
       $("hi").textContent = s.hi.toPrecision(3);
       $("tval").textContent = thr.toPrecision(3) + (s.unit ? " " + s.unit : "");
       $("threshold").value = Math.round(1000 * (thr - s.lo) / ((s.hi - s.lo) || 1));
