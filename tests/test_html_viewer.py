@@ -116,6 +116,21 @@ def test_page_is_self_contained_and_holds_exactly_the_occupied_voxels():
     assert {c["name"]: c["color"] for c in v["classes"]}["car"] == OCC3D_COLORS[CAR].tolist()
 
 
+def test_bank_classes_get_the_pngs_colours_and_names_cannot_break_the_page():
+    from ago_runtime.pictures.render import palette_for
+
+    names = ["fire hydrant", "</script><script>alert(1)</script>", "car"]
+    sem = np.full((20, 20, 4), 3, np.uint8)
+    sem[2:5, 2:5, 1] = [0, 1, 2]
+    arrays = {"semantics": sem, "class_names": np.array(names + ["free"]), "free_index": np.array(3)}
+    text = viewer_html([view_from_arrays(arrays, "b", "prediction")], title="<b> & </title>")
+    data = _page_data(text)                         # the data block ends where it should and parses
+    assert [c["name"] for c in data["views"][0]["classes"]] == names
+    assert [c["color"] for c in data["views"][0]["classes"]] == palette_for(names).tolist()
+    assert text.count("</script>") == 3             # the data, three.js and the viewer's script
+    assert "<title>&lt;b&gt; &amp; &lt;/title&gt;</title>" in text
+
+
 def test_a_full_frame_with_six_images_stays_under_3_mb(tmp_path):
     """200 x 200 x 16 with as many occupied voxels as the demo's prediction (53k), entropy and the unexplained
     score, and six 1600 x 900 camera images (downscaled to 800 px wide JPEGs)."""
@@ -191,10 +206,16 @@ def test_show_html_bad_inputs_are_one_error_line(tmp_path):
 
 # ------------------------------------------------------------------------------------ in the browser
 def test_browser_draws_the_files_voxels_per_class_and_hover_names_them(tmp_path):
+    """Both encodings of which voxels are drawn: a bitmask (dense) and uint32 indices (a sparse 200 x 200 x 16)."""
     sem = _scene()
-    page = write_viewer(tmp_path / "p.html", [view_from_arrays({"semantics": sem}, "p", "prediction")], title="p")
+    sparse = np.full((200, 200, 16), FREE, np.uint8)
+    sparse[[3, 50, 199], [7, 100, 0], [0, 5, 15]] = [CAR, VEG, CAR]
+    views = [view_from_arrays({"semantics": sem}, "p", "prediction"),
+             view_from_arrays({"semantics": sparse}, "s", "sparse")]
+    page = write_viewer(tmp_path / "p.html", views, title="p")
+    assert [v["index_kind"] for v in _page_data(page.read_text())["views"]] == ["bitmask", "uint32"]
     result, _, _ = open_page(page, "pick=0.5,0.5")
-    assert result["counts"] == {"prediction": _file_counts(sem)}
+    assert result["counts"] == {"prediction": _file_counts(sem), "sparse": {"car": 2, "vegetation": 1}}
     assert result["empty"] == [] and result["pick"] is not None
     first_line = result["pick"].splitlines()[0]
     assert first_line.split()[0] in _file_counts(sem)   # the ray from the view's centre meets a drawn voxel
@@ -259,3 +280,18 @@ def test_demo_html_is_written_beside_its_png_and_draws_the_prediction(tmp_path):
     values, n = np.unique(sem[sem != names.index("free")], return_counts=True)
     assert result["counts"] == {"prediction": {names[v]: int(c) for v, c in zip(values, n)}}
     assert dom.count("<figcaption>CAM_") == 6
+
+
+def test_retrieve_html_opens_on_the_similarity_with_its_slider(tmp_path):
+    demo = REPO / "ago_runtime" / "assets" / "demo_frame"
+    r = _run_ago(["retrieve", "--phrase", "traffic cone", "--images", demo, "--out", tmp_path / "r", "--html"], tmp_path)
+    assert r.returncode == 0, r.stderr
+    page = tmp_path / "r" / "demo_frame_traffic_cone.html"
+    assert page.is_file() and (tmp_path / "r" / "demo_frame_traffic_cone.png").is_file()
+    data = _page_data(page.read_text())
+    assert data["mode"] == "similarity" and len(data["images"]) == 6
+    sim = {s["name"]: s for s in data["views"][0]["scalars"]}["similarity"]
+    with np.load(tmp_path / "r" / "demo_frame_traffic_cone.npz") as z:
+        occupied_sim = z["similarity"][z["occupied"].astype(bool)]
+    assert np.isclose(sim["lo"], occupied_sim.min()) and np.isclose(sim["hi"], occupied_sim.max())
+    assert np.isclose(sim["threshold"], np.quantile(occupied_sim, 0.9), atol=1e-6)
