@@ -54,7 +54,8 @@ def open_page(path: Path, fragment: str = "") -> tuple[dict, str, np.ndarray]:
     """(the JSON the page wrote into #ago-result, the page's DOM, a screenshot RGB) after one Chromium run loaded
     `path#fragment`."""
     shot = path.parent / f"{path.stem}_{len(list(path.parent.glob('*.shot.png')))}.shot.png"
-    dom = _chromium(path.resolve().as_uri() + (f"#{fragment}" if fragment else ""), "--dump-dom", f"--screenshot={shot}")
+    url = path.resolve().as_uri() + (f"#{fragment}" if fragment else "")
+    dom = _chromium(url, "--dump-dom", f"--screenshot={shot}")
     m = re.search(r'<pre id="ago-result">([^<]*)</pre>', dom)
     assert m and m.group(1), "the page wrote no result (its script failed?)"
     result = json.loads(html.unescape(m.group(1)))
@@ -224,13 +225,15 @@ def test_browser_draws_the_files_voxels_per_class_and_hover_names_them(tmp_path)
 def test_browser_hiding_a_class_removes_it_and_its_colour(tmp_path):
     sem = _scene()
     page = write_viewer(tmp_path / "p.html", [view_from_arrays({"semantics": sem}, "p", "prediction")], title="p")
-    result, _, hidden = open_page(page, "hide=car")
+    result, _, hidden = open_page(page, "click=car")   # a click on the legend's entry
     expect = _file_counts(sem)
     del expect["car"]
     assert result["counts"] == {"prediction": expect} and result["hidden"] == ["car"]
     shown_result, _, shown = open_page(page)
     rect = result["rects"][0]
     assert shown_result["rects"][0] == rect and shown_result["hidden"] == []
+    both, _, _ = open_page(page, "hide=car&click=car")   # a second click shows it again
+    assert both["counts"] == {"prediction": _file_counts(sem)}
     car = OCC3D_COLORS[CAR]
     assert _has_colour(shown, rect, car) > 50                       # top faces in the exact class colour
     assert _has_colour(hidden, rect, car) == 0
@@ -284,7 +287,8 @@ def test_demo_html_is_written_beside_its_png_and_draws_the_prediction(tmp_path):
 
 def test_retrieve_html_opens_on_the_similarity_with_its_slider(tmp_path):
     demo = REPO / "ago_runtime" / "assets" / "demo_frame"
-    r = _run_ago(["retrieve", "--phrase", "traffic cone", "--images", demo, "--out", tmp_path / "r", "--html"], tmp_path)
+    r = _run_ago(["retrieve", "--phrase", "traffic cone", "--images", demo, "--out", tmp_path / "r", "--html"],
+                 tmp_path)
     assert r.returncode == 0, r.stderr
     page = tmp_path / "r" / "demo_frame_traffic_cone.html"
     assert page.is_file() and (tmp_path / "r" / "demo_frame_traffic_cone.png").is_file()

@@ -151,7 +151,8 @@ def _drawn(view: View) -> tuple[np.ndarray, int, float]:
     cx, cy, _ = view.grid.axis_centres()
     dist = np.hypot(cx[flat // (Y * Z)], cy[(flat // Z) % Y])
     order = np.argsort(dist, kind="stable")
-    return np.sort(flat[order[:MAX_DRAWN_VOXELS]]), flat.size - MAX_DRAWN_VOXELS, float(dist[order[MAX_DRAWN_VOXELS - 1]])
+    keep = order[:MAX_DRAWN_VOXELS]
+    return np.sort(flat[keep]), flat.size - keep.size, float(dist[keep[-1]])
 
 
 def _view_data(view: View, source: str) -> tuple[dict, list[str]]:
@@ -160,8 +161,9 @@ def _view_data(view: View, source: str) -> tuple[dict, list[str]]:
     flat, dropped, radius = _drawn(view)
     notes = []
     if dropped:
-        notes.append(f"{source}: {flat.size + dropped} occupied voxels, more than the viewer draws ({MAX_DRAWN_VOXELS}):"
-                     f" drew those within {radius:.1f} m of the ego, dropped the {dropped} farther ones")
+        notes.append(f"{source}: {flat.size + dropped} occupied voxels, more than the viewer draws "
+                     f"({MAX_DRAWN_VOXELS}): drew those within {radius:.1f} m of the ego, dropped the {dropped} "
+                     "farther ones")
     elif flat.size == 0:
         notes.append(f"{source}: every voxel is free, nothing to draw (the page says so)")
     for note in notes:

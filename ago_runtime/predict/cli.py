@@ -202,8 +202,8 @@ def prediction_picture(pred, images: dict | None, title: str = "", kind: str = "
 
 def infer_writer(out: Path, key: str, picture: str, volumes: bool, html: bool = False):
     """`ago infer`'s write(name, images, prediction) for FramePipeline: `out/<name>.png` (unless picture is
-    none) and `out/<name>.html` (with html: pictures.html_viewer), then `out/<name>.npz` with `run_key` (a whole npz means a whole frame: frame_is_whole), each
-    written atomically; a killed run's temporary files of the frame are removed first. Gives the files."""
+    none) and `out/<name>.html` (with html: pictures.html_viewer), then `out/<name>.npz` with `run_key` (a whole
+    npz means a whole frame: frame_is_whole), each written atomically; a killed run's temporary files of the frame are removed first. Gives the files."""
     from ago_runtime.atomic import save_npz
     from ago_runtime.pictures.render import save_png
 

@@ -2,7 +2,8 @@
 // Voxels are instanced unit cubes in unlit class colours (top faces exactly the class colour, sides darker), one
 // three.js renderer per view (prediction, ground truth) sharing one camera. window.agoViewer is a small API for
 // tests and people: counts(), setVisible(name, on), setMode(name), setThreshold(value), pick(view, x, y).
-// URL fragment (tests): #hide=car,truck&mode=unexplained&threshold=0.5 applies those settings at load; pick=0.5,0.5
+// URL fragment (tests): #hide=car,truck&mode=unexplained&threshold=0.5 applies those settings at load (click=car: a
+// click on the legend entry); pick=0.5,0.5
 // describes the voxel under that point (fractions of the first view's width and height) in the result.
 "use strict";
 (function () {
@@ -352,13 +353,15 @@
     camera.far = 40 * L;
     camera.lookAt(target);
   }
-  if (hash.get("hide")) for (const n of hash.get("hide").split(",")) if (n in state.visible) state.visible[n] = false;
-  state.mode = hash.get("mode") || D.mode;
-  if (!scalarOf(state.mode)) state.mode = "classes";
-  if (hash.get("threshold") && state.mode !== "classes") state.threshold[state.mode] = Number(hash.get("threshold"));
   resize();
   for (const V of renderers) V.controls.update();
   update();
+  // the URL fragment, through the same paths as the page's controls
+  for (const n of (hash.get("hide") || "").split(",")) if (n in state.visible) api.setVisible(n, false);
+  for (const n of (hash.get("click") || "").split(",")) if (n in legendRows) legendRows[n].click();
+  if (hash.get("mode") && (hash.get("mode") === "classes" || scalarOf(hash.get("mode")))) api.setMode(hash.get("mode"));
+  else if (scalarOf(D.mode)) api.setMode(D.mode);
+  if (hash.get("threshold")) api.setThreshold(hash.get("threshold"));
   window.addEventListener("resize", () => { resize(); renderAll(); });
   const rects = views.map((V) => { const r = V.canvas.getBoundingClientRect(); return [r.left, r.top, r.width, r.height].map(Math.round); });
   let picked = null;
