@@ -13,8 +13,8 @@ class_colors, entropy, unexplained; an Occ3D labels.npz: semantics). What the pa
 - three.js (`assets/viewer/three_bundle.min.js`, rebuilt by scripts/build_viewer.sh; licence THREE_LICENSE) and
   the viewer's own script (`assets/viewer/viewer.js`, API `window.agoViewer`), both inlined: no CDN.
 
-Several views (a prediction and its ground truth) share one camera. A 200 x 200 x 16 frame with six images is a
-file of about 1 MB (docs/metric_and_pictures.md).
+Several views (a prediction and its ground truth) share one camera. The demo frame's page (200 x 200 x 16, six
+images) is about 1.2 MB (docs/metric_and_pictures.md, "The 3-D page").
 """
 
 from __future__ import annotations
