@@ -49,9 +49,9 @@ def main() -> None:
     r = ago("prompts", "build", str(prompt_file), "-o", str(work / "bank.npz"), env=env)
     print("  " + r.stdout.strip())
 
-    step("ago infer --images <demo frame> --prompts hydrants.txt")
+    step("ago infer --images <demo frame> --prompts hydrants.txt --html")
     r = ago("infer", "--images", str(Path(__file__).resolve().parents[1] / "ago_runtime" / "assets" / "demo_frame"),
-            "--prompts", str(prompt_file), "--out", str(work / "out"), env=env)
+            "--prompts", str(prompt_file), "--out", str(work / "out"), "--html", env=env)
     print("  " + " | ".join(ln for ln in (r.stdout + r.stderr).splitlines() if ln.strip())[:400])
 
     import numpy as np
@@ -63,6 +63,10 @@ def main() -> None:
     if "fire hydrant" not in names:
         raise SystemExit(f"FAILED: {npz} classes {names} lack the new prompt file's classes")
     step(f"{npz.name}: semantics {shape}, classes {names}")
+    page = npz.with_suffix(".html")   # the 3-D page: its three.js bundle is package data of the install
+    if not page.is_file() or "bundled by esbuild" not in page.read_text(encoding="utf-8"):
+        raise SystemExit(f"FAILED: {page} missing or without the inlined three.js bundle")
+    step(f"{page.name}: {page.stat().st_size} bytes")
 
     step("in-process: Predictor + bank from the prompt file, then check sys.modules")
     code = ("import sys; from ago_runtime.vocab.bank import load_prompt_bank; from ago_runtime.predict.predictor import Predictor; "

@@ -7,6 +7,9 @@
     (occ3d_nuscenes, occ3d_waymo or a JSON file, see ago_runtime/classes.py) for the labels' ids.
 `ago show DATASET_DIR (--sample TOKEN | --index I) [--out out.png]`
     the camera images of one dataset sample (nuScenes or Occ3D-Waymo layout), with its ground truth as a BEV.
+`--html OUT.html` (either form): the interactive 3-D page of ago_runtime/pictures/html_viewer.py instead of (or,
+    with --out, beside) the PNG; with --gt (a labels.npz, or a GT folder holding <token>/labels.npz) the ground
+    truth beside the prediction with one camera; a dataset sample's page shows its ground truth and its images.
 (`ago metric`, which scores such grids, is in ago_runtime/scoring/cli.py.)
 """
 
@@ -29,8 +32,12 @@ def register(app: typer.Typer) -> None:
     @app.command("show")
     def show(
         path: Path = typer.Argument(..., help="labels.npz (key 'semantics'), or a dataset folder (nuScenes or Occ3D-Waymo layout)"),
-        out: Path = typer.Option(Path("ago_show.png"), "--out", "-o", help="PNG to write"),
-        gt: Optional[Path] = typer.Option(None, "--gt", help="ground-truth labels.npz: draw prediction vs GT"),
+        out: Optional[Path] = typer.Option(None, "--out", "-o", help="PNG to write (default: ago_show.png, none "
+                                           "with --html)"),
+        gt: Optional[Path] = typer.Option(None, "--gt", help="ground-truth labels.npz: draw prediction vs GT (with "
+                                          "--html also a GT folder holding <token>/labels.npz)"),
+        html: Optional[Path] = typer.Option(None, "--html", help="also write an interactive 3-D page (one "
+                                            "self-contained .html file, no network needed)"),
         view: str = typer.Option("both", "--view", help="bev | voxels | both"),
         sample: Optional[str] = typer.Option(None, "--sample", help="dataset folder: sample token"),
         index: Optional[int] = typer.Option(None, "--index", help="dataset folder: sample index"),
@@ -49,9 +56,22 @@ def register(app: typer.Typer) -> None:
             raise AgoInputError("--view", f"must be bev, voxels or both, got {view!r}")
         if not path.exists():
             raise AgoInputError(path, "not found (give a labels .npz or a dataset folder)")
-        check_output_file(out, "--out")
-        check_suffix(out, (".png",), "--out")   # the picture is a PNG
+        if html is not None:
+            from ago_runtime.pictures.html_viewer import HTML_SUFFIXES
+
+            check_output_file(html, "--html")
+            check_suffix(html, HTML_SUFFIXES, "--html")
+        if out is None and html is None:
+            out = Path("ago_show.png")
+        if out is not None:
+            check_output_file(out, "--out")
+            check_suffix(out, (".png",), "--out")   # the picture is a PNG
         table = load_class_table(classes) if classes is not None else None
+        if html is not None:
+            _write_page(html, path, gt, table, sample, index)
+            typer.echo(f"wrote {html}")
+        if out is None:
+            return
         if path.is_dir():
             image = _rig_picture(path, sample, index)
         else:
@@ -83,6 +103,63 @@ def register(app: typer.Typer) -> None:
         render.save_png(out, image)
         typer.echo(f"wrote {out} ({image.shape[1]}x{image.shape[0]})")
 
+def _write_page(html: Path, path: Path, gt: Path | None, table: ClassTable | None, sample: str | None,
+               index: int | None) -> None:
+    """`ago show ... --html`: a grid file's page (with --gt, the ground truth beside it), or a dataset sample's
+    ground truth with its camera images."""
+    from ago_runtime.pictures.html_viewer import view_from_arrays, write_viewer
+
+    if path.is_dir():
+        frame, ds_table = _sample_frame(path, sample, index)
+        if frame.gt is None:
+            raise AgoInputError(path, f"sample {frame.token} has no ground truth to draw in 3-D")
+        view = view_from_arrays({"semantics": frame.gt.semantics}, path, "ground truth", table=table or ds_table)
+        write_viewer(html, [view], frame.images, f"{frame.scene}  sample {frame.token}", source=str(path))
+        return
+    arrays, source, file_table = _grid_arrays(path)
+    views = [view_from_arrays(arrays, source, "prediction" if gt else path.name, table=table or file_table)]
+    if gt is not None:
+        gt_file = _gt_file_for(gt, path)
+        gt_arrays, gt_source, gt_table = _grid_arrays(gt_file)
+        views.append(view_from_arrays(gt_arrays, gt_source, "ground truth", table=table or gt_table))
+        if views[1].semantics.shape != views[0].semantics.shape:
+            raise AgoInputError(gt_file, f"shape {views[1].semantics.shape} differs from the prediction's "
+                                         f"{views[0].semantics.shape}")
+    write_viewer(html, views, None, str(path), source=str(path))
+
+
+VIEW_KEYS = ("semantics", "class_names", "free_index", "class_table", "class_colors", "entropy", "unexplained",
+             "unexplained_threshold", "similarity")
+
+
+def _grid_arrays(path: Path) -> tuple[dict, Path, ClassTable | None]:
+    """(the arrays the 3-D page draws, the path, the class table the file implies or None) of a grid file: an
+    Occ3D-Waymo ground-truth file comes with OCC3D_WAYMO (its labels in file ids); any other npz needs 'semantics'."""
+    from ago_runtime.readers import read_npz
+
+    if path.is_file() and is_waymo_file(path):
+        labels, table = load_ground_truth(path)
+        return {"semantics": labels.semantics}, path, table
+    load_semantics(path)   # a readable npz with a 3-D 'semantics', else one error naming the file
+    with np.load(path, allow_pickle=False) as z:
+        keys = [k for k in VIEW_KEYS if k in z.files]
+    return read_npz(path, keys, "prediction file"), path, None
+
+
+def _gt_file_for(gt: Path, pred: Path) -> Path:
+    """--gt: a labels file, or a GT folder searched for the prediction's sample token (`<token>.npz`, or
+    `<token>/labels.npz`: the token is the file's stem or its folder's name)."""
+    from ago_runtime.scoring.cli import find_gt_files
+
+    if not gt.is_dir():
+        return gt
+    token = pred.parent.name if pred.name == "labels.npz" else pred.stem
+    found = find_gt_files(gt)
+    if token not in found:
+        raise AgoInputError(gt, f"no ground truth for sample {token!r} ({len(found)} labels files searched)")
+    return found[token][1]
+
+
 def _load_grid(path: Path) -> tuple[np.ndarray, np.ndarray | None, ClassTable | None]:
     """(semantics, mask_camera or None, class table or None = today's Occ3D-nuScenes default) of a grid file:
     an Occ3D-Waymo ground-truth file (key voxel_label) comes with OCC3D_WAYMO."""
@@ -95,28 +172,33 @@ def _load_grid(path: Path) -> tuple[np.ndarray, np.ndarray | None, ClassTable | 
 
 def prediction_table(path: Path) -> ClassTable | None:
     """The class table of an `ago infer` file written in another table than Occ3D-nuScenes (keys class_table,
-    class_names, class_colors: its dense order, free last), else None."""
-    from ago_runtime.errors import AgoInputError
+    class_names, class_colors: its dense order, free last; html_viewer.recorded_table), else None."""
+    from ago_runtime.pictures.html_viewer import recorded_table
 
     if not path.is_file():
         return None
     with np.load(path, allow_pickle=False) as z:
-        if not {"class_table", "class_names", "class_colors"} <= set(z.files):
-            return None
-        name, names, colors = str(z["class_table"]), [str(c) for c in z["class_names"]], z["class_colors"]
-    if names[-1:] != ["free"] or colors.shape != (len(names), 3):
-        raise AgoInputError(path, "class_names must end with 'free' and class_colors give one RGB per name")
-    try:
-        return ClassTable(name, tuple(names[:-1]), tuple(range(len(names) - 1)), len(names) - 1,
-                          tuple(tuple(int(c) for c in row) for row in colors))
-    except ValueError as e:
-        raise AgoInputError(path, str(e)) from None
+        arrays = {k: z[k] for k in ("class_table", "class_names", "class_colors") if k in z.files}
+    return recorded_table(arrays, path)
 
 
 def _rig_picture(root: Path, sample: str | None, index: int | None) -> np.ndarray:
     """The camera images of one sample of a dataset (nuScenes or Occ3D-Waymo layout) in `render.rig_mosaic`'s
     layout, with the sample's GT as a BEV (in the dataset's class table) beside it when there is one."""
     from ago_runtime.pictures import render
+
+    frame, table = _sample_frame(root, sample, index)
+    rig = render.rig_mosaic(frame.images)
+    title = f"{frame.scene}  sample {frame.token}"
+    if frame.gt is None:
+        return render.side_by_side([(title, rig)])
+    scale = max(1, int(round(rig.shape[0] / frame.gt.shape[0])))
+    bev = render.bev_image(frame.gt.semantics, scale=scale, mask=frame.gt.mask_camera, table=table)
+    return render.side_by_side([(title, rig), ("Occ3D GT (BEV, forward = up)", bev)])
+
+
+def _sample_frame(root: Path, sample: str | None, index: int | None):
+    """(the Frame of one sample of a dataset folder, the dataset's class table): --sample TOKEN or --index I."""
     from ago_runtime.formats.datasets import open_dataset
 
     if (sample is None) == (index is None):
@@ -126,11 +208,4 @@ def _rig_picture(root: Path, sample: str | None, index: int | None) -> np.ndarra
         index = ds.index_of(sample)
     if not 0 <= index < len(ds):
         raise AgoInputError(root, f"--index {index} out of range (the dataset has {len(ds)} samples)")
-    frame = ds[index]
-    rig = render.rig_mosaic(frame.images)
-    title = f"{frame.scene}  sample {frame.token}"
-    if frame.gt is None:
-        return render.side_by_side([(title, rig)])
-    scale = max(1, int(round(rig.shape[0] / frame.gt.shape[0])))
-    bev = render.bev_image(frame.gt.semantics, scale=scale, mask=frame.gt.mask_camera, table=ds.class_table)
-    return render.side_by_side([(title, rig), ("Occ3D GT (BEV, forward = up)", bev)])
+    return ds[index], ds.class_table

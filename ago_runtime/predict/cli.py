@@ -118,7 +118,7 @@ PICTURES = ("full", "bev", "none")
 
 
 def run_key(bundle, bank, identifier: str, picture: str, save_volumes: bool, int8: bool,
-            device: str = "cpu", precision: str = "fp32") -> str:
+            device: str = "cpu", precision: str = "fp32", html: bool = False) -> str:
     """What a prediction file was made with (bundle, bank, identifier, outputs), as a sha256: stored in each
     npz `ago infer` writes (`run_key`), so a resumed run keeps only frames made by the same settings."""
     import hashlib
@@ -131,6 +131,8 @@ def run_key(bundle, bank, identifier: str, picture: str, save_volumes: bool, int
          "identifier": identifier, "picture": picture, "volumes": bool(save_volumes), "int8": bool(int8)}
     if (device, precision) != ("cpu", "fp32"):   # (keys of CPU fp32 runs stay as they were)
         d["device"] = [device, precision]
+    if html:   # (keys of runs without --html stay as they were)
+        d["html"] = True
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()
 
 
@@ -198,10 +200,10 @@ def prediction_picture(pred, images: dict | None, title: str = "", kind: str = "
     return render.with_title(picture, title) if title else picture   # the full name, wrapped, never cut
 
 
-def infer_writer(out: Path, key: str, picture: str, volumes: bool):
+def infer_writer(out: Path, key: str, picture: str, volumes: bool, html: bool = False):
     """`ago infer`'s write(name, images, prediction) for FramePipeline: `out/<name>.png` (unless picture is
-    none), then `out/<name>.npz` with `run_key` (a whole npz means a whole frame: frame_is_whole), each
-    written atomically; a killed run's temporary files of the frame are removed first. Gives the files."""
+    none) and `out/<name>.html` (with html: pictures.html_viewer), then `out/<name>.npz` with `run_key` (a whole
+    npz means a whole frame: frame_is_whole), each written atomically; a killed run's temporary files of the frame are removed first. Gives the files."""
     from ago_runtime.atomic import save_npz
     from ago_runtime.pictures.render import save_png
 
@@ -212,6 +214,11 @@ def infer_writer(out: Path, key: str, picture: str, volumes: bool):
         files = [npz]
         if picture != "none":
             files.append(save_png(out / f"{name}.png", prediction_picture(pred, images, name, picture)))
+        if html:
+            from ago_runtime.pictures.html_viewer import write_prediction_page
+
+            files.append(write_prediction_page(out / f"{name}.html", pred.output_arrays(volumes=True), pred.grid,
+                                               images, name))
         save_npz(npz, compresslevel=1, run_key=np.array(key), **pred.output_arrays(volumes=volumes))
         t = pred.timings
         typer.echo(f"{name}: {' '.join(map(str, files))} (preprocess {t['preprocess']:.2f} s, encoder "
@@ -224,7 +231,7 @@ def infer_writer(out: Path, key: str, picture: str, volumes: bool):
 def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, sample=None, info=None,
               int8=False, picture: str = "full", warm_up: bool = False, workers: int | None = None,
               resume: bool = True, allow_outside_root: bool = False, shard: str | None = None,
-              device: str = "cpu", precision: str = "fp32") -> list[Path]:
+              device: str = "cpu", precision: str = "fp32", html: bool = False) -> list[Path]:
     """`ago infer`: check the options, load the bundle and choose the bank, open the frames (a resumed run
     leaves out the frames whose outputs in `out` are whole and were made with the same bundle, bank and
     settings: frame_is_whole), then predict and write them with a FramePipeline (reading, prediction and
@@ -253,7 +260,7 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
     typer.echo(card_line(b))   # stdout: information; stderr keeps only warnings and the one error line
     chosen = choose_bank(b, prompts, bank)   # checked against the bundle here, once
     identifier = identifier or b.identifier_for(chosen)   # none for a closed-world bank
-    key = run_key(b, chosen, identifier, picture, save_volumes, int8, device.value, precision.value)
+    key = run_key(b, chosen, identifier, picture, save_volumes, int8, device.value, precision.value, html)
     out = Path(out)
     kept: list[str] = []
 
@@ -276,8 +283,8 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
     pipeline = FramePipeline(b, chosen, identifier, volumes=save_volumes, int8=int8, warm_up=warm_up,
                              workers=int(workers) if workers is not None else None, device=device.value,
                              precision=precision.value)
-    return pipeline.run((PipelineFrame(*frame) for frame in frames), infer_writer(out, key, picture, save_volumes),
-                        total=count)
+    return pipeline.run((PipelineFrame(*frame) for frame in frames),
+                        infer_writer(out, key, picture, save_volumes, html), total=count)
 
 
 def register(app: typer.Typer) -> None:
@@ -312,11 +319,13 @@ def register(app: typer.Typer) -> None:
                                    "openvino (an onnxruntime build with that provider: scripts/setup.sh --device; "
                                    "the heads stay on the CPU)"),
         precision: str = typer.Option("fp32", "--precision", help="fp32, or fp16 with --device tensorrt|openvino"),
+        html: bool = typer.Option(False, "--html", help="also write <name>.html beside the PNG: the prediction in 3-D "
+                                  "(one self-contained file, no network needed; docs/metric_and_pictures.md)"),
     ) -> None:
         """Predict 3D occupancy for camera images with an exported bundle (numpy + onnxruntime)."""
         run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, sample, info, int8, picture,
                   workers=workers, resume=resume, allow_outside_root=allow_outside_root, shard=shard,
-                  device=device, precision=precision)
+                  device=device, precision=precision, html=html)
 
     @app.command("demo")
     def demo_cmd(
@@ -327,13 +336,16 @@ def register(app: typer.Typer) -> None:
                                    "openvino (an onnxruntime build with that provider: scripts/setup.sh --device; "
                                    "the heads stay on the CPU)"),
         precision: str = typer.Option("fp32", "--precision", help="fp32, or fp16 with --device tensorrt|openvino"),
+        html: bool = typer.Option(False, "--html", help="also write <name>.html beside the PNG: the prediction in 3-D "
+                                  "(one self-contained file, no network needed; docs/metric_and_pictures.md)"),
     ) -> None:
         """Run `ago infer` on the shipped demo frame with the shipped default bundle."""
         from ago_runtime.predict.bundle import DEMO_FRAME_DIR, HOW_TO_MAKE_DEFAULT
 
         if not DEMO_FRAME_DIR.is_dir():
             raise AgoInputError(DEMO_FRAME_DIR, f"no demo frame installed; {HOW_TO_MAKE_DEFAULT}")
-        written = run_infer(DEMO_FRAME_DIR, prompts, None, bundle, out, None, True, device=device, precision=precision)
+        written = run_infer(DEMO_FRAME_DIR, prompts, None, bundle, out, None, True, device=device, precision=precision,
+                            html=html)
         typer.echo(f"demo written to {out}/ ({', '.join(p.name for p in written)})")
 
     @app.command("retrieve")
@@ -349,13 +361,15 @@ def register(app: typer.Typer) -> None:
                                    "openvino (an onnxruntime build with that provider: scripts/setup.sh --device; "
                                    "the heads stay on the CPU)"),
         precision: str = typer.Option("fp32", "--precision", help="fp32, or fp16 with --device tensorrt|openvino"),
+        html: bool = typer.Option(False, "--html", help="also write the .html beside the PNG: the similarity in 3-D "
+                                  "as heat colours with a threshold slider (one self-contained file)"),
     ) -> None:
         """Similarity of every voxel to a phrase (cosine, on the adapted VLM-aligned branch) + a BEV picture."""
-        run_retrieve(phrase, images, bundle, out, sample, device, precision)
+        run_retrieve(phrase, images, bundle, out, sample, device, precision, html)
 
 
 def run_retrieve(phrase: str, images: Path, bundle, out: Path, sample: str | None = None, device: str = "cpu",
-                 precision: str = "fp32") -> list[Path]:
+                 precision: str = "fp32", html: bool = False) -> list[Path]:
     from ago_runtime.pictures import render
     from ago_runtime.atomic import save_npz
     from ago_runtime.predict.bundle import Bundle, resolve_bundle
@@ -402,5 +416,11 @@ def run_retrieve(phrase: str, images: Path, bundle, out: Path, sample: str | Non
         ("classes", render.bev_image(pred.semantics, colors=colors, free_index=pred.free_index, grid=b.grid,
                                      scale=scale))])
     png = render.save_png(out / f"{name}_{slug}.png", render.stack_vertical([picture, render.rig_mosaic(imgs, width=picture.shape[1])]))
-    typer.echo(f"{npz} {png}", err=True)
-    return [npz, png]
+    written = [npz, png]
+    if html:
+        from ago_runtime.pictures.html_viewer import write_prediction_page
+
+        written.append(write_prediction_page(out / f"{name}_{slug}.html", {**pred.output_arrays(volumes=True),
+                                             "similarity": sim}, b.grid, imgs, f'{name}: "{phrase}"', "similarity"))
+    typer.echo(" ".join(map(str, written)), err=True)
+    return written
