@@ -119,8 +119,8 @@ def export_text_tower(folder: Path, out_dir: Path, bank: PromptBank, int8: bool,
             report["int8"]["note"] = "int8 text tower outside the tolerance: the fp32 tower ships"
             log("note: the int8 text tower is outside the tolerance; the fp32 tower ships")
     report["shipped"] = variant
-    card = {"id": torch_encoder.encoder_id, "variant": variant, "dim": torch_encoder.dim, "folder": str(Path(folder).resolve()),
-            **torch_encoder.describe()}
+    card = {"id": torch_encoder.encoder_id, "variant": variant, "dim": torch_encoder.dim,
+            "folder": str(Path(folder).resolve()), **torch_encoder.describe()}
     if variant != "onnx-fp32":
         write_clip_sidecar(torch_encoder, path, variant)
     files = {"text_encoder": path.name, "text_encoder_sidecar": path.with_suffix(".json").name,

@@ -346,8 +346,8 @@ class Trainer:
         ckpt = load_checkpoint(path, map_location=self.info.device)
         if ckpt.get("optimizer") is None:
             raise AgoInputError(path, "checkpoint has no optimiser state (an export?); cannot resume from it")
+        check_checkpoint_bank(ckpt, path, self.bank)   # first: another text encoder also changes embed_dim
         check_resume_model(ckpt, path, self.cfg.model.to_dict())
-        check_checkpoint_bank(ckpt, path, self.bank)
         saved = ckpt["train_config"]
         for key in ("epochs", "batch_size", "seed", "max_steps"):
             if saved.get(key) != getattr(self.cfg, key):

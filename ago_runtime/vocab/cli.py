@@ -30,7 +30,8 @@ def build(prompt_file: str = typer.Argument(..., help="prompt file, or a shipped
     from ago_runtime.vocab.bank import DEFAULT_TEMPLATE, build_bank, check_template
     from ago_runtime.outputs import check_output_file
     from ago_runtime.vocab.prompts import parse_prompt_file
-    from ago_runtime.vocab.text_encoder import bundle_text_encoder, clip_text_encoder, text_encoder_for
+    from ago_runtime.vocab.model_folder import clip_text_encoder
+    from ago_runtime.vocab.text_encoder import bundle_text_encoder, text_encoder_for
 
     chosen = [o for o, given in (("--encoder", encoder != "onnx"), ("--text-encoder", text_encoder is not None),
                                  ("--bundle", bundle is not None)) if given]

@@ -287,15 +287,19 @@ def bundle_text_encoder(bundle) -> OnnxTextEncoder:
 # nothing of ago_train by name, docs/architecture.md): `--encoder NAME` -> (module, class).
 EXTRA_ENCODERS: dict[str, tuple[str, str]] = {
     "torch": ("ago_train.text.minilm", "TorchMiniLMEncoder"),   # the fp32 MiniLM in torch, bundled weights
-    "clip": ("ago_train.text.clip", "TorchClipTextEncoder"),    # a CLIP folder's text tower (--text-encoder DIR)
+}
+# Encoders made from a model folder the user gives (`--text-encoder DIR`: model_folder.clip_text_encoder).
+FOLDER_ENCODERS: dict[str, tuple[str, str]] = {
+    "clip": ("ago_train.text.clip", "TorchClipTextEncoder"),    # a CLIP save_pretrained folder's text tower
 }
 
 
 def extra_encoder(name: str, *args, asked_by: str | None = None):
-    """The encoder EXTRA_ENCODERS names, made with `args`; MissingExtra (how to install the training extra) when
-    torch or ago_train is not installed. `asked_by`: the command in the message (default `prompts build --encoder NAME`)."""
+    """The encoder EXTRA_ENCODERS (or FOLDER_ENCODERS) names, made with `args`; MissingExtra (how to install the
+    training extra) when torch or ago_train is not installed. `asked_by`: the command in the message (default
+    `prompts build --encoder NAME`)."""
     asked_by = asked_by or f"prompts build --encoder {name}"
-    module_name, class_name = EXTRA_ENCODERS[name]
+    module_name, class_name = {**EXTRA_ENCODERS, **FOLDER_ENCODERS}[name]
     require_torch(asked_by)
     try:
         module = importlib.import_module(module_name)
@@ -305,15 +309,6 @@ def extra_encoder(name: str, *args, asked_by: str | None = None):
                                "pip install -e '.[train]'") from None
         raise
     return getattr(module, class_name)(*args)
-
-
-def clip_text_encoder(folder: str | Path, option: str = "--text-encoder", verb: str = "prompts build"):
-    """The text tower of the CLIP `save_pretrained` folder `folder`, in torch (ago_train.text.clip; needs the
-    training and vlm extras): the folder is checked first (one `error:` line naming `option`), torch after."""
-    from ago_runtime.vocab.model_folder import read_model_config
-
-    read_model_config(folder, option, "clip")
-    return extra_encoder("clip", folder, option, asked_by=f"{verb} {option} DIR")
 
 
 def text_encoder_for(spec: str):

@@ -64,7 +64,7 @@ def build_backends(prompts: str, segmenter: str, masks: Path | None, embedder: s
     elif embedder == "sim":
         text = None
         if text_encoder is not None:   # features simulated in a CLIP folder's text space
-            from ago_runtime.vocab.text_encoder import clip_text_encoder
+            from ago_runtime.vocab.model_folder import clip_text_encoder
 
             text = clip_text_encoder(text_encoder, verb="pseudo-labels")
         class_text, sky = simulated_text_embeddings(space.class_table, text)
@@ -218,11 +218,11 @@ def register(app: typer.Typer) -> None:
             check_output_dir(write_masks, "--write-masks")
         shard_kn = parse_shard(shard)
         pgrid = parse_grid(grid)
-        segmenter, masks, embedder, feats, notes = resolve_defaults(Path(data), segmenter, masks, embedder, feats)
         if text_encoder is not None:   # a wrong folder is one line before anything runs
             from ago_runtime.vocab.model_folder import read_model_config
 
             read_model_config(text_encoder, "--text-encoder", "clip")
+        segmenter, masks, embedder, feats, notes = resolve_defaults(Path(data), segmenter, masks, embedder, feats)
         space, seg, emb = build_backends(prompts, segmenter, masks, embedder, feats, seed, Path(data), write_masks,
                                          text_encoder)
         needs_extras = segmenter == "sim" or embedder == "sim"

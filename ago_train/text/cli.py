@@ -46,7 +46,7 @@ def noise(output: Optional[Path] = typer.Option(None, "-o", "--output", help="no
           text_encoder: Optional[Path] = typer.Option(None, "--text-encoder", help="a CLIP save_pretrained folder: "
                                                       "encode the words with its text tower (default: MiniLM)")):
     """Build the noise-word bank (WordNet nouns minus label phrases and near-synonyms)."""
-    from ago_runtime.vocab.text_encoder import clip_text_encoder
+    from ago_runtime.vocab.model_folder import clip_text_encoder
 
     if output is not None:
         from ago_runtime.outputs import check_output_file
