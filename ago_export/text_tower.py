@@ -66,10 +66,12 @@ def _agreement(got: np.ndarray, ref: np.ndarray) -> dict:
             "max_abs": float(np.abs(l2_normalise(got) - l2_normalise(ref)).max()), "phrases": int(len(cos))}
 
 
-def check_tower(path: Path, phrases: list[str], reference: np.ndarray, bank: PromptBank, min_cos: float) -> dict:
-    """The ONNX tower at `path` against transformers (`reference`, on `phrases`) and against the training bank
-    (its first rows are the bank's phrases): {"transformers": ..., "bank": ..., "min_cosine_allowed", "ok"}."""
-    got = OnnxTextEncoder(path).encode(phrases)
+def check_tower(path: Path, phrases: list[str], reference: np.ndarray, bank: PromptBank, min_cos: float,
+                tokenizer=None) -> dict:
+    """The ONNX tower at `path` (tokenised as its sidecar says, or by `tokenizer`) against transformers
+    (`reference`, on `phrases`) and against the training bank (its first rows are the bank's phrases):
+    {"transformers": ..., "bank": ..., "min_cosine_allowed", "ok"}."""
+    got = OnnxTextEncoder(path, pooling="eos", tokenizer=tokenizer).encode(phrases)
     report = {"transformers": _agreement(got, reference),
               "bank": _agreement(got[: bank.num_phrases], bank.embeddings), "min_cosine_allowed": min_cos}
     report["ok"] = bool(min(report["transformers"]["min_cosine"], report["bank"]["min_cosine"]) >= min_cos)
@@ -109,7 +111,7 @@ def export_text_tower(folder: Path, out_dir: Path, bank: PromptBank, int8: bool,
         quantize_encoder(path, q)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            report["int8"] = check_tower(q, phrases, reference, bank, TEXT_INT8_MIN_COS)
+            report["int8"] = check_tower(q, phrases, reference, bank, TEXT_INT8_MIN_COS, torch_encoder.tokenizer)
         log(f"text encoder parity int8: {describe(report['int8'])}")
         if report["int8"]["ok"]:
             os.replace(q, path)

@@ -226,8 +226,8 @@ class Trainer:
         self.bank = build_text_bank(self.label_space, cfg.text_encoder)
         width = int(self.bank["embeddings"].shape[1])
         if width != cfg.model.embed_dim and cfg.text_encoder is not None:   # the CLIP folder sets the width
-            print(f"note: the text encoder {self.bank['encoder_id']} gives {width}-d embeddings; model.embed_dim "
-                  f"{cfg.model.embed_dim} -> {width}", file=sys.stderr, flush=True)
+            note = (f"note: the text encoder {self.bank['encoder_id']} gives {width}-d embeddings; model.embed_dim "
+                    f"{cfg.model.embed_dim} -> {width}" + (f"\n{note}" if note else ""))
             cfg = self.cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, embed_dim=width))
         if width != cfg.model.embed_dim:
             raise AgoInputError(self.prompt_path, f"text embeddings are {width}-d but "

@@ -170,6 +170,26 @@ def test_noise_words_record_their_encoder_and_a_mismatch_is_refused(tmp_path, en
     assert noise.default_noise_bank_path(encoder.encoder_id).name == f"noise_bank-clip_{encoder.encoder_id[5:]}.npz"
 
 
+@pytest.mark.parametrize("int8_allowed", [0.995, 1.0 + 1e-9], ids=["int8-holds", "int8-refused"])
+def test_the_int8_tower_ships_only_within_its_tolerance(tmp_path, monkeypatch, clip_dir, encoder, int8_allowed):
+    from ago_export import text_tower
+    from ago_runtime.vocab.bank import build_bank
+    from ago_runtime.vocab.prompts import parse_prompt_text
+    from ago_runtime.vocab.text_encoder import OnnxTextEncoder
+
+    monkeypatch.setattr(text_tower, "TEXT_INT8_MIN_COS", int8_allowed)
+    bank = build_bank(parse_prompt_text(PROMPTS, name="p"), encoder)
+    r = text_tower.export_text_tower(clip_dir, tmp_path, bank, True, "ckpt", log=lambda s: None)
+    onnx = OnnxTextEncoder(tmp_path / r["files"]["text_encoder"])
+    assert r["parity"]["fp32"]["ok"] and not (tmp_path / "text_encoder.int8.onnx").exists()
+    if int8_allowed < 1:   # random tiny weights: int8 keeps min cosine ~0.9996 here
+        assert r["parity"]["shipped"] == onnx.variant == "onnx-int8" and r["parity"]["int8"]["ok"]
+    else:
+        assert r["parity"]["shipped"] == onnx.variant == "onnx-fp32" and "fp32 tower ships" in r["parity"]["int8"]["note"]
+    assert r["card"]["variant"] == onnx.variant and r["card"]["kind"] == "clip"
+    assert (onnx.encode(bank.phrases) * bank.embeddings).sum(1).min() >= min(int8_allowed, 1 - 1e-5)
+
+
 # ---------------------------------------------------------------------------- the chain
 def write_features(root: Path, out: Path, clip_dir: Path, dim: int = 24) -> None:
     """A MaskCLIP-like feature folder (docs/vlm_files.md): per camera image a (D, 9, 16) float16 map, a fixed random

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from ago_runtime.cache import ago_cache_dir, open_session
-from ago_runtime.errors import AgoInputError, MissingExtra, require_torch
+from ago_runtime.errors import AgoInputError, MissingExtra, one_line, require_torch
 from ago_runtime.vocab.tokenizer import WordPieceTokenizer
 
 MINILM_ID = "all-MiniLM-L6-v2"
@@ -127,7 +127,7 @@ class OnnxTextEncoder:
     def __init__(self, onnx_path: str | Path, vocab_path: str | Path | None = None, *,
                  encoder_id: str | None = None, variant: str | None = None, pooling: str | None = None,
                  normalise: bool = True, max_length: int | None = None, batch_size: int = 128,
-                 threads: int | None = None):
+                 threads: int | None = None, tokenizer=None):
         self.onnx_path = Path(onnx_path)
         if not self.onnx_path.is_file():
             raise AgoInputError(onnx_path, "text encoder ONNX file not found")
@@ -139,7 +139,9 @@ class OnnxTextEncoder:
             raise ValueError(f"pooling must be one of {POOLINGS}, not {self.pooling!r}")
         self.normalise = normalise
         self.batch_size = batch_size
-        if side.get("tokenizer") and vocab_path is None:   # a CLIP tower: BPE from its tokenizer.json
+        if tokenizer is not None:   # given (e.g. the fp32 tower's, for its int8 copy)
+            self.tokenizer = tokenizer
+        elif side.get("tokenizer") and vocab_path is None:   # a CLIP tower: BPE from its tokenizer.json
             from ago_runtime.paths import inside_root
             from ago_runtime.vocab.clip_tokenizer import ClipTokenizer
 
@@ -197,7 +199,12 @@ class OnnxTextEncoder:
         feeds = {"input_ids": ids, "attention_mask": mask}
         if "token_type_ids" in self.input_names:
             feeds["token_type_ids"] = np.zeros_like(ids)
-        out = self.session.run(None, feeds)[0].astype(np.float32)
+        try:
+            out = self.session.run(None, feeds)[0].astype(np.float32)
+        except Exception as e:   # onnxruntime's own error types; e.g. token ids outside the graph's vocabulary
+            raise AgoInputError(self.onnx_path, f"the text encoder graph failed on its tokens ({one_line(e)[:200]}); "
+                                f"is {getattr(self.tokenizer, 'path', None) or self.tokenizer.vocab_path} its "
+                                "tokenizer?") from None
         if out.ndim == 3:
             out = mean_pool(out, mask) if self.pooling == "mean" else out[:, 0]
         return l2_normalise(out) if self.normalise else out
