@@ -18,12 +18,12 @@ merges, and a post-processor that wraps a text in its start and end tokens) and 
 
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 
 import numpy as np
 
 from ago_runtime.errors import AgoInputError
+from ago_runtime.vocab.tokenizer import pad_batch, wrap_ids
 
 MAX_TOKENIZER_BYTES = 64 << 20   # CLIP's tokenizer.json is ~3.5 MB; never parse a huge file
 
@@ -62,25 +62,11 @@ class ClipTokenizer:
         """The BPE ids of `text`, without the start and end tokens and without truncation."""
         return list(self.backend.encode(text, add_special_tokens=False).ids)
 
-    def _wrap(self, ids: list[int], text: str) -> list[int]:
-        room = self.max_length - 2
-        if len(ids) > room:
-            warnings.warn(f"text of {len(ids)} BPE tokens truncated to {room} (encoder limit {self.max_length} "
-                          f"tokens): {text[:60]!r}...", stacklevel=3)
-            ids = ids[:room]
-        return [self.bos_id, *ids, self.eos_id]
-
     def encode(self, texts: list[str]) -> tuple[np.ndarray, np.ndarray]:
         """(input_ids, attention_mask), both int64 (B, L) with L = the longest item, right-padded with the end id."""
         if isinstance(texts, str):
             raise TypeError("encode takes a list of strings")
-        texts = list(texts)
         # one text at a time: encode_batch runs a thread pool, and a process forked after it prints a warning
-        rows = [self._wrap(self.tokenize_ids(t), t) for t in texts]
-        length = max((len(r) for r in rows), default=2)
-        ids = np.full((len(rows), length), self.pad_id, dtype=np.int64)
-        mask = np.zeros((len(rows), length), dtype=np.int64)
-        for i, r in enumerate(rows):
-            ids[i, : len(r)] = r
-            mask[i, : len(r)] = 1
-        return ids, mask
+        rows = [wrap_ids(self.tokenize_ids(t), self.bos_id, self.eos_id, self.max_length, t, "BPE tokens")
+                for t in texts]
+        return pad_batch(rows, self.pad_id)
