@@ -200,11 +200,21 @@ def write_features(root: Path, out: Path, clip_dir: Path, dim: int = 24) -> None
 
     w = np.random.default_rng(0).standard_normal((dim, 3)).astype(np.float32)
     for img in sorted((root / "samples").glob("CAM_*/*.jpg")):
-        rgb = cv2.resize(cv2.imread(str(img))[:, :, ::-1], (16, 9), interpolation=cv2.INTER_AREA) / 255.0
+        small = cv2.imread(str(img), cv2.IMREAD_REDUCED_COLOR_8)     # decoded at 1/8 size: fast on 1600x900
+        rgb = cv2.resize(small[:, :, ::-1], (16, 9), interpolation=cv2.INTER_AREA) / 255.0
         (out / img.parent.name).mkdir(parents=True, exist_ok=True)
         np.save(out / img.parent.name / f"{img.stem}.npy", np.einsum("dc,hwc->dhw", w, rgb - 0.5).astype(np.float16))
     (out / "meta.json").write_text(json.dumps({"channels": dim, "encoder_id": clip_encoder_id(clip_dir),
                                                "model": "test"}))
+
+
+def write_noise(path: Path, clip_dir: Path) -> Path:
+    """Noise words in the CLIP's space (its random weights put every dictionary word "near" a label: threshold off)."""
+    from ago_train.text.clip import TorchClipTextEncoder
+    from ago_train.text.noise import build_noise_bank
+
+    return build_noise_bank(TorchClipTextEncoder(clip_dir), candidates=WORDS[23:], labels=["car"],
+                            threshold=1.0).save(path)
 
 
 BLOCK_TORCH = """import sys
@@ -230,17 +240,14 @@ def run_without_torch(args, cwd: Path) -> subprocess.CompletedProcess:
 
 
 @pytest.fixture(scope="module")
-def chain(tmp_path_factory, clip_dir, encoder) -> Path:
-    from ago_train.text.noise import build_noise_bank
-
+def chain(tmp_path_factory, clip_dir) -> Path:
     d = tmp_path_factory.mktemp("clip_chain")
     ok(run_ago(["synth", "--out", "s", "--scenes", "2", "--frames", "3", "--image-size", "192x108", "--grid",
                 "40x40x4", "--seed", "7"], d))
     write_features(d / "s", d / "feats", clip_dir)
     (d / "p.txt").write_text(PROMPTS)
     (d / "new.txt").write_text(NEW_PROMPTS)
-    # noise words in the CLIP's space (its random weights put every dictionary word "near" a label: threshold off)
-    build_noise_bank(encoder, candidates=WORDS[23:], labels=["car"], threshold=1.0).save(d / "noise.npz")
+    write_noise(d / "noise.npz", clip_dir)
     ok(run_ago(["pseudo-labels", "--data", "s", "--out", "pl", "--prompts", "p.txt", "--segmenter", "sim",
                 "--embedder", "files", "--feats", "feats", "--text-encoder", clip_dir, "--grid", "20x20x4"], d))
     ok(run_ago(["train", "--config", "tiny", "--data", "s", "--pseudo", "pl", "--prompts", "p.txt", "--out", "run",
@@ -311,6 +318,36 @@ def test_ago_eval_encodes_another_prompt_file_with_the_checkpoints_folder(chain,
     assert np.allclose(emb.numpy(), encoder.encode(space.phrases), atol=1e-6) and pc.tolist() == [0, 0, 1, 1, 2]
 
 
+@pytest.mark.slow
+def test_a_real_scene_goes_from_clip_features_to_a_torch_free_prompt_swap(tmp_path, clip_dir):
+    """The real nuScenes scene (../shared, skipped without it): CLIP-width features for its camera images, labels
+    from its 3D boxes (no VLM here), a few training steps, export (parity on the real keyframe), then a new prompt
+    file's bank and a prediction of one keyframe without torch (about 2 minutes on 2 shared cores)."""
+    from conftest import shared_path
+
+    root = shared_path("nuscenes-scene")
+    write_features(root, tmp_path / "feats", clip_dir)
+    (tmp_path / "p.txt").write_text(PROMPTS.replace("tree [vegetation]: tree, bush", "pedestrian [pedestrian]: person"))
+    (tmp_path / "new.txt").write_text(NEW_PROMPTS)
+    ok(run_ago(["pseudo-labels", "--data", root, "--out", "pl", "--prompts", "p.txt", "--segmenter", "boxes",
+                "--embedder", "files", "--feats", "feats", "--text-encoder", clip_dir, "--grid", "20x20x4",
+                "--keyframes", "1", "--limit", "2"], tmp_path))
+    write_noise(tmp_path / "noise.npz", clip_dir)
+    ok(run_ago(["train", "--config", "tiny", "--data", root, "--pseudo", "pl", "--prompts", "p.txt", "--out", "run",
+                "--text-encoder", clip_dir, "--set", 'noise_bank="noise.npz"', "--set", 'train_split="all"', "--set",
+                "max_frames=2", "--set", 'device="cpu"'], tmp_path))
+    assert json.loads((tmp_path / "run" / "log.jsonl").read_text().splitlines()[-1])["align"] > 0
+    ok(run_ago(["export", "run/last.pt", "-o", "bundle", "--train-bank-only"], tmp_path))
+    token = json.loads((root / "v1.0-mini" / "sample.json").read_text())[5]["token"]
+    build = run_without_torch(["prompts", "build", "new.txt", "--bundle", "bundle", "-o", "new.npz"], tmp_path)
+    infer = run_without_torch(["infer", "--images", root, "--sample", token, "--bundle", "bundle", "--prompts",
+                               "new.txt", "--out", "pred"], tmp_path)
+    assert build.returncode == 0 and infer.returncode == 0, build.stderr + infer.stderr
+    assert "text encoder CLIP text tower clip:" in infer.stdout + infer.stderr      # the card line names it
+    with np.load(tmp_path / "pred" / f"{token}.npz") as z:
+        assert [str(c) for c in z["class_names"]] == ["fire hydrant", "road", "sky", "free"]
+
+
 # ---------------------------------------------------------------------------- every mismatch row
 @pytest.fixture(scope="module")
 def other_clip(tmp_path_factory) -> Path:
@@ -343,11 +380,7 @@ def test_noise_words_of_another_encoder_are_refused_by_training(chain, other_cli
 
 def test_resuming_with_another_text_encoder_is_refused(chain, other_clip, clip_dir):
     from ago_runtime.vocab.model_folder import clip_encoder_id
-    from ago_train.text.clip import TorchClipTextEncoder
-    from ago_train.text.noise import build_noise_bank
-
-    build_noise_bank(TorchClipTextEncoder(other_clip), candidates=WORDS[23:], labels=["car"],
-                     threshold=1.0).save(chain / "noise2.npz")
+    write_noise(chain / "noise2.npz", other_clip)
     before = (chain / "run" / "last.pt").stat().st_mtime_ns
     r = run_ago(["train", "--config", "tiny", "--data", "s", "--pseudo", "pl", "--prompts", "p.txt", "--out", "run",
                  "--resume", "--text-encoder", other_clip, "--set", 'noise_bank="noise2.npz"', "--set",
