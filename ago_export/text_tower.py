@@ -51,9 +51,10 @@ def clip_folder_for(ckpt: dict, checkpoint, bank: PromptBank, folder: str | Path
     if folder is None:
         folder = (ckpt.get("train_config") or {}).get("text_encoder")
         option = f"{checkpoint} (train_config text_encoder)"
-        if folder is None:
+        if folder is None or not Path(folder).is_dir():
+            where = "" if folder is None else f" from {folder}, which is not there"
             raise AgoInputError("--text-encoder", f"{checkpoint} was trained with the CLIP text encoder "
-                                f"{bank.encoder_id}; give its folder: --text-encoder DIR")
+                                f"{bank.encoder_id}{where}; give its folder: --text-encoder DIR")
     read_model_config(folder, option, "clip")
     check_same_encoder("the checkpoint's prompt bank", bank.encoder_id, f"the CLIP folder {folder}",
                        clip_encoder_id(folder), source=option)

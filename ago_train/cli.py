@@ -50,7 +50,8 @@ def register(app: typer.Typer) -> None:
         from ago_runtime.errors import require_torch
 
         require_torch("train")
-        cfg = _config(config, sets, out, data, pseudo, prompts, text_encoder)
+        # the folder's absolute path: export and eval find it again from another working directory
+        cfg = _config(config, sets, out, data, pseudo, prompts, str(Path(text_encoder).resolve()) if text_encoder else None)
         if cfg.text_encoder is not None:   # a wrong folder is one line before anything runs
             from ago_runtime.vocab.model_folder import read_model_config
 

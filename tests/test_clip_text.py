@@ -396,3 +396,16 @@ def test_export_refuses_a_folder_that_did_not_make_the_bank(chain, other_clip, c
     r = run_ago(["export", "run/last.pt", "-o", "bundle2", "--parity-frame", "s", "--text-encoder", other_clip], chain)
     assert_one_error_line(r, "--text-encoder", clip_encoder_id(clip_dir), clip_encoder_id(other_clip))
     assert not (chain / "bundle2").exists()
+
+
+def test_export_asks_for_the_folder_when_the_recorded_one_is_gone(clip_dir):
+    from ago_export.text_tower import clip_folder_for
+    from ago_runtime.errors import AgoInputError
+    from ago_runtime.vocab.bank import PromptBank
+    from ago_runtime.vocab.model_folder import clip_encoder_id
+
+    bank = PromptBank(np.ones((1, 24), np.float32), ["car"], ["car"], [0], clip_encoder_id(clip_dir), "torch-fp32", "h", 24)
+    for record in ({}, {"text_encoder": "/nowhere/clip"}):
+        with pytest.raises(AgoInputError, match=f"trained with the CLIP text encoder {bank.encoder_id}.*give its folder"):
+            clip_folder_for({"train_config": record}, "last.pt", bank, None)
+    assert clip_folder_for({"train_config": {"text_encoder": str(clip_dir)}}, "last.pt", bank, None) == clip_dir
