@@ -11,7 +11,7 @@ so nobody mistakes a demo model for a real one. Read by `ago_runtime.predict.bun
 `make_card(ckpt, checkpoint_path, note=None, extra=None)` fills the card from what the checkpoint
 and its run folder say:
 - the checkpoint: step, epoch, train_config (data, pseudo, split, preset name, epochs / max_steps),
-  label space (name, classes);
+  label space (name, classes), the text encoder of its bank (a CLIP tower: what the export says of it);
 - the training data folder named in train_config, when it still exists at export time: synthetic
   (`ago synth` output: scene descriptions "ago synth ..." or a synthetic/ folder) or a nuScenes-layout
   dataset (taken as real data), scenes and frames of the training split;
@@ -96,10 +96,22 @@ def describe_data(data: str | None, split: str | None) -> dict:
     return out
 
 
+def text_encoder_record(ckpt: dict) -> dict | None:
+    """What the checkpoint's bank says of its text encoder: {"id", "variant", "dim"} (None without a bank)."""
+    bank = ckpt.get("bank")
+    if not isinstance(bank, dict) or "encoder_id" not in bank:
+        return None
+    emb = bank.get("embeddings")
+    dim = int(emb.shape[1]) if getattr(emb, "ndim", 0) == 2 else None
+    return {"id": str(bank["encoder_id"]), "variant": str(bank.get("encoder_variant", "")), "dim": dim}
+
+
 def make_card(ckpt: dict, checkpoint_path: str | Path, note: str | None = None, extra: dict | None = None,
-              readout: tuple[list[int], list[int]] | None = None) -> dict:
+              readout: tuple[list[int], list[int]] | None = None, text_encoder: dict | None = None) -> dict:
     """The card dict for a checkpoint (module docstring). readout: (the bundle's read-out grid shape, the
-    model's training grid shape), recorded as "readout" and named in the summary when they differ."""
+    model's training grid shape), recorded as "readout" and named in the summary when they differ.
+    text_encoder: what the export says of the bundle's text encoder (a CLIP tower: ago_export/text_tower.py);
+    default: the checkpoint bank's id, variant and width."""
     checkpoint_path = Path(checkpoint_path)
     tc = _plain(ckpt.get("train_config") or {})
     ls = ckpt.get("label_space") or {}
@@ -145,6 +157,7 @@ def make_card(ckpt: dict, checkpoint_path: str | Path, note: str | None = None, 
         "label_space": {"name": ls.get("name"), "classes": list(ls.get("class_names") or []),
                         "known": list(ls.get("known") or [])},
         "val_scores": val,
+        "text_encoder": text_encoder or text_encoder_record(ckpt),
         "readout": None if readout is None else {"grid": list(readout[0]), "model_grid": list(readout[1])},
         "note": note,
     }
@@ -176,6 +189,10 @@ def summary(card: dict) -> str:
     ls = card.get("label_space") or {}
     if ls.get("name"):
         parts.append(f"label space {ls['name']}" + (f" ({len(ls['classes'])} classes)" if ls.get("classes") else ""))
+    te = card.get("text_encoder") or {}
+    if te.get("id"):
+        name = f"CLIP text tower {te['id']}" if te.get("kind") == "clip" else str(te["id"])
+        parts.append(f"text encoder {name}" + (f" ({te['dim']}-d)" if te.get("dim") else ""))
     val = card.get("val_scores") or {}
     ro = card.get("readout") or {}
     fine = bool(ro.get("grid") and ro.get("model_grid")) and list(ro["grid"]) != list(ro["model_grid"])
@@ -208,8 +225,10 @@ def read_card_options(note: str | None, card_json: str | Path | None) -> dict:
 
 
 def write_card(bundle_dir: str | Path, ckpt: dict, checkpoint_path: str | Path, note: str | None = None,
-               extra: dict | None = None, readout: tuple[list[int], list[int]] | None = None) -> Path:
+               extra: dict | None = None, readout: tuple[list[int], list[int]] | None = None,
+               text_encoder: dict | None = None) -> Path:
     """Write `card.json` into a bundle folder (the export's temporary folder); gives its path."""
     path = Path(bundle_dir) / CARD_FILE
-    write_json(path, make_card(ckpt, checkpoint_path, note=note, extra=extra, readout=readout))
+    write_json(path, make_card(ckpt, checkpoint_path, note=note, extra=extra, readout=readout,
+                               text_encoder=text_encoder))
     return path

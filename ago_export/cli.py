@@ -1,5 +1,5 @@
 """`ago export model.ckpt -o BUNDLE [--int8] [--parity-frame DIR | --no-real-frame] [--card-note TEXT]
-[--card-json FILE] [--readout-grid XxYxZ]` (needs torch)."""
+[--card-json FILE] [--readout-grid XxYxZ] [--text-encoder DIR]` (needs torch; a CLIP text tower needs the vlm extra)."""
 
 from __future__ import annotations
 
@@ -42,6 +42,10 @@ def register(app: typer.Typer) -> None:
             help="planes.onnx samples every camera at every pillar point (the ones a camera does not see weighted "
                  "by 0) instead of only the seen ones: the same function, no data-dependent shapes (NonZero), "
                  "for runtimes that need static shapes; slower on CPU"),
+        text_encoder: Optional[Path] = typer.Option(
+            None, "--text-encoder",
+            help="the CLIP save_pretrained folder a checkpoint was trained with (`ago train --text-encoder`); its "
+                 "text tower ships in the bundle as ONNX (default: the folder the checkpoint records)"),
     ) -> None:
         """Export a checkpoint to a self-describing ONNX bundle, parity-checked against torch."""
         from ago_runtime.errors import require_torch
@@ -78,4 +82,4 @@ def register(app: typer.Typer) -> None:
         export_bundle(checkpoint, out, int8=int8, parity_frame_dir=parity_frame,
                       real_frame=not no_real_frame, bank_prompts=prompts,
                       log=lambda s: typer.echo(s, err=True), card=card, readout_grid=readout,
-                      static_sampling=static_sampling)
+                      static_sampling=static_sampling, text_encoder=text_encoder)

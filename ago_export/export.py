@@ -13,7 +13,8 @@ docs/runtime.md):
    never holds the grid's features at once; key metadata also in metadata_props;
 2. the linear heads (`heads.npz`) and the learnt free embedding, for bank folding at run time;
 3. banks: "train" (the label-space embeddings saved in the checkpoint) and one per shipped prompt
-   file the installed text encoder could build;
+   file the installed text encoder could build; a checkpoint trained with a CLIP folder's text tower ships
+   that tower (text_encoder.onnx + tokenizer, parity-checked: ago_export/text_tower.py), which builds them;
 4. checks: onnx.checker, then parity ORT vs torch on one frame (a real nuScenes keyframe when one
    is found, else a synthetic frame): ago_export.parity; optional int8 copy, parity-checked too.
 
@@ -47,10 +48,12 @@ from ago_runtime.predict.contract import (BUNDLE_FORMAT, BUNDLE_FORMAT_VERSION, 
 from ago_runtime.predict.encoder import SplitEncoder, StageGraph
 from ago_runtime.predict.heads import HeadWeights
 from ago_runtime.vocab.prompts import LabelSpace, label_space_from_record, shipped_label_spaces
+from ago_runtime.vocab.text_encoder import OnnxTextEncoder
 
 from .card import write_card
 from .graphs import PlanesGraph, VoxelStageGraph, voxel_stages
 from .parity import FP32_TOLERANCE, INT8_TOLERANCE, Tolerance, check_parity, describe
+from .text_tower import clip_folder_for, export_text_tower, is_clip_bank
 
 OPSET = 17
 DEFAULT_REAL_FRAME = Path(__file__).resolve().parents[2] / "shared" / "data" / "nuscenes-sample"
@@ -227,7 +230,8 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
                   parity_frame_dir: str | Path | None = None, real_frame: bool = True,
                   bank_prompts: list[str] | None = None, tolerance: Tolerance = FP32_TOLERANCE,
                   int8_tolerance: Tolerance = INT8_TOLERANCE, log=print, parity: bool = True,
-                  card: dict | None = None, readout_grid: Grid | None = None, static_sampling: bool = False) -> dict:
+                  card: dict | None = None, readout_grid: Grid | None = None, static_sampling: bool = False,
+                  text_encoder: str | Path | None = None) -> dict:
     """Write a bundle for `checkpoint` at `out`; returns bundle.json's content.
 
     parity=False skips the ORT-vs-torch check (benchmarks only; not offered by the CLI);
@@ -245,11 +249,20 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
 
     static_sampling (`ago export --static-sampling`): planes.onnx samples every (camera, pillar point) entry
     instead of only those a camera sees (no data-dependent shapes; slower): ago_export.graphs.ExportTPV.
+
+    text_encoder (`ago export --text-encoder DIR`): the CLIP folder of a checkpoint trained with one (default: its
+    train_config text_encoder); its text tower ships in the bundle (ago_export/text_tower.py).
     """
     checkpoint, out = Path(checkpoint), Path(out)
     model, ckpt, cfg = load_model(checkpoint)
     space = label_space_from_record(ckpt.get("label_space"), checkpoint)
     bank = train_bank(ckpt, space, checkpoint)
+    clip_folder = None
+    if is_clip_bank(bank):   # the tower ships in the bundle: its folder is checked before any work
+        clip_folder = clip_folder_for(ckpt, checkpoint, bank, text_encoder)
+    elif text_encoder is not None:
+        raise AgoInputError("--text-encoder", f"{checkpoint} was trained with the text encoder {bank.encoder_id}, "
+                            "not a CLIP folder's; leave --text-encoder out")
     heads = head_weights(model, ckpt.get("calibration"))
     if heads.embed_dim != bank.dim:
         raise AgoInputError(checkpoint, f"model embedding width {heads.embed_dim} differs from its bank's {bank.dim}")
@@ -267,7 +280,7 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
         rig, rig_source = Rig.nuscenes_like(1600, 900), "Rig.nuscenes_like(1600, 900) (checkpoint has no rig)"
     if len(rig.cameras) != cfg.num_cameras:
         raise AgoInputError(checkpoint, f"the model takes {cfg.num_cameras} cameras, its rig has {len(rig.cameras)}")
-    text_encoder = TextEncoderSpec(bank.encoder_id, bank.encoder_hash, int(bank.dim), bank.encoder_variant)
+    encoder_spec = TextEncoderSpec(bank.encoder_id, bank.encoder_hash, int(bank.dim), bank.encoder_variant)
     images, frame_rig, frame_name = parity_frame(parity_frame_dir, real_frame, rig)   # checked before any work
     frame_rig = frame_rig.ordered_as(rig.names, frame_name)
     if parity_frame_dir is None:
@@ -277,7 +290,7 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
         metadata = {
             "ago.format": BUNDLE_FORMAT, "ago.format_version": str(BUNDLE_FORMAT_VERSION),
             "ago.version": ago_runtime.__version__, "ago.grid": json.dumps(grid.to_dict()),
-            "ago.preprocess": json.dumps(pre.to_dict()), "ago.text_encoder": json.dumps(vars(text_encoder)),
+            "ago.preprocess": json.dumps(pre.to_dict()), "ago.text_encoder": json.dumps(vars(encoder_spec)),
             "ago.class_names": json.dumps(list(space.class_names)), "ago.label_space": space.name,
             "ago.outputs": "planes: the TPV planes at the grid (times the decoder's first linear); voxels_<i>: one layer "
                            "of the per-voxel MLP (y = x W^T + b)",
@@ -285,6 +298,11 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
         log(f"exporting the encoder to ONNX (opset {OPSET}) ...")
         files, stages = export_onnx(model, tmp, cfg, metadata, grid.shape, static_sampling)
         np.savez(tmp / "heads.npz", **heads.to_arrays())
+        tower, bank_encoder = None, None
+        if clip_folder is not None:
+            tower = export_text_tower(clip_folder, tmp, bank, int8, checkpoint, log)
+            files.update(tower["files"])
+            bank_encoder = OnnxTextEncoder(tmp / tower["files"]["text_encoder"])
         (tmp / "banks").mkdir()
         bank.save(tmp / "banks" / "train.npz")
         banks = {"train": "banks/train.npz"}
@@ -292,7 +310,7 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
         for name in (shipped_label_spaces() if bank_prompts is None else bank_prompts):
             key = Path(name).stem
             try:
-                b = load_prompt_bank(name)
+                b = load_prompt_bank(name, encoder=bank_encoder)
                 b.check_compatible(bank.encoder_id, bank.dim, checkpoint)
             except AgoInputError as e:
                 bank_notes[key] = f"not built: {e}"
@@ -303,7 +321,7 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
 
         x = pre.images(images, frame_rig, frame_name)[None]
         m = pre.ego2img(frame_rig)[None]
-        report: dict = {}
+        report: dict = {} if tower is None else {"text_encoder": tower["parity"]}
         if parity:
             log("checking parity onnxruntime vs torch ...")
             report["fp32"] = check_parity(model, open_split_encoder(tmp, files, stages, grid, heads), heads, bank,
@@ -334,7 +352,7 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
             grid=grid.to_dict(), model_grid=model_grid.to_dict(), preprocess=pre.to_dict(),
             rig=RigSpec([CameraSlot(c.name, w, h) for c, (w, h) in zip(rig, pre.camera_sizes(rig))]),
             training_rig=rig.to_dict(), rig_source=rig_source, label_space=label_space_spec(space),
-            text_encoder=text_encoder, files=file_entries, voxel_stages=stages,
+            text_encoder=encoder_spec, files=file_entries, voxel_stages=stages,
             hidden_dim=heads.hidden_dim, adapted_dim=heads.adapter_dim, identifier=Identifier.MIN_ENTROPY,
             banks=banks, default_bank="train", bank_notes=bank_notes,
             checkpoint={"path": str(checkpoint), "sha256": file_sha256(checkpoint),
@@ -345,7 +363,8 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
             created_utc=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
         contract.check_stages()
         meta = contract.to_dict()
-        write_card(tmp, ckpt, checkpoint, readout=(list(grid.shape), list(model_grid.shape)), **(card or {}))   # card.json: what it was trained on (ago_export/card.py)
+        write_card(tmp, ckpt, checkpoint, readout=(list(grid.shape), list(model_grid.shape)),
+                   text_encoder=None if tower is None else tower["card"], **(card or {}))   # card.json: what it was trained on (ago_export/card.py)
         write_json(tmp / BUNDLE_JSON, meta)
         for p in [tmp, *tmp.rglob("*")]:
             p.chmod(0o755 if p.is_dir() else 0o644)

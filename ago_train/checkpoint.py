@@ -205,6 +205,17 @@ def check_resume_model(ckpt: dict, path: str | Path, model_config: dict) -> None
                                   f"({', '.join(diff[:8])}); use the run's own config or another --out")
 
 
+def check_checkpoint_bank(ckpt: dict, path: str | Path, bank: dict) -> None:
+    """Refuse a checkpoint (to resume from, or to start from) whose prompt bank came from another text encoder than
+    this run's bank (`bank`: the 'bank' dict), one line naming both encoders."""
+    from ago_runtime.vocab.model_folder import check_same_encoder
+
+    saved = ckpt.get("bank") if isinstance(ckpt.get("bank"), dict) else {}
+    if "encoder_id" in saved:
+        check_same_encoder("the checkpoint's prompt bank", str(saved["encoder_id"]), "this run's prompt bank",
+                           str(bank["encoder_id"]), source=path)
+
+
 def checkpoint_camera_names(ckpt: dict, path: str | Path | None = None) -> list[str] | None:
     """The cameras the checkpoint's model takes, in its input order (its training rig), or None for a checkpoint
     without a rig record (it then takes each frame's cameras as they come, as before rigs were recorded)."""

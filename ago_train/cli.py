@@ -18,12 +18,13 @@ import typer
 
 
 def _config(config: str, sets: Optional[List[str]], out: Optional[str], data: Optional[str] = None,
-            pseudo: Optional[str] = None, prompts: Optional[str] = None):
+            pseudo: Optional[str] = None, prompts: Optional[str] = None, text_encoder: Optional[str] = None):
     from .train_config import TrainConfig
 
     cfg = TrainConfig.from_name_or_path(config).with_overrides(sets)
     extra = []
-    for key, value in (("out", out), ("data", data), ("pseudo", pseudo), ("prompts", prompts)):
+    for key, value in (("out", out), ("data", data), ("pseudo", pseudo), ("prompts", prompts),
+                       ("text_encoder", text_encoder)):
         if value is not None:
             extra.append(f"{key}={json.dumps(value)}")
     return cfg.with_overrides(extra)
@@ -40,13 +41,21 @@ def register(app: typer.Typer) -> None:
         data: Optional[str] = typer.Option(None, "--data", help="dataset root"),
         pseudo: Optional[str] = typer.Option(None, "--pseudo", help="pseudo-label folder (ago pseudo-labels)"),
         prompts: Optional[str] = typer.Option(None, "--prompts", help="prompt file (label space)"),
+        text_encoder: Optional[str] = typer.Option(None, "--text-encoder", help="a CLIP save_pretrained folder: its "
+                                                   "text tower makes the banks (the paper's space; default MiniLM; "
+                                                   "docs/prompts.md)"),
         print_config: bool = typer.Option(False, "--print-config", help="print the resolved config and exit"),
     ):
         """Train AGO from pseudo-labels (single process, or DDP under torchrun)."""
         from ago_runtime.errors import require_torch
 
         require_torch("train")
-        cfg = _config(config, sets, out, data, pseudo, prompts)
+        # the folder's absolute path: export and eval find it again from another working directory
+        cfg = _config(config, sets, out, data, pseudo, prompts, str(Path(text_encoder).resolve()) if text_encoder else None)
+        if cfg.text_encoder is not None:   # a wrong folder is one line before anything runs
+            from ago_runtime.vocab.model_folder import read_model_config
+
+            read_model_config(cfg.text_encoder, "--text-encoder" if text_encoder else "text_encoder", "clip")
         if print_config:
             typer.echo(json.dumps(cfg.to_dict(), indent=2))
             return

@@ -126,7 +126,7 @@ def check_train_config(cfg, source=None):
     for key in ("data", "pseudo", "prompts", "out", "train_split", "val_split", "name"):
         if not isinstance(getattr(cfg, key), str) or not getattr(cfg, key):
             raise AgoInputError(source, f"{key} must be a non-empty string, got {getattr(cfg, key)!r}")
-    for key in ("gts", "init_from", "noise_bank"):
+    for key in ("gts", "init_from", "noise_bank", "text_encoder"):
         v = getattr(cfg, key)
         if v is not None and not isinstance(v, str):
             raise AgoInputError(source, f"{key} must be a string or null, got {v!r}")

@@ -60,13 +60,25 @@ def checkpoint_label_space(ckpt: dict, source="checkpoint") -> LabelSpace:
 
 def bank_for(ckpt: dict, label_space: LabelSpace) -> tuple[torch.Tensor, torch.Tensor]:
     """(P, C) text embeddings and (P,) phrase classes of `label_space`: the checkpoint's own when it
-    is the training label space (same phrases), else encoded with the torch MiniLM (same encoder hash)."""
+    is the training label space (same phrases), else encoded with the torch MiniLM (same encoder hash), or with the
+    CLIP folder the checkpoint was trained with (train_config text_encoder; same encoder id)."""
     saved = checkpoint_label_space(ckpt)
     bank = ckpt["bank"]
     if saved.phrases == label_space.phrases and saved.class_names == label_space.class_names:
         return bank["embeddings"].float(), bank["phrase_class"].long()
     from ago_runtime.vocab.bank import load_prompt_bank
 
+    folder = (ckpt.get("train_config") or {}).get("text_encoder")
+    if folder is not None:
+        from ago_runtime.vocab.model_folder import check_same_encoder
+
+        from .text.clip import TorchClipTextEncoder
+
+        enc = TorchClipTextEncoder(folder, "the checkpoint's text_encoder")
+        check_same_encoder("the checkpoint's prompt bank", str(bank["encoder_id"]), f"the CLIP folder {folder}",
+                           enc.encoder_id)
+        new = load_prompt_bank(label_space, enc)
+        return torch.from_numpy(new.embeddings), torch.from_numpy(new.phrase_class)
     from .text.minilm import TorchMiniLMEncoder
 
     enc = TorchMiniLMEncoder()

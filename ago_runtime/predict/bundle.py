@@ -19,6 +19,9 @@ the preprocessing, the camera rig, and the sha256 of every file. Layout (format 
       banks/<name>.npz   prompt banks (ago_runtime.vocab.bank.PromptBank files); "train" = the
                          training label space's embeddings stored in the checkpoint
       card.json          optional (ago_export/card.py): what the model was trained on
+      text_encoder.onnx, text_encoder.json, text_encoder.tokenizer.json
+                         optional: the CLIP text tower the model was trained with (ago_export/text_tower.py),
+                         its sidecar and tokenizer; `bundle_text_encoder` encodes new prompts with it
 
 `Bundle.load(dir)` refuses (AgoInputError naming the file) a missing folder or file, another format
 version (older ones with the `ago export` command that re-exports them), a file whose sha256 or size

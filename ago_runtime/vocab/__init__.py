@@ -1,7 +1,9 @@
 """ago_runtime.vocab: the vocabulary - prompt files, label spaces, text encoders and prompt banks.
 
 Holds `prompts` (prompt files -> LabelSpace), `tokenizer` (MiniLM's WordPiece in pure python),
-`text_encoder` (the ONNX sentence encoder and where to find it), `bank` (PromptBank files, and
+`clip_tokenizer` (CLIP's BPE from a tokenizer.json, with the `tokenizers` library, loaded on that path only),
+`text_encoder` (the ONNX sentence encoder and where to find it), `model_folder` (the user's save_pretrained
+folders: checks, `clip:<hash>` ids, a CLIP folder's torch text tower by name), `bank` (PromptBank files, and
 `load_prompt_bank`, the one way a prompt file becomes a bank) and `cli` (`ago prompts build|show`).
 
 The one vocabulary path (used by infer, retrieve, demo, training, pseudo-labels and export):

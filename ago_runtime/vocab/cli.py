@@ -1,6 +1,7 @@
 """`ago prompts ...`: build and inspect prompt banks (no torch).
 
-build FILE -o BANK     encode a prompt file's phrases into a bank (.npz)
+build FILE -o BANK     encode a prompt file's phrases into a bank (.npz); --bundle B: with the bundle's own
+                       text encoder (a CLIP bundle's tower too, no torch); --text-encoder DIR: a CLIP folder (torch)
 show BANK|FILE         classes, phrases, and the class-to-class similarity table
 (`prompts export-encoder` and `prompts noise` need torch: ago_train/text/cli.py adds them to the group
 `prompts_group(app)` gives.)
@@ -17,20 +18,42 @@ import typer
 def build(prompt_file: str = typer.Argument(..., help="prompt file, or a shipped name: cw, ow, ow_pretrain, veon_9_8 ..."),
           output: Path = typer.Option(..., "-o", "--output", help="bank file to write (.npz)"),
           encoder: str = typer.Option("onnx", "--encoder", help="onnx | int8 | torch | PATH to an ONNX text encoder"),
+          text_encoder: Optional[Path] = typer.Option(None, "--text-encoder", help="a CLIP save_pretrained folder: "
+                                                      "encode with its text tower (needs the training and vlm extras; "
+                                                      "docs/prompts.md)"),
+          bundle: Optional[Path] = typer.Option(None, "--bundle", help="a bundle folder: encode with the bundle's own "
+                                                "text encoder (no torch), and check the bank fits the bundle"),
           template: Optional[str] = typer.Option(None, "--template", help="phrase template with one {} "
                                                  "(default: the measured winner, see docs/prompts.md)")):
     """Encode a prompt file's phrases into a prompt bank."""
+    from ago_runtime.errors import AgoInputError
     from ago_runtime.vocab.bank import DEFAULT_TEMPLATE, build_bank, check_template
     from ago_runtime.outputs import check_output_file
     from ago_runtime.vocab.prompts import parse_prompt_file
-    from ago_runtime.vocab.text_encoder import text_encoder_for
+    from ago_runtime.vocab.model_folder import clip_text_encoder
+    from ago_runtime.vocab.text_encoder import bundle_text_encoder, text_encoder_for
 
+    chosen = [o for o, given in (("--encoder", encoder != "onnx"), ("--text-encoder", text_encoder is not None),
+                                 ("--bundle", bundle is not None)) if given]
+    if len(chosen) > 1:
+        raise AgoInputError(chosen[0], f"and {chosen[1]} both choose the text encoder; give one")
     space = parse_prompt_file(prompt_file)
     if template is not None:
         check_template(template, "--template")
     check_output_file(output, "-o")   # before the encoding
-    enc = text_encoder_for(encoder)
+    loaded = None
+    if bundle is not None:
+        from ago_runtime.predict.bundle import Bundle
+
+        loaded = Bundle.load(bundle)
+        enc = bundle_text_encoder(loaded)
+    elif text_encoder is not None:
+        enc = clip_text_encoder(text_encoder)
+    else:
+        enc = text_encoder_for(encoder)
     bank = build_bank(space, enc, template if template is not None else DEFAULT_TEMPLATE)
+    if loaded is not None:
+        loaded.check_bank(bank, prompt_file)   # the class count `ago infer` can write with this bundle
     bank.save(output)
     typer.echo(f"{output}: {bank.num_classes} classes, {bank.num_phrases} phrases, "
                f"{bank.encoder_id} ({bank.encoder_variant}), dim {bank.dim}, template {bank.template!r}")

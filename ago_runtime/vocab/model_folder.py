@@ -17,7 +17,7 @@ import json
 from pathlib import Path
 
 from ago_runtime.errors import AgoInputError
-from ago_runtime.vocab.text_encoder import file_sha256
+from ago_runtime.vocab.text_encoder import extra_encoder, file_sha256
 
 CONFIG_NAME = "config.json"
 # model types of the architectures ago loads, and the published checkpoints each folder may hold (said in errors)
@@ -87,3 +87,10 @@ def check_same_encoder(what_a: str, id_a: str, what_b: str, id_b: str, source=No
     if id_a != id_b:
         raise AgoInputError(source, f"{what_a} were made with encoder {id_a!r} but {what_b} with {id_b!r}; "
                             "they must come from the same model")
+
+
+def clip_text_encoder(folder: str | Path, option: str = "--text-encoder", verb: str = "prompts build"):
+    """The text tower of the CLIP folder `folder`, in torch (ago_train.text.clip.TorchClipTextEncoder; needs the
+    training and vlm extras): the folder is checked first (one `error:` line naming `option`), torch after."""
+    read_model_config(folder, option, "clip")
+    return extra_encoder("clip", folder, option, asked_by=f"{verb} {option} DIR")

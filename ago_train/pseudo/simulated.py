@@ -328,12 +328,15 @@ class SimulatedImageEmbedder:
     Occ3D-Waymo ones), or a cw.txt PromptBank; `ids`: the label id of each row (default 0..K-1); pixels of other
     ids (free, sky, nothing) take
     sky_text: an optional (C,) embedding for sky / nothing pixels (else they carry only the offset).
+    text_encoder: the id of the text encoder that made class_text when it is not MiniLM (recorded in the settings,
+    so a pseudo-label folder of one text space is not continued in another).
     """
 
     name = "simulated"
 
     def __init__(self, class_text, config: SimEmbedderConfig | None = None, sky_text: np.ndarray | None = None,
-                 ids: tuple[int, ...] | None = None):
+                 ids: tuple[int, ...] | None = None, text_encoder: str | None = None):
+        self.text_encoder = text_encoder
         if not isinstance(class_text, np.ndarray):
             class_text = class_text_from_bank(class_text)
         t = np.asarray(class_text, dtype=np.float64)
@@ -363,7 +366,8 @@ class SimulatedImageEmbedder:
         self.pixel_embeddings = self.pixel_embeddings.astype(np.float32)
 
     def config_dict(self) -> dict:
-        return {"simulation": True, "channels": self.channels, **self.config.to_dict()}
+        text = {"text_encoder": self.text_encoder} if self.text_encoder else {}
+        return {"simulation": True, "channels": self.channels, **self.config.to_dict(), **text}
 
     def embed(self, frame: Frame, camera: str) -> np.ndarray:
         sem, _ = _synthetic_maps(frame, camera, need_depth=False)

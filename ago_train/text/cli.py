@@ -1,7 +1,8 @@
 """`ago prompts export-encoder` and `ago prompts noise` (need torch), and the `--encoder torch` choice.
 
 export-encoder [-o P]  write MiniLM as ONNX (needs torch) - default the ago cache
-noise [-o P]           build the WordNet noise-word bank for training (needs torch + nltk data)
+noise [-o P]           build the WordNet noise-word bank for training (needs torch + nltk data);
+                       --text-encoder DIR: with a CLIP folder's text tower
 
 `register(app)` adds both verbs to ago_runtime's `ago prompts` group (ago_runtime/vocab/cli.py). The
 `--encoder torch` choice is not registered here: ago_runtime.vocab.text_encoder names the torch MiniLM's
@@ -41,19 +42,24 @@ def export_encoder(output: Optional[Path] = typer.Option(None, "-o", "--output",
 
 
 def noise(output: Optional[Path] = typer.Option(None, "-o", "--output", help="noise bank file (default: the ago cache)"),
-          force: bool = typer.Option(False, "--force", help="rebuild even if the file exists")):
+          force: bool = typer.Option(False, "--force", help="rebuild even if the file exists"),
+          text_encoder: Optional[Path] = typer.Option(None, "--text-encoder", help="a CLIP save_pretrained folder: "
+                                                      "encode the words with its text tower (default: MiniLM)")):
     """Build the noise-word bank (WordNet nouns minus label phrases and near-synonyms)."""
-    require_torch("prompts noise")
-    from .noise import NoiseBank, ensure_noise_bank
+    from ago_runtime.vocab.model_folder import clip_text_encoder
 
     if output is not None:
         from ago_runtime.outputs import check_output_file
 
         check_output_file(output, "-o")
+    encoder = clip_text_encoder(text_encoder, verb="prompts noise") if text_encoder is not None else None
+    require_torch("prompts noise")
+    from .noise import NoiseBank, ensure_noise_bank
 
-    path = ensure_noise_bank(output, force=force)
+    path = ensure_noise_bank(output, force=force, encoder=encoder)
     nb = NoiseBank.load(path)
-    typer.echo(f"{path}: {len(nb.words)} noise words, dim {nb.dim}, {path.stat().st_size / 1e6:.1f} MB")
+    typer.echo(f"{path}: {len(nb.words)} noise words, {nb.meta.get('encoder_id')}, dim {nb.dim}, "
+               f"{path.stat().st_size / 1e6:.1f} MB")
 
 
 def register(app: typer.Typer) -> None:

@@ -8,13 +8,17 @@ as a small .npz (float16 embeddings), so a training step only samples rows:
     bank = NoiseBank.load(ensure_noise_bank())
     neg = bank.sample(100, rng)        # float32 (100, 384), L2-normalised rows
 
+The bank is made by one text encoder and records it (meta encoder_id): MiniLM by default; a CLIP folder's
+tower (`ago prompts noise --text-encoder DIR`, `ago train --text-encoder DIR`) makes its own, cached under
+its encoder id. Training refuses a noise bank of another encoder than its prompt bank (`training_noise_bank`).
+
 Filters, in order (counts measured in docs/prompts.md):
 1. single words: letters only, 3..15 characters (drops multiword lemmas, hyphenated and
    numeric ones);
 2. a lowercase entry of the `words` corpus (Webster's 2nd, /usr/share/dict/web2): a real
    dictionary word and not only a proper noun (web2 capitalises those: "Aaron", "Aberdeen");
-3. one WordPiece token in MiniLM's vocabulary: the encoder knows the word as a whole (rare words
-   split into pieces get embeddings dominated by sub-word fragments);
+3. one token of the encoder's vocabulary (a WordPiece of MiniLM, a BPE token of CLIP): the encoder knows
+   the word as a whole (rare words split into pieces get embeddings dominated by sub-word fragments);
 4. not a label word: not a word of any phrase or class name of the shipped prompt files;
 5. not a near-synonym: cosine to every label phrase of the shipped prompt files <= 0.5
    (NEAR_SYNONYM_COS; chosen by inspecting the words per cosine band, docs/prompts.md);
@@ -46,8 +50,10 @@ RECIPE_VERSION = 2
 SETUP_HINT = "run scripts/setup_nltk_data.sh (WordNet from Debian packages into <repo>/.nltk_data)"
 
 
-def default_noise_bank_path() -> Path:
-    return ago_cache_dir() / "noise" / f"noise_bank-{MINILM_ID}.npz"
+def default_noise_bank_path(encoder_id: str = MINILM_ID) -> Path:
+    """The cached noise bank of the encoder `encoder_id` (MiniLM's, or "clip:<hex>" -> noise_bank-clip_<hex>.npz)."""
+    name = re.sub(r"[^\w.-]+", "_", encoder_id)
+    return ago_cache_dir() / "noise" / f"noise_bank-{name}.npz"
 
 
 def _nltk():
@@ -99,7 +105,7 @@ def candidate_words(tokenizer, labels: list[str], report: NoiseFilterReport | No
     kept = [w for w in kept if w in dictionary]
     report.counts["lowercase entry of the words corpus (web2)"] = len(kept)
     kept = [w for w in kept if len(tokenizer.tokenize_ids(w)) == 1]
-    report.counts["one word piece in the MiniLM vocab"] = len(kept)
+    report.counts["one token of the encoder's vocabulary"] = len(kept)
     label_words = {w for p in labels for w in [p, *p.split()]}
     kept = sorted(w for w in kept if w not in label_words)
     report.counts["not a label word"] = len(kept)
@@ -175,11 +181,14 @@ def build_noise_bank(encoder=None, labels: list[str] | None = None, threshold: f
         words = [words[i] for i in keep]
         report.counts[f"subsampled to {max_candidates} candidates"] = len(words)
     label_emb = encoder.encode(labels)
-    emb = encoder.encode(words)
+    emb = encoder.encode(words) if words else np.zeros((0, label_emb.shape[1]), np.float32)
     near = (emb @ label_emb.T).max(axis=1) > threshold
     words = [w for w, drop in zip(words, near) if not drop]
     emb = emb[~near]
     report.counts[f"cosine to every label phrase <= {threshold}"] = len(words)
+    if not words:
+        raise AgoInputError(None, f"no noise word is left after the filters ({report.counts}) with the text encoder "
+                            f"{encoder.encoder_id}")
     if len(words) > max_words:
         keep = np.sort(np.random.default_rng(seed).choice(len(words), size=max_words, replace=False))
         words = [words[i] for i in keep]
@@ -191,15 +200,47 @@ def build_noise_bank(encoder=None, labels: list[str] | None = None, threshold: f
     return NoiseBank(words, emb.astype(np.float16), meta)
 
 
+def _up_to_date(path: Path, encoder_id: str) -> bool:
+    """A readable noise bank at `path` made by the current filter recipe and the encoder `encoder_id`."""
+    if not path.is_file():
+        return False
+    try:
+        meta = NoiseBank.load(path).meta
+    except AgoInputError:
+        return False   # damaged or foreign: rebuilt
+    return meta.get("recipe_version") == RECIPE_VERSION and meta.get("encoder_id", MINILM_ID) == encoder_id
+
+
 def ensure_noise_bank(path: str | Path | None = None, force: bool = False, encoder=None) -> Path:
-    """Path of the noise bank; builds it first if it is missing, made by an older filter recipe,
-    unreadable, or `force`."""
-    path = Path(path) if path is not None else default_noise_bank_path()
-    if path.is_file() and not force:
-        try:
-            if NoiseBank.load(path).meta.get("recipe_version") == RECIPE_VERSION:
-                return path
-        except AgoInputError:
-            pass  # damaged or foreign: rebuilt below
-    build_noise_bank(encoder).save(path)
+    """Path of the noise bank of `encoder` (default: the torch MiniLM); builds it first if it is missing, made by an
+    older filter recipe or another encoder, unreadable, or `force`. Default path: default_noise_bank_path(its id)."""
+    encoder_id = encoder.encoder_id if encoder is not None else MINILM_ID
+    path = Path(path) if path is not None else default_noise_bank_path(encoder_id)
+    if force or not _up_to_date(path, encoder_id):
+        build_noise_bank(encoder).save(path)
     return path
+
+
+def training_noise_bank(path: str | None, text_encoder: str | None, bank: dict) -> NoiseBank:
+    """The noise bank a training run samples from: `path` (the config's noise_bank) when given, else the cached one of
+    the run's text encoder (`text_encoder`: a CLIP folder, None = MiniLM), built when missing. Refused with one line
+    naming both when its encoder or width is not the prompt bank's (`bank`: the checkpoint bank dict)."""
+    from ago_runtime.vocab.model_folder import check_same_encoder, clip_encoder_id
+
+    if path is None:
+        encoder_id = clip_encoder_id(text_encoder) if text_encoder is not None else MINILM_ID
+        path = default_noise_bank_path(encoder_id)
+        if not _up_to_date(path, encoder_id):
+            encoder = None
+            if text_encoder is not None:
+                from .clip import TorchClipTextEncoder
+
+                encoder = TorchClipTextEncoder(text_encoder, "text_encoder", batch_size=256)
+            ensure_noise_bank(path, encoder=encoder)
+    nb = NoiseBank.load(path)
+    check_same_encoder("the noise words", str(nb.meta.get("encoder_id", MINILM_ID)), "the prompt bank",
+                       str(bank["encoder_id"]), source=path)
+    width = int(bank["embeddings"].shape[1])
+    if nb.dim != width:
+        raise AgoInputError(path, f"noise words are {nb.dim}-d, the prompt bank's embeddings {width}-d")
+    return nb
