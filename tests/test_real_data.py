@@ -178,7 +178,9 @@ def test_metric_lidar_on_the_real_scene(tmp_path):
     assert full["rays"] > 10000
     empty = s["per_frame"][ds.sample_tokens[1]]
     assert empty["lidar_hits_in_occupied_pct"] == 0.0 and empty["rays_no_occupied_pct"] == 100.0
-    assert "**overall**" in (tmp_path / "m.md").read_text()
+    md = (tmp_path / "m.md").read_text()
+    assert "| prediction |" in md and "| bowl |" in md and "Baselines that beat the prediction" in md
+    assert set(s["predictors"]) == {"prediction", "all_free", "all_occupied", "slab_0.2", "slab_0.6", "bowl"}
 
 
 def test_metric_refusals(tmp_path):
