@@ -10,12 +10,14 @@
     GT voxels of Occ3D classes no prompt covers are ignored, predictions are matched by class name,
     mIoU is over the file's classes, and its @known line gives "known" / "unknown" subsets.
 Both mIoUs are reported (camera mask / every voxel; `--no-mask` picks the per-class table), and RayIoU
-(`ago_runtime.scoring.ray_iou`).
+(`ago_runtime.scoring.ray_iou`): with `--data DATAROOT` from each frame's scene origins (the LiDAR poses of its
+scene's keyframes, as SparseOcc casts), else from one fixed origin (`--ray-origin`) and a note says so.
 `--gt` may also be an Occ3D-Waymo folder (`<split>/<scene>/<frame>_04.npz`, e.g. an `ago synth --rig waymo` root):
     tokens are the sample names, mask_camera is `final_voxel_state & infov`, and `--prompts` must be a prompt
     file of `@table: occ3d_waymo` (free, id 23, is scored as the last label).
 `--lidar DATAROOT` scores predictions of a dataset's keyframes (nuScenes or Occ3D-Waymo layout) against their own LiDAR
-(`ago_runtime.scoring.lidar_agreement`): no Occ3D labels needed.
+and boxes (`ago_runtime.scoring.lidar_agreement`), beside no-image baselines; `--prior PSEUDO_DIR` adds the
+training-frame prior. No Occ3D labels needed.
 """
 
 from __future__ import annotations
@@ -129,8 +131,38 @@ def parse_origin(text: str) -> tuple[float, float, float]:
     return xyz
 
 
-def score_against_gt(pred: Path, gt: Path, space, m_mask, m_all, rays, allow_missing: bool) -> list[str]:
-    """Accumulate the Occ3D metric with and without the camera mask, and RayIoU; returns skipped tokens."""
+def scene_origins_of(data: Path, tokens: list[str]) -> dict[str, np.ndarray]:
+    """`--data DATAROOT`: sample token -> RayIoU's ray origins in its ego frame (`ray_iou.scene_origins`: the
+    LiDAR positions of its scene's keyframes), from the dataroot's poses (no LiDAR file is read)."""
+    from ago_runtime.formats.datasets import dataset_layout, open_dataset
+    from ago_runtime.scoring.ray_iou import scene_origins
+
+    if dataset_layout(data) is None:
+        raise AgoInputError(data, "--data takes a nuScenes dataroot (v1.0-*/) or an Occ3D-Waymo layout root: "
+                            "RayIoU's ray origins come from its LiDAR poses")
+    ds = open_dataset(data, load_images=False, load_extras=False)
+    index = {t: i for i, t in enumerate(ds.sample_tokens)}
+    missing = [t for t in tokens if t not in index]
+    if missing:
+        raise AgoInputError(data, f"{len(missing)} ground-truth sample token(s) are not keyframes of this dataroot "
+                            f"(first: {missing[0]}), so their scenes' poses are unknown")
+    members: dict[str, list[int]] = {}
+    for i in range(len(ds)):
+        members.setdefault(ds.scene_of(i), []).append(i)   # dataset order: time order within a scene
+    poses: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    def pose(i: int):
+        if i not in poses:
+            poses[i] = ds.lidar_pose(i)
+        return poses[i]
+
+    return {t: scene_origins(pose(index[t])[1], [pose(j) for j in members[ds.scene_of(index[t])]]) for t in tokens}
+
+
+def score_against_gt(pred: Path, gt: Path, space, m_mask, m_all, rays, allow_missing: bool,
+                     data: Path | None = None) -> list[str]:
+    """Accumulate the Occ3D metric with and without the camera mask, and RayIoU (from the scene origins of
+    `data` when given, else from the fixed origin); returns skipped tokens."""
     from ago_runtime.classes import OCC3D_NUSCENES, shipped_name
     from ago_runtime.formats.datasets import gt_folder_class_table
     from ago_runtime.geometry.grid import Grid
@@ -143,16 +175,17 @@ def score_against_gt(pred: Path, gt: Path, space, m_mask, m_all, rays, allow_mis
         if p is None:
             missing.append(token)
         else:
-            pairs.append((gt_file, p))
+            pairs.append((token, gt_file, p))
     if missing and not allow_missing:
         raise AgoInputError(pred, f"no prediction for {len(missing)} of {len(gts)} GT frames "
                                   f"(first: {missing[0]}); use --allow-missing to skip them")
     if not pairs:
         raise AgoInputError(pred, "no prediction matches any GT frame")
+    origins = None if data is None else scene_origins_of(data, [token for token, _, _ in pairs])
     gt_lut = None if space is None else space.gt_lut(free_index=space.num_classes)
     folder_table = gt_folder_class_table(gt)   # a class_table.json beside the GT, else the files' layout says
     scored_in = space.class_table if space is not None else OCC3D_NUSCENES   # without --prompts: Occ3D-nuScenes ids
-    for gt_file, p in track(pairs, description="scoring (frames)", total=len(pairs)):
+    for token, gt_file, p in track(pairs, description="scoring (frames)", total=len(pairs)):
         labels, table = load_ground_truth(gt_file)
         table = folder_table or table
         if table != scored_in:
@@ -170,7 +203,7 @@ def score_against_gt(pred: Path, gt: Path, space, m_mask, m_all, rays, allow_mis
         m_mask.update(sem, gt_sem, labels.mask_camera.astype(bool))
         m_all.update(sem, gt_sem, None)
         grid = Grid.with_shape(labels.shape)
-        rays.update(sem, gt_sem, grid.range_min, grid.voxel_size)
+        rays.update(sem, gt_sem, grid.range_min, grid.voxel_size, None if origins is None else origins[token])
     return missing
 
 
@@ -295,9 +328,12 @@ def register(app: typer.Typer) -> None:
         allow_missing: bool = typer.Option(False, "--allow-missing", help="skip GT frames with no prediction"),
         no_mask: bool = typer.Option(False, "--no-mask", help="the main table over every voxel, not only "
                                      "mask_camera (both mIoUs are always reported)"),
-        ray_origin: str = typer.Option("0.943,0,1.84", "--ray-origin",
-                                       help="RayIoU: where the query rays start, x,y,z metres in the ego frame "
-                                       "(default: nuScenes LIDAR_TOP)"),
+        ray_origin: Optional[str] = typer.Option(
+            None, "--ray-origin", help="RayIoU without --data: where the query rays start, x,y,z metres in the ego "
+            "frame (default: nuScenes LIDAR_TOP, 0.943,0,1.84)"),
+        data: Optional[Path] = typer.Option(
+            None, "--data", help="with --gt: the dataroot of the GT's keyframes; RayIoU casts from the LiDAR "
+            "positions of each frame's scene (SparseOcc's origins) instead of one fixed origin"),
         prompts: Optional[Path] = typer.Option(
             None, "--prompts", help="score in this prompt file's label space (as `ago eval` does): GT voxels of "
             "Occ3D classes no prompt covers are ignored, mIoU over its classes, and known / unknown subsets "
@@ -316,7 +352,12 @@ def register(app: typer.Typer) -> None:
             raise AgoInputError("--prior", "goes with --lidar DATAROOT (the prior is a LiDAR-measure baseline)")
         if prior is not None and not prior.is_dir():
             raise AgoInputError(prior, "--prior: pseudo-label folder not found")
-        origin = parse_origin(ray_origin)
+        if data is not None and ray_origin is not None:
+            raise AgoInputError("--ray-origin", "give --ray-origin (one fixed origin) or --data (the scene's LiDAR "
+                                "origins), not both")
+        if data is not None and gt is None:
+            raise AgoInputError("--data", "goes with --gt GT_DIR (RayIoU's ray origins)")
+        origin = parse_origin(ray_origin or "0.943,0,1.84")
         space = None
         if prompts is not None:
             from ago_runtime.vocab.prompts import parse_prompt_file
@@ -341,7 +382,15 @@ def register(app: typer.Typer) -> None:
         check_distinct_outputs(("--json", json_out), ("--md", md_out))
         if not pred.is_dir():
             raise AgoInputError(pred, "prediction folder not found")
-        missing = score_against_gt(pred, gt, space, m_mask, m_all, rays, allow_missing) if gt is not None else []
+        if gt is not None and data is None:
+            import warnings
+
+            from ago_runtime.errors import AgoNote
+
+            warnings.warn(f"RayIoU casts from one fixed origin {list(origin)} m (no --data DATAROOT, so no poses): not "
+                          "comparable with published RayIoU, which casts from the scene's LiDAR origins", AgoNote)
+        missing = (score_against_gt(pred, gt, space, m_mask, m_all, rays, allow_missing, data)
+                   if gt is not None else [])
         report, lidar_missing = score_against_lidar(pred, lidar, prior, allow_missing) if lidar is not None else (None, [])
         parts, summary = [], {}
         if gt is not None:
@@ -382,6 +431,9 @@ def both_mious_markdown(m_mask, m_all, rays) -> str:
     rows += [(f"RayIoU@{t:g} m", r[f"RayIoU@{t:g}"]) for t in rays.thresholds]
     lines = ["| measure | % |", "|---|---:|"]
     lines += [f"| {name} | {'n/a' if v is None else f'{v:.2f}'} |" for name, v in rows]
-    lines += ["", f"RayIoU over {r['rays_counted']} rays ({r['rays_per_frame']} per frame from {r['origin_m']} m, "
-                  "those whose GT meets an occupied voxel; docs/metric_and_pictures.md)."]
+    where = (f"from each frame's scene origins (SparseOcc: {r['origins_used']} origins over {r['frames']} frames"
+             + (f", {r['origins_outside_grid']} outside the grid skipped" if r["origins_outside_grid"] else "") + ")"
+             if r["origins"] != "fixed" else f"from one fixed origin {r['origin_m']} m, not comparable with published RayIoU")
+    lines += ["", f"RayIoU over {r['rays_counted']} rays ({r['rays_per_frame']} per origin {where}; those whose GT "
+                  "meets an occupied voxel; docs/metric_and_pictures.md)."]
     return "\n".join(lines) + "\n"
