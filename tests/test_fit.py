@@ -6,7 +6,8 @@ free space outnumbers occupied voxels about 5 to 1, trained 12 steps through the
 With the `full` preset's optimiser settings (backbone and FPN at 0.1x the learning rate, the free score's
 bias started at the data's prior) the features keep their spread; with the old ones (everything at 1e-3,
 no free bias) the spread falls to ~0.015 by step 12 and every voxel is free (docs/training.md, "Does it
-learn?"), and this test fails.
+learn?"), and this test fails. It also fails for a model that calls every voxel free whatever its features
+(`check_fit`: the free share of the last logged batch must stay under 0.99).
 """
 
 from __future__ import annotations
@@ -52,6 +53,23 @@ def test_full_structure_keeps_its_feature_spread(tmp_path):
         f"model.free_bias={json.dumps(full.model.free_bias)}"])
     Trainer(cfg, quiet=True).run()
     rows = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    check_fit(rows)
+
+
+def check_fit(rows: list[dict]) -> None:
+    """AssertionError unless the logged batches keep their feature spread and the last one is not all free."""
     spreads = [r["feat_spread"] for r in rows if "feat_spread" in r]
-    assert len(spreads) >= 2
+    free = [r["free_share"] for r in rows if "free_share" in r]
+    assert len(spreads) >= 2 and len(free) >= 2
     assert min(spreads) > 0.05, f"voxel features collapse: spread per 4 steps {spreads}"
+    assert free[-1] < 0.99, f"the model calls (almost) every voxel free: free share per 4 steps {free}"
+
+
+def test_check_fit_fails_for_an_all_free_model():
+    spread_ok = [{"step": s, "feat_spread": 0.3, "free_share": 1.0} for s in (4, 8, 12)]
+    with pytest.raises(AssertionError, match="every voxel free"):
+        check_fit(spread_ok)
+    collapsed = [{"step": s, "feat_spread": 0.01, "free_share": 0.8} for s in (4, 8, 12)]
+    with pytest.raises(AssertionError, match="collapse"):
+        check_fit(collapsed)
+    check_fit([{"step": s, "feat_spread": 0.3, "free_share": 0.85} for s in (4, 8, 12)])
