@@ -144,6 +144,7 @@ def score_frame_counts(truth: FrameTruth, occupied: np.ndarray, objects: np.ndar
     parts = np.stack([truth.ground, ~truth.ground])                  # (2, M): ground, non-ground
     flat = occ.ravel()
     tp_vox = int(flat[truth.occupied_voxels].sum())
+    fp_vox = int(flat[truth.free_voxels].sum())       # predicted occupied where a ray saw through
     return {
         "rays": int(len(voxel)),
         "object_gt": np.bincount(truth.ray_class, minlength=k)[:n_classes],
@@ -154,13 +155,13 @@ def score_frame_counts(truth: FrameTruth, occupied: np.ndarray, objects: np.ndar
         "part_tp": np.stack([(parts & r).sum(axis=1) for r in right]),  # (T, 2)
         "voxel_tp": tp_vox,
         "voxel_fn": int(len(truth.occupied_voxels)) - tp_vox,
-        "voxel_fp": int(flat[truth.free_voxels].sum()),
+        "voxel_fp": fp_vox,
         "judged_free": int(len(truth.free_voxels)),
         "depth_errors": err.astype(np.float32),
         "no_hit": int((~hit).sum()),
         "returns_in_occupied": int(flat[truth.return_voxel].sum()),
         "occupied_voxels": int(flat.sum()),
-        "occupied_seen_free": int(flat[truth.free_voxels].sum()),
+        "occupied_seen_free": fp_vox,
     }
 
 

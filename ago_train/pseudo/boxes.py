@@ -7,7 +7,8 @@ without one. It is NOT a VLM and is named "boxes" everywhere (pseudo-label meta.
 For a keyframe and a camera it gives, like every `Segmenter`, an (H, W) uint8 map of label-space class
 indices (255 = no label) at the camera's native size:
 1. ground: the keyframe LiDAR returns with ego-frame z < `GROUND_Z` (0.3 m; the ego frame's origin is
-   on the ground under the rear axle) that lie in no box are projected into the image and each paints a
+   on the ground under the rear axle) that lie in no box (`formats.nuscenes_boxes.ground_returns`, the rule
+   `ago metric --lidar` scores ground rays by) are projected into the image and each paints a
    disc of `GROUND_RADIUS_PX` pixels at 1600 px width (scaled with the image) as `driveable_surface`;
 2. boxes: every sample_annotation of the keyframe (global centre, size w l h, rotation) is moved into the
    keyframe's ego frame, its surface sampled every 0.1 m, the points in front of the camera projected,
@@ -15,10 +16,10 @@ indices (255 = no label) at the camera's native size:
    their centre from the camera), so nearer boxes cover farther ones.
 Pixels neither step paints stay 255 (no label): buildings, vegetation, sky are not labelled.
 
-Box classes: nuScenes categories -> Occ3D classes as nuScenes-lidarseg's 16-class challenge maps them;
-categories it maps to "ignore" (police car, bicycle rack, debris, pushable/pullable, animals, strollers,
-wheelchairs, personal mobility) are painted `others`. A class the prompt file does not cover is not painted.
-Needs the sample_annotation, instance and category tables (a trimmed extract usually has them).
+Box classes: `ago_runtime.formats.nuscenes_boxes.CATEGORY_CLASS` (nuScenes categories -> Occ3D classes as
+nuScenes-lidarseg's 16-class challenge maps them; the categories it ignores are painted `others`); the boxes
+are read by its `DatasetBoxes`. A class the prompt file does not cover is not painted. Needs the
+sample_annotation, instance and category tables (a trimmed extract usually has them).
 
 With `masks_out` (`ago pseudo-labels --segmenter boxes --write-masks DIR`) every label map it paints is
 also written in the label-map layout of docs/vlm_files.md, so the file backend reads it back as it is
