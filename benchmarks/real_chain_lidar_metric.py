@@ -53,13 +53,18 @@ def rows_table(rows: dict[str, dict], columns) -> list[str]:
 
 
 def beaten_lines(name: str, mine: dict, baselines: dict[str, dict]) -> list[str]:
-    """One line per primary measure: the baselines that score higher than `mine`, in plain words."""
+    """One line per primary measure: the baselines that score higher than `mine` in plain words, else the best
+    baseline and the margin over it."""
     out = []
     for key, label in PRIMARY_COLUMNS:
-        better = [f"{b} ({cell(m[key])})" for b, m in baselines.items()
-                  if m[key] is not None and (mine[key] is None or m[key] > mine[key])]
-        out.append(f"- {name}, {label} {cell(mine[key])}: " + ("beaten by " + ", ".join(better) if better
-                                                                  else "no baseline beats it"))
+        scored = {b: m[key] for b, m in baselines.items() if m[key] is not None}
+        better = [f"{b} ({v})" for b, v in scored.items() if mine[key] is None or v > mine[key]]
+        if better:
+            out.append(f"- {name}, {label} {cell(mine[key])}: **beaten by** " + ", ".join(better))
+        else:
+            best = max(scored, key=scored.get)
+            out.append(f"- {name}, {label} {cell(mine[key])}: no baseline beats it (best: {best} {scored[best]}, "
+                       f"margin {mine[key] - scored[best]:.2f})")
     return out
 
 
