@@ -115,6 +115,13 @@ def test_prior_refusals(town, tmp_path):
     r = run_ago(["metric", "--pred", root / "gt", "--lidar", root / "synth", "--allow-missing", "--prior",
                  root / "synth"], tmp_path)
     assert_one_error_line(r, "meta.json")
+    # a prior made from a scored keyframe is no prior: said
+    (tmp_path / "seen").mkdir()
+    first = next((root / "pseudo").glob("*/*/labels.npz"))
+    np.savez(tmp_path / "seen" / f"{first.parent.name}.npz", semantics=np.load(first)["semantics"])
+    r = run_ago(["metric", "--pred", "seen", "--lidar", root / "synth", "--allow-missing", "--prior", root / "pseudo"],
+                tmp_path)
+    assert r.code == 0 and "note: the training-frame prior saw 1 of the scored keyframes" in r.stdout + r.stderr
 
 
 # ------------------------------------------------------------------------------------ by hand
