@@ -150,9 +150,6 @@ def main(argv=None) -> None:
     work = args.work
     work.mkdir(parents=True, exist_ok=True)
 
-    t0 = time.perf_counter()
-    prepare(work, args.frames, grid, render)
-    t_data = time.perf_counter() - t0
     run = work / "run"
     sets = [f"data={work / 'synth'}", f"pseudo={work / 'pseudo'}", f"out={run}",
             f"model.image_width={width}", f"model.image_height={height}", f"train_voxels={args.train_voxels}",
@@ -160,6 +157,12 @@ def main(argv=None) -> None:
             f"ckpt_every={max(args.steps // 4, 10)}", "num_workers=0", f"device={args.device}",
             f"feature_cache={work / 'cache'}", f"snapshot_steps={json.dumps(snapshots)}", *args.set]
     last = run / "snapshots" / f"step_{args.steps:06d}.pt"
+    from benchmarks.run_settings import asked_config, check_reuse, trained_settings
+
+    check_reuse(run, asked_config(args.config, sets))    # a run (its step_N.pt) trained otherwise is not reused
+    t0 = time.perf_counter()
+    prepare(work, args.frames, grid, render)
+    t_data = time.perf_counter() - t0
     t1 = time.perf_counter()
     if not last.is_file():
         resume = ["--resume"] if (run / "last.pt").is_file() else []
@@ -182,12 +185,15 @@ def main(argv=None) -> None:
 
     cmd = "python benchmarks/fit_check.py " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
     min_spread = min(r.get("feat_spread", np.inf) for r in log)
+    trained = trained_settings(run, args.config)
     lines = [f"# Fit check: the `{args.config}` preset on {args.frames} frames it trains on", "",
              f"Command: `{cmd}`", "",
              f"`ago train --config {args.config}` with {', '.join(f'`{s}`' for s in sets[3:])}; input "
              f"{width}x{height} (rendered {render}), model grid {grid}, device {args.device}. Pseudo-labels: "
              f"simulated segmenter and embedder (cw). Scored on the training frames against the Occ3D GT "
              f"(camera mask); spread and free share over the whole grid (ago_train/fit_diagnostics.py).", "",
+             f"Trained with (the run's config.json where it differs from the `{args.config}` preset; a run trained "
+             f"otherwise is refused, not reused): {', '.join(f'`{t}`' for t in trained)}.", "",
              "| step | loss | feature spread | free share | geometry IoU | mIoU |", "|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
         lines.append(f"| {r['step']} | {r['loss']:.3f} | {r['feat_spread']:.3f} | {r['free_share']:.3f} | "

@@ -17,8 +17,11 @@ Stages, each an `ago` subprocess as a user would run it (wall time and peak RSS 
 3. `ago export --parity-frame DATA --readout-grid 200x200x16`;
 4. `ago infer` of the new bundle on the "val" keyframes (the other 11), and of the shipped synthetic
    bundle on the same frames;
-5. `ago metric --lidar DATA` of both (docs/metric_and_pictures.md: depth error along the LiDAR rays,
-   LiDAR hits in occupied voxels, occupied voxels the LiDAR saw through).
+5. `ago metric --lidar DATA --prior WORK/pseudo` of both (docs/metric_and_pictures.md): the primary measures
+   (object ray IoU, non-ground ray IoU at 1/2/4 m, judged-voxel F1) beside every no-image baseline and the
+   training-frame prior (benchmarks/real_chain_lidar_metric.py renders them), and the first measures (depth
+   error along the LiDAR rays, LiDAR hits in occupied voxels, occupied voxels the LiDAR saw through), which
+   the recipe selection (real_chain_select.py) was declared on and which a constant can win.
 Writes a markdown file with the command, per-stage time and memory, both bundles' measures, whether the
 real-trained model beats the synthetic one on all three, and the per-keyframe costs scaled to nuScenes'
 28,130 training keyframes. Every stage reuses what an interrupted run left (pseudo-labels and training
@@ -121,6 +124,11 @@ def main(argv=None) -> dict:
     done = [ln for ln in (work / "pseudo_labels.log").read_text().splitlines() if ln.startswith("pseudo-labels:")]
     if done and " 0 already there" not in done[-1]:
         stages[-1]["note"] = f"resumed: {done[-1].split(' -> ')[0]} (the wall time is this run's part only)"
+    from benchmarks.real_chain_lidar_metric import lidar_tables
+    from benchmarks.run_settings import asked_config, check_reuse, trained_settings
+
+    train_sets = [f"data={data}", f"pseudo={work / 'pseudo'}", f"out={work / 'train'}", f"max_steps={args.steps}"]
+    check_reuse(work / "train", asked_config("cpu", train_sets))   # a run trained otherwise is refused, not resumed
     resume = ["--resume"] if (work / "train" / "last.pt").is_file() else []
     start_step = last_logged_step(work / "train" / "log.jsonl") if resume else 0
     stages.append(run_stage("train", ["train", "--config", "cpu", "--data", data, "--pseudo", work / "pseudo",
@@ -132,16 +140,19 @@ def main(argv=None) -> dict:
                                        "--parity-frame", data, "--readout-grid", "200x200x16", "--train-bank-only"],
                             work, log))
     sample_args = [a for t in val_tokens for a in ("--sample", t)]
-    results, per_frame = {}, {}
+    results, per_frame, lidar = {}, {}, {}
     for name, bundle in (("real", ["--bundle", work / "bundle"]), ("synthetic", [])):
         pred = work / f"pred_{name}"
         stages.append(run_stage(f"infer_{name}", ["infer", "--images", data, *bundle, *sample_args, "--out", pred,
                                                   "--picture", "none"], work, log))
         stages.append(run_stage(f"metric_{name}", ["metric", "--pred", pred, "--lidar", data, "--allow-missing",
-                                                   "--json", work / f"metric_{name}.json"], work, log))
+                                                   "--prior", work / "pseudo", "--json", work / f"metric_{name}.json"],
+                                work, log))
         scored = json.loads((work / f"metric_{name}.json").read_text())["lidar"]
         results[name], per_frame[name] = scored["overall"], scored.get("per_frame")
+        lidar[name] = scored
     card = (work / "infer_real.log").read_text().splitlines()[0]
+    trained = trained_settings(work / "train", "cpu")
 
     def better(key, how):
         a, b = results["real"][key], results["synthetic"][key]
@@ -166,10 +177,14 @@ def main(argv=None) -> dict:
         f"VLM, no image embeddings), `ago train --config cpu` for {args.steps} steps, export, `ago infer` on the "
         f"{len(val)} val keyframes, `ago metric --lidar` (docs/metric_and_pictures.md).", "",
         f"Bundle card of the real-trained model: `{card}`", "",
+        "Trained with (the run's config.json where it differs from the `cpu` preset; a run trained otherwise is "
+        f"refused, not resumed): {', '.join(f'`{t}`' for t in trained)}.", "",
         "| stage | wall (s) | peak RSS (MB) | command |", "|---|---:|---:|---|",
         *[f"| {s['stage']} | {s['seconds']} | {s['peak_rss_mb']} | `{s['command']}` |" for s in stages], "",
         *[f"- {s['stage']}: {s['note']}" for s in stages if s.get("note")], "",
-        f"## LiDAR measures on the {len(val)} val keyframes", "",
+        f"## LiDAR measures on the {len(val)} val keyframes, beside the no-image baselines", "",
+        *lidar_tables(lidar, {"real": "real-trained (boxes)", "synthetic": "shipped synthetic bundle"}), "",
+        "## The first LiDAR measures (diagnostics: a constant can win them; real_chain_select.py's rule used them)", "",
         "| measure | real-trained (boxes) | shipped synthetic bundle | better |", "|---|---:|---:|---|",
         *[f"| {label} | {results['real'][key]} | {results['synthetic'][key]} | "
           f"{'real' if wins[key] else 'synthetic / tie'} ({how}) |" for key, label, how in MEASURES], "",
@@ -190,7 +205,8 @@ def main(argv=None) -> dict:
     log(f"wrote {args.out}")
     summary = {"command": command, "data": str(data), "train_frames": len(train), "val_frames": len(val),
                "keyframes": args.keyframes, "steps": args.steps, "stages": stages, "results": results,
-               "per_frame": per_frame, "wins": wins, "target_met": all(wins[k] for k in TARGETS), "card": card}
+               "per_frame": per_frame, "wins": wins, "target_met": all(wins[k] for k in TARGETS), "card": card,
+               "trained_with": trained}
     if args.json:
         write_text(Path(args.json), json.dumps(summary, indent=1))
     return summary

@@ -6,7 +6,10 @@ free space outnumbers occupied voxels about 5 to 1, trained 12 steps through the
 With the `full` preset's optimiser settings (backbone and FPN at 0.1x the learning rate, the free score's
 bias started at the data's prior) the features keep their spread; with the old ones (everything at 1e-3,
 no free bias) the spread falls to ~0.015 by step 12 and every voxel is free (docs/training.md, "Does it
-learn?"), and this test fails.
+learn?"), and this test fails. A second test fails for a model that calls every voxel free whatever its
+features (`check_not_all_free`: the free share of the last logged batch must stay under 0.99); this run does
+call every voxel free (free share 1.0 at steps 4-12, and through step 20 when trained 20 steps), so that test
+is marked xfail (strict) until the structure predicts occupied voxels here (issue 46).
 """
 
 from __future__ import annotations
@@ -33,10 +36,13 @@ def _ago(*args: str) -> None:
     assert r.returncode == 0, r.stderr
 
 
-def test_full_structure_keeps_its_feature_spread(tmp_path):
+@pytest.fixture(scope="module")
+def fit_log(tmp_path_factory) -> list[dict]:
+    """The log.jsonl rows of the small `full`-structure run (see the module doc), trained once for both tests."""
     from ago_train.train_config import TrainConfig
     from ago_train.trainer import Trainer
 
+    tmp_path = tmp_path_factory.mktemp("fit")
     data, pseudo = tmp_path / "synth", tmp_path / "pseudo"
     _ago("synth", "--out", str(data), "--scenes", "1", "--frames", "3", "--image-size", "192x128",
          "--grid", "100x100x8", "--seed", "3", "--val-fraction", "0")
@@ -51,7 +57,39 @@ def test_full_structure_keeps_its_feature_spread(tmp_path):
         f"lr={full.lr}", f"backbone_lr_mult={full.backbone_lr_mult}", f"fpn_lr_mult={full.fpn_lr_mult}",
         f"model.free_bias={json.dumps(full.model.free_bias)}"])
     Trainer(cfg, quiet=True).run()
-    rows = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    return [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+
+
+def test_full_structure_keeps_its_feature_spread(fit_log):
+    check_spread(fit_log)
+
+
+@pytest.mark.xfail(strict=True, reason="issue 46: this run calls every voxel free (free share 1.0 at steps 4, 8 "
+                   "and 12, and still 1.0 through step 20 when trained 20 steps, 2026-12-06); strict: it turns red "
+                   "once the model predicts occupied voxels here, so this mark is then removed")
+def test_full_structure_is_not_all_free(fit_log):
+    check_not_all_free(fit_log)
+
+
+def check_spread(rows: list[dict]) -> None:
+    """AssertionError when the logged batches' voxel features collapse (spread <= 0.05)."""
     spreads = [r["feat_spread"] for r in rows if "feat_spread" in r]
     assert len(spreads) >= 2
     assert min(spreads) > 0.05, f"voxel features collapse: spread per 4 steps {spreads}"
+
+
+def check_not_all_free(rows: list[dict]) -> None:
+    """AssertionError when the last logged batch calls (almost) every voxel free (free share >= 0.99)."""
+    free = [r["free_share"] for r in rows if "free_share" in r]
+    assert len(free) >= 2
+    assert free[-1] < 0.99, f"the model calls (almost) every voxel free: free share per 4 steps {free}"
+
+
+def test_the_checks_fail_for_an_all_free_or_collapsed_model():
+    with pytest.raises(AssertionError, match="every voxel free"):
+        check_not_all_free([{"step": s, "feat_spread": 0.3, "free_share": 1.0} for s in (4, 8, 12)])
+    with pytest.raises(AssertionError, match="collapse"):
+        check_spread([{"step": s, "feat_spread": 0.01, "free_share": 0.8} for s in (4, 8, 12)])
+    good = [{"step": s, "feat_spread": 0.3, "free_share": 0.85} for s in (4, 8, 12)]
+    check_spread(good)
+    check_not_all_free(good)

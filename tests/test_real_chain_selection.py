@@ -102,3 +102,22 @@ def test_report_says_incomplete_and_picks_nothing_until_every_candidate_ran():
     text = report(args, "cmd", [1, 3], {1: run(1.5)}, None, None)
     assert "Status: incomplete" in text and "not finished: keyframes 3" in text
     assert "Picked by the rule" not in text and "## Test" not in text and "| resumed |" in text
+
+
+def test_benchmarks_refuse_a_run_trained_otherwise(tmp_path, capsys):
+    """benchmarks/run_settings.check_reuse (fit_check.py, real_chain.py): a run folder whose config.json differs
+    from the asked settings is one error line and exit 2, not reused; the same settings pass."""
+    pytest.importorskip("torch")
+    from benchmarks.run_settings import asked_config, check_reuse, trained_settings
+
+    run = tmp_path / "run"
+    run.mkdir()
+    check_reuse(run, asked_config("tiny", ["max_steps=20"]))             # nothing there yet: nothing to refuse
+    asked_config("tiny", ["max_steps=20", f"out={run}"]).save(run / "config.json")
+    check_reuse(run, asked_config("tiny", ["max_steps=20", f"out={run}"]))
+    with pytest.raises(SystemExit) as e:
+        check_reuse(run, asked_config("tiny", ["max_steps=40", f"out={run}"]))
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"error: {run / 'config.json'}: ") and "max_steps was 20, asked 40" in err[0]
+    assert "max_steps=20" in trained_settings(run, "tiny") and f"out={json.dumps(str(run))}" in trained_settings(run, "tiny")

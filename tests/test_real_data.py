@@ -62,13 +62,18 @@ def test_passed_voxels_stop_before_the_return():
     assert entry[0] == pytest.approx(0.6)
 
 
-def wall_rays_expected(x_face, origin, dirs, lo, hi):
-    """Analytic: distance to the plane x = x_face along each ray, and whether it meets it inside the box."""
+def wall_rays_expected(x_face, origin, dirs, lo, hi, vs):
+    """Analytic: where each ray meets the plane x = x_face, whether that is inside the box, and where it then leaves
+    the voxel it entered there (RayIoU's depth: the exit of the first occupied voxel)."""
     with np.errstate(divide="ignore", invalid="ignore"):
         t = np.where(dirs[:, 0] > 0, (x_face - origin[0]) / dirs[:, 0], np.inf)
     p = origin + np.where(np.isfinite(t), t, 0)[:, None] * dirs
     inside = np.isfinite(t) & np.all((p[:, 1:] >= lo[1:]) & (p[:, 1:] <= hi[1:]), axis=1)
-    return t, inside
+    idx = np.floor((p + 1e-9 * dirs - lo) / vs)
+    face = lo + (idx + (dirs > 0)) * vs
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_exit = np.where(dirs != 0, (face - origin) / dirs, np.inf).min(axis=1)
+    return t_exit, inside
 
 
 def test_ray_iou_against_an_analytic_wall():
@@ -85,8 +90,8 @@ def test_ray_iou_against_an_analytic_wall():
     m.update(pred, gt, lo, vs)
 
     dirs = lidar_like_rays()
-    t_gt, hit_gt = wall_rays_expected(10.0, origin, dirs, lo, hi)
-    t_pr, hit_pr = wall_rays_expected(10.8, origin, dirs, lo, hi)
+    t_gt, hit_gt = wall_rays_expected(10.0, origin, dirs, lo, hi, vs)
+    t_pr, hit_pr = wall_rays_expected(10.8, origin, dirs, lo, hi, vs)
     n = hit_gt.sum()
     assert m.rays == n and m.gt[4] == n and m.pred[4] == (hit_gt & hit_pr).sum()
     for i, thr in enumerate((1.0, 2.0, 4.0)):
@@ -178,7 +183,9 @@ def test_metric_lidar_on_the_real_scene(tmp_path):
     assert full["rays"] > 10000
     empty = s["per_frame"][ds.sample_tokens[1]]
     assert empty["lidar_hits_in_occupied_pct"] == 0.0 and empty["rays_no_occupied_pct"] == 100.0
-    assert "**overall**" in (tmp_path / "m.md").read_text()
+    md = (tmp_path / "m.md").read_text()
+    assert "| prediction |" in md and "| bowl |" in md and "Baselines that beat the prediction" in md
+    assert set(s["predictors"]) == {"prediction", "all_free", "all_occupied", "slab_0.2", "slab_0.6", "bowl"}
 
 
 def test_metric_refusals(tmp_path):

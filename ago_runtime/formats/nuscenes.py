@@ -335,6 +335,13 @@ class NuScenesDataset:
             return 0
         return max(len(self.nonkey_sweep_records(i)) for i in range(len(self)))
 
+    def lidar_pose(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """(lidar2ego, ego2global) of keyframe i's LIDAR_TOP sweep, from the tables (no file is read)."""
+        record = self._key_data[self.sample_tokens[i]][LIDAR_CHANNEL]
+        calib = self._ref("calibrated_sensor", self._calibrated, record["calibrated_sensor_token"], "sample_data")
+        pose = self._ref("ego_pose", self._ego_pose, record["ego_pose_token"], "sample_data")
+        return record_to_matrix(calib), record_to_matrix(pose)
+
     def gt_file(self, i: int) -> Path | None:
         """Where keyframe i's Occ3D labels.npz is (whether or not it exists); None without a GT folder."""
         if self.gts_root is None:

@@ -218,6 +218,11 @@ class Occ3DWaymoDataset:
         info = self._info[self.sample_tokens[i]]
         return self._path(velodyne_name(info["split"], self.sample_tokens[i]))
 
+    def lidar_pose(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """(lidar2ego, ego2global) of sample i: the points are in the ego frame, so lidar2ego is the identity."""
+        token = self.sample_tokens[i]
+        return np.eye(4), _matrix(self._info[token]["ego2global"], (4, 4), self.infos_path, f"sample {token}: 'ego2global'")
+
     def gt_file(self, i: int) -> Path:
         info = self._info[self.sample_tokens[i]]
         return gt_path(self.gts_root, info["split"], info["scene"], info["frame"])

@@ -10,12 +10,14 @@
     GT voxels of Occ3D classes no prompt covers are ignored, predictions are matched by class name,
     mIoU is over the file's classes, and its @known line gives "known" / "unknown" subsets.
 Both mIoUs are reported (camera mask / every voxel; `--no-mask` picks the per-class table), and RayIoU
-(`ago_runtime.scoring.ray_iou`).
+(`ago_runtime.scoring.ray_iou`): with `--data DATAROOT` from each frame's scene origins (the LiDAR poses of its
+scene's keyframes, as SparseOcc casts), else from one fixed origin (`--ray-origin`) and a note says so.
 `--gt` may also be an Occ3D-Waymo folder (`<split>/<scene>/<frame>_04.npz`, e.g. an `ago synth --rig waymo` root):
     tokens are the sample names, mask_camera is `final_voxel_state & infov`, and `--prompts` must be a prompt
     file of `@table: occ3d_waymo` (free, id 23, is scored as the last label).
 `--lidar DATAROOT` scores predictions of a dataset's keyframes (nuScenes or Occ3D-Waymo layout) against their own LiDAR
-(`ago_runtime.scoring.lidar_agreement`): no Occ3D labels needed.
+and boxes (`ago_runtime.scoring.lidar_agreement`), beside no-image baselines; `--prior PSEUDO_DIR` adds the
+training-frame prior. No Occ3D labels needed.
 """
 
 from __future__ import annotations
@@ -129,8 +131,38 @@ def parse_origin(text: str) -> tuple[float, float, float]:
     return xyz
 
 
-def score_against_gt(pred: Path, gt: Path, space, m_mask, m_all, rays, allow_missing: bool) -> list[str]:
-    """Accumulate the Occ3D metric with and without the camera mask, and RayIoU; returns skipped tokens."""
+def scene_origins_of(data: Path, tokens: list[str]) -> dict[str, np.ndarray]:
+    """`--data DATAROOT`: sample token -> RayIoU's ray origins in its ego frame (`ray_iou.scene_origins`: the
+    LiDAR positions of its scene's keyframes), from the dataroot's poses (no LiDAR file is read)."""
+    from ago_runtime.formats.datasets import dataset_layout, open_dataset
+    from ago_runtime.scoring.ray_iou import scene_origins
+
+    if dataset_layout(data) is None:
+        raise AgoInputError(data, "--data takes a nuScenes dataroot (v1.0-*/) or an Occ3D-Waymo layout root: "
+                            "RayIoU's ray origins come from its LiDAR poses")
+    ds = open_dataset(data, load_images=False, load_extras=False)
+    index = {t: i for i, t in enumerate(ds.sample_tokens)}
+    missing = [t for t in tokens if t not in index]
+    if missing:
+        raise AgoInputError(data, f"{len(missing)} ground-truth sample token(s) are not keyframes of this dataroot "
+                            f"(first: {missing[0]}), so their scenes' poses are unknown")
+    members: dict[str, list[int]] = {}
+    for i in range(len(ds)):
+        members.setdefault(ds.scene_of(i), []).append(i)   # dataset order: time order within a scene
+    poses: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    def pose(i: int):
+        if i not in poses:
+            poses[i] = ds.lidar_pose(i)
+        return poses[i]
+
+    return {t: scene_origins(pose(index[t])[1], [pose(j) for j in members[ds.scene_of(index[t])]]) for t in tokens}
+
+
+def score_against_gt(pred: Path, gt: Path, space, m_mask, m_all, rays, allow_missing: bool,
+                     data: Path | None = None) -> list[str]:
+    """Accumulate the Occ3D metric with and without the camera mask, and RayIoU (from the scene origins of
+    `data` when given, else from the fixed origin); returns skipped tokens."""
     from ago_runtime.classes import OCC3D_NUSCENES, shipped_name
     from ago_runtime.formats.datasets import gt_folder_class_table
     from ago_runtime.geometry.grid import Grid
@@ -143,16 +175,17 @@ def score_against_gt(pred: Path, gt: Path, space, m_mask, m_all, rays, allow_mis
         if p is None:
             missing.append(token)
         else:
-            pairs.append((gt_file, p))
+            pairs.append((token, gt_file, p))
     if missing and not allow_missing:
         raise AgoInputError(pred, f"no prediction for {len(missing)} of {len(gts)} GT frames "
                                   f"(first: {missing[0]}); use --allow-missing to skip them")
     if not pairs:
         raise AgoInputError(pred, "no prediction matches any GT frame")
+    origins = None if data is None else scene_origins_of(data, [token for token, _, _ in pairs])
     gt_lut = None if space is None else space.gt_lut(free_index=space.num_classes)
     folder_table = gt_folder_class_table(gt)   # a class_table.json beside the GT, else the files' layout says
     scored_in = space.class_table if space is not None else OCC3D_NUSCENES   # without --prompts: Occ3D-nuScenes ids
-    for gt_file, p in track(pairs, description="scoring (frames)", total=len(pairs)):
+    for token, gt_file, p in track(pairs, description="scoring (frames)", total=len(pairs)):
         labels, table = load_ground_truth(gt_file)
         table = folder_table or table
         if table != scored_in:
@@ -170,20 +203,64 @@ def score_against_gt(pred: Path, gt: Path, space, m_mask, m_all, rays, allow_mis
         m_mask.update(sem, gt_sem, labels.mask_camera.astype(bool))
         m_all.update(sem, gt_sem, None)
         grid = Grid.with_shape(labels.shape)
-        rays.update(sem, gt_sem, grid.range_min, grid.voxel_size)
+        rays.update(sem, gt_sem, grid.range_min, grid.voxel_size, None if origins is None else origins[token])
     return missing
 
 
-def score_against_lidar(pred: Path, dataroot: Path, agreement, allow_missing: bool) -> list[str]:
-    """Accumulate the LiDAR measures (`scoring.lidar_agreement`) of every keyframe of the dataset that has a
-    prediction; returns the tokens skipped for lack of one."""
+def prediction_class_names(path: Path) -> list[str]:
+    """The class names a prediction file's `semantics` index: its `class_names` (ago infer writes them), else the
+    Occ3D-nuScenes ids."""
+    from ago_runtime.classes import OCC3D_CLASSES
+
+    with np.load(path, allow_pickle=False) as z:
+        return [str(c) for c in z["class_names"]] if "class_names" in z.files else list(OCC3D_CLASSES)
+
+
+def load_prior(pseudo: Path, scored: set[str]):
+    """`--prior PSEUDO_DIR`: a `TrainingPrior` over every pseudo-label (`<scene>/<token>/labels.npz`) of an
+    `ago pseudo-labels` folder (its meta.json gives the classes, the free id and the grid), and the notes to print."""
+    from ago_runtime.readers import read_json
+    from ago_runtime.scoring.lidar_agreement import TrainingPrior
+
+    meta = read_json(pseudo / "meta.json", missing="--prior: not a pseudo-label folder (no meta.json)")
+    try:
+        names = [str(c) for c in meta["label_space"]["classes"]]
+        shape = tuple(int(v) for v in meta["grid"]["shape"])
+        free = int(meta.get("free_index", 17))
+    except (KeyError, TypeError, ValueError) as e:
+        raise AgoInputError(pseudo / "meta.json", f"--prior: no label_space.classes / grid.shape ({e})") from None
+    if len(shape) != 3 or min(shape) < 1 or np.prod(shape) > 2 ** 26:
+        raise AgoInputError(pseudo / "meta.json", f"--prior: grid shape {shape} is not a sane (X, Y, Z)")
+    files = sorted(pseudo.glob("*/*/labels.npz"))
+    if not files:
+        raise AgoInputError(pseudo, "--prior: no <scene>/<token>/labels.npz in the pseudo-label folder")
+    prior = TrainingPrior(names, free, shape)
+    for f in files:
+        sem, _ = load_semantics(f)
+        if sem.shape != shape:
+            raise AgoInputError(f, f"--prior: shape {sem.shape} is not the folder's grid {shape}")
+        prior.add(sem)
+    seen = sorted(scored & {f.parent.name for f in files})
+    notes = [f"the training-frame prior saw {len(seen)} of the scored keyframes' pseudo-labels (it is then no "
+             "longer a prior)"] if seen else []
+    return prior, notes
+
+
+def score_against_lidar(pred: Path, dataroot: Path, prior_dir: Path | None, allow_missing: bool):
+    """The LiDAR measures (`scoring.lidar_agreement`) of every keyframe of the dataset that has a prediction,
+    beside the no-image baselines: (LidarReport, the tokens skipped for lack of a prediction)."""
     from ago_runtime.classes import FREE
+    from ago_runtime.errors import AgoNote
     from ago_runtime.formats.datasets import dataset_layout, open_dataset
+    from ago_runtime.formats.nuscenes_boxes import (BOX_CLASSES, DatasetBoxes, box_tables_missing, ground_returns,
+                                                    return_classes)
     from ago_runtime.geometry.grid import Grid
     from ago_runtime.progress import track
-    from ago_runtime.scoring.lidar_agreement import score_frame
+    from ago_runtime.scoring.lidar_agreement import LidarReport, frame_truth, object_volume
+    import warnings
 
-    if dataset_layout(dataroot) is None:
+    layout = dataset_layout(dataroot)
+    if layout is None:
         raise AgoInputError(dataroot, "--lidar takes a nuScenes dataroot (the folder holding v1.0-*/ and samples/) "
                             "or an Occ3D-Waymo layout root (cam_infos.json, kitti_format/<split>/velodyne/)")
     ds = open_dataset(dataroot, load_images=False, load_extras=False)
@@ -199,6 +276,19 @@ def score_against_lidar(pred: Path, dataroot: Path, agreement, allow_missing: bo
     if missing and (not allow_missing or not pairs):
         raise AgoInputError(pred, f"no prediction for {len(missing)} of {len(ds)} keyframes of {dataroot} "
                                   f"(first: {missing[0]}); use --allow-missing to skip them")
+    notes = []
+    boxes = None
+    if layout == "nuscenes" and not box_tables_missing(dataroot):
+        boxes = DatasetBoxes(dataroot, "--lidar")
+    else:
+        notes.append("the dataset has no box tables (sample_annotation, instance, category): no return has an object "
+                     "class, so object ray IoU is n/a and every return below 0.3 m counts as ground")
+    prior, prior_notes = (None, []) if prior_dir is None else load_prior(prior_dir, {ds.sample_tokens[i] for i, _ in pairs})
+    notes += prior_notes
+    for n in notes:
+        warnings.warn(n, AgoNote)
+    report = LidarReport(BOX_CLASSES, prior)
+    report.notes += notes
     for i, p in track(pairs, description="LiDAR measures (frames)", total=len(pairs)):
         frame = ds[i]
         sem, _ = load_semantics(p)
@@ -208,8 +298,14 @@ def score_against_lidar(pred: Path, dataroot: Path, agreement, allow_missing: bo
         origin = (np.linalg.inv(frame.ego2global) @ frame.lidar.ego2global @ frame.lidar.lidar2ego)[:3, 3]
         if not all(lo <= v < hi for v, lo, hi in zip(origin, grid.range_min, grid.range_max)):
             raise AgoInputError(frame.lidar.path, f"the LiDAR sits at {origin.round(2).tolist()} m, outside the grid")
-        agreement.update(ds.sample_tokens[i], score_frame(sem != free, grid.range_min, grid.voxel_size, points, origin))
-    return missing
+        frame_boxes = [] if boxes is None else boxes.in_ego(frame.token, frame.ego2global)
+        truth = frame_truth(ds.sample_tokens[i], points, origin, grid.shape, grid.range_min, grid.voxel_size,
+                            BOX_CLASSES, return_classes(points, frame_boxes), ground_returns(points, frame_boxes))
+        try:
+            report.update(truth, sem != free, object_volume(sem, prediction_class_names(p), BOX_CLASSES))
+        except ValueError as e:
+            raise AgoInputError(p if prior is None else prior_dir, str(e)) from None
+    return report, missing
 
 
 def register(app: typer.Typer) -> None:
@@ -219,8 +315,12 @@ def register(app: typer.Typer) -> None:
                                   help="folder of predictions (<scene>/<token>/labels.npz or <token>.npz)"),
         gt: Optional[Path] = typer.Option(None, "--gt", help="Occ3D ground-truth folder (<scene>/<token>/labels.npz)"),
         lidar: Optional[Path] = typer.Option(
-            None, "--lidar", help="nuScenes dataroot: score against each keyframe's own LiDAR (depth error, hits in "
-            "occupied, occupied seen free; no Occ3D labels needed)"),
+            None, "--lidar", help="nuScenes dataroot: score against each keyframe's own LiDAR and its boxes (object "
+            "ray IoU, non-ground / ground ray IoU at 1, 2, 4 m, judged-voxel F1), beside no-image baselines; no "
+            "Occ3D labels needed"),
+        prior: Optional[Path] = typer.Option(
+            None, "--prior", help="with --lidar: a pseudo-label folder of the training keyframes; adds the "
+            "training-frame prior baseline (each voxel's most frequent pseudo-label over them)"),
         json_out: Optional[Path] = typer.Option(None, "--json", help="write the summary as JSON"),
         md_out: Optional[Path] = typer.Option(None, "--md", help="write the markdown table"),
         subset: Optional[List[str]] = typer.Option(None, "--subset",
@@ -228,9 +328,12 @@ def register(app: typer.Typer) -> None:
         allow_missing: bool = typer.Option(False, "--allow-missing", help="skip GT frames with no prediction"),
         no_mask: bool = typer.Option(False, "--no-mask", help="the main table over every voxel, not only "
                                      "mask_camera (both mIoUs are always reported)"),
-        ray_origin: str = typer.Option("0.943,0,1.84", "--ray-origin",
-                                       help="RayIoU: where the query rays start, x,y,z metres in the ego frame "
-                                       "(default: nuScenes LIDAR_TOP)"),
+        ray_origin: Optional[str] = typer.Option(
+            None, "--ray-origin", help="RayIoU without --data: where the query rays start, x,y,z metres in the ego "
+            "frame (default: nuScenes LIDAR_TOP, 0.943,0,1.84)"),
+        data: Optional[Path] = typer.Option(
+            None, "--data", help="with --gt: the dataroot of the GT's keyframes; RayIoU casts from the LiDAR "
+            "positions of each frame's scene (SparseOcc's origins) instead of one fixed origin"),
         prompts: Optional[Path] = typer.Option(
             None, "--prompts", help="score in this prompt file's label space (as `ago eval` does): GT voxels of "
             "Occ3D classes no prompt covers are ignored, mIoU over its classes, and known / unknown subsets "
@@ -239,14 +342,22 @@ def register(app: typer.Typer) -> None:
         """Occ3D mIoU (with and without the camera mask) and RayIoU against GT (--gt); LiDAR measures (--lidar)."""
         from ago_runtime.atomic import write_json, write_text
         from ago_runtime.scoring.metric import OccupancyMetric
-        from ago_runtime.scoring.lidar_agreement import LidarAgreement
         from ago_runtime.scoring.ray_iou import RayIoU
 
         from ago_runtime.outputs import check_distinct_outputs, check_output_file
 
         if gt is None and lidar is None:
             raise AgoInputError("--gt", "give --gt GT_DIR (Occ3D labels) and/or --lidar DATAROOT (nuScenes LiDAR)")
-        origin = parse_origin(ray_origin)
+        if prior is not None and lidar is None:
+            raise AgoInputError("--prior", "goes with --lidar DATAROOT (the prior is a LiDAR-measure baseline)")
+        if prior is not None and not prior.is_dir():
+            raise AgoInputError(prior, "--prior: pseudo-label folder not found")
+        if data is not None and ray_origin is not None:
+            raise AgoInputError("--ray-origin", "give --ray-origin (one fixed origin) or --data (the scene's LiDAR "
+                                "origins), not both")
+        if data is not None and gt is None:
+            raise AgoInputError("--data", "goes with --gt GT_DIR (RayIoU's ray origins)")
+        origin = parse_origin(ray_origin or "0.943,0,1.84")
         space = None
         if prompts is not None:
             from ago_runtime.vocab.prompts import parse_prompt_file
@@ -265,15 +376,22 @@ def register(app: typer.Typer) -> None:
             subsets = parse_subsets(subset, names)
         m_mask, m_all = OccupancyMetric(names, free_index=free), OccupancyMetric(names, free_index=free)
         rays = RayIoU(names, free, origin=origin)
-        agreement = LidarAgreement()
         for option, target in (("--json", json_out), ("--md", md_out)):
             if target is not None:
                 check_output_file(target, option)   # before scoring, not after the table
         check_distinct_outputs(("--json", json_out), ("--md", md_out))
         if not pred.is_dir():
             raise AgoInputError(pred, "prediction folder not found")
-        missing = score_against_gt(pred, gt, space, m_mask, m_all, rays, allow_missing) if gt is not None else []
-        lidar_missing = score_against_lidar(pred, lidar, agreement, allow_missing) if lidar is not None else []
+        if gt is not None and data is None:
+            import warnings
+
+            from ago_runtime.errors import AgoNote
+
+            warnings.warn(f"RayIoU casts from one fixed origin {list(origin)} m (no --data DATAROOT, so no poses): not "
+                          "comparable with published RayIoU, which casts from the scene's LiDAR origins", AgoNote)
+        missing = (score_against_gt(pred, gt, space, m_mask, m_all, rays, allow_missing, data)
+                   if gt is not None else [])
+        report, lidar_missing = score_against_lidar(pred, lidar, prior, allow_missing) if lidar is not None else (None, [])
         parts, summary = [], {}
         if gt is not None:
             m = m_all if no_mask else m_mask
@@ -290,9 +408,10 @@ def register(app: typer.Typer) -> None:
             summary["ray_iou"] = rays.summary()
             summary["skipped_frames"] = missing
         if lidar is not None:
-            parts.append("LiDAR measures (no Occ3D labels; keyframe LiDAR of " + str(lidar) + ")\n\n"
-                         + agreement.to_markdown())
-            summary["lidar"] = {**agreement.summary(), "dataroot": str(lidar), "skipped_frames": lidar_missing}
+            parts.append("LiDAR measures (no Occ3D labels; keyframe LiDAR and boxes of " + str(lidar) + ")\n\n"
+                         + report.to_markdown())
+            summary["lidar"] = {**report.summary(), "dataroot": str(lidar), "skipped_frames": lidar_missing,
+                                "prior_dir": None if prior is None else str(prior)}
         table = "\n".join(parts)
         typer.echo(table)
         if missing or lidar_missing:
@@ -312,6 +431,9 @@ def both_mious_markdown(m_mask, m_all, rays) -> str:
     rows += [(f"RayIoU@{t:g} m", r[f"RayIoU@{t:g}"]) for t in rays.thresholds]
     lines = ["| measure | % |", "|---|---:|"]
     lines += [f"| {name} | {'n/a' if v is None else f'{v:.2f}'} |" for name, v in rows]
-    lines += ["", f"RayIoU over {r['rays_counted']} rays ({r['rays_per_frame']} per frame from {r['origin_m']} m, "
-                  "those whose GT meets an occupied voxel; docs/metric_and_pictures.md)."]
+    where = (f"from each frame's scene origins (SparseOcc: {r['origins_used']} origins over {r['frames']} frames"
+             + (f", {r['origins_outside_grid']} outside the grid skipped" if r["origins_outside_grid"] else "") + ")"
+             if r["origins"] != "fixed" else f"from one fixed origin {r['origin_m']} m, not comparable with published RayIoU")
+    lines += ["", f"RayIoU over {r['rays_counted']} rays ({r['rays_per_frame']} per origin {where}; those whose GT "
+                  "meets an occupied voxel; docs/metric_and_pictures.md)."]
     return "\n".join(lines) + "\n"

@@ -12,7 +12,8 @@ face. A ray stops when it leaves the grid or passes `max_t`. Distances are Eucli
 (unit directions), from the origin.
 
 - `first_occupied(occupied, ...)`: per ray, the distance at which it enters its first occupied voxel
-  (0 when the origin's voxel is occupied) and that voxel's flat index (C order), or inf / -1 when it
+  (0 when the origin's voxel is occupied; with `at_exit=True` the distance at which it leaves that voxel,
+  as SparseOcc's RayIoU measures depth) and that voxel's flat index (C order), or inf / -1 when it
   leaves the grid (or passes `max_t`) without meeting one.
 - `passed_voxels(...)`: per ray with a length (e.g. a LiDAR return at that distance), the flat indices
   of the voxels it leaves before reaching that length (`t_out < length`): the space the beam crossed;
@@ -78,9 +79,10 @@ class RayWalk:
 
 
 def first_occupied(occupied: np.ndarray, range_min, voxel_size, origin, directions,
-                   max_t=None) -> tuple[np.ndarray, np.ndarray]:
-    """(R,) distance to the first occupied voxel along each ray (inf: none in the grid / before max_t) and
-    (R,) its flat index (-1: none). `occupied`: (X, Y, Z) bool."""
+                   max_t=None, at_exit: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """(R,) distance to the first occupied voxel along each ray (where the ray enters it; with `at_exit`, where
+    it leaves it; inf: none in the grid / before max_t) and (R,) its flat index (-1: none). `occupied`:
+    (X, Y, Z) bool."""
     occ = np.asarray(occupied, bool)
     flat_occ = occ.ravel()
     n = len(np.asarray(directions).reshape(-1, 3))
@@ -90,7 +92,7 @@ def first_occupied(occupied: np.ndarray, range_min, voxel_size, origin, directio
     while walk:
         f = walk.flat()
         hit = flat_occ[f]
-        depth[walk.ray[hit]] = walk.t_in[hit]
+        depth[walk.ray[hit]] = (walk.t_out if at_exit else walk.t_in)[hit]
         voxel[walk.ray[hit]] = f[hit]
         walk.advance(~hit)
     return depth, voxel

@@ -7,7 +7,8 @@ without one. It is NOT a VLM and is named "boxes" everywhere (pseudo-label meta.
 For a keyframe and a camera it gives, like every `Segmenter`, an (H, W) uint8 map of label-space class
 indices (255 = no label) at the camera's native size:
 1. ground: the keyframe LiDAR returns with ego-frame z < `GROUND_Z` (0.3 m; the ego frame's origin is
-   on the ground under the rear axle) that lie in no box are projected into the image and each paints a
+   on the ground under the rear axle) that lie in no box (`formats.nuscenes_boxes.ground_returns`, the rule
+   `ago metric --lidar` scores ground rays by) are projected into the image and each paints a
    disc of `GROUND_RADIUS_PX` pixels at 1600 px width (scaled with the image) as `driveable_surface`;
 2. boxes: every sample_annotation of the keyframe (global centre, size w l h, rotation) is moved into the
    keyframe's ego frame, its surface sampled every 0.1 m, the points in front of the camera projected,
@@ -15,10 +16,10 @@ indices (255 = no label) at the camera's native size:
    their centre from the camera), so nearer boxes cover farther ones.
 Pixels neither step paints stay 255 (no label): buildings, vegetation, sky are not labelled.
 
-Box classes: nuScenes categories -> Occ3D classes as nuScenes-lidarseg's 16-class challenge maps them;
-categories it maps to "ignore" (police car, bicycle rack, debris, pushable/pullable, animals, strollers,
-wheelchairs, personal mobility) are painted `others`. A class the prompt file does not cover is not painted.
-Needs the sample_annotation, instance and category tables (a trimmed extract usually has them).
+Box classes: `ago_runtime.formats.nuscenes_boxes.CATEGORY_CLASS` (nuScenes categories -> Occ3D classes as
+nuScenes-lidarseg's 16-class challenge maps them; the categories it ignores are painted `others`); the boxes
+are read by its `DatasetBoxes`. A class the prompt file does not cover is not painted. Needs the
+sample_annotation, instance and category tables (a trimmed extract usually has them).
 
 With `masks_out` (`ago pseudo-labels --segmenter boxes --write-masks DIR`) every label map it paints is
 also written in the label-map layout of docs/vlm_files.md, so the file backend reads it back as it is
@@ -39,26 +40,13 @@ from ago_runtime.errors import AgoInputError
 from ago_runtime.readers import read_json
 from ago_runtime.classes import OCC3D_ID
 from ago_runtime.formats.frame import Frame
-from ago_runtime.formats.nuscenes import find_version, load_table
-from ago_runtime.formats.nuscenes_schema import quaternion_to_matrix
+from ago_runtime.formats.nuscenes_boxes import GROUND_Z, DatasetBoxes, ground_returns
 from ago_runtime.vocab.prompts import LabelSpace
 
 from .backends import FILE_NO_LABEL, NO_LABEL, image_stem   # files: 0 = no label; class k is written as k + 1
 
-GROUND_Z = 0.3           # metres above the ego frame's ground plane
 GROUND_RADIUS_PX = 6     # disc radius per ground return at 1600 px image width
 SURFACE_STEP = 0.1       # metres between sampled points on a box's faces
-BOX_TABLES = ("sample_annotation", "instance", "category")
-
-# nuScenes category -> Occ3D class (nuScenes-lidarseg's 16 challenge classes; its "ignore" -> others)
-CATEGORY_CLASS = {
-    "human.pedestrian.adult": "pedestrian", "human.pedestrian.child": "pedestrian",
-    "human.pedestrian.construction_worker": "pedestrian", "human.pedestrian.police_officer": "pedestrian",
-    "vehicle.car": "car", "vehicle.motorcycle": "motorcycle", "vehicle.bicycle": "bicycle",
-    "vehicle.bus.bendy": "bus", "vehicle.bus.rigid": "bus", "vehicle.truck": "truck",
-    "vehicle.construction": "construction_vehicle", "vehicle.trailer": "trailer",
-    "movable_object.barrier": "barrier", "movable_object.trafficcone": "traffic_cone",
-}
 GROUND_CLASS = "driveable_surface"
 
 
@@ -104,23 +92,9 @@ class BoxSegmenter:
 
     def __init__(self, data_root: str | Path, label_space: LabelSpace, masks_out: str | Path | None = None):
         root = Path(data_root)
-        table_dir = root / find_version(root)
-        missing = [t for t in BOX_TABLES if not (table_dir / f"{t}.json").is_file()]
-        if missing:
-            raise AgoInputError(table_dir / f"{missing[0]}.json", f"--segmenter boxes needs the box tables "
-                                f"{', '.join(t + '.json' for t in missing)} (missing); use --segmenter files --masks DIR")
-        categories = {r["token"]: r["name"] for r in load_table(table_dir, "category")}
-        instance_class = {r["token"]: CATEGORY_CLASS.get(categories.get(r.get("category_token"), ""), "others")
-                          for r in load_table(table_dir, "instance")}
+        self.dataset_boxes = DatasetBoxes(root, "--segmenter boxes", "; use --segmenter files --masks DIR")
         lut = label_space.gt_lut()
         self.class_index = {c: int(lut[OCC3D_ID[c]]) for c in OCC3D_ID if c != "free"}
-        self.boxes: dict[str, list[tuple[np.ndarray, np.ndarray, str]]] = {}   # sample -> (box2global, wlh, class)
-        for r in load_table(table_dir, "sample_annotation"):
-            m = np.eye(4)
-            m[:3, :3] = quaternion_to_matrix(r["rotation"])
-            m[:3, 3] = r["translation"]
-            cls = instance_class.get(r.get("instance_token"), "others")
-            self.boxes.setdefault(r["sample_token"], []).append((m, np.asarray(r["size"], float), cls))
         self.root = root
         # where painted maps are also written (the file layout), or None; not part of config_dict: it
         # does not change the labels, so a resumed run may add or drop it
@@ -145,8 +119,7 @@ class BoxSegmenter:
 
     def frame_boxes(self, frame: Frame) -> list[tuple[np.ndarray, np.ndarray, str]]:
         """(box2ego 4x4, size wlh, Occ3D class) of the keyframe's annotations, in its ego frame."""
-        global2ego = np.linalg.inv(frame.ego2global)
-        return [(global2ego @ m, wlh, cls) for m, wlh, cls in self.boxes.get(frame.token, [])]
+        return self.dataset_boxes.in_ego(frame.token, frame.ego2global)
 
     def segment(self, frame: Frame, camera: str) -> np.ndarray:
         labels = self.paint(frame, camera)
@@ -162,10 +135,7 @@ class BoxSegmenter:
         ground = self.class_index[GROUND_CLASS]
         if ground != NO_LABEL and frame.sweeps:
             pts = frame.lidar.points_in(frame.ego2global)
-            low = pts[pts[:, 2] < GROUND_Z]
-            for m, wlh, _ in boxes:      # returns inside a box are the object's, not ground
-                local = (low - m[:3, 3]) @ m[:3, :3]
-                low = low[~np.all(np.abs(local) <= np.array([wlh[1], wlh[0], wlh[2]]) / 2 + 0.05, axis=1)]
+            low = pts[ground_returns(pts, boxes)]     # low returns in no box (a box's returns are the object's)
             uv, _, ok = cam.project(low)
             radius = max(1, int(round(GROUND_RADIUS_PX * cam.width / 1600)))
             mask = np.zeros(out.shape, np.uint8)
