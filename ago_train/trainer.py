@@ -511,10 +511,12 @@ class Trainer:
 
 
 class _Progress:
-    """A rich progress bar showing the loss (rank 0); silent when AGO_NO_PROGRESS=1."""
+    """A rich progress bar showing the loss (rank 0); only on a terminal (ago_runtime.progress.progress_enabled)."""
 
     def __init__(self, total: int, start: int, enabled: bool):
-        self.enabled = enabled and os.environ.get("AGO_NO_PROGRESS") != "1"
+        from ago_runtime.progress import progress_enabled
+
+        self.enabled = enabled and progress_enabled()
         self.bar = None
         if self.enabled:
             from rich.console import Console

@@ -42,7 +42,7 @@ def choose_bank(bundle, prompts: Optional[str], bank: Optional[str]):
     from ago_runtime.vocab.prompts import parse_prompt_file
 
     if prompts and bank:
-        raise AgoInputError(None, "give --prompts or --bank, not both")
+        raise AgoInputError("--bank", "give --prompts or --bank, not both")
     if bank:
         if Path(bank).is_file():
             return check_bank_for_bundle(PromptBank.load(bank), bank, bundle)
@@ -103,9 +103,10 @@ def open_frames(images: Path, sample, info: Optional[Path], fallback_rig, skip=N
                 f = ds[i]
                 yield f.token, f.images, f.rig, str(images)
         return len(indices), dataset_frames()
-    if wanted or shard is not None:
-        raise AgoInputError("--sample" if wanted else "--shard", f"{images} is an images folder (one frame), "
-                                                                "not a dataset")
+    if wanted or shard is not None or allow_outside_root:
+        option = "--sample" if wanted else "--shard" if shard is not None else "--allow-outside-root"
+        raise AgoInputError(option, f"{images} is an images folder (one frame), not a dataset: the option does not "
+                                    "apply to it")
     find_camera_images(images, fallback_rig.names if fallback_rig is not None else CAMERA_NAMES)   # inside a dataroot: named
 
     def folder_frame():
@@ -142,17 +143,14 @@ def frame_is_whole(out: Path, name: str, key: str, grid_shape, picture: str) -> 
     every array of the npz reads (zip CRCs checked), `run_key` is `key`, `semantics` has the grid's shape;
     the PNG has its signature and end chunk and decodes. Checked, not trusted by name. `ago infer` writes the
     PNG before the npz, so a whole npz of this key means its PNG was written too."""
-    import zipfile
-
     import cv2
 
-    from ago_runtime.readers import check_npz
+    from ago_runtime.readers import open_npz
 
     try:
-        with np.load(out / f"{name}.npz", allow_pickle=False) as z:
-            check_npz(out / f"{name}.npz", z)
+        with open_npz(out / f"{name}.npz") as z:
             arrays = {k: z[k] for k in z.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, AgoInputError):
+    except AgoInputError:
         return False
     if str(arrays.get("run_key", "")) != key or tuple(arrays["semantics"].shape) != tuple(grid_shape):
         return False
