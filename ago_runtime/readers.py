@@ -80,7 +80,7 @@ def open_npz(path: str | Path, what: str = "npz file"):
     except KeyError as e:
         raise AgoInputError(path, f"{what} lacks array {e}") from None
     except (zipfile.BadZipFile, OSError, ValueError, EOFError) as e:
-        raise AgoInputError(path, f"not a readable {what} ({e.__class__.__name__}: {e})") from None
+        raise AgoInputError(path, f"not a readable npz file ({what}; {e.__class__.__name__}: {e})") from None
 
 
 def read_npy(path: str | Path, what: str = ".npy file") -> np.ndarray:
@@ -95,7 +95,7 @@ def read_npy(path: str | Path, what: str = ".npy file") -> np.ndarray:
     except AgoInputError:
         raise
     except (OSError, ValueError, EOFError) as e:
-        raise AgoInputError(path, f"not a readable {what} ({e.__class__.__name__}: {e})") from None
+        raise AgoInputError(path, f"not a readable .npy file ({what}; {e.__class__.__name__}: {e})") from None
 
 
 def read_npz(path: str | Path, keys: tuple[str, ...] | list[str], what: str = "npz file") -> dict[str, np.ndarray]:

@@ -4,12 +4,14 @@ The contract (README, docs/bad_inputs.md): bad input gives exit 2, exactly one s
 `error: <file or option>: <problem>` naming the file or option, no traceback, no hang, nothing written
 (the working folder stays empty, the named outputs absent, the inputs unchanged).
 
-Groups: bundles (bundle.json lying about grid, classes, files; swapped, truncated ONNX; files outside the
-bundle), nuScenes tables (truncated, huge, wrong types, deep nesting, `filename` traversal), checkpoints
+Groups: bundles (bundle.json lying about grid, classes, files, preprocess sizes, mean / std, widths, the
+training rig; swapped, truncated ONNX, a stage of other widths; files outside the bundle), nuScenes tables (truncated, huge, wrong types, deep nesting, `filename` traversal), checkpoints
 (truncated, zero bytes, random bytes, code in the pickle, another config), npz / banks (wrong width,
 NaN / inf, object arrays, huge declared shapes, pickles), outputs (an existing file as the folder, a
 dangling symlink, /sys and /proc, a folder as the file, two outputs on one path), info files and
-calibrations (paths leaving the data root, deep nesting, empty lists).
+calibrations (paths leaving the data root, deep nesting, empty lists), options (issue 54: a grid below the
+smallest model grid, options that do not apply to the input, free text over its bound or with control characters).
+Every input handed to a verb is snapshot before and after (the whole work folder); stdout may hold `note:` lines only.
 
     python benchmarks/hostile_sweep.py [--work DIR] [--only GROUP] [--out benchmarks/results/hostile_sweep.md]
 
@@ -37,7 +39,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
-os.environ.setdefault("AGO_NO_PROGRESS", "1")
+os.environ.pop("AGO_NO_PROGRESS", None)   # bars on: each case's stderr is not a terminal, so none may be drawn
 
 CASE_TIMEOUT_S = 60
 
@@ -107,8 +109,8 @@ def vacuous(needles, root: Path) -> list:
 
 def verdict(r, needles, cwd: Path, outputs, before, after, argv, root: Path) -> str:
     """'' when the contract holds, else what broke. Needles are looked for in the error line with the absolute
-    folders the case passed cut out (a needle must come from what ago says, not from the name of a hostile copy;
-    a file given keeps its name, which the line must say);
+    folders the case passed cut out (a needle must come from what ago says, not from the name of a hostile copy),
+    except a needle that is a path the case passed, or its name, which the line must say as given;
     `outputs` are names relative to the case's working folder or absolute targets (a dangling link's target);
     stdout may hold `note:` lines only."""
     if r.code == "hang":
@@ -129,7 +131,8 @@ def verdict(r, needles, cwd: Path, outputs, before, after, argv, root: Path) -> 
     for a in sorted((str(a) for a in argv if str(a).startswith("/") and len(str(a)) > 1), key=len, reverse=True):
         cut = a if os.path.isdir(a) else str(Path(a).parent)   # a folder whole, a file's folder (its name stays)
         said = said.replace(cut, "<arg>") if len(cut) > 1 else said
-    missing = [n for n in needles if str(n) not in said]
+    given = {str(a) for a in argv} | {Path(str(a)).name for a in argv if str(a).startswith("/")}
+    missing = [n for n in needles if str(n) not in (lines[0] if str(n) in given else said)]
     if missing:
         return f"does not name {missing}"
     chatter = [ln for ln in r.stdout.splitlines() if ln.strip() and not ln.startswith("note: ")]
@@ -403,7 +406,7 @@ def bundle_cases(x) -> list:
         ("bundle.json grid 10^12 voxels", grid_huge, ["bundle.json", "grid"]),
         ("bundle.json lists 2 classes", classes_lie, ["bundle.json", "label_space"]),
         ("bundle.json lists 100000 classes", classes_many, ["bundle.json", "label_space"]),
-        ("bundle.json text width 7", dim_lie, ["train.npz", "dim 7"]),
+        ("bundle.json text width 7", dim_lie, ["heads.npz", "width 7"]),
         ("bundle.json preprocess width 10^9", pre_huge, ["bundle.json", "preprocess.width"]),
         ("bundle.json preprocess height 0", pre_zero, ["bundle.json", "preprocess.height"]),
         ("bundle.json preprocess std 0", std_zero, ["bundle.json", "preprocess.std"]),
@@ -652,7 +655,10 @@ def checkpoint_cases(x) -> list:
             ("rig_three_cameras.pt", lambda c: c["rig"].update(cameras=c["rig"]["cameras"][:3]))):
         import copy
 
+        from ago_runtime.geometry.camera import Rig
+
         ck = copy.deepcopy(x.ck)
+        ck.setdefault("rig", Rig.nuscenes_like(1600, 900).to_dict())   # the record a training run writes
         change(ck)
         torch.save(ck, root / name)
     with zipfile.ZipFile(root / "zip_of_nothing.pt", "w") as z:
@@ -769,6 +775,14 @@ def npz_cases(x) -> list:
     rel = x.gt.relative_to(x.data / "gts")
     (pred / rel).parent.mkdir(parents=True, exist_ok=True)
     shutil.copy(files["zip_bomb.npz"], pred / rel)
+    late = root / "pred_late"    # every frame's prediction whole but the last: the verb fails after its bar began
+    if late.exists():
+        shutil.rmtree(late)
+    shutil.copytree(x.data / "gts", late)
+    last = sorted(late.glob("*/*/labels.npz"))[-1]
+    last.write_bytes(last.read_bytes()[:100])
+    cases.append(("npz / banks", "metric --pred whose last prediction is truncated (bars on)", lambda: [
+        "metric", "--pred", late, "--gt", x.data / "gts"], [str(last.relative_to(late))], []))
     cases.append(("npz / banks", "metric --pred with a zip-bomb prediction", lambda: [
         "metric", "--pred", pred, "--gt", x.data / "gts", "--allow-missing"], ["labels.npz"], []))
     return cases
@@ -813,7 +827,7 @@ def output_cases(x) -> list:
             cases.append(("outputs", f"{verb} --out {kind}", lambda make=make, path=path: make(path), [needle],
                           [root / "no" / "where"] if path == dangling else []))
     for verb, make in file_verbs.items():
-        for kind, path, needle in (("an existing folder", root, "outputs"), ("a dangling symlink", dangling_file,
+        for kind, path, needle in (("an existing folder", root, str(root)), ("a dangling symlink", dangling_file,
                                                                             "dangling.png"),
                                    ("/dev/null", Path("/dev/null"), "/dev/null"),
                                    ("under /sys", Path("/sys/ago-sweep.x"), "/sys/ago-sweep.x"),
@@ -933,7 +947,8 @@ def write_report(rows, out: Path, seconds: float, args) -> None:
              f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {seconds:.0f} s on a shared 2-core machine "
              f"(load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} at the end).", "",
              "Contract per case: exit 2, one `error: <file or option>: <problem>` line naming it (needles looked for "
-             "with the case's own absolute paths cut out; no empty needle, none the work folder's path holds), "
+             "with the folders the case passed cut out, a path the case passed as given; no empty needle, none the "
+             "work folder's path holds), "
              "no traceback, no hang (60 s), stdout holding `note:` lines only, nothing written (the working folder "
              "empty, the named outputs and absolute targets such as a dangling link's target absent), every input "
              "(dataset, bundle, checkpoint, hostile copies) unchanged.", "",

@@ -7,7 +7,6 @@ The masks are stored as uint8 0/1 and must be used as bool.
 
 from __future__ import annotations
 
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 

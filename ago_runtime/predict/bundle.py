@@ -30,7 +30,6 @@ against the contract when it is opened (`contract.check_graph`).
 from __future__ import annotations
 
 import os
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 

@@ -248,7 +248,6 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
         raise AgoInputError("--int8", f"the int8 graphs run on the CPU only, not --device {device.value}")
     check_output_dir(out, "--out")   # before any work
     b = Bundle.load(resolve_bundle(bundle))
-    typer.echo(card_line(b))   # stdout: information; stderr keeps only warnings and the one error line
     chosen = choose_bank(b, prompts, bank)   # checked against the bundle here, once
     identifier = identifier or b.identifier_for(chosen)   # none for a closed-world bank
     key = run_key(b, chosen, identifier, picture, save_volumes, int8, device.value, precision.value)
@@ -270,12 +269,23 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
         typer.echo(f"resuming: {len(kept)} frames already whole in {out} (same bundle, bank and settings), "
                    f"{count} to predict")
     if count == 0:
+        typer.echo(card_line(b))
         return []
     pipeline = FramePipeline(b, chosen, identifier, volumes=save_volumes, int8=int8, warm_up=warm_up,
                              workers=int(workers) if workers is not None else None, device=device.value,
                              precision=precision.value)
-    return pipeline.run((PipelineFrame(*frame) for frame in frames), infer_writer(out, key, picture, save_volumes),
-                        total=count)
+    write = infer_writer(out, key, picture, save_volumes)
+    card_said = []
+
+    def write_after_card_line(*args):
+        # stdout: information, once every input is checked (the graphs' signatures when the pipeline opens them);
+        # stderr keeps only warnings and the one error line
+        if not card_said:
+            typer.echo(card_line(b))
+            card_said.append(True)
+        return write(*args)
+
+    return pipeline.run((PipelineFrame(*frame) for frame in frames), write_after_card_line, total=count)
 
 
 def register(app: typer.Typer) -> None:

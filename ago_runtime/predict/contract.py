@@ -386,10 +386,13 @@ class BundleContract:
                 model=meta.get("model") or {}, parity=meta.get("parity") or {},
                 ago_version=str(meta.get("ago_version", "")), created_utc=str(meta.get("created_utc", "")),
                 rig_source=str(meta.get("rig_source", "")), format_version=version)
-            contract.check_stages()
         except (KeyError, TypeError, ValueError, AttributeError) as e:
             raise AgoInputError(source, f"bundle metadata incomplete or malformed ({e.__class__.__name__}: {e})") from None
         contract.check_values(source)
+        try:
+            contract.check_stages()
+        except ValueError as e:
+            raise AgoInputError(source, f"voxel_stages: {e}") from None
         return contract
 
     def check_values(self, source) -> None:
