@@ -42,6 +42,7 @@ sys.path.insert(0, str(REPO))
 os.environ.pop("AGO_NO_PROGRESS", None)   # bars on: each case's stderr is not a terminal, so none may be drawn
 
 CASE_TIMEOUT_S = 60
+DEFAULT_WORK = Path(tempfile.gettempdir()) / "ago_hostile_sweep"
 
 
 class Hang(Exception):
@@ -892,7 +893,7 @@ GROUPS = {"bundles": bundle_cases, "nuScenes tables": dataset_cases, "info files
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "ago_hostile_sweep")
+    ap.add_argument("--work", type=Path, default=DEFAULT_WORK)
     ap.add_argument("--only", action="append", help="run only these groups")
     ap.add_argument("--match", help="run only cases whose name contains this")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "hostile_sweep.md")
@@ -940,9 +941,12 @@ def write_report(rows, out: Path, seconds: float, args) -> None:
         return subprocess.run(["git", "-C", str(REPO), *a], capture_output=True, text=True).stdout.strip()
 
     dirty = [ln for ln in git("status", "--porcelain").splitlines() if "benchmarks/results/" not in ln]
+    options = "".join(f" --only '{g}'" for g in args.only or []) + (f" --match '{args.match}'" if args.match else "")
+    if args.work != DEFAULT_WORK:
+        options += f" --work {args.work}"
     load = os.getloadavg()
     lines = ["# Hostile-input sweep (issues 36, 54)", "",
-             f"Command: `python benchmarks/hostile_sweep.py{' --only ' + ' --only '.join(args.only) if args.only else ''}`"
+             f"Command: `python benchmarks/hostile_sweep.py{options}`"
              f" at commit `{git('rev-parse', 'HEAD')}`{' (with uncommitted changes)' if dirty else ''}, "
              f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {seconds:.0f} s on a shared 2-core machine "
              f"(load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} at the end).", "",
