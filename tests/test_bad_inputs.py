@@ -1084,3 +1084,22 @@ def test_graph_signature_check_names_the_graph(w):
                               tuple(2 * n for n in b.grid.shape), c.voxel_stages[0].input_dim)
     with pytest.raises(Exception, match="plane_xy"):
         check_graph(planes, bigger, "planes.onnx", "planes")
+
+
+def test_option_bounds_are_one_rule_for_every_verb():
+    """ago_runtime.cli.option_problem: names and notes at most 300 characters, paths 4096, no control characters
+    except JSON white space in --set, checked on every value (options and arguments) before the verb runs."""
+    import typer.main
+
+    from ago_runtime.cli import build_app, option_problem
+
+    def problem(args):
+        return option_problem(typer.main.get_command(build_app(args[0])), args)
+
+    assert problem(["train", "--set", 'model.grid={\n"shape": [20, 20, 4]}', "--out", "o"]) is None
+    assert problem(["train", "--set", "epochs=1\x00", "--out", "o"]) == ("--set", "holds the control character '\\x00'")
+    assert problem(["export", "x.pt", "-o", "b", "--card-note", "n" * 300]) is None
+    assert problem(["export", "x.pt", "-o", "b", "--card-note", "n" * 301])[0] == "--card-note"
+    assert problem(["show", "p" * 4096, "--out", "o.png"]) is None
+    assert problem(["show", "p" * 4097, "--out", "o.png"]) == ("PATH", "is 4097 characters long (at most 4096)")
+    assert problem(["show", "x.npz", "--out=" + " "]) == ("--out", "is empty")
