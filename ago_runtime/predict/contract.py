@@ -16,6 +16,11 @@
       voxel_stages     VoxelStageSpec per ONNX graph of the per-voxel MLP after the planes
       hidden_dim, adapted_dim          widths of h (main branch) and g (adapted branch)
 
+`BundleContract.from_dict` checks every field by value (`check_values`: sizes, mean / std, grids, widths,
+the training rig, sha256 entries), so a bundle whose hashes were recomputed after tampering is still refused
+before any work; the graphs' inputs and outputs are the contract's (`planes_signature`, `stage_signature`),
+checked when a graph is opened (`check_graph`, from ago_runtime/predict/encoder.py).
+
 Also here: the identifier names (`Identifier`), the two branches (`Branch`), the compatibility of a
 prompt bank with a bundle (`check_bank_fits`: text encoder id and width, class count) and of a frame's
 cameras with the rig (`RigSpec.check_cameras`).
@@ -36,8 +41,8 @@ from ago_runtime.vocab.text_encoder import file_sha256
 
 __all__ = ["BUNDLE_FORMAT", "BUNDLE_FORMAT_VERSION", "BUNDLE_JSON", "Identifier", "Branch", "FileEntry",
            "VoxelStageSpec", "CameraSlot", "RigSpec", "TextEncoderSpec", "LabelClass", "LabelSpaceSpec",
-           "BundleContract", "TensorSpec", "planes_signature", "planes_width", "stage_signature", "check_graph", "check_bank_fits",
-           "file_sha256", "reexport_hint"]
+           "BundleContract", "TensorSpec", "planes_signature", "planes_width", "stage_signature", "check_graph",
+           "check_bank_fits", "file_sha256", "reexport_hint"]
 
 BUNDLE_FORMAT = "ago-bundle"
 BUNDLE_FORMAT_VERSION = 4
