@@ -40,6 +40,7 @@ import typer
 import typer.main
 
 from ago_runtime.errors import AgoInputError, MissingExtra, one_line, one_line_warnings
+from ago_runtime.progress import quiet_library_bars
 
 __all__ = ["VERB_MODULES", "build_app", "run", "main", "exit_code_for"]
 
@@ -174,12 +175,24 @@ def _named_command(command, args: list[str]):
     return command, i
 
 
-def empty_option(command, args: list[str]) -> str | None:
-    """The first option of `args` given an empty (or all-blank) value, e.g. `--out ''` (which would mean the
-    working folder), else None. Found on the verb's click command: options that take a value (not flags)."""
+MAX_OPTION_CHARS = 4096      # any option or argument value (a path: Linux's PATH_MAX)
+MAX_SET_CHARS = 100_000      # a --set KEY=VALUE (ago_train/train_config.py bounds the value alike)
+# options whose value is a name or a note, not a path: bounded as a phrase (ago_runtime.vocab.prompts.MAX_PHRASE_CHARS)
+NAME_OPTIONS = ("--phrase", "--template", "--card-note", "--sample", "--split", "--eval-split", "--subset", "--stage", "--profile",
+                "--identifier", "--device", "--precision", "--picture", "--view", "--layout", "--rig", "--shard",
+                "--seeds", "--readout", "--readout-grid", "--grid", "--image-size", "--segmenter", "--embedder",
+                "--ray-origin")
+
+
+def option_values(command, args: list[str]):
+    """(name, value) of every value in `args` after the verb: an option's value under the option's name
+    (`--out x`, `--out=x`), a positional argument under its name in capitals (`PATH`). Found on the verb's click command:
+    options that take a value (not flags)."""
     cmd, i = _named_command(command, args)
     takes_value = {o: not p.is_flag for p in cmd.params if p.param_type_name == "option"
                    for o in list(p.opts) + list(p.secondary_opts)}
+    arguments = [p.name.upper() for p in cmd.params if p.param_type_name == "argument"]
+    position = 0
     while i < len(args):
         a = args[i]
         if a == "--":
@@ -189,15 +202,38 @@ def empty_option(command, args: list[str]) -> str | None:
             if value is None:
                 i += 1
                 value = args[i] if i < len(args) else None
-            if value is not None and not value.strip():
-                return name
+            if value is not None:
+                yield name, value
+        elif name not in takes_value and not a.startswith("-"):
+            yield arguments[position] if position < len(arguments) else f"argument {position + 1}", a
+            position += 1
         i += 1
+
+
+def option_problem(command, args: list[str]) -> tuple[str, str] | None:
+    """(option, problem) for the first value of `args` that no verb takes, else None: an empty (or all-blank)
+    value (`--out ''` would mean the working folder), a control character (a NUL, an escape; `--set` may hold
+    tabs and newlines of JSON), more than MAX_OPTION_CHARS characters (--set: MAX_SET_CHARS), a name or note
+    (NAME_OPTIONS) of more than MAX_PHRASE_CHARS. Checked once here for every verb, before any work."""
+    from ago_runtime.vocab.prompts import MAX_PHRASE_CHARS
+
+    for name, value in option_values(command, args):
+        if not value.strip():
+            return name, "is empty"
+        allowed = "\t\n\r" if name == "--set" else ""
+        bad = next((c for c in value if (ord(c) < 32 or 127 <= ord(c) < 160) and c not in allowed), None)
+        if bad is not None:
+            return name, f"holds the control character {bad!r}"
+        limit = MAX_SET_CHARS if name == "--set" else MAX_PHRASE_CHARS if name in NAME_OPTIONS else MAX_OPTION_CHARS
+        if len(value) > limit:
+            return name, f"is {len(value)} characters long (at most {limit})"
     return None
 
 
 def run(argv: list[str] | None = None) -> int:
     """Run `ago` with `argv` (default sys.argv[1:]); gives the exit code (errors already printed)."""
     one_line_warnings()
+    quiet_library_bars()   # no bars (ago's or a library's) in a redirected stderr
     args = list(sys.argv[1:] if argv is None else argv)
     try:
         command = typer.main.get_command(build_app(args[0] if args else None))
@@ -205,9 +241,9 @@ def run(argv: list[str] | None = None) -> int:
         if i == len(args) and hasattr(named, "commands"):   # `ago`, `ago prompts`: a group alone, its help
             command.main(args=args + ["--help"], prog_name="ago", standalone_mode=False)
             return 2
-        empty = empty_option(command, args)
-        if empty is not None:   # `--out ''` would write into the working folder: refused for every option
-            raise AgoInputError(empty, "is empty")
+        problem = option_problem(command, args)
+        if problem is not None:   # e.g. `--out ''` would write into the working folder: refused for every option
+            raise AgoInputError(*problem)
         rc = command.main(args=args, prog_name="ago", standalone_mode=False)
     except SystemExit:
         raise

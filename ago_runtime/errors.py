@@ -29,6 +29,14 @@ def require_torch(verb: str) -> None:
                            "(and scripts/setup.sh for the bundled weights)")
 
 
+def refuse_unused(given: dict, input_kind: str) -> None:
+    """Options that do not apply to the input given are refused, not ignored: `given` maps an option's name
+    to its value (None when not given); the first given one is AgoInputError(option, "does not apply to ...")."""
+    for option, value in given.items():
+        if value is not None:
+            raise AgoInputError(option, f"does not apply to {input_kind}")
+
+
 def one_line(text) -> str:
     """`text` with every run of white space (newlines included) folded to one space."""
     return " ".join(str(text).split())

@@ -1,16 +1,41 @@
-"""Progress bars (rich, which typer already brings). Quiet when AGO_NO_PROGRESS=1 or not a TTY in CI."""
+"""Progress bars (rich, which typer already brings), drawn only on a terminal: when stderr is not a TTY (a log
+file, a pipe, CI) or AGO_NO_PROGRESS=1, nothing is drawn, so a failing verb's redirected stderr holds its one
+`error:` line and nothing else. `quiet_library_bars` asks the libraries ago loads (transformers, Hugging Face
+hub, tqdm) for the same."""
 
 from __future__ import annotations
 
 import os
+import sys
 from typing import Iterable, Iterator, TypeVar
 
 T = TypeVar("T")
 
 
-def track(items: Iterable[T], description: str = "working", total: int | None = None) -> Iterator[T]:
-    """Iterate `items` with a progress bar on stderr."""
+def progress_enabled() -> bool:
+    """Whether bars are drawn: stderr is a terminal and AGO_NO_PROGRESS is not 1 (the one rule for every bar)."""
     if os.environ.get("AGO_NO_PROGRESS") == "1":
+        return False
+    isatty = getattr(sys.stderr, "isatty", None)
+    try:
+        return bool(isatty and isatty())
+    except (ValueError, OSError):   # a closed or odd stream
+        return False
+
+
+def quiet_library_bars() -> None:
+    """When bars are off, the libraries' own bars and advisory lines are off too (set before they load;
+    a value the user set is kept)."""
+    if progress_enabled():
+        return
+    for key, value in (("HF_HUB_DISABLE_PROGRESS_BARS", "1"), ("TQDM_DISABLE", "1"),
+                       ("TRANSFORMERS_VERBOSITY", "error"), ("TRANSFORMERS_NO_ADVISORY_WARNINGS", "1")):
+        os.environ.setdefault(key, value)
+
+
+def track(items: Iterable[T], description: str = "working", total: int | None = None) -> Iterator[T]:
+    """Iterate `items` with a progress bar on stderr (only when progress_enabled())."""
+    if not progress_enabled():
         yield from items
         return
     from rich.console import Console

@@ -100,7 +100,39 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     for name, t in ckpt["model"].items():   # NaN / inf weights predict nothing: refused before any work
         if isinstance(t, torch.Tensor) and t.is_floating_point() and not bool(torch.isfinite(t).all()):
             raise AgoInputError(path, f"weight {name!r} holds NaN or inf")
+    check_checkpoint_config(ckpt, path)
     return ckpt
+
+
+def check_checkpoint_config(ckpt: dict, path) -> None:
+    """A checkpoint's model_config and rig record by value, before any model is built from them: the config's
+    keys, sizes in range and grid (ModelConfig.from_dict), the rig's calibration (Rig.validate) and camera count;
+    AgoInputError(path, "model_config: ..." / "rig: ...")."""
+    from ago_runtime.geometry.camera import Rig
+
+    from .model import ModelConfig
+
+    config = ckpt["model_config"]
+    if not isinstance(config, dict):
+        raise AgoInputError(path, f"model_config: not a record of model settings ({type(config).__name__})")
+    try:
+        cfg = ModelConfig.from_dict(plain_dict(dict(config)), source="model_config")
+    except AgoInputError as e:
+        raise AgoInputError(path, f"model_config: {e.problem}") from None
+    except (TypeError, ValueError, AttributeError, KeyError) as e:
+        raise AgoInputError(path, f"model_config: malformed ({e.__class__.__name__}: {str(e)[:160]})") from None
+    if "rig" not in ckpt:
+        return
+    try:
+        rig = Rig.from_dict(plain_dict(ckpt["rig"]))
+    except (TypeError, ValueError, AttributeError, KeyError, IndexError) as e:
+        raise AgoInputError(path, f"rig: malformed ({e.__class__.__name__}: {str(e)[:160]})") from None
+    try:
+        rig.validate("rig")
+    except AgoInputError as e:
+        raise AgoInputError(path, f"rig: {e.problem}") from None
+    if len(rig.cameras) != cfg.num_cameras:
+        raise AgoInputError(path, f"rig: {len(rig.cameras)} cameras, model_config.num_cameras says {cfg.num_cameras}")
 
 
 _PLAIN = (str, int, float, bool, type(None))

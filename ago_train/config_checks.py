@@ -10,7 +10,8 @@ file, or "--set" when the value came from the command line) and the key:
 - voxel_sampling one of losses.sampling.SAMPLING_RULES, 0 < occupied_share < 1, feature_cache a non-empty
   string, snapshot_steps None or a list of steps >= 1, model.frozen_stages 0..3;
 - device: auto, cpu, cuda or cuda:N (`check_device`);
-- model: every size (widths, layer and point counts, image size) a positive integer.
+- model: every size (widths, layer and point counts, image size) an integer from 1 to its bound
+  (`_model_bound`), model.grid by ago_runtime.geometry.grid.check_grid_dict.
 """
 
 from __future__ import annotations
@@ -32,6 +33,29 @@ _MODEL_POSITIVE = ("image_width", "image_height", "num_cameras", "tpv_dim", "num
                    "num_points_in_pillar", "num_points_in_pillar_side", "num_sampling_offsets",
                    "cameras_per_query", "cameras_per_query_side", "num_cross_view_points", "num_self_points")
 _MODEL_OPTIONAL_POSITIVE = ("tpv_h", "tpv_w", "tpv_z")
+MAX_MODEL_LAYERS = 64          # encoder / decoder layers, attention heads
+MAX_MODEL_POINTS = 256         # sampling points, offsets, cameras per query
+
+
+def _model_bound(key: str) -> int:
+    """The largest value a model size `key` may take: image sides as a bundle's (16384 pixels), cameras as a rig's,
+    widths as a text embedding's (8192), layer and head counts MAX_MODEL_LAYERS, point counts MAX_MODEL_POINTS,
+    TPV plane sizes the grid's (checked again against the grid by ModelConfig.validate)."""
+    from ago_runtime.geometry.camera import MAX_CAMERAS
+    from ago_runtime.geometry.grid import MAX_GRID_VOXELS
+    from ago_runtime.predict.contract import MAX_EMBED_DIM, MAX_IMAGE_SIDE
+
+    if key in ("image_width", "image_height"):
+        return MAX_IMAGE_SIDE
+    if key == "num_cameras":
+        return MAX_CAMERAS
+    if key in ("tpv_dim", "ffn_dim", "hidden_dim", "embed_dim", "adapter_hidden"):
+        return MAX_EMBED_DIM
+    if key in ("num_heads", "num_layers", "decoder_layers", "adapter_depth"):
+        return MAX_MODEL_LAYERS
+    if key in _MODEL_OPTIONAL_POSITIVE:
+        return MAX_GRID_VOXELS
+    return MAX_MODEL_POINTS
 
 
 def check_device(spec, where: str = "--device") -> str:
@@ -68,42 +92,20 @@ def _num(cfg, key: str, lo: float, source, strict: bool = False, hi: float | Non
         raise AgoInputError(source, f"{key} must be a number {rng}, got {v!r}")
 
 
-MAX_MODEL_VOXELS = 1 << 25      # a model grid of more voxels than this is refused (Occ3D: 640 k)
-
-
-def check_grid_dict(grid, source, key: str = "model.grid") -> None:
-    """A grid section (ago_runtime.geometry.grid.Grid.to_dict: range_min, range_max, voxel_size, [shape]) that
-    makes a grid of 1 .. MAX_MODEL_VOXELS voxels, with a stated shape that agrees; else AgoInputError naming key."""
-    from ago_runtime.geometry.grid import Grid
-
-    need = ("range_min", "range_max", "voxel_size")
-    if not isinstance(grid, dict) or any(k not in grid for k in need):
-        raise AgoInputError(source, f"{key} needs {', '.join(need)} (3 numbers each), got {str(grid)[:120]}")
-    try:
-        values = [[float(v) for v in grid[k]] for k in need]
-        if any(len(v) != 3 or not all(math.isfinite(x) for x in v) for v in values):
-            raise ValueError
-    except (TypeError, ValueError):
-        raise AgoInputError(source, f"{key}: {', '.join(need)} must be 3 finite numbers each") from None
-    lo, hi, size = values
-    if min(size) <= 0 or any(b <= a for a, b in zip(lo, hi)):
-        raise AgoInputError(source, f"{key}: voxel sizes must be > 0 and range_max above range_min")
-    shape = Grid(tuple(lo), tuple(hi), tuple(size)).shape
-    if min(shape) < 1 or math.prod(shape) > MAX_MODEL_VOXELS:
-        raise AgoInputError(source, f"{key}: {list(shape)} voxels (1 to {MAX_MODEL_VOXELS} in all)")
-    if grid.get("shape") is not None and list(grid["shape"]) != list(shape):
-        raise AgoInputError(source, f"{key}: shape {grid['shape']} does not match range and voxel size ({list(shape)})")
-
-
 def check_model_config(model, source) -> None:
-    for key in _MODEL_POSITIVE:
-        v = getattr(model, key, 1)
-        if not _is_int(v) or v < 1:
-            raise AgoInputError(source, f"model.{key} must be an integer >= 1, got {v!r}")
-    for key in _MODEL_OPTIONAL_POSITIVE:
-        v = getattr(model, key, None)
-        if v is not None and (not _is_int(v) or v < 1):
-            raise AgoInputError(source, f"model.{key} must be an integer >= 1 or null, got {v!r}")
+    """Types and ranges of a ModelConfig (from a --set, a JSON config or a checkpoint's model_config): every
+    size an integer 1 .. its bound (_model_bound), model.grid by the grid rule (check_grid_dict)."""
+    from ago_runtime.geometry.grid import check_grid_dict
+
+    for key in _MODEL_POSITIVE + _MODEL_OPTIONAL_POSITIVE:
+        v = getattr(model, key, None if key in _MODEL_OPTIONAL_POSITIVE else 1)
+        if v is None and key in _MODEL_OPTIONAL_POSITIVE:
+            continue
+        hi = _model_bound(key)
+        if not _is_int(v) or not 1 <= v <= hi:
+            null = " or null" if key in _MODEL_OPTIONAL_POSITIVE else ""
+            raise AgoInputError(source, f"model.{key} must be an integer 1..{hi}{null}, got {str(v)[:40]}")
+    check_grid_dict(model.grid, source, "model.grid")
     for key in ("pretrained", "query_pos", "free_bias"):
         if not isinstance(getattr(model, key, True), bool):
             raise AgoInputError(source, f"model.{key} must be true or false, got {getattr(model, key)!r}")

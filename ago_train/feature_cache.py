@@ -116,10 +116,12 @@ class FeatureCache:
         path = self._path(key)
         if not path.is_file():
             return None
+        from ago_runtime.readers import open_npz
+
         try:
-            with np.load(path, allow_pickle=False) as z:
+            with open_npz(path, "feature cache entry") as z:
                 maps = [np.asarray(z[f"l{i}"]) for i in range(len(self.shapes))]
-        except (OSError, ValueError, KeyError, EOFError, Exception):  # noqa: BLE001 - any unreadable entry
+        except Exception:  # noqa: BLE001 - any unreadable or oversized entry is recomputed
             maps = None
         if maps is None or any(m.dtype != np.float16 or tuple(m.shape) != s for m, s in zip(maps, self.shapes)) \
                 or not all(np.isfinite(m).all() for m in maps):

@@ -143,10 +143,6 @@ class TrainConfig:
         if "model" in kw and not isinstance(kw["model"], ModelConfig):
             if not isinstance(kw["model"], dict):
                 raise AgoInputError(source, f"model must be an object of model settings, got {kw['model']!r}")
-            from .config_checks import check_grid_dict
-
-            if "grid" in kw["model"]:
-                check_grid_dict(kw["model"]["grid"], source)   # before any grid is built from it
             kw["model"] = ModelConfig.from_dict(kw["model"], source)
         if "loss" in kw and not isinstance(kw["loss"], LossConfig):
             if not isinstance(kw["loss"], dict):

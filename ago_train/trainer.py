@@ -19,7 +19,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
 import sys
 import time
 from pathlib import Path
@@ -203,6 +202,7 @@ class Trainer:
         if not indices:
             raise AgoInputError(cfg.data, f"no frames in split {cfg.train_split!r}")
         self.pseudo.check_files([(ds.scene_of(i), ds.sample_tokens[i]) for i in indices])  # before any file is written
+        init = load_checkpoint(cfg.init_from) if cfg.init_from else None   # checked before any work
         # the rig comes from the data: the model takes as many cameras as the training frames have
         first_rig = ds[indices[0]].rig
         if len(first_rig.cameras) != cfg.model.num_cameras:
@@ -241,8 +241,7 @@ class Trainer:
         torch.manual_seed(cfg.seed)
         self.model = cfg.model.build().to(info.device)
         self.model.train()  # the backbone's BatchNorm layers stay in eval mode (backbone._FrozenBNMixin)
-        if cfg.init_from:
-            init = load_checkpoint(cfg.init_from)
+        if init is not None:
             check_checkpoint_bank(init, cfg.init_from, self.bank)
             load_model_weights(self.model, init, cfg.init_from, cfg.model.to_dict(), what="this run's model (init_from)")
         if self.model.free_bias is not None and not cfg.init_from:   # a resumed run loads its own below
@@ -525,10 +524,12 @@ class Trainer:
 
 
 class _Progress:
-    """A rich progress bar showing the loss (rank 0); silent when AGO_NO_PROGRESS=1."""
+    """A rich progress bar showing the loss (rank 0); only on a terminal (ago_runtime.progress.progress_enabled)."""
 
     def __init__(self, total: int, start: int, enabled: bool):
-        self.enabled = enabled and os.environ.get("AGO_NO_PROGRESS") != "1"
+        from ago_runtime.progress import progress_enabled
+
+        self.enabled = enabled and progress_enabled()
         self.bar = None
         if self.enabled:
             from rich.console import Console

@@ -4,12 +4,14 @@ The contract (README, docs/bad_inputs.md): bad input gives exit 2, exactly one s
 `error: <file or option>: <problem>` naming the file or option, no traceback, no hang, nothing written
 (the working folder stays empty, the named outputs absent, the inputs unchanged).
 
-Groups: bundles (bundle.json lying about grid, classes, files; swapped, truncated ONNX; files outside the
-bundle), nuScenes tables (truncated, huge, wrong types, deep nesting, `filename` traversal), checkpoints
+Groups: bundles (bundle.json lying about grid, classes, files, preprocess sizes, mean / std, widths, the
+training rig; swapped, truncated ONNX, a stage of other widths; files outside the bundle), nuScenes tables (truncated, huge, wrong types, deep nesting, `filename` traversal), checkpoints
 (truncated, zero bytes, random bytes, code in the pickle, another config), npz / banks (wrong width,
 NaN / inf, object arrays, huge declared shapes, pickles), outputs (an existing file as the folder, a
 dangling symlink, /sys and /proc, a folder as the file, two outputs on one path), info files and
-calibrations (paths leaving the data root, deep nesting, empty lists).
+calibrations (paths leaving the data root, deep nesting, empty lists), options (issue 54: a grid below the
+smallest model grid, options that do not apply to the input, free text over its bound or with control characters).
+Every input handed to a verb is snapshot before and after (the whole work folder); stdout may hold `note:` lines only.
 
     python benchmarks/hostile_sweep.py [--work DIR] [--only GROUP] [--out benchmarks/results/hostile_sweep.md]
 
@@ -37,9 +39,10 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
-os.environ.setdefault("AGO_NO_PROGRESS", "1")
+os.environ.pop("AGO_NO_PROGRESS", None)   # bars on: each case's stderr is not a terminal, so none may be drawn
 
 CASE_TIMEOUT_S = 60
+DEFAULT_WORK = Path(tempfile.gettempdir()) / "ago_hostile_sweep"
 
 
 class Hang(Exception):
@@ -80,13 +83,37 @@ def run_ago(args, cwd: Path, timeout: int = CASE_TIMEOUT_S):
                                  seconds=time.perf_counter() - t)
 
 
+SKIP_IN_SNAPSHOT = ("cache", "setup_cwd")     # ago's own cache; the fixtures' working folder
+
+
 def snapshot(root: Path) -> dict:
-    return {str(p.relative_to(root)): (p.stat().st_size, p.stat().st_mtime_ns)
-            for p in root.rglob("*") if p.is_file() and not p.is_symlink()}
+    """Every file and link under the sweep's work folder (the dataset, the bundle, the checkpoint, every hostile
+    copy): path -> (size, mtime) or the link's target; the cases' working folders (cwd-*) and the cache are left out."""
+    out = {}
+    for p in root.rglob("*"):
+        rel = p.relative_to(root)
+        if rel.parts[0] in SKIP_IN_SNAPSHOT or rel.parts[0].startswith("cwd-"):
+            continue
+        if p.is_symlink():
+            out[str(rel)] = ("link", os.readlink(p))
+        elif p.is_file():
+            st = p.stat()
+            out[str(rel)] = (st.st_size, st.st_mtime_ns)
+    return out
 
 
-def verdict(r, needles, cwd: Path, outputs, before, after) -> str:
-    """'' when the contract holds, else what broke."""
+def vacuous(needles, root: Path) -> list:
+    """Needles that would prove nothing: empty or blank ones, and ones the work folder's path holds (every
+    path of every case contains it)."""
+    return [n for n in needles if not str(n).strip() or str(n) in str(root)]
+
+
+def verdict(r, needles, cwd: Path, outputs, before, after, argv, root: Path) -> str:
+    """'' when the contract holds, else what broke. Needles are looked for in the error line with the absolute
+    folders the case passed cut out (a needle must come from what ago says, not from the name of a hostile copy),
+    except a needle that is a path the case passed, or its name, which the line must say as given;
+    `outputs` are names relative to the case's working folder or absolute targets (a dangling link's target);
+    stdout may hold `note:` lines only."""
     if r.code == "hang":
         return "hang"
     if r.code != 2:
@@ -98,16 +125,28 @@ def verdict(r, needles, cwd: Path, outputs, before, after) -> str:
         return f"{len(lines)} stderr lines"
     if not lines[0].startswith("error: "):
         return "no 'error:' line"
-    missing = [n for n in needles if str(n) not in lines[0]]
+    bad_needles = vacuous(needles, root)
+    if bad_needles:
+        return f"vacuous needles {bad_needles}"
+    said = lines[0]
+    for a in sorted((str(a) for a in argv if str(a).startswith("/") and len(str(a)) > 1), key=len, reverse=True):
+        cut = a if os.path.isdir(a) else str(Path(a).parent)   # a folder whole, a file's folder (its name stays)
+        said = said.replace(cut, "<arg>") if len(cut) > 1 else said
+    given = {str(a) for a in argv} | {Path(str(a)).name for a in argv if str(a).startswith("/")}
+    missing = [n for n in needles if str(n) not in (lines[0] if str(n) in given else said)]
     if missing:
         return f"does not name {missing}"
+    chatter = [ln for ln in r.stdout.splitlines() if ln.strip() and not ln.startswith("note: ")]
+    if chatter:
+        return f"stdout: {chatter[0][:80]!r}"
     if any(cwd.iterdir()):
         return f"wrote {sorted(os.listdir(cwd))}"
     for rel in outputs:
-        if (cwd / rel).exists() or os.path.lexists(cwd / rel):
+        if os.path.lexists(cwd / rel):
             return f"wrote {rel}"
     if before != after:
-        return "an input changed"
+        changed = sorted(k for k in set(before) | set(after) if before.get(k) != after.get(k))
+        return f"an input changed: {changed[:3]}"
     return ""
 
 
@@ -320,14 +359,64 @@ def bundle_cases(x) -> list:
         bank.save(d / "banks" / "train.npz")
         m["banks"]["train"] = "banks/train.npz"
 
+    # issue 54: tampered values (bundle.json is not in its own manifest; ONNX hashes recomputed)
+    def pre_huge(m, d):
+        m["preprocess"]["width"] = 10 ** 9
+
+    def pre_zero(m, d):
+        m["preprocess"]["height"] = 0
+
+    def std_zero(m, d):
+        m["preprocess"]["std"] = [0.0, 0.224, 0.225]
+
+    def mean_nan(m, d):
+        m["preprocess"]["mean"] = [float("nan"), 0.456, 0.406]
+
+    def hidden_huge(m, d):
+        m["hidden_dim"] = 10 ** 9
+
+    def rig_nan(m, d):
+        m["training_rig"]["cameras"][0]["intrinsics"][0][0] = float("nan")
+
+    def sha_not_hex(m, d):
+        m["files"]["heads"]["sha256"] = "../../etc/passwd"
+
+    def default_bank_missing(m, d):
+        m["default_bank"] = "nope"
+
+    def stage_other_widths(m, d):
+        """voxels_0.onnx replaced by a valid graph x (n, 64) -> y (n, 32) (a stage of another bundle), rehashed."""
+        import onnx
+        from onnx import TensorProto, helper, numpy_helper
+
+        st = m["voxel_stages"][0]
+        a, b = st["output_dim"], st["input_dim"]          # the widths swapped: x (n, a) @ W (a, b) -> y (n, b)
+        w = numpy_helper.from_array(np.zeros((a, b), np.float32), "W")
+        graph = helper.make_graph([helper.make_node("MatMul", ["x", "W"], ["y"])], "other",
+                                  [helper.make_tensor_value_info("x", TensorProto.FLOAT, ["n", a])],
+                                  [helper.make_tensor_value_info("y", TensorProto.FLOAT, ["n", b])], [w])
+        model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+        model.ir_version = 8
+        onnx.save(model, str(d / m["files"][st["file"]]["path"]))
+        rehash(m, d, st["file"])
+
     for name, change, needles in (
-        ("bundle.json grid lies (40x40x8)", grid_lie, ["bundle"]),
-        ("bundle.json grid lies consistently (40x40x8)", grid_lie_consistent, ["planes.onnx"]),
-        ("bundle.json grid 0x0x0", grid_zero, ["bundle.json"]),
-        ("bundle.json grid 10^12 voxels", grid_huge, ["bundle.json"]),
-        ("bundle.json lists 2 classes", classes_lie, ["bundle"]),
-        ("bundle.json lists 100000 classes", classes_many, ["bundle.json"]),
-        ("bundle.json text width 7", dim_lie, ["bundle"]),
+        ("bundle.json grid lies (40x40x8)", grid_lie, ["bundle.json", "grid"]),
+        ("bundle.json grid lies consistently (40x40x8)", grid_lie_consistent, ["planes.onnx", "plane_xy"]),
+        ("bundle.json grid 0x0x0", grid_zero, ["bundle.json", "grid"]),
+        ("bundle.json grid 10^12 voxels", grid_huge, ["bundle.json", "grid"]),
+        ("bundle.json lists 2 classes", classes_lie, ["bundle.json", "label_space"]),
+        ("bundle.json lists 100000 classes", classes_many, ["bundle.json", "label_space"]),
+        ("bundle.json text width 7", dim_lie, ["heads.npz", "width 7"]),
+        ("bundle.json preprocess width 10^9", pre_huge, ["bundle.json", "preprocess.width"]),
+        ("bundle.json preprocess height 0", pre_zero, ["bundle.json", "preprocess.height"]),
+        ("bundle.json preprocess std 0", std_zero, ["bundle.json", "preprocess.std"]),
+        ("bundle.json preprocess mean NaN", mean_nan, ["bundle.json", "preprocess.mean"]),
+        ("bundle.json hidden_dim 10^9", hidden_huge, ["bundle.json", "hidden_dim"]),
+        ("bundle.json training_rig NaN intrinsics", rig_nan, ["bundle.json", "training_rig"]),
+        ("bundle.json sha256 not hex", sha_not_hex, ["bundle.json", "sha256"]),
+        ("bundle.json default_bank not a bank", default_bank_missing, ["bundle.json", "default_bank"]),
+        ("voxel stage of other widths (hash updated)", stage_other_widths, ["voxels_0.onnx", "voxel_stages[0]"]),
         ("bundle.json file: absolute path outside", file_outside, ["bundle.json", "outside"]),
         ("bundle.json file: ../ path", file_dotdot, ["bundle.json", "outside"]),
         ("bundle.json bank: ../ path", bank_outside, ["bundle.json", "outside"]),
@@ -338,7 +427,7 @@ def bundle_cases(x) -> list:
         ("bundle.json files of the wrong type", meta_types, ["bundle.json"]),
         ("bundle.json 100000 nested [", not_json, ["bundle.json"]),
         ("bundle.json grid a nested list", deep_json, ["bundle.json"]),
-        ("ONNX files swapped (hashes updated)", swapped, ["onnx"]),
+        ("ONNX files swapped (hashes updated)", swapped, ["planes.onnx", "planes"]),
         ("ONNX truncated (hash updated)", truncated_rehashed, ["planes.onnx"]),
         ("ONNX truncated (hash stale)", truncated, ["planes.onnx"]),
         ("ONNX random bytes (hash updated)", garbage_onnx, ["planes.onnx"]),
@@ -559,19 +648,31 @@ def checkpoint_cases(x) -> list:
     ck = dict(x.ck)
     ck["model"] = {k: v * float("nan") if v.is_floating_point() else v for k, v in ck["model"].items()}
     torch.save(ck, root / "nan_weights.pt")
+    for name, change in (   # issue 54: the config by value
+            ("hidden_dim_huge.pt", lambda c: c["model_config"].update(hidden_dim=10 ** 9)),
+            ("grid_huge.pt", lambda c: c["model_config"].update(grid={"range_min": [-40, -40, -1], "range_max": [40, 40, 5.4],
+                                                                      "voxel_size": [1e-4, 1e-4, 1e-4]})),
+            ("rig_nan.pt", lambda c: c["rig"]["cameras"][0]["intrinsics"][0].__setitem__(0, float("nan"))),
+            ("rig_three_cameras.pt", lambda c: c["rig"].update(cameras=c["rig"]["cameras"][:3]))):
+        import copy
+
+        from ago_runtime.geometry.camera import Rig
+
+        ck = copy.deepcopy(x.ck)
+        ck.setdefault("rig", Rig.nuscenes_like(1600, 900).to_dict())   # the record a training run writes
+        change(ck)
+        torch.save(ck, root / name)
     with zipfile.ZipFile(root / "zip_of_nothing.pt", "w") as z:
         z.writestr("archive/data.pkl", b"\x80\x02}q\x00.")
     (root / "folder.pt").mkdir(exist_ok=True)
     names = ["truncated.pt", "empty.pt", "random.pt", "code.pt", "evil.pt", "other_config.pt", "nan_weights.pt",
-             "zip_of_nothing.pt", "folder.pt"]
+             "zip_of_nothing.pt", "folder.pt", "hidden_dim_huge.pt", "grid_huge.pt", "rig_nan.pt", "rig_three_cameras.pt"]
     for n in names:
         p = root / n
         cases.append(("checkpoints", f"eval: {n}", lambda p=p: ["eval", "--ckpt", p, "--data", x.data, "--split", "all",
                                                               "--out", "o"], [n], ["o"]))
         cases.append(("checkpoints", f"export: {n}", lambda p=p: ["export", p, "-o", "b", "--no-real-frame",
                                                                 "--train-bank-only"], [n], ["b"]))
-        if n == "other_config.pt":   # its weights fit the run's model: init_from needs no more
-            continue
         cases.append(("checkpoints", f"train init_from: {n}", lambda p=p: [
             "train", "--config", "tiny", "--out", "o", "--data", x.data, "--pseudo", x.pseudo, "--set",
             'train_split="all"', "--set", 'device="cpu"', "--set", f'init_from="{p}"'],
@@ -661,13 +762,28 @@ def npz_cases(x) -> list:
         p.parent.mkdir(exist_ok=True)
         np.savez(p, **arrays)
         cases.append(("npz / banks", f"show {n}", lambda p=p: ["show", p, "--out", "o.png"], [n], ["o.png"]))
-    for n in ("huge_shape.npz", "zip_bomb.npz", "pickle.npz", "object_array.npz"):
+    for n, shape in (("huge_dims_no_data.npz", "(0, 1000000000000, 100000)"), ("empty_grid.npz", "(0, 0, 0)")):
+        header = ("{'descr': '|u1', 'fortran_order': False, 'shape': %s, }" % shape).encode()
+        header = header + b" " * (118 - len(header)) + b"\n"
+        with zipfile.ZipFile(root / n, "w") as z:
+            z.writestr("semantics.npy", b"\x93NUMPY\x01\x00" + len(header).to_bytes(2, "little") + header)
+        files[n] = root / n
+    for n in ("huge_shape.npz", "zip_bomb.npz", "pickle.npz", "object_array.npz", "huge_dims_no_data.npz",
+              "empty_grid.npz"):
         cases.append(("npz / banks", f"show {n}", lambda n=n: ["show", files[n], "--out", "o.png"], [n], ["o.png"]))
     # metric --pred a folder whose prediction is hostile
     pred = root / "pred"
     rel = x.gt.relative_to(x.data / "gts")
     (pred / rel).parent.mkdir(parents=True, exist_ok=True)
     shutil.copy(files["zip_bomb.npz"], pred / rel)
+    late = root / "pred_late"    # every frame's prediction whole but the last: the verb fails after its bar began
+    if late.exists():
+        shutil.rmtree(late)
+    shutil.copytree(x.data / "gts", late)
+    last = sorted(late.glob("*/*/labels.npz"))[-1]
+    last.write_bytes(last.read_bytes()[:100])
+    cases.append(("npz / banks", "metric --pred whose last prediction is truncated (bars on)", lambda: [
+        "metric", "--pred", late, "--gt", x.data / "gts"], [str(last.relative_to(late))], []))
     cases.append(("npz / banks", "metric --pred with a zip-bomb prediction", lambda: [
         "metric", "--pred", pred, "--gt", x.data / "gts", "--allow-missing"], ["labels.npz"], []))
     return cases
@@ -709,29 +825,75 @@ def output_cases(x) -> list:
         for kind, path, needle in (("an existing file", a_file, "a_file"), ("a dangling symlink", dangling, "dangling"),
                                    ("under /proc", Path("/proc/ago-sweep/x"), "/proc/ago-sweep/x"),
                                    ("empty string", "", "--out" if verb != "export" else "-o")):
-            cases.append(("outputs", f"{verb} --out {kind}", lambda make=make, path=path: make(path), [needle], []))
+            cases.append(("outputs", f"{verb} --out {kind}", lambda make=make, path=path: make(path), [needle],
+                          [root / "no" / "where"] if path == dangling else []))
     for verb, make in file_verbs.items():
-        for kind, path, needle in (("an existing folder", root, "outputs"), ("a dangling symlink", dangling_file,
+        for kind, path, needle in (("an existing folder", root, str(root)), ("a dangling symlink", dangling_file,
                                                                             "dangling.png"),
                                    ("/dev/null", Path("/dev/null"), "/dev/null"),
                                    ("under /sys", Path("/sys/ago-sweep.x"), "/sys/ago-sweep.x"),
-                                   ("empty string", "", "")):
-            cases.append(("outputs", f"{verb} -o {kind}", lambda make=make, path=path: make(path), [needle], []))
+                                   ("empty string", "", None)):
+            option = "--out" if verb == "show" else "--json" if verb.startswith("metric") else "-o"
+            cases.append(("outputs", f"{verb} -o {kind}", lambda make=make, path=path: make(path), [needle or option],
+                          [root / "nowhere.png"] if path == dangling_file else []))
     cases.append(("outputs", "metric --json x.json --md x.json", lambda: [
         "metric", "--pred", x.data / "gts", "--gt", x.data / "gts", "--json", "x.json", "--md", "x.json"],
         ["x.json"], ["x.json"]))
+    cases.append(("outputs", "show --out an existing file is left as it was", lambda: ["show", x.gt, "--out", a_file],
+                  ["a_file", ".png"], []))
     cases.append(("outputs", "show --out o.jpg", lambda: ["show", x.gt, "--out", "o.jpg"], ["--out", "o.jpg"],
                   ["o.jpg"]))
     return cases
 
 
+def option_cases(x) -> list:
+    """Issue 54: degenerate values refused with the minimum, options that do not apply refused, free text bounded."""
+    long_note, long_name, long_path = "n" * 400, "t" * 5000, "d/" * 3000
+    gt = x.gt
+    return [
+        ("options", "synth --grid 1x1x1", lambda: ["synth", "--grid", "1x1x1", "--out", "o", "--scenes", "1", "--frames", "1"],
+         ["--grid", "20x20x4"], ["o"]),
+        ("options", "synth --grid 19x20x4", lambda: ["synth", "--grid", "19x20x4", "--out", "o"], ["--grid", "20x20x4"], ["o"]),
+        ("options", "pseudo-labels --grid 10x10x2", lambda: ["pseudo-labels", "--data", x.data, "--out", "o", "--grid",
+                                                             "10x10x2"], ["--grid", "20x20x4"], ["o"]),
+        ("options", "show FILE --sample x", lambda: ["show", gt, "--sample", "x", "--out", "o.png"],
+         ["--sample", "does not apply"], ["o.png"]),
+        ("options", "show FILE --index 0", lambda: ["show", gt, "--index", "0", "--out", "o.png"],
+         ["--index", "does not apply"], ["o.png"]),
+        ("options", "show DATASET --gt FILE", lambda: ["show", x.data, "--index", "0", "--gt", gt, "--out", "o.png"],
+         ["--gt", "does not apply"], ["o.png"]),
+        ("options", "show DATASET --view bev", lambda: ["show", x.data, "--index", "0", "--view", "bev", "--out", "o.png"],
+         ["--view", "does not apply"], ["o.png"]),
+        ("options", "infer an images folder --allow-outside-root", lambda: [
+            "infer", "--images", x.frame, "--allow-outside-root", "--bundle", x.bundle, "--out", "o"],
+         ["--allow-outside-root", "images folder"], ["o"]),
+        ("options", "infer --prompts and --bank", lambda: ["infer", "--images", x.frame, "--prompts", "cw", "--bank", "train",
+                                                           "--bundle", x.bundle, "--out", "o"], ["--bank", "not both"], ["o"]),
+        ("options", "export --card-note of 400 characters", lambda: ["export", x.ckpt, "-o", "b", "--no-real-frame",
+                                                                     "--card-note", long_note], ["--card-note", "300"], ["b"]),
+        ("options", "export --card-note with a newline", lambda: ["export", x.ckpt, "-o", "b", "--no-real-frame",
+                                                                  "--card-note", "a\nb"], ["--card-note", "control"], ["b"]),
+        ("options", "infer --sample of 5000 characters", lambda: ["infer", "--images", x.data, "--sample", long_name,
+                                                                  "--bundle", x.bundle, "--out", "o"], ["--sample", "300"], ["o"]),
+        ("options", "pseudo-labels --split with an escape", lambda: ["pseudo-labels", "--data", x.data, "--out", "o",
+                                                                     "--split", "all\x1b[2J"], ["--split", "control"], ["o"]),
+        ("options", "eval --out of 6000 characters", lambda: ["eval", "--ckpt", x.ckpt, "--data", x.data, "--out",
+                                                              long_path], ["--out", "4096"], []),
+        ("options", "show PATH of 6000 characters", lambda: ["show", long_path, "--out", "o.png"], ["PATH", "4096"], ["o.png"]),
+        ("options", "prompts build --template of 400 characters", lambda: ["prompts", "build", "cw", "-o", "b.npz",
+                                                                           "--template", "{} " + "x" * 400],
+         ["--template", "300"], ["b.npz"]),
+    ]
+
+
 GROUPS = {"bundles": bundle_cases, "nuScenes tables": dataset_cases, "info files": info_calib_cases,
-          "checkpoints": checkpoint_cases, "npz / banks": npz_cases, "outputs": output_cases}
+          "checkpoints": checkpoint_cases, "npz / banks": npz_cases, "outputs": output_cases,
+          "options": option_cases}
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "ago_hostile_sweep")
+    ap.add_argument("--work", type=Path, default=DEFAULT_WORK)
     ap.add_argument("--only", action="append", help="run only these groups")
     ap.add_argument("--match", help="run only cases whose name contains this")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "hostile_sweep.md")
@@ -746,9 +908,9 @@ def main() -> int:
                 continue
             cwd = Path(tempfile.mkdtemp(prefix="cwd-", dir=args.work))
             argv = make_args()
-            before = snapshot(x.root / "synth")
+            before = snapshot(x.root)
             r = run_ago(argv, cwd)
-            bad = verdict(r, needles, cwd, outputs, before, snapshot(x.root / "synth"))
+            bad = verdict(r, needles, cwd, outputs, before, snapshot(x.root), argv, x.root)
             line = next((ln for ln in r.stderr.splitlines() if ln.startswith("error: ")), "")
             if bad:
                 tail = (r.stderr.strip().splitlines() or [""])[-1]
@@ -773,11 +935,27 @@ def write_report(rows, out: Path, seconds: float, args) -> None:
 
     per = Counter(r[0] for r in rows)
     bad = Counter(r[0] for r in rows if r[4])
-    lines = ["# Hostile-input sweep (issue 36)", "",
-             f"Command: `python benchmarks/hostile_sweep.py{' --only ' + ' --only '.join(args.only) if args.only else ''}`"
-             f" ({time.strftime('%Y-%m-%d')}, {seconds:.0f} s on this machine).", "",
-             "Contract per case: exit 2, one `error: <file or option>: <problem>` line naming it, no traceback, "
-             "no hang (60 s), nothing written, inputs unchanged.", "",
+    import subprocess
+
+    def git(*a):
+        return subprocess.run(["git", "-C", str(REPO), *a], capture_output=True, text=True).stdout.strip()
+
+    dirty = [ln for ln in git("status", "--porcelain").splitlines() if "benchmarks/results/" not in ln]
+    options = "".join(f" --only '{g}'" for g in args.only or []) + (f" --match '{args.match}'" if args.match else "")
+    if args.work != DEFAULT_WORK:
+        options += f" --work {args.work}"
+    load = os.getloadavg()
+    lines = ["# Hostile-input sweep (issues 36, 54)", "",
+             f"Command: `python benchmarks/hostile_sweep.py{options}`"
+             f" at commit `{git('rev-parse', 'HEAD')}`{' (with uncommitted changes)' if dirty else ''}, "
+             f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {seconds:.0f} s on a shared 2-core machine "
+             f"(load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} at the end).", "",
+             "Contract per case: exit 2, one `error: <file or option>: <problem>` line naming it (needles looked for "
+             "with the folders the case passed cut out, a path the case passed as given; no empty needle, none the "
+             "work folder's path holds), "
+             "no traceback, no hang (60 s), stdout holding `note:` lines only, nothing written (the working folder "
+             "empty, the named outputs and absolute targets such as a dangling link's target absent), every input "
+             "(dataset, bundle, checkpoint, hostile copies) unchanged.", "",
              "| group | cases | per contract |", "|---|---:|---:|"]
     for g in per:
         lines.append(f"| {g} | {per[g]} | {per[g] - bad[g]} |")

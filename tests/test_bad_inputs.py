@@ -742,18 +742,26 @@ ROWS2 = [
 ]
 
 
-@pytest.mark.parametrize("row", ROWS2, ids=[r[0] for r in ROWS2])
-def test_bad_input_row_round_two(h, row, tmp_path):
+def check_row(x, row, tmp_path, quiet_stdout: bool = False) -> None:
+    """One row against the fixture `x` (with x.w the first round's): one error line naming the needles, nothing
+    written, every input of both fixtures unchanged; quiet_stdout: stdout holds `note:` lines only."""
     _, make_args, needles, outputs = row
     cwd = tmp_path / "cwd"
     cwd.mkdir()
-    before = snapshot(h.w.root), snapshot(h.root)
-    r = run_ago(make_args(h), cwd)
+    before = snapshot(x.w.root), snapshot(x.root)
+    r = run_ago(make_args(x), cwd)
     assert_one_error_line(r, *[str(n) for n in needles])
+    if quiet_stdout:
+        assert not [ln for ln in r.stdout.splitlines() if ln.strip() and not ln.startswith("note: ")], r.stdout
     assert not any(cwd.iterdir()), f"written into the working directory: {sorted(os.listdir(cwd))}"
     for rel in outputs:
         assert not (cwd / rel).exists()
-    assert (snapshot(h.w.root), snapshot(h.root)) == before, "an input changed"
+    assert (snapshot(x.w.root), snapshot(x.root)) == before, "an input changed"
+
+
+@pytest.mark.parametrize("row", ROWS2, ids=[r[0] for r in ROWS2])
+def test_bad_input_row_round_two(h, row, tmp_path):
+    check_row(h, row, tmp_path)
 
 
 def test_the_path_rule_allows_outside_only_when_asked(h, tmp_path):
@@ -858,3 +866,240 @@ def test_kill_9_during_infer_leaves_only_whole_files(h, tmp_path):
     assert r.returncode == 0, r.stderr
     assert len([p for p in out.glob("*.npz") if not p.name.startswith(".")]) == 2
     assert not [p.name for p in out.iterdir() if p.name.startswith(".") and ".tmp" in p.name]   # temp files gone
+
+
+# ------------------------------------------------------------------------------------ round three (issue 54)
+def _tampered_bundle(w, root: Path, name: str, change) -> Path:
+    """A copy of the tiny bundle with bundle.json changed by `change(meta, folder)`; the sha256 entries of the files
+    it rewrites are recomputed (a tamperer can), so only the values give it away."""
+    from ago_runtime.predict.bundle import file_sha256
+
+    d = shutil.copytree(w.bundle, root / name)
+    meta = json.loads((d / "bundle.json").read_text())
+    change(meta, d)
+    for entry in meta["files"].values():
+        p = d / entry["path"]
+        if p.is_file() and entry["sha256"] != "keep":
+            entry.update(sha256=file_sha256(p), size=p.stat().st_size)
+    (d / "bundle.json").write_text(json.dumps(meta))
+    return d
+
+
+def _npz_of_header(path: Path, shape: str, member: str = "semantics") -> Path:
+    """An npz whose one member is an .npy header declaring `shape` (uint8) and no data."""
+    import zipfile
+
+    header = ("{'descr': '|u1', 'fortran_order': False, 'shape': %s, }" % shape).encode()
+    header = header + b" " * (118 - len(header)) + b"\n"
+    with zipfile.ZipFile(path, "w") as z:
+        z.writestr(f"{member}.npy", b"\x93NUMPY\x01\x00" + len(header).to_bytes(2, "little") + header)
+    return path
+
+
+def _stage_of_other_widths(path: Path, a: int, b: int) -> None:
+    """A valid ONNX graph x (n, a) -> y (n, b): a voxel stage of another bundle."""
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+
+    graph = helper.make_graph([helper.make_node("MatMul", ["x", "W"], ["y"])], "other",
+                              [helper.make_tensor_value_info("x", TensorProto.FLOAT, ["n", a])],
+                              [helper.make_tensor_value_info("y", TensorProto.FLOAT, ["n", b])],
+                              [numpy_helper.from_array(np.zeros((a, b), np.float32), "W")])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    onnx.save(model, str(path))
+
+
+@pytest.fixture(scope="module")
+def r3(w, tmp_path_factory):
+    """Inputs of issue 54's cases: bundles tampered by value (hashes recomputed), checkpoints with configs out of
+    range, npz headers declaring huge dimensions over no data."""
+    pytest.importorskip("onnx")
+    import copy
+
+    import torch
+
+    root = tmp_path_factory.mktemp("hostile3")
+    x = types.SimpleNamespace(root=root, w=w)
+
+    def stage_swap(m, d):
+        st = m["voxel_stages"][0]
+        _stage_of_other_widths(d / m["files"][st["file"]]["path"], st["output_dim"], st["input_dim"])
+
+    for name, change in (
+        ("pre_huge", lambda m, d: m["preprocess"].update(width=10 ** 9)),
+        ("pre_zero", lambda m, d: m["preprocess"].update(height=0)),
+        ("std_zero", lambda m, d: m["preprocess"].update(std=[0.0, 0.224, 0.225])),
+        ("mean_nan", lambda m, d: m["preprocess"].update(mean=[float("nan"), 0.456, 0.406])),
+        ("hidden_huge", lambda m, d: m.update(hidden_dim=10 ** 9)),
+        ("grid_consistent_lie", lambda m, d: m["grid"].update(shape=[40, 40, 8], voxel_size=[2.0, 2.0, 0.8])),
+        ("rig_nan", lambda m, d: m["training_rig"]["cameras"][0]["intrinsics"][0].__setitem__(0, float("nan"))),
+        ("default_bank", lambda m, d: m.update(default_bank="nope")),
+        ("stage_swap", stage_swap),
+        ("planes_swap", lambda m, d: shutil.copy(d / m["files"][m["voxel_stages"][0]["file"]]["path"],
+                                                 d / m["files"]["planes"]["path"])),
+    ):
+        setattr(x, name, _tampered_bundle(w, root, name, change))
+    ck = torch.load(w.ckpt, weights_only=True)
+    for name, change in (
+        ("ck_hidden_huge", lambda c: c["model_config"].update(hidden_dim=10 ** 9)),
+        ("ck_grid_huge", lambda c: c["model_config"].update(grid={"range_min": [-40, -40, -1], "range_max": [40, 40, 5.4],
+                                                                  "voxel_size": [1e-4, 1e-4, 1e-4]})),
+        ("ck_rig_nan", lambda c: c["rig"]["cameras"][0]["intrinsics"][0].__setitem__(0, float("nan"))),
+        ("ck_rig_three", lambda c: c["rig"].update(cameras=c["rig"]["cameras"][:3])),
+    ):
+        c = copy.deepcopy(ck)
+        c.setdefault("rig", Rig.nuscenes_like(1600, 900).to_dict())   # the record a training run writes
+        change(c)
+        torch.save(c, root / f"{name}.pt")
+        setattr(x, name, root / f"{name}.pt")
+    x.huge_dims = _npz_of_header(root / "huge_dims.npz", "(0, 1000000000000, 100000)")
+    x.empty_grid = _npz_of_header(root / "empty_grid.npz", "(0, 0, 0)")
+    x.huge_names = _npz_of_header(root / "huge_names.npz", "(1000000000000,)", "class_names")
+    return x
+
+
+INFER3 = lambda r, b: ["infer", "--images", r.w.frame, "--bundle", b, "--out", "o"]   # noqa: E731
+
+ROWS3 = [
+    # 1. a bundle checked by value before any work (hashes recomputed by the tamperer)
+    ("bundle preprocess width 10^9", lambda r: INFER3(r, r.pre_huge), ["bundle.json: preprocess.width", "16384"], ["o"]),
+    ("bundle preprocess height 0", lambda r: INFER3(r, r.pre_zero), ["bundle.json: preprocess.height"], ["o"]),
+    ("bundle preprocess std 0", lambda r: INFER3(r, r.std_zero), ["bundle.json: preprocess.std", "> 0"], ["o"]),
+    ("bundle preprocess mean NaN", lambda r: INFER3(r, r.mean_nan), ["bundle.json: preprocess.mean", "finite"], ["o"]),
+    ("bundle hidden_dim 10^9", lambda r: INFER3(r, r.hidden_huge), ["bundle.json: hidden_dim"], ["o"]),
+    ("bundle training_rig NaN", lambda r: INFER3(r, r.rig_nan), ["bundle.json: training_rig", "NaN"], ["o"]),
+    ("bundle default_bank not a bank", lambda r: INFER3(r, r.default_bank), ["bundle.json: default_bank"], ["o"]),
+    ("bundle grid that is not the graphs'", lambda r: INFER3(r, r.grid_consistent_lie),
+     ["planes.onnx: planes", "plane_xy", "40, 40"], ["o"]),
+    ("bundle voxel stage of other widths", lambda r: INFER3(r, r.stage_swap), ["voxels_0.onnx: voxel_stages[0]"], ["o"]),
+    ("bundle planes swapped for a stage", lambda r: ["retrieve", "--images", r.w.frame, "--phrase", "car", "--bundle",
+                                                     r.planes_swap, "--out", "o"], ["planes.onnx: planes", "inputs"], ["o"]),
+    # ... and a checkpoint's config
+    ("checkpoint hidden_dim 10^9", lambda r: ["export", r.ck_hidden_huge, "-o", "b", "--no-real-frame"],
+     ["ck_hidden_huge.pt: model_config", "hidden_dim"], ["b"]),
+    ("checkpoint grid of 10^12 voxels", lambda r: ["eval", "--ckpt", r.ck_grid_huge, "--data", r.w.data, "--split",
+                                                   "all", "--out", "o"], ["ck_grid_huge.pt: model_config", "model.grid"],
+     ["o"]),
+    ("checkpoint rig NaN", lambda r: ["export", r.ck_rig_nan, "-o", "b", "--no-real-frame"], ["ck_rig_nan.pt: rig", "NaN"],
+     ["b"]),
+    ("checkpoint rig of 3 cameras", lambda r: ["train", "--config", "tiny", "--out", "o", "--set",
+                                               f'init_from="{r.ck_rig_three}"', *TRAIN(r.w)],
+     ["ck_rig_three.pt: rig", "num_cameras"], ["o"]),
+    # 2. free text bounded
+    ("export --card-note of 400 characters", lambda r: ["export", r.w.ckpt, "-o", "b", "--no-real-frame", "--card-note",
+                                                        "n" * 400], ["--card-note", "at most 300"], ["b"]),
+    ("export --card-note of two lines", lambda r: ["export", r.w.ckpt, "-o", "b", "--no-real-frame", "--card-note",
+                                                   "a\nb"], ["--card-note", "control character"], ["b"]),
+    ("infer --sample of 5000 characters", lambda r: ["infer", "--images", r.w.data, "--sample", "t" * 5000, "--bundle",
+                                                     r.w.bundle, "--out", "o"], ["--sample", "at most 300"], ["o"]),
+    ("pseudo-labels --split with an escape", lambda r: ["pseudo-labels", "--data", r.w.data, "--out", "o", "--split",
+                                                        "all\x1b[2J"], ["--split", "control character"], ["o"]),
+    ("eval --out of 6000 characters", lambda r: ["eval", "--ckpt", r.w.ckpt, "--data", r.w.data, "--out", "d/" * 3000],
+     ["--out", "at most 4096"], []),
+    ("show PATH of 6000 characters", lambda r: ["show", "d/" * 3000, "--out", "o.png"], ["PATH", "at most 4096"],
+     ["o.png"]),
+    # 3. headers before data
+    ("show an npz declaring (0, 10^12, 10^5)", lambda r: ["show", r.huge_dims, "--out", "o.png"],
+     ["huge_dims.npz: semantics.npy", "declares shape"], ["o.png"]),
+    ("show an npz of an empty grid", lambda r: ["show", r.empty_grid, "--out", "o.png"],
+     ["empty_grid.npz", "empty grid"], ["o.png"]),
+    ("show an npz declaring 10^12 class names", lambda r: ["show", r.huge_names, "--out", "o.png"],
+     ["huge_names.npz: class_names.npy", "declares shape"], ["o.png"]),
+    # 4. degenerate values refused with the minimum; options that do not apply refused
+    ("synth --grid 1x1x1", lambda r: ["synth", "--grid", "1x1x1", "--out", "o", "--scenes", "1", "--frames", "1"],
+     ["--grid", "1x1x1", "20x20x4"], ["o"]),
+    ("synth --grid 20x20x3", lambda r: ["synth", "--grid", "20x20x3", "--out", "o"], ["--grid", "20x20x4"], ["o"]),
+    ("pseudo-labels --grid 10x10x2", lambda r: ["pseudo-labels", "--data", r.w.data, "--out", "o", "--grid", "10x10x2"],
+     ["--grid", "20x20x4"], ["o"]),
+    ("show FILE --sample x", lambda r: ["show", r.w.gt, "--sample", "x", "--out", "o.png"],
+     ["--sample", "does not apply to a labels file"], ["o.png"]),
+    ("show FILE --index 0", lambda r: ["show", r.w.gt, "--index", "0", "--out", "o.png"], ["--index", "does not apply"],
+     ["o.png"]),
+    ("show DATASET --gt FILE", lambda r: ["show", r.w.data, "--index", "0", "--gt", r.w.gt, "--out", "o.png"],
+     ["--gt", "does not apply to a dataset folder"], ["o.png"]),
+    ("show DATASET --view bev", lambda r: ["show", r.w.data, "--index", "0", "--view", "bev", "--out", "o.png"],
+     ["--view", "does not apply"], ["o.png"]),
+    ("infer an images folder --allow-outside-root", lambda r: ["infer", "--images", r.w.frame, "--allow-outside-root",
+                                                               "--bundle", r.w.bundle, "--out", "o"],
+     ["--allow-outside-root", "images folder"], ["o"]),
+    ("infer --prompts and --bank", lambda r: ["infer", "--images", r.w.frame, "--prompts", "cw", "--bank", "train",
+                                              "--bundle", r.w.bundle, "--out", "o"], ["--bank", "not both"], ["o"]),
+]
+
+
+@pytest.mark.parametrize("row", ROWS3, ids=[r[0] for r in ROWS3])
+def test_bad_input_row_round_three(r3, row, tmp_path):
+    check_row(r3, row, tmp_path, quiet_stdout=True)
+
+
+def test_min_model_grid_is_the_tiny_presets():
+    """The minimum `--grid` comes from the presets (ago_train.model.config.min_model_grid), not a constant."""
+    pytest.importorskip("torch")
+    from ago_train.model.config import ModelConfig, min_model_grid
+
+    assert min_model_grid() == ModelConfig.preset("tiny").grid_obj().shape == (20, 20, 4)
+
+
+def test_progress_bars_only_on_a_terminal(w, tmp_path, monkeypatch):
+    """With stderr redirected to a file, a verb that draws a bar and then fails leaves exactly its one error line
+    (AGO_NO_PROGRESS unset); progress_enabled is False for a non-terminal stream."""
+    import subprocess
+    import sys
+
+    from ago_runtime import progress
+
+    monkeypatch.delenv("AGO_NO_PROGRESS", raising=False)
+    monkeypatch.setattr(sys, "stderr", io.StringIO())
+    assert not progress.progress_enabled()
+    pred = tmp_path / "pred"                      # the GT's frames, the last one's prediction broken
+    shutil.copytree(w.data / "gts", pred)
+    last = sorted(pred.glob("*/*/labels.npz"))[-1]
+    last.write_bytes(last.read_bytes()[:100])
+    env = {k: v for k, v in os.environ.items() if k != "AGO_NO_PROGRESS"}
+    env["PYTHONPATH"] = str(Path(__file__).resolve().parents[1]) + os.pathsep + env.get("PYTHONPATH", "")
+    log = tmp_path / "stderr.log"
+    with open(log, "w") as f:
+        rc = subprocess.run([sys.executable, "-m", "ago_runtime.cli", "metric", "--pred", str(pred), "--gt",
+                             str(w.data / "gts")], stdout=subprocess.DEVNULL, stderr=f, env=env, timeout=120).returncode
+    lines = log.read_text().splitlines()
+    assert rc == 2 and len(lines) == 1 and lines[0].startswith("error: ") and "labels.npz" in lines[0], lines
+
+
+def test_graph_signature_check_names_the_graph(w):
+    """check_graph compares an opened session's inputs and outputs with the contract's signature, without running it."""
+    from ago_runtime.predict.bundle import Bundle
+    from ago_runtime.predict.contract import check_graph, planes_signature, stage_signature
+    import onnxruntime as ort
+
+    b = Bundle.load(w.bundle)
+    c = b.contract
+    planes = ort.InferenceSession(str(b.file("planes").path), providers=["CPUExecutionProvider"])
+    sig = planes_signature(len(c.rig.cameras), b.preprocess.height, b.preprocess.width, b.grid.shape,
+                           c.voxel_stages[0].input_dim)
+    check_graph(planes, sig, "planes.onnx", "planes")           # the bundle's own graph fits
+    with pytest.raises(Exception, match="planes.onnx: voxel_stages\\[0\\]: graph inputs"):
+        check_graph(planes, stage_signature(c.voxel_stages[0]), "planes.onnx", "voxel_stages[0]")
+    bigger = planes_signature(len(c.rig.cameras), b.preprocess.height, b.preprocess.width,
+                              tuple(2 * n for n in b.grid.shape), c.voxel_stages[0].input_dim)
+    with pytest.raises(Exception, match="plane_xy"):
+        check_graph(planes, bigger, "planes.onnx", "planes")
+
+
+def test_option_bounds_are_one_rule_for_every_verb():
+    """ago_runtime.cli.option_problem: names and notes at most 300 characters, paths 4096, no control characters
+    except JSON white space in --set, checked on every value (options and arguments) before the verb runs."""
+    import typer.main
+
+    from ago_runtime.cli import build_app, option_problem
+
+    def problem(args):
+        return option_problem(typer.main.get_command(build_app(args[0])), args)
+
+    assert problem(["train", "--set", 'model.grid={\n"shape": [20, 20, 4]}', "--out", "o"]) is None
+    assert problem(["train", "--set", "epochs=1\x00", "--out", "o"]) == ("--set", "holds the control character '\\x00'")
+    assert problem(["export", "x.pt", "-o", "b", "--card-note", "n" * 300]) is None
+    assert problem(["export", "x.pt", "-o", "b", "--card-note", "n" * 301])[0] == "--card-note"
+    assert problem(["show", "p" * 4096, "--out", "o.png"]) is None
+    assert problem(["show", "p" * 4097, "--out", "o.png"]) == ("PATH", "is 4097 characters long (at most 4096)")
+    assert problem(["show", "x.npz", "--out=" + " "]) == ("--out", "is empty")

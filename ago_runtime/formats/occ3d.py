@@ -7,14 +7,13 @@ The masks are stored as uint8 0/1 and must be used as bool.
 
 from __future__ import annotations
 
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ago_runtime.atomic import save_npz
-from ago_runtime.readers import check_npz, read_npz
+from ago_runtime.readers import open_npz, read_npz
 from ago_runtime.errors import AgoInputError
 
 KEYS = ("semantics", "mask_lidar", "mask_camera")
@@ -66,21 +65,15 @@ def load_semantics(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
     Raises AgoInputError naming the file for anything unreadable or malformed.
     """
     path = Path(path)
-    if not path.is_file():
-        raise AgoInputError(path, "file not found")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            check_npz(path, z)
-            if "semantics" not in z.files:
-                raise AgoInputError(path, f"no 'semantics' array (found {sorted(z.files)})")
-            sem = np.asarray(z["semantics"])
-            mask = np.asarray(z["mask_camera"]) if "mask_camera" in z.files else None
-    except AgoInputError:
-        raise
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as e:
-        raise AgoInputError(path, f"not a readable npz file ({e.__class__.__name__}: {e})") from None
+    with open_npz(path, "labels file") as z:
+        if "semantics" not in z.files:
+            raise AgoInputError(path, f"no 'semantics' array (found {sorted(z.files)})")
+        sem = np.asarray(z["semantics"])
+        mask = np.asarray(z["mask_camera"]) if "mask_camera" in z.files else None
     if sem.ndim != 3:
         raise AgoInputError(path, f"'semantics' must be a 3-D (X, Y, Z) array, got shape {sem.shape}")
+    if sem.size == 0:
+        raise AgoInputError(path, f"'semantics' is an empty grid {sem.shape}")
     if not np.issubdtype(sem.dtype, np.integer):
         raise AgoInputError(path, f"'semantics' must hold integer labels, got dtype {sem.dtype}")
     if sem.size and (sem.min() < 0 or sem.max() > 255):

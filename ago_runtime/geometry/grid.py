@@ -6,9 +6,12 @@ voxel (i, j, k) has its centre at range_min + voxel_size * (index + 0.5).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
+
+MAX_GRID_VOXELS = 1 << 25      # a model's or bundle's grid of more voxels than this is refused (Occ3D: 640 k)
 
 
 @dataclass(frozen=True)
@@ -88,3 +91,31 @@ class Grid:
     def from_dict(cls, d: dict) -> "Grid":
         return cls(tuple(map(float, d["range_min"])), tuple(map(float, d["range_max"])),
                    tuple(map(float, d["voxel_size"])))
+
+
+def check_grid_dict(grid, source, key: str = "model.grid") -> None:
+    """A grid section (Grid.to_dict: range_min, range_max, voxel_size, [shape]) that makes a grid of
+    1 .. MAX_GRID_VOXELS voxels, with a stated shape that agrees; else AgoInputError(source, "<key>: problem").
+    The one rule for a training config's model.grid and bundle.json's grid / model_grid."""
+    from ago_runtime.errors import AgoInputError
+
+    need = ("range_min", "range_max", "voxel_size")
+    if not isinstance(grid, dict) or any(k not in grid for k in need):
+        raise AgoInputError(source, f"{key} needs {', '.join(need)} (3 numbers each), got {str(grid)[:120]}")
+    try:
+        values = [[float(v) for v in grid[k]] for k in need]
+        if any(len(v) != 3 or not all(math.isfinite(x) for x in v) for v in values):
+            raise ValueError
+    except (TypeError, ValueError):
+        raise AgoInputError(source, f"{key}: {', '.join(need)} must be 3 finite numbers each") from None
+    lo, hi, size = values
+    if min(size) <= 0 or any(b <= a for a, b in zip(lo, hi)):
+        raise AgoInputError(source, f"{key}: voxel sizes must be > 0 and range_max above range_min")
+    if any((b - a) / s > MAX_GRID_VOXELS for a, b, s in zip(lo, hi, size)):
+        raise AgoInputError(source, f"{key}: more than {MAX_GRID_VOXELS} voxels along an axis")
+    shape = Grid(tuple(lo), tuple(hi), tuple(size)).shape
+    if min(shape) < 1 or math.prod(shape) > MAX_GRID_VOXELS:
+        raise AgoInputError(source, f"{key}: {list(shape)} voxels (1 to {MAX_GRID_VOXELS} in all)")
+    stated = grid.get("shape")
+    if stated is not None and (not isinstance(stated, (list, tuple)) or list(stated) != list(shape)):
+        raise AgoInputError(source, f"{key}: shape {str(stated)[:60]} does not match range and voxel size ({list(shape)})")

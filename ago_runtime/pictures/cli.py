@@ -22,7 +22,7 @@ import numpy as np
 import typer
 
 from ago_runtime.classes import FREE, OCC3D_CLASSES, OCC3D_COLORS, ClassTable, load_class_table
-from ago_runtime.errors import AgoInputError
+from ago_runtime.errors import AgoInputError, refuse_unused
 from ago_runtime.formats.occ3d import load_semantics
 from ago_runtime.formats.occ3d_waymo import is_waymo_file, load_ground_truth
 from ago_runtime.scoring.metric import to_gt_resolution
@@ -38,7 +38,7 @@ def register(app: typer.Typer) -> None:
                                           "--html also a GT folder holding <token>/labels.npz)"),
         html: Optional[Path] = typer.Option(None, "--html", help="also write an interactive 3-D page (one "
                                             "self-contained .html file, no network needed)"),
-        view: str = typer.Option("both", "--view", help="bev | voxels | both"),
+        view: Optional[str] = typer.Option(None, "--view", help="bev | voxels | both (default both; a grid only)"),
         sample: Optional[str] = typer.Option(None, "--sample", help="dataset folder: sample token"),
         index: Optional[int] = typer.Option(None, "--index", help="dataset folder: sample index"),
         use_mask: Optional[bool] = typer.Option(None, "--mask/--no-mask",
@@ -52,10 +52,17 @@ def register(app: typer.Typer) -> None:
 
         from ago_runtime.outputs import check_output_file, check_suffix
 
-        if view not in ("bev", "voxels", "both"):
+        if view is not None and view not in ("bev", "voxels", "both"):
             raise AgoInputError("--view", f"must be bev, voxels or both, got {view!r}")
         if not path.exists():
             raise AgoInputError(path, "not found (give a labels .npz or a dataset folder)")
+        if path.is_dir():
+            refuse_unused({"--gt": gt, "--view": view, "--mask/--no-mask": use_mask, "--classes": classes},
+                          f"a dataset folder ({path}); it draws a sample's cameras")
+        else:
+            refuse_unused({"--sample": sample, "--index": index}, f"a labels file ({path.name}); they pick a "
+                          "sample of a dataset folder")
+        view = view or "both"
         if html is not None:
             from ago_runtime.pictures.html_viewer import HTML_SUFFIXES
 
@@ -175,9 +182,11 @@ def prediction_table(path: Path) -> ClassTable | None:
     class_names, class_colors: its dense order, free last; html_viewer.recorded_table), else None."""
     from ago_runtime.pictures.html_viewer import recorded_table
 
+    from ago_runtime.readers import open_npz
+
     if not path.is_file():
         return None
-    with np.load(path, allow_pickle=False) as z:
+    with open_npz(path, "prediction file") as z:
         arrays = {k: z[k] for k in ("class_table", "class_names", "class_colors") if k in z.files}
     return recorded_table(arrays, path)
 

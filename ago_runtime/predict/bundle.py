@@ -25,13 +25,14 @@ the preprocessing, the camera rig, and the sha256 of every file. Layout (format 
 
 `Bundle.load(dir)` refuses (AgoInputError naming the file) a missing folder or file, another format
 version (older ones with the `ago export` command that re-exports them), a file whose sha256 or size
-differs from bundle.json, heads of the wrong shapes.
+differs from bundle.json, heads of the wrong shapes or widths or holding NaN / inf, and any field of
+bundle.json out of its range (`BundleContract.check_values`); each graph's inputs and outputs are checked
+against the contract when it is opened (`contract.check_graph`).
 """
 
 from __future__ import annotations
 
 import os
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -45,7 +46,7 @@ from ago_runtime.paths import inside_root
 from ago_runtime.predict.contract import (BUNDLE_FORMAT, BUNDLE_FORMAT_VERSION, BUNDLE_JSON, BundleContract,  # noqa: F401
                                           Identifier, check_bank_fits, file_sha256)
 from ago_runtime.predict.heads import HeadWeights
-from ago_runtime.readers import check_npz, read_json
+from ago_runtime.readers import open_npz, read_json
 
 CARD_FILE = "card.json"          # written by ago_export/card.py
 ENV_BUNDLE = "AGO_BUNDLE"
@@ -153,16 +154,10 @@ class Bundle:
             raise AgoInputError(root, "bundle folder not found")
         meta_path = root / BUNDLE_JSON
         meta = read_json(meta_path, missing="not an ago bundle (no bundle.json)")
-        contract = BundleContract.from_dict(meta, meta_path)
-        try:
-            grid = Grid.from_dict(contract.grid)
-            pre = Preprocess.from_dict(contract.preprocess)
-            rig = Rig.from_dict(contract.training_rig)
-        except (KeyError, TypeError, ValueError, AttributeError, AgoInputError) as e:
-            raise AgoInputError(meta_path, f"bundle metadata incomplete or malformed ({e.__class__.__name__}: {e})") from None
-        _check_meta_sizes(contract, grid, meta_path)
-        rig.validate(str(meta_path))
-        rig = rig.ordered_as(contract.rig.names, meta_path)   # the training rig's cameras are the rig section's
+        contract = BundleContract.from_dict(meta, meta_path)   # every field checked by value (check_values)
+        grid = Grid.from_dict(contract.grid)
+        pre = Preprocess.from_dict(contract.preprocess)
+        rig = Rig.from_dict(contract.training_rig).ordered_as(contract.rig.names, meta_path)
         for key, entry in contract.files.items():
             p = inside_root(root, entry.path, meta_path, f"bundle file {key!r}")
             if not p.is_file():
@@ -179,6 +174,7 @@ class Bundle:
                 raise AgoInputError(p, f"bundle bank {name!r} is missing")
         card = read_json(root / CARD_FILE, expect=dict) if (root / CARD_FILE).is_file() else None
         bundle = cls(root, contract, grid, pre, rig, heads, banks, card)
+        check_heads_fit_contract(bundle)
         if "train" in banks:   # the label space bundle.json states is the training bank's
             names = bundle.load_bank("train").class_names
             if names != bundle.trained_classes:
@@ -187,34 +183,12 @@ class Bundle:
         return bundle
 
 
-MAX_BUNDLE_VOXELS = 1 << 25     # 33 M voxels (Occ3D's 200x200x16 is 640 k)
-
-
-def _check_meta_sizes(contract: BundleContract, grid: Grid, meta_path: Path) -> None:
-    """Refuse, before any array is made, a grid in bundle.json that does not agree with itself or could not be
-    allocated (the class list and the embedding width are bounded by BundleContract.from_dict)."""
-    stated = contract.grid.get("shape")
-    shape = grid.shape
-    if min(grid.voxel_size) <= 0 or min(shape) <= 0:
-        raise AgoInputError(meta_path, f"grid has {shape} voxels of {grid.voxel_size} m")
-    if stated is not None and list(stated) != list(shape):
-        raise AgoInputError(meta_path, f"grid shape {stated} does not match its range / voxel size ({list(shape)})")
-    if grid.num_voxels > MAX_BUNDLE_VOXELS:
-        raise AgoInputError(meta_path, f"grid of {grid.num_voxels} voxels, more than ago predicts ({MAX_BUNDLE_VOXELS})")
-
-
 def _load_heads(path: Path, dim: int) -> HeadWeights:
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            check_npz(path, z)
-            arrays = {k: np.asarray(z[k], dtype=np.float32) for k in HeadWeights.KEYS}
-            scales = np.asarray(z["branch_scales"], dtype=np.float32) if "branch_scales" in z.files else None
-            stats = {k: np.asarray(z[k], dtype=np.float32) for k in ("adapted_mean", "adapted_cov") if k in z.files}
-            free_bias = np.asarray(z["free_bias"], dtype=np.float32) if "free_bias" in z.files else None
-    except KeyError as e:
-        raise AgoInputError(path, f"heads file lacks array {e}") from None
-    except (ValueError, OSError, zipfile.BadZipFile, EOFError) as e:
-        raise AgoInputError(path, f"not a readable heads .npz ({e.__class__.__name__}: {e})") from None
+    with open_npz(path, "heads .npz") as z:
+        arrays = {k: np.asarray(z[k], dtype=np.float32) for k in HeadWeights.KEYS}
+        scales = np.asarray(z["branch_scales"], dtype=np.float32) if "branch_scales" in z.files else None
+        stats = {k: np.asarray(z[k], dtype=np.float32) for k in ("adapted_mean", "adapted_cov") if k in z.files}
+        free_bias = np.asarray(z["free_bias"], dtype=np.float32) if "free_bias" in z.files else None
     w = HeadWeights(**arrays)
     C = dim
     ok = (w.W_dec.ndim == 2 and w.W_dec.shape[0] == C and w.b_dec.shape == (C,) and w.W_ad.ndim == 2
@@ -266,7 +240,7 @@ def card_line(bundle: Bundle) -> str:
     return f"bundle: {bundle.root} has no bundle card (card.json){known}: what it was trained on is not recorded"
 
 
-def check_heads_fit_encoder(bundle: Bundle, encoder) -> None:
+def check_heads_fit_contract(bundle: Bundle) -> None:
     """Refuse, naming heads.npz, heads whose hidden widths differ from the bundle's (h: Dh, g: Da)."""
     dh, da = bundle.contract.hidden_dim, bundle.contract.adapted_dim
     h = bundle.heads

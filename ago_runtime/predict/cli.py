@@ -42,7 +42,7 @@ def choose_bank(bundle, prompts: Optional[str], bank: Optional[str]):
     from ago_runtime.vocab.prompts import parse_prompt_file
 
     if prompts and bank:
-        raise AgoInputError(None, "give --prompts or --bank, not both")
+        raise AgoInputError("--bank", "give --prompts or --bank, not both")
     if bank:
         if Path(bank).is_file():
             return check_bank_for_bundle(PromptBank.load(bank), bank, bundle)
@@ -103,9 +103,10 @@ def open_frames(images: Path, sample, info: Optional[Path], fallback_rig, skip=N
                 f = ds[i]
                 yield f.token, f.images, f.rig, str(images)
         return len(indices), dataset_frames()
-    if wanted or shard is not None:
-        raise AgoInputError("--sample" if wanted else "--shard", f"{images} is an images folder (one frame), "
-                                                                "not a dataset")
+    if wanted or shard is not None or allow_outside_root:
+        option = "--sample" if wanted else "--shard" if shard is not None else "--allow-outside-root"
+        raise AgoInputError(option, f"{images} is an images folder (one frame), not a dataset: the option does not "
+                                    "apply to it")
     find_camera_images(images, fallback_rig.names if fallback_rig is not None else CAMERA_NAMES)   # inside a dataroot: named
 
     def folder_frame():
@@ -144,17 +145,14 @@ def frame_is_whole(out: Path, name: str, key: str, grid_shape, picture: str) -> 
     every array of the npz reads (zip CRCs checked), `run_key` is `key`, `semantics` has the grid's shape;
     the PNG has its signature and end chunk and decodes. Checked, not trusted by name. `ago infer` writes the
     PNG before the npz, so a whole npz of this key means its PNG was written too."""
-    import zipfile
-
     import cv2
 
-    from ago_runtime.readers import check_npz
+    from ago_runtime.readers import open_npz
 
     try:
-        with np.load(out / f"{name}.npz", allow_pickle=False) as z:
-            check_npz(out / f"{name}.npz", z)
+        with open_npz(out / f"{name}.npz") as z:
             arrays = {k: z[k] for k in z.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, AgoInputError):
+    except AgoInputError:
         return False
     if str(arrays.get("run_key", "")) != key or tuple(arrays["semantics"].shape) != tuple(grid_shape):
         return False
@@ -257,7 +255,6 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
         raise AgoInputError("--int8", f"the int8 graphs run on the CPU only, not --device {device.value}")
     check_output_dir(out, "--out")   # before any work
     b = Bundle.load(resolve_bundle(bundle))
-    typer.echo(card_line(b))   # stdout: information; stderr keeps only warnings and the one error line
     chosen = choose_bank(b, prompts, bank)   # checked against the bundle here, once
     identifier = identifier or b.identifier_for(chosen)   # none for a closed-world bank
     key = run_key(b, chosen, identifier, picture, save_volumes, int8, device.value, precision.value, html)
@@ -279,12 +276,23 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
         typer.echo(f"resuming: {len(kept)} frames already whole in {out} (same bundle, bank and settings), "
                    f"{count} to predict")
     if count == 0:
+        typer.echo(card_line(b))
         return []
     pipeline = FramePipeline(b, chosen, identifier, volumes=save_volumes, int8=int8, warm_up=warm_up,
                              workers=int(workers) if workers is not None else None, device=device.value,
                              precision=precision.value)
-    return pipeline.run((PipelineFrame(*frame) for frame in frames),
-                        infer_writer(out, key, picture, save_volumes, html), total=count)
+    write = infer_writer(out, key, picture, save_volumes, html)
+    card_said = []
+
+    def write_after_card_line(*args):
+        # stdout: information, once every input is checked (the graphs' signatures when the pipeline opens them);
+        # stderr keeps only warnings and the one error line
+        if not card_said:
+            typer.echo(card_line(b))
+            card_said.append(True)
+        return write(*args)
+
+    return pipeline.run((PipelineFrame(*frame) for frame in frames), write_after_card_line, total=count)
 
 
 def register(app: typer.Typer) -> None:

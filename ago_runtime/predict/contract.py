@@ -16,6 +16,11 @@
       voxel_stages     VoxelStageSpec per ONNX graph of the per-voxel MLP after the planes
       hidden_dim, adapted_dim          widths of h (main branch) and g (adapted branch)
 
+`BundleContract.from_dict` checks every field by value (`check_values`: sizes, mean / std, grids, widths,
+the training rig, sha256 entries), so a bundle whose hashes were recomputed after tampering is still refused
+before any work; the graphs' inputs and outputs are the contract's (`planes_signature`, `stage_signature`),
+checked when a graph is opened (`check_graph`, from ago_runtime/predict/encoder.py).
+
 Also here: the identifier names (`Identifier`), the two branches (`Branch`), the compatibility of a
 prompt bank with a bundle (`check_bank_fits`: text encoder id and width, class count) and of a frame's
 cameras with the rig (`RigSpec.check_cameras`).
@@ -23,23 +28,29 @@ cameras with the rig (`RigSpec.check_cameras`).
 
 from __future__ import annotations
 
+import math
+import re
 from dataclasses import asdict, dataclass, field
 from enum import Enum
 
 from ago_runtime.classes import OCC3D_NUSCENES, ClassTable, table_from_ref, table_record
 from ago_runtime.errors import AgoInputError
-from ago_runtime.geometry.camera import check_camera_names
+from ago_runtime.geometry.camera import Rig, check_camera_names
+from ago_runtime.geometry.grid import check_grid_dict
 from ago_runtime.vocab.text_encoder import file_sha256
 
 __all__ = ["BUNDLE_FORMAT", "BUNDLE_FORMAT_VERSION", "BUNDLE_JSON", "Identifier", "Branch", "FileEntry",
            "VoxelStageSpec", "CameraSlot", "RigSpec", "TextEncoderSpec", "LabelClass", "LabelSpaceSpec",
-           "BundleContract", "check_bank_fits", "file_sha256", "reexport_hint"]
+           "BundleContract", "TensorSpec", "planes_signature", "planes_width", "stage_signature", "check_graph",
+           "check_bank_fits", "file_sha256", "reexport_hint"]
 
 BUNDLE_FORMAT = "ago-bundle"
 BUNDLE_FORMAT_VERSION = 4
 BUNDLE_JSON = "bundle.json"
 MAX_VOXEL_STAGES = 16           # an exported decoder has 1-4
-MAX_EMBED_DIM = 8192
+MAX_EMBED_DIM = 8192            # a text embedding's or a hidden layer's width
+MAX_IMAGE_SIDE = 16384          # a model input image's side (pixels)
+FLOAT_TENSOR = "tensor(float)"  # onnxruntime's name of a float32 graph input / output
 REBUILD_BANK = "rebuild it with `ago prompts build <prompt file> -o BANK`"
 
 
@@ -93,6 +104,65 @@ def _need(d: dict, key: str, kind, what: str):
     if kind is not None and not isinstance(value, kind) or isinstance(value, bool) and kind is int:
         raise ValueError(f"{what}.{key} must be {getattr(kind, '__name__', kind)}, got {value!r}")
     return value
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _finite_numbers(v, n: int) -> bool:
+    return (isinstance(v, list) and len(v) == n and all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                                                         and math.isfinite(x) for x in v))
+
+
+@dataclass(frozen=True)
+class TensorSpec:
+    """One input or output of a bundle graph as the contract states it: its name and shape, each axis an int
+    (that size), "n" (a dynamic axis, any size at run time) or None (not stated). Every one is float32."""
+
+    name: str
+    shape: tuple
+
+    def show(self) -> str:
+        return f"{self.name} [{', '.join('?' if d is None else str(d) for d in self.shape)}]"
+
+
+def planes_signature(cameras: int | None, height: int | None, width: int | None, grid_shape, planes_width: int):
+    """planes.onnx: images (1,V,3,H,W) + ego2img (1,V,4,4) -> plane_xy (X,Y,Dh), plane_xz (X,Z,Dh), plane_yz (Y,Z,Dh)."""
+    X, Y, Z = grid_shape
+    return ([TensorSpec("images", (1, cameras, 3, height, width)), TensorSpec("ego2img", (1, cameras, 4, 4))],
+            [TensorSpec("plane_xy", (X, Y, planes_width)), TensorSpec("plane_xz", (X, Z, planes_width)),
+             TensorSpec("plane_yz", (Y, Z, planes_width))])
+
+
+def planes_width(stages: "list[VoxelStageSpec]", hidden_dim: int) -> int:
+    """Dh of the planes: the first decoder stage's input width, or h's width when the decoder has no stage."""
+    main = [s for s in stages if s.branch == Branch.MAIN]
+    return main[0].input_dim if main else int(hidden_dim)
+
+
+def stage_signature(spec: "VoxelStageSpec"):
+    """voxels_<i>.onnx: x (n, input_dim) -> y (n, output_dim)."""
+    return [TensorSpec("x", ("n", spec.input_dim))], [TensorSpec("y", ("n", spec.output_dim))]
+
+
+def check_graph(session, signature, path, what: str) -> None:
+    """The inputs and outputs of an opened graph (onnxruntime session; nothing run) against `signature`
+    (planes_signature / stage_signature): names in order, float32, the stated sizes and dynamic axes; else
+    AgoInputError(path, "<what>: ..."), so that a graph swapped for another is refused by name."""
+    for kind, have, want in (("inputs", session.get_inputs(), signature[0]), ("outputs", session.get_outputs(), signature[1])):
+        names = [t.name for t in have]
+        if names != [t.name for t in want]:
+            raise AgoInputError(path, f"{what}: graph {kind} {names[:6]}, the contract says {[t.name for t in want]} "
+                                "(a graph of another part or bundle?)")
+        for t, w in zip(have, want):
+            shape = list(t.shape or [])
+            fits = len(shape) == len(w.shape) and all(
+                e is None or (not _is_int(d) if e == "n" else d == e) for d, e in zip(shape, w.shape))
+            if t.type != FLOAT_TENSOR or not fits:
+                got = f"{t.name} [{', '.join(str(d) for d in shape)}] {t.type}"
+                raise AgoInputError(path, f"{what}: graph {kind[:-1]} {got}, the contract says {w.show()} float32 "
+                                    "(a graph of another part or bundle?)")
 
 
 @dataclass
@@ -321,10 +391,65 @@ class BundleContract:
                 model=meta.get("model") or {}, parity=meta.get("parity") or {},
                 ago_version=str(meta.get("ago_version", "")), created_utc=str(meta.get("created_utc", "")),
                 rig_source=str(meta.get("rig_source", "")), format_version=version)
-            contract.check_stages()
         except (KeyError, TypeError, ValueError, AttributeError) as e:
             raise AgoInputError(source, f"bundle metadata incomplete or malformed ({e.__class__.__name__}: {e})") from None
+        contract.check_values(source)
+        try:
+            contract.check_stages()
+        except ValueError as e:
+            raise AgoInputError(source, f"voxel_stages: {e}") from None
         return contract
+
+    def check_values(self, source) -> None:
+        """Every field by value, before any work (a manifest whose hashes were recomputed proves nothing about its
+        values): grids (check_grid_dict), preprocess sizes 1..MAX_IMAGE_SIDE with a canvas within the array
+        bound, mean / std 3 finite numbers and std > 0, widths 1..MAX_EMBED_DIM, the training rig's calibration
+        (Camera.validate) with the rig's cameras, the default bank listed, sha256 entries of 64 hex digits.
+        AgoInputError(source, "<field>: <problem>")."""
+        from ago_runtime.readers import max_array_bytes
+
+        def bad(where: str, problem: str):
+            raise AgoInputError(source, f"{where}: {problem}")
+
+        check_grid_dict(self.grid, source, "grid")
+        check_grid_dict(self.model_grid, source, "model_grid")
+        pre = self.preprocess
+        for key in ("width", "height"):
+            v = pre.get(key)
+            if not _is_int(v) or not 1 <= v <= MAX_IMAGE_SIDE:
+                bad(f"preprocess.{key}", f"must be an integer 1..{MAX_IMAGE_SIDE} (pixels), got {str(v)[:40]}")
+        canvas = len(self.rig.cameras) * 3 * pre["width"] * pre["height"] * 4
+        if canvas > max_array_bytes():
+            bad("preprocess", f"{pre['width']}x{pre['height']} images of {len(self.rig.cameras)} cameras make a "
+                f"{canvas}-byte input, more than ago allocates ({max_array_bytes()}; $AGO_MAX_ARRAY_BYTES)")
+        for key in ("mean", "std"):
+            if not _finite_numbers(pre.get(key), 3):
+                bad(f"preprocess.{key}", f"must be 3 finite numbers, got {str(pre.get(key))[:60]}")
+        if min(pre["std"]) <= 0:
+            bad("preprocess.std", f"must be > 0 (every pixel is divided by it), got {pre['std']}")
+        for key in ("hidden_dim", "adapted_dim"):
+            if not 1 <= getattr(self, key) <= MAX_EMBED_DIM:
+                bad(key, f"must be an integer 1..{MAX_EMBED_DIM}, got {getattr(self, key)}")
+        for i, st in enumerate(self.voxel_stages):
+            for key in ("input_dim", "output_dim"):
+                if not 1 <= getattr(st, key) <= MAX_EMBED_DIM:
+                    bad(f"voxel_stages[{i}].{key}", f"must be an integer 1..{MAX_EMBED_DIM}, got {getattr(st, key)}")
+        try:
+            rig = Rig.from_dict(self.training_rig)
+        except (KeyError, TypeError, ValueError, AttributeError, IndexError) as e:
+            bad("training_rig", f"malformed ({e.__class__.__name__}: {str(e)[:160]})")
+        try:
+            rig.validate()
+            rig.ordered_as(self.rig.names)
+        except AgoInputError as e:
+            bad("training_rig", e.problem)
+        if self.banks and self.default_bank not in self.banks:
+            bad("default_bank", f"{self.default_bank!r} is not one of banks {sorted(self.banks)[:8]}")
+        for key, entry in self.files.items():
+            if not re.fullmatch(r"[0-9a-f]{64}", entry.sha256):
+                bad(f"files[{key!r}].sha256", f"must be 64 hex digits, got {entry.sha256[:80]!r}")
+            if entry.size < 0:
+                bad(f"files[{key!r}].size", f"must be >= 0, got {entry.size}")
 
     def check_stages(self) -> None:
         """The stages chain: decoder stages (MAIN) from the planes' width to h, then adapter stages (ADAPTED) from

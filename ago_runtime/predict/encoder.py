@@ -37,7 +37,8 @@ from ago_runtime.providers import Device, Precision
 from ago_runtime.errors import AgoInputError
 from ago_runtime.geometry.grid import Grid
 from ago_runtime.predict.bank_product import BankProduct
-from ago_runtime.predict.contract import Branch, VoxelStageSpec
+from ago_runtime.predict.contract import (Branch, VoxelStageSpec, check_graph, planes_signature, planes_width,
+                                          stage_signature)
 from ago_runtime.predict.heads import SCORE_BUDGET_BYTES
 
 PLANE_OUTPUTS = ["plane_xy", "plane_xz", "plane_yz"]
@@ -53,14 +54,12 @@ class StageGraph:
     sha256: str | None = None
 
 
-def load_session(path: Path, threads: int | None, inputs: list[str], outputs: list[str],
-                 sha256: str | None = None, device: Device = Device.CPU,
-                 precision: Precision = Precision.FP32) -> ort.InferenceSession:
+def load_session(path: Path, threads: int | None, signature, what: str, sha256: str | None = None,
+                 device: Device = Device.CPU, precision: Precision = Precision.FP32) -> ort.InferenceSession:
+    """The graph's session, its inputs and outputs checked against the contract's `signature` (check_graph)
+    before it runs."""
     sess = open_session(path, threads, sha256, device, precision)
-    names_in = [i.name for i in sess.get_inputs()]
-    names_out = [o.name for o in sess.get_outputs()]
-    if names_in != inputs or names_out != outputs:
-        raise AgoInputError(path, f"graph has inputs {names_in} and outputs {names_out}; expected {inputs} -> {outputs}")
+    check_graph(sess, signature, path, what)
     return sess
 
 
@@ -101,21 +100,26 @@ class SplitEncoder:
 
     stages: the bundle's voxel stages (StageGraph), decoder stages first; hidden_dim, adapted_dim: the widths
     of h and g. sha256: of planes.onnx, for the optimised-graph cache; warm_up: run the graphs once on dummy
-    inputs when opened."""
+    inputs when opened; image_input: (cameras, height, width) of planes.onnx's images input, when known.
+    Every graph's inputs and outputs are checked against the contract's signatures when it is opened."""
 
     PLANES = PLANE_OUTPUTS
 
     def __init__(self, planes_path: Path, stages: list[StageGraph], grid: Grid, hidden_dim: int, adapted_dim: int,
                  threads: int | None = None, slab_voxels: int = SLAB_VOXELS, sha256: str | None = None,
-                 warm_up: bool = True, device: Device = Device.CPU, precision: Precision = Precision.FP32):
+                 warm_up: bool = True, device: Device = Device.CPU, precision: Precision = Precision.FP32,
+                 image_input: tuple[int, int, int] | None = None):
         self.grid = grid
         self.planes_path = planes_path
         self.device = device
-        self.planes = load_session(planes_path, threads, ["images", "ego2img"], self.PLANES, sha256, device, precision)
+        signature = planes_signature(*(image_input or (None, None, None)), grid.shape,
+                                     planes_width([st.spec for st in stages], hidden_dim))
+        self.planes = load_session(planes_path, threads, signature, "planes", sha256, device, precision)
         self.bank_product = BankProduct(threads)   # the bank products stay on the CPU (docs/runtime.md, Devices)
         self.sessions = {Branch.MAIN: [], Branch.ADAPTED: []}
-        for st in stages:
-            sess = load_session(Path(st.path), threads, ["x"], ["y"], st.sha256, device, precision)
+        for i, st in enumerate(stages):
+            sess = load_session(Path(st.path), threads, stage_signature(st.spec), f"voxel_stages[{i}]", st.sha256,
+                                device, precision)
             self.sessions[st.spec.branch].append((sess, st.spec.activation == "softplus"))
         self.widths = {Branch.MAIN: int(hidden_dim), Branch.ADAPTED: int(adapted_dim)}
         self.softplus = Softplus(threads)
@@ -225,4 +229,5 @@ def open_encoder(bundle, int8: bool = False, threads: int | None = None, slab_vo
     planes, stages = bundle.encoder_graphs(int8)
     c = bundle.contract
     return SplitEncoder(planes.path, stages, bundle.grid, c.hidden_dim, c.adapted_dim, threads, slab_voxels,
-                        sha256=planes.sha256, warm_up=warm_up, device=device, precision=precision)
+                        sha256=planes.sha256, warm_up=warm_up, device=device, precision=precision,
+                        image_input=(len(c.rig.cameras), bundle.preprocess.height, bundle.preprocess.width))

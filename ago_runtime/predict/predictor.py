@@ -29,7 +29,7 @@ from ago_runtime.errors import AgoInputError
 from ago_runtime.formats.calibration import fit_rig_to_images
 from ago_runtime.geometry.camera import Rig
 from ago_runtime.geometry.grid import Grid
-from ago_runtime.predict.bundle import Bundle, check_heads_fit_encoder
+from ago_runtime.predict.bundle import Bundle
 from ago_runtime.predict.classifier import FrameFeatures, VoxelClassifier
 from ago_runtime.predict.contract import Identifier
 from ago_runtime.predict.encoder import open_encoder
@@ -149,7 +149,6 @@ class Predictor:
         device, precision = parse_device(device), parse_precision(precision)
         check_device(device, precision)   # before any session is made
         self.encoder = open_encoder(self.bundle, int8, threads, warm_up=warm_up, device=device, precision=precision)
-        check_heads_fit_encoder(self.bundle, self.encoder)   # a bad heads.npz is named as such
         self.classifier = VoxelClassifier(self.encoder)
         self.chunk = chunk   # voxels per head chunk in predict_hidden; None = FoldedHeads.default_chunk
         self._folded: dict[str, FoldedHeads] = {}

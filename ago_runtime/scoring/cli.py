@@ -30,6 +30,7 @@ import numpy as np
 import typer
 
 from ago_runtime.errors import AgoInputError
+from ago_runtime.readers import open_npz
 from ago_runtime.formats.occ3d import load_semantics
 from ago_runtime.formats.occ3d_waymo import load_ground_truth
 from ago_runtime.scoring.metric import _pct, to_gt_resolution
@@ -89,7 +90,7 @@ def prediction_in_space(path: Path, sem: np.ndarray, names: list[str]) -> np.nda
     """A prediction file's labels as indices of `names` (a label space's classes then "free"), matched by
     class name: the file's `bank_semantics` / `bank_class_names` when present (ago infer with a bank
     whose classes are Occ3D classes), else its `semantics` / `class_names`."""
-    with np.load(path, allow_pickle=False) as z:
+    with open_npz(path, "prediction file") as z:
         if "bank_semantics" in z.files and "bank_class_names" in z.files:
             sem, file_names = np.asarray(z["bank_semantics"]), [str(c) for c in z["bank_class_names"]]
         elif "class_names" in z.files:
@@ -111,7 +112,7 @@ def prediction_in_space(path: Path, sem: np.ndarray, names: list[str]) -> np.nda
 
 def prediction_free_index(path: Path, default: int) -> int:
     """The `free_index` a prediction file states (ago infer writes it), else `default` (Occ3D: 17)."""
-    with np.load(path, allow_pickle=False) as z:
+    with open_npz(path, "prediction file") as z:
         return int(z["free_index"]) if "free_index" in z.files else default
 
 

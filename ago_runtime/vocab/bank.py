@@ -19,7 +19,6 @@ from __future__ import annotations
 import hashlib
 import json
 import re
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -28,7 +27,7 @@ import numpy as np
 from ago_runtime.atomic import save_npz
 from ago_runtime.classes import OCC3D_NUSCENES, ClassTable, table_from_ref, table_record
 from ago_runtime.errors import AgoInputError
-from ago_runtime.readers import check_npz
+from ago_runtime.readers import open_npz
 from ago_runtime.vocab.prompts import LabelSpace, parse_prompt_file
 
 FORMAT_VERSION = 1
@@ -160,14 +159,8 @@ class PromptBank:
     @classmethod
     def load(cls, path: str | Path) -> "PromptBank":
         path = Path(path)
-        if not path.is_file():
-            raise AgoInputError(path, "prompt bank file not found")
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                check_npz(path, z)
-                arrays = {k: z[k] for k in z.files}
-        except (ValueError, OSError, zipfile.BadZipFile, EOFError) as e:
-            raise AgoInputError(path, f"not a prompt bank (.npz) file: {e}") from None
+        with open_npz(path, "prompt bank (.npz) file") as z:
+            arrays = {k: z[k] for k in z.files}
         need = {"embeddings", "phrases", "class_names", "phrase_class", "meta"}
         if not need <= set(arrays):
             raise AgoInputError(path, f"not a prompt bank: missing arrays {sorted(need - set(arrays))}")

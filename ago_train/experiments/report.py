@@ -803,7 +803,8 @@ def render_frames(out: Path, profile: ExperimentProfile) -> list[np.ndarray]:
     from ago_runtime.scoring.metric import upsample_nearest
     from ago_runtime.formats.datasets import open_dataset
     from ago_runtime.vocab.prompts import parse_prompt_file
-    from ago_runtime.pictures.render import legend, side_by_side, voxel_view
+    from ago_runtime.pictures.render import legend
+    from ago_runtime.readers import open_npz, side_by_side, voxel_view
 
     from ..pseudo.generate import load_pseudo_labels
 
@@ -817,7 +818,7 @@ def render_frames(out: Path, profile: ExperimentProfile) -> list[np.ndarray]:
     pseudo_dir = Path(profile.pseudo["cw"]) if profile.external_data else out / profile.pseudo["cw"]
     rows = []
     for f in sorted(cw_dir.glob("cw__*.npz")):
-        with np.load(f, allow_pickle=False) as z:
+        with open_npz(f, "kept prediction") as z:
             cw_pred, scene, token = z["labels"], str(z["scene"]), str(z["token"])
         gt = ds[ds.index_of(token)].gt
         shape = gt.semantics.shape
@@ -839,7 +840,7 @@ def render_frames(out: Path, profile: ExperimentProfile) -> list[np.ndarray]:
         panels.append(("ago (cw)", view(upsample_nearest(cw_occ, fac))))
         g = ow_dir / f"ow-min-entropy__{token}.npz"
         if g.is_file():
-            with np.load(g, allow_pickle=False) as z:
+            with open_npz(g, "kept prediction") as z:
                 ow_occ = _to_occ3d(z["labels"], ow_names)
             panels.append(("ago zero-shot (ow)", view(upsample_nearest(ow_occ, fac))))
         rows.append(side_by_side(panels))

@@ -159,3 +159,25 @@ class ModelConfig:
                 num_layers=3, ffn_dim=256, hidden_dim=256, decoder_layers=2, adapter_hidden=384, free_bias=True,
             )
         raise AgoInputError(None, f"unknown model preset {name!r}; expected tiny, cpu or full")
+
+
+PRESETS = ("tiny", "cpu", "full")
+
+
+def min_model_grid() -> tuple[int, int, int]:
+    """The smallest model grid of ago's presets, per axis: tiny's 20x20x4 (its TPV planes are its grid, 20x20,
+    20x4, 20x4; cpu's planes are 50x50 on the Occ3D 200x200x16 grid, full's 100x100x16 on the same grid, and
+    ModelConfig.validate refuses a grid coarser than its planes)."""
+    shapes = [ModelConfig.preset(name).grid_obj().shape for name in PRESETS]
+    return tuple(min(s[axis] for s in shapes) for axis in range(3))
+
+
+def check_min_grid(shape, option: str) -> None:
+    """Refuse a labels grid (`ago synth`'s GT, `ago pseudo-labels`) coarser along an axis than min_model_grid():
+    a model trains on pseudo-labels of its own grid, and a GT is scored only at an integer multiple of the
+    model's grid (ago_train/evaluate.py, _grid_factors), so a coarser grid serves no preset model."""
+    low = min_model_grid()
+    if any(n < m for n, m in zip(shape, low)):
+        raise AgoInputError(option, f"{'x'.join(map(str, shape))} is coarser than the smallest model grid "
+                                    f"{'x'.join(map(str, low))} along an axis (the tiny preset's: its TPV planes are its "
+                                    "grid; a GT must be a whole multiple of a model grid to be scored)")

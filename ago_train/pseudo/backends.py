@@ -125,10 +125,9 @@ class FileSegmenter:
                 raise AgoInputError(path, f"cannot read the label map ({e.strerror or e})") from None
             m = decode_image(data, path, cv2.IMREAD_UNCHANGED)   # header size limit, corrupt data refused
         else:
-            try:
-                m = np.load(path, allow_pickle=False)
-            except (ValueError, OSError) as e:
-                raise AgoInputError(path, f"not a readable .npy ({e})") from None
+            from ago_runtime.readers import read_npy
+
+            m = read_npy(path, "label map (.npy)")
         if m.ndim != 2 or m.dtype not in (np.uint8, np.int32, np.int64, np.uint16, np.int16):
             raise AgoInputError(path, f"expected an (H, W) integer label map, got {m.shape} {m.dtype}")
         if m.size and (m.min() < 0 or m.max() > 255):
@@ -167,12 +166,9 @@ class FileImageEmbedder:
 
     def embed(self, frame: Frame, camera: str) -> np.ndarray:
         path = self.root / camera / f"{image_stem(frame, camera)}.npy"
-        if not path.is_file():
-            raise AgoInputError(path, "feature map not found")
-        try:
-            f = np.load(path, allow_pickle=False, mmap_mode="r")
-        except (ValueError, OSError) as e:
-            raise AgoInputError(path, f"not a readable .npy ({e})") from None
+        from ago_runtime.readers import read_npy
+
+        f = read_npy(path, "feature map")   # its header checked before the data is read
         if f.ndim != 3 or f.dtype not in (np.float16, np.float32):
             raise AgoInputError(path, f"expected a (C, h, w) float16/float32 feature map, got {f.shape} {f.dtype}")
         if self.channels is None:

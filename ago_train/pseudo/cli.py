@@ -25,7 +25,11 @@ import typer
 def parse_grid(text: str):
     from ago_runtime.geometry.grid import Grid
 
-    return Grid.parse(text, "--grid")
+    from ..model.config import check_min_grid
+
+    grid = Grid.parse(text, "--grid")
+    check_min_grid(grid.shape, "--grid")
+    return grid
 
 
 def build_backends(prompts: str, segmenter: str, masks: Path | None, embedder: str, feats: Path | None,

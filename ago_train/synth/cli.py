@@ -52,6 +52,7 @@ def register(app: typer.Typer) -> None:
         from ago_runtime.errors import AgoInputError
         from ago_runtime.outputs import check_output_dir
 
+        from ..model.config import check_min_grid
         from .config import SynthConfig, parse_size
         from .generate import write_dataset
         from .rigs import DEFAULT_IMAGE_SIZE, LAYOUT_OF_RIG, LAYOUTS, RIGS
@@ -69,6 +70,7 @@ def register(app: typer.Typer) -> None:
         if max(shape[:2]) > MAX_GRID_XY or shape[2] > MAX_GRID_Z:
             raise AgoInputError("--grid", f"{'x'.join(map(str, shape))}: at most {MAX_GRID_XY}x{MAX_GRID_XY}x{MAX_GRID_Z} "
                                           "voxels (Occ3D: 200x200x16)")
+        check_min_grid(shape, "--grid")
         check_output_dir(out, "--out")
         config = SynthConfig(seed=seed, num_scenes=scenes, frames_per_scene=frames, image_width=w, image_height=h,
                              grid_shape=shape, val_fraction=val_fraction, sweeps_between=sweeps_between,

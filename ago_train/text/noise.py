@@ -141,15 +141,17 @@ class NoiseBank:
     @classmethod
     def load(cls, path: str | Path) -> "NoiseBank":
         path = Path(path)
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                words = [str(w) for w in z["words"].tolist()]
-                emb = z["embeddings"]
+        from ago_runtime.readers import open_npz
+
+        if not path.is_file():
+            raise AgoInputError(path, "noise bank not found (build it with `ago prompts noise`)")
+        with open_npz(path, "noise bank file") as z:
+            words = [str(w) for w in z["words"].tolist()]
+            emb = z["embeddings"]
+            try:
                 meta = json.loads(str(z["meta"].reshape(-1)[0]))
-        except FileNotFoundError:
-            raise AgoInputError(path, "noise bank not found (build it with `ago prompts noise`)") from None
-        except (KeyError, ValueError, OSError, EOFError) as e:
-            raise AgoInputError(path, f"not a noise bank file: {e}") from None
+            except (ValueError, IndexError):
+                raise AgoInputError(path, "noise bank metadata is not valid JSON") from None
         if meta.get("format_version") != FORMAT_VERSION or emb.ndim != 2 or emb.shape[0] != len(words):
             raise AgoInputError(path, "noise bank has the wrong format; rebuild with `ago prompts noise --force`")
         return cls(words, emb, meta)
