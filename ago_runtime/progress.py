@@ -8,13 +8,29 @@ from typing import Iterable, Iterator, TypeVar
 T = TypeVar("T")
 
 
-def track(items: Iterable[T], description: str = "working", total: int | None = None) -> Iterator[T]:
-    """Iterate `items` with a progress bar on stderr."""
+def track(items: Iterable[T], description: str = "working", total: int | None = None,
+          unit: str | None = None) -> Iterator[T]:
+    """Iterate `items` with a progress bar on stderr; with `unit` (e.g. "images") it also shows the rate, units/s."""
     if os.environ.get("AGO_NO_PROGRESS") == "1":
         yield from items
         return
     from rich.console import Console
     from rich.progress import track as rich_track
 
-    yield from rich_track(items, description=description, total=total, console=Console(stderr=True),
-                          transient=False)
+    if unit is None:
+        yield from rich_track(items, description=description, total=total, console=Console(stderr=True),
+                              transient=False)
+        return
+    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, ProgressColumn, TextColumn,
+                               TimeElapsedColumn, TimeRemainingColumn)
+    from rich.text import Text
+
+    class RateColumn(ProgressColumn):
+        def render(self, task) -> Text:
+            speed = task.finished_speed or task.speed
+            return Text(f"{speed:.2f} {unit}/s" if speed else f"- {unit}/s", style="progress.data.speed")
+
+    with Progress(TextColumn("[progress.description]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                  RateColumn(), TimeElapsedColumn(), TimeRemainingColumn(), console=Console(stderr=True),
+                  transient=False) as progress:
+        yield from progress.track(items, total=total, description=description)
