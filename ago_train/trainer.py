@@ -220,6 +220,13 @@ class Trainer:
         if self.bank["embeddings"].shape[1] != cfg.model.embed_dim:
             raise AgoInputError(self.prompt_path, f"text embeddings are {self.bank['embeddings'].shape[1]}-d but "
                                 f"the model's embed_dim is {cfg.model.embed_dim}")
+        if self.pseudo.has_embeds:   # the voxel embeddings the adapter aligns with must be in the bank's space
+            from .pseudo.backends import check_features_fit_bank
+
+            emb = self.pseudo.meta["embedder"]
+            check_features_fit_bank(f"the pseudo-labels' voxel embeddings ({emb.get('name')})", emb.get("encoder_id"),
+                                    emb.get("channels"), "the text bank", self.bank["encoder_id"],
+                                    self.bank["embeddings"].shape[1], self.pseudo.root / "meta.json")
         from .text.noise import NoiseBank, ensure_noise_bank
 
         self.noise_bank = NoiseBank.load(cfg.noise_bank if cfg.noise_bank else ensure_noise_bank())

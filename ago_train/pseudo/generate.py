@@ -327,7 +327,8 @@ def make_meta(label_space, segmenter, embedder, config: PseudoLabelConfig, comma
         "grid": config.grid.to_dict(),
         "segmenter": {"name": segmenter.name, "config": segmenter.config_dict()},
         "embedder": None if embedder is None else {"name": embedder.name, "config": embedder.config_dict(),
-                                                   "channels": getattr(embedder, "channels", None)},
+                                                   "channels": getattr(embedder, "channels", None),
+                                                   "encoder_id": getattr(embedder, "encoder_id", None)},
         "num_keyframes": config.num_keyframes,
         "interval": config.interval,
         "nonkey_sweeps": config.nonkey_sweeps,
@@ -351,6 +352,7 @@ def _differences(a: dict, b: dict) -> list[str]:
             m["label_space"].pop("prompt_file", None)
         if m.get("embedder"):
             m["embedder"].pop("channels", None)   # files backends learn it from the first file
+            m["embedder"].pop("encoder_id", None)   # folders from before encoder ids lack it
             (m["embedder"].get("config") or {}).pop("channels", None)
         return m
     sa, sb = strip(a), strip(b)

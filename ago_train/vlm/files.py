@@ -70,6 +70,7 @@ def settings_record(label_space, segmenter: GroundedSamSegmenter, embedder: Mask
 def _comparable(record: dict) -> dict:
     """The settings without the folders' paths (the same weights moved elsewhere are the same weights)."""
     r = json.loads(json.dumps(record))
+    r.pop("created_by", None)
     for part in ("grounded_sam", "maskclip"):
         for key in ("detector", "sam", "clip"):
             (r.get(part) or {}).pop(key, None)
