@@ -62,10 +62,12 @@ def run_part(name: str, boxes: int) -> dict:
 
     from ago_train.vlm.loading import quiet_transformers
 
+    from ago_train.vlm.loading import resolve_device
+
     quiet_transformers()
     torch.manual_seed(0)
     img = test_image()
-    dev = torch.device("cpu")
+    dev = resolve_device("cpu")   # as the verbs do: subnormal floats flushed to zero
     out = {"part": name, "threads": torch.get_num_threads()}
     t0 = time.perf_counter()
     if name.startswith("gdino"):

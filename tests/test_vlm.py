@@ -218,15 +218,59 @@ def test_on_the_fly_backends_compute_each_image_once(town, models):
 
 # ------------------------------------------------------------------------------------ one error line each
 def _other_tokenizer(models, tmp_path) -> Path:
+    """The detector with a tokenizer of more tokens than its text model embeds (ids would index past the table)."""
     folder = tmp_path / "bad_tok"
     shutil.copytree(models.detector, folder)
     from transformers import BertTokenizerFast
 
-    vocab = ["[PAD]", "[UNK]", "[CLS]", "[SEP]", "[MASK]", ".", "?"] + vlm_tiny.WORDS
     for f in folder.glob("tokenizer*"):
         f.unlink()
+    vocab = vlm_tiny.bert_vocab(min_size=3000)
     BertTokenizerFast(vocab={w: i for i, w in enumerate(vocab)}).save_pretrained(folder)
     return folder
+
+
+def _clip_tokenizer(models, tmp_path) -> Path:
+    """The detector with no [CLS] / [SEP] / "." tokens (e.g. another model's tokenizer copied in)."""
+    folder = tmp_path / "no_cls"
+    shutil.copytree(models.detector, folder)
+    from transformers import BertTokenizerFast
+
+    for f in folder.glob("tokenizer*"):
+        f.unlink()
+    vocab = ["<pad>", "<unk>"] + vlm_tiny.WORDS
+    BertTokenizerFast(vocab={w: i for i, w in enumerate(vocab)}, cls_token="<s>", sep_token="</s>",
+                      unk_token="<unk>", pad_token="<pad>").save_pretrained(folder)
+    return folder
+
+
+def _no_tokenizer(models, tmp_path) -> Path:
+    folder = tmp_path / "no_tok"
+    shutil.copytree(models.detector, folder)
+    for f in folder.glob("tokenizer*"):
+        f.unlink()
+    return folder
+
+
+def test_a_tokenizer_with_other_special_ids_is_adapted(tmp_path, models):
+    """A BERT-style tokenizer whose [CLS], [SEP], "." sit at other ids than bert-base-uncased's: the model splits the
+    caption at the tokenizer's ids (a tiny model made elsewhere need not copy BERT's id layout)."""
+    import torch
+
+    from ago_train.vlm.grounded_sam import GroundedSamConfig, PhraseDetector
+
+    folder = tmp_path / "own_ids"
+    shutil.copytree(models.detector, folder)
+    from transformers import BertTokenizerFast
+
+    for f in folder.glob("tokenizer*"):
+        f.unlink()
+    vocab = ["[PAD]", "[UNK]", "[CLS]", "[SEP]", "[MASK]", "."] + vlm_tiny.WORDS
+    BertTokenizerFast(vocab={w: i for i, w in enumerate(vocab)}).save_pretrained(folder)
+    det = PhraseDetector(folder, ["car", "road"], torch.device("cpu"))
+    assert det.model.model.special_tokens.tolist() == [2, 3, 5, 5]
+    assert det.passes[0]["input_ids"].tolist() == [[2, vocab.index("car"), 5, vocab.index("road"), 5, 3]]
+    det.detect(np.zeros((60, 100, 3), np.uint8), GroundedSamConfig())   # runs
 
 
 ERROR_ROWS = [
@@ -240,8 +284,12 @@ ERROR_ROWS = [
      ["--clip", "'grounding-dino'", "clip-vit-base-patch16"]),
     ("missing clip folder", lambda m, t: ["--detector", m.detector, "--sam", m.sam, "--clip", t / "nope"],
      ["--clip", "no such folder", "clip-vit-base-patch16"]),
-    ("tokenizer that does not fit", lambda m, t: ["--detector", _other_tokenizer(m, t), "--sam", m.sam],
-     ["--detector", "tokenizer does not fit", "101", "grounding-dino-tiny"]),
+    ("tokenizer larger than the embeddings", lambda m, t: ["--detector", _other_tokenizer(m, t), "--sam", m.sam],
+     ["--detector", "tokenizer does not fit", "3000 tokens", "grounding-dino-tiny"]),
+    ("tokenizer without [CLS]", lambda m, t: ["--detector", _clip_tokenizer(m, t), "--sam", m.sam],
+     ["--detector", "tokenizer does not fit", "[CLS]", "grounding-dino-tiny"]),
+    ("detector without tokenizer", lambda m, t: ["--detector", _no_tokenizer(m, t), "--sam", m.sam],
+     ["--detector", "no tokenizer", "grounding-dino-tiny"]),
 ]
 
 

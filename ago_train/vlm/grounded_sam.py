@@ -124,23 +124,36 @@ class PhraseDetector:
         self.passes = self._passes()
 
     def _tokenizer(self, auto_tokenizer, tok=None):
-        """The folder's tokenizer, refused unless it is the BERT-style one the model's text backbone reads: its
-        [CLS], [SEP] and "." must have the ids the model splits phrases on, and its ids must fit the embeddings."""
+        """The folder's tokenizer, refused unless it is a BERT-style one the model's text backbone can read: it has
+        [CLS], [SEP] and "." (the caption's phrase separator) and all its ids fit the text embeddings. The model
+        splits the caption into phrases at the ids of [CLS], [SEP], "." and "?" (a buffer transformers fills with
+        bert-base-uncased's ids, 101, 102, 1012, 1029); it is set from this tokenizer, which for the published
+        checkpoints changes nothing."""
+        import torch
+
         expected = f"expected the tokenizer saved with {ARCHITECTURES['grounding-dino']} (bert-base-uncased)"
+        if tok is None and not any((self.folder / n).is_file() for n in ("tokenizer.json", "vocab.txt")):
+            raise AgoInputError(self.option, f"{self.folder}: no tokenizer (tokenizer.json or vocab.txt); {expected}")
         try:
             tok = tok if tok is not None else auto_tokenizer.from_pretrained(str(self.folder), local_files_only=True)
-        except (OSError, ValueError, KeyError, TypeError) as e:
+        except (OSError, ValueError, KeyError, TypeError, AttributeError) as e:
             first = str(e).strip().splitlines()[0] if str(e).strip() else e.__class__.__name__
             raise AgoInputError(self.option, f"{self.folder}: no usable tokenizer ({first}); {expected}") from None
-        special = [int(t) for t in self.model.model.special_tokens.tolist()]   # [CLS], [SEP], ".", "?" ids
-        found = [tok.cls_token_id, tok.sep_token_id, tok.convert_tokens_to_ids("."), tok.convert_tokens_to_ids("?")]
-        vocab = int(self.model.config.text_config.vocab_size)
-        if found != special:
-            raise AgoInputError(self.option, f"{self.folder}: the tokenizer does not fit the detector: its [CLS], "
-                                f"[SEP], '.', '?' ids are {found}, the model splits phrases on {special}; {expected}")
-        if len(tok) > vocab:
+        if isinstance(tok, bool) or not hasattr(tok, "get_vocab"):
+            raise AgoInputError(self.option, f"{self.folder}: no tokenizer files; {expected}")
+        vocab = tok.get_vocab()
+        missing = [name for name, tid in (("[CLS]", tok.cls_token_id), ("[SEP]", tok.sep_token_id),
+                                          ('"."', vocab.get("."))) if tid is None]
+        if missing:
+            raise AgoInputError(self.option, f"{self.folder}: the tokenizer does not fit the detector: it has no "
+                                f"{', '.join(missing)} token (GroundingDINO reads '[CLS] a. b. [SEP]'); {expected}")
+        size = int(self.model.config.text_config.vocab_size)
+        if len(tok) > size:
             raise AgoInputError(self.option, f"{self.folder}: the tokenizer does not fit the detector: {len(tok)} "
-                                f"tokens but the text model embeds {vocab}; {expected}")
+                                f"tokens but the text model embeds {size}; {expected}")
+        special = [tok.cls_token_id, tok.sep_token_id, vocab["."], vocab.get("?", vocab["."])]
+        buffer = self.model.model.special_tokens
+        self.model.model.special_tokens = torch.tensor(special, dtype=buffer.dtype, device=buffer.device)
         return tok
 
     def _passes(self) -> list[dict]:
