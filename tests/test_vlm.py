@@ -345,3 +345,21 @@ def test_training_refuses_embeddings_of_another_encoder(tmp_path, town):
     meta["embedder"]["channels"] = 384
     meta_path.write_text(json.dumps(meta))
     ok(run_ago([*train, "--out", "r3"], tmp_path))
+
+
+def test_feature_folders_without_an_encoder_id_pass_when_their_width_fits(tmp_path):
+    """Folders from before encoder ids (no meta.json): the width read from the first map decides, at
+    `ago pseudo-labels` time; a recorded encoder other than the bank's is refused even at the bank's width."""
+    from ago_runtime.errors import AgoInputError
+    from ago_train.pseudo.backends import FileImageEmbedder
+    from ago_train.pseudo.cli import check_embedder_fits_bank
+
+    for c in (384, 512):
+        (tmp_path / f"f{c}" / "CAM_FRONT").mkdir(parents=True)
+        np.save(tmp_path / f"f{c}" / "CAM_FRONT" / "x.npy", np.zeros((c, 2, 3), np.float16))
+    check_embedder_fits_bank(FileImageEmbedder(tmp_path / "f384"), "--feats")
+    with pytest.raises(AgoInputError, match="512-d.*384-d"):
+        check_embedder_fits_bank(FileImageEmbedder(tmp_path / "f512"), "--feats")
+    (tmp_path / "f384" / "meta.json").write_text(json.dumps({"channels": 384, "encoder_id": "clip:0000000000000000"}))
+    with pytest.raises(AgoInputError, match="clip:0000000000000000.*all-MiniLM-L6-v2"):
+        check_embedder_fits_bank(FileImageEmbedder(tmp_path / "f384"), "--feats")

@@ -166,7 +166,8 @@ class FileImageEmbedder:
     def probe_channels(self) -> int | None:
         """The channel count (meta.json's, else the first map's header), before any sample is made."""
         if self.channels is None:
-            first = next(iter(sorted(self.root.glob("*/*.npy"))), None)
+            first = next((f for cam in sorted(p for p in self.root.iterdir() if p.is_dir())
+                          for f in cam.glob("*.npy")), None)
             if first is not None:
                 try:
                     f = np.load(first, allow_pickle=False, mmap_mode="r")

@@ -136,8 +136,9 @@ def write_vlm_files(ds, indices: list[int], out: str | Path, label_space, segmen
         if not isinstance(old, dict) or _comparable(old) != _comparable(settings):
             raise AgoInputError(settings_path, "this folder holds label maps / features made with other settings "
                                 "(prompts, model weights or thresholds); use another --out or delete it")
-    elif out.exists() and any(out.iterdir()):
-        raise AgoInputError(out, f"not empty and not an `ago vlm-files` folder (no {SETTINGS}); use another --out")
+    elif (out / "masks").exists() or (out / "feats").exists():
+        raise AgoInputError(out, f"holds masks/ or feats/ not made by `ago vlm-files` (no {SETTINGS}); use another "
+                            "--out")
     jobs = image_jobs(ds, indices)
     folder = VlmFolder(out, label_space, embedder.channels if embedder is not None else None)
     todo, damaged = [], 0
