@@ -363,3 +363,23 @@ def test_feature_folders_without_an_encoder_id_pass_when_their_width_fits(tmp_pa
     (tmp_path / "f384" / "meta.json").write_text(json.dumps({"channels": 384, "encoder_id": "clip:0000000000000000"}))
     with pytest.raises(AgoInputError, match="clip:0000000000000000.*all-MiniLM-L6-v2"):
         check_embedder_fits_bank(FileImageEmbedder(tmp_path / "f384"), "--feats")
+
+
+def test_backends_travel_to_workers_without_their_models(models):
+    """`--jobs N`: a worker gets the settings (pickled) and loads the models itself, once, on first use."""
+    import pickle
+
+    from ago_runtime.vocab.prompts import parse_prompt_file, resolve_prompt_file
+    from ago_train.vlm.backends import vlm_backends
+    from ago_train.vlm.grounded_sam import GroundedSamConfig
+
+    space = parse_prompt_file(resolve_prompt_file("cw"))
+    seg, emb = vlm_backends(space, models.detector, models.sam, models.clip, "cpu", GroundedSamConfig(), 64)
+    assert seg._model is not None and emb._model is not None
+    for backend in (seg, emb):
+        blob = pickle.dumps(backend)
+        assert len(blob) < 100_000                     # no weights inside
+        copy = pickle.loads(blob)
+        assert copy._model is None and copy.computed == 0
+        first = copy.load()
+        assert copy.load() is first                     # loaded once
