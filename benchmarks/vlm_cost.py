@@ -200,9 +200,8 @@ def main() -> None:
     lines += ["", "Notes: the detector rows tokenise with a small test vocabulary (tests/vlm_tiny.py) that spells words "
               "it lacks letter by letter, so the single-pass caption is longer than bert-base-uncased's would be (an "
               "upper bound on the text side). The verbs flush subnormal floats to zero on the CPU "
-              "(`torch.set_flush_denormal`, ago_train/vlm/loading.py): without it SAM ViT-B on this image did not "
-              "finish its image embedding in 600 s (a first run of this benchmark measured 940 s for the SAM-B row); "
-              "with it, 64 s.", "",
+              "(`torch.set_flush_denormal`, ago_train/vlm/loading.py): without it SAM's image embedding was more "
+              "than 10x slower here (measured once: results file of the run that found it).", "",
               "What per-class passes cost in recall against one pass with every phrase is not measured here "
               "(random weights detect nothing meaningful); only their time is. Quality with real weights is not "
               "measured here either."]

@@ -48,8 +48,8 @@ def resolve_device(device: str):
         raise AgoInputError("--device", "cuda was asked for but torch sees no GPU (torch.cuda.is_available() is "
                             "False); use --device cpu")
     if device == "cpu":
-        # subnormal floats (SAM's zero padding drives activations there) make CPU matmuls ~10x slower: measured
-        # SAM ViT-B on one 1600x900 image > 600 s without, 64 s with (benchmarks/results/vlm_cost.md)
+        # subnormal floats (SAM's zero padding drives activations there) make CPU matmuls many times slower
+        # (benchmarks/results/vlm_cost.md)
         torch.set_flush_denormal(True)
     return torch.device(device)
 
