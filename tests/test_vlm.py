@@ -383,3 +383,17 @@ def test_backends_travel_to_workers_without_their_models(models):
         assert copy._model is None and copy.computed == 0
         first = copy.load()
         assert copy.load() is first                     # loaded once
+
+
+def test_features_of_the_banks_own_clip_pass(models):
+    """With a bank from the same CLIP folder (issue 49's --text-encoder: encoder_id = clip_encoder_id(folder), the
+    projection width), MaskCLIP features pass the check; a bank of another width does not."""
+    from ago_runtime.errors import AgoInputError
+    from ago_runtime.vocab.model_folder import clip_encoder_id
+    from ago_train.pseudo.cli import check_embedder_fits_bank
+    from ago_train.vlm.backends import MaskClipEmbedder
+
+    emb = MaskClipEmbedder(models.clip)
+    check_embedder_fits_bank(emb, "--clip", clip_encoder_id(models.clip), 24)
+    with pytest.raises(AgoInputError, match="24-d.*512-d"):
+        check_embedder_fits_bank(emb, "--clip", clip_encoder_id(models.clip), 512)

@@ -115,16 +115,20 @@ def load_models(*backends) -> None:
             backend.load()
 
 
-def check_embedder_fits_bank(emb, option: str) -> None:
-    """Image features must be in the text bank's space (same width, same encoder when recorded): today's banks are
-    MiniLM's (all-MiniLM-L6-v2, 384-d); a bank from another text encoder changes `bank_encoder_id` / `bank_dim`."""
+def check_embedder_fits_bank(emb, option: str, bank_encoder_id: str | None = None, bank_dim: int | None = None
+                             ) -> None:
+    """Image features must be in the text bank's space (same width, same encoder when recorded). The bank is the
+    one training will use: MiniLM's (all-MiniLM-L6-v2, 384-d) unless another text encoder's id and width are given
+    (a CLIP folder's: `clip_encoder_id`, its projection width)."""
     from ago_runtime.vocab.text_encoder import MINILM_DIM, MINILM_ID
 
     from .backends import check_features_fit_bank
 
+    bank_encoder_id = bank_encoder_id or MINILM_ID
+    bank_dim = bank_dim or MINILM_DIM
     channels = emb.probe_channels() if hasattr(emb, "probe_channels") else getattr(emb, "channels", None)
     check_features_fit_bank(f"the image features ({emb.name})", getattr(emb, "encoder_id", None), channels,
-                            "the text bank training uses", MINILM_ID, MINILM_DIM, option)
+                            "the text bank training uses", bank_encoder_id, bank_dim, option)
 
 
 # the closed label space of each shipped class table, its classes in id order (the simulated embedder's texts)
