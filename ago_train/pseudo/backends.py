@@ -203,6 +203,17 @@ class FileImageEmbedder:
         return f
 
 
+def embedder_encoder_id(embedder) -> str | None:
+    """The encoder whose space an embedder's features lie in, when known: its `encoder_id` (MaskCLIP: the CLIP folder's
+    id; files: meta.json's, None for folders without one); the simulated embedder's is its texts' encoder (MiniLM
+    unless it names another as `text_encoder`)."""
+    if embedder.name == "simulated":
+        from ago_runtime.vocab.text_encoder import MINILM_ID
+
+        return getattr(embedder, "text_encoder", None) or MINILM_ID
+    return getattr(embedder, "encoder_id", None)
+
+
 def check_features_fit_bank(features: str, feat_encoder_id: str | None, feat_channels: int | None, bank: str,
                             bank_encoder_id: str, bank_dim: int, source=None) -> None:
     """One `error:` line, naming both, unless image features can be aligned with a text bank: the same width and,

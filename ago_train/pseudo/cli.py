@@ -99,10 +99,7 @@ def build_backends(prompts: str, segmenter: str, masks: Path | None, embedder: s
         emb = FileImageEmbedder(feats)
     elif embedder == "sim":
         class_text, sky = simulated_text_embeddings(space.class_table)
-        from ago_runtime.vocab.text_encoder import MINILM_ID
-
-        emb = SimulatedImageEmbedder(class_text, SimEmbedderConfig(seed=seed), sky_text=sky, ids=space.class_table.ids,
-                                     encoder_id=MINILM_ID)
+        emb = SimulatedImageEmbedder(class_text, SimEmbedderConfig(seed=seed), sky_text=sky, ids=space.class_table.ids)
     else:
         raise AgoInputError("--embedder", f"expected sim, files, maskclip or none, got {embedder!r}")
     return space, seg, emb
@@ -122,12 +119,12 @@ def check_embedder_fits_bank(emb, option: str, bank_encoder_id: str | None = Non
     (a CLIP folder's: `clip_encoder_id`, its projection width)."""
     from ago_runtime.vocab.text_encoder import MINILM_DIM, MINILM_ID
 
-    from .backends import check_features_fit_bank
+    from .backends import check_features_fit_bank, embedder_encoder_id
 
     bank_encoder_id = bank_encoder_id or MINILM_ID
     bank_dim = bank_dim or MINILM_DIM
     channels = emb.probe_channels() if hasattr(emb, "probe_channels") else getattr(emb, "channels", None)
-    check_features_fit_bank(f"the image features ({emb.name})", getattr(emb, "encoder_id", None), channels,
+    check_features_fit_bank(f"the image features ({emb.name})", embedder_encoder_id(emb), channels,
                             "the text bank training uses", bank_encoder_id, bank_dim, option)
 
 

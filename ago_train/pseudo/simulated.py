@@ -333,8 +333,7 @@ class SimulatedImageEmbedder:
     name = "simulated"
 
     def __init__(self, class_text, config: SimEmbedderConfig | None = None, sky_text: np.ndarray | None = None,
-                 ids: tuple[int, ...] | None = None, encoder_id: str | None = None):
-        self.encoder_id = encoder_id   # the text encoder whose space class_text lies in (the CLI: MiniLM)
+                 ids: tuple[int, ...] | None = None):
         if not isinstance(class_text, np.ndarray):
             class_text = class_text_from_bank(class_text)
         t = np.asarray(class_text, dtype=np.float64)
