@@ -28,7 +28,7 @@ import numpy as np
 
 from ago_runtime.atomic import write_bytes, write_json
 from ago_runtime.errors import AgoInputError
-from ago_runtime.progress import track
+from ago_runtime.progress import track, track_rate
 from ago_runtime.readers import read_json
 
 from .backends import GroundedSamSegmenter, MaskClipEmbedder, sized_image
@@ -169,7 +169,7 @@ def write_vlm_files(ds, indices: list[int], out: str | Path, label_space, segmen
         write_json(settings_path, {**settings, "created_by": command})
         folder.save(todo[0], label, feats)
         written, todo = 1, todo[1:]
-    items = track(todo, "vlm files", total=len(todo), unit="images") if progress else todo
+    items = track_rate(todo, "vlm files", len(todo), "images") if progress else todo
     for job in items:
         label, feats = compute(job)
         folder.save(job, label, feats)
