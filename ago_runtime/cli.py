@@ -4,7 +4,7 @@ Verbs live next to what they drive, each module defining `register(app)`:
 ago_runtime/predict/cli.py (infer, demo, retrieve), ago_runtime/vocab/cli.py (prompts build|show),
 ago_runtime/pictures/cli.py (show), ago_runtime/scoring/cli.py (metric), and in the training
 packages ago_train/text/cli.py (prompts export-encoder|noise), ago_train/synth/cli.py (synth),
-ago_train/pseudo/cli.py (pseudo-labels, seen-gt), ago_train/cli.py (train, calibrate, eval, open-world),
+ago_train/vlm/cli.py (vlm-files), ago_train/pseudo/cli.py (pseudo-labels, seen-gt), ago_train/cli.py (train, calibrate, eval, open-world),
 ago_train/experiments/cli.py (experiments run|report|list), ago_export/cli.py (export).
 `VERB_MODULES` names them as data, verb -> modules, like a package's entry points: nothing in
 ago_runtime imports ago_train or ago_export by name (tests/test_architecture.py). `build_app(verb)`
@@ -54,6 +54,7 @@ VERB_MODULES: dict[str, tuple[str, ...]] = {
     "show": ("ago_runtime.pictures.cli",),
     "metric": ("ago_runtime.scoring.cli",),
     "synth": ("ago_train.synth.cli",),
+    "vlm-files": ("ago_train.vlm.cli",),
     "pseudo-labels": ("ago_train.pseudo.cli",),
     "seen-gt": ("ago_train.pseudo.cli",),
     "train": ("ago_train.cli",),

@@ -159,6 +159,22 @@ class FileImageEmbedder:
             if channels is None and isinstance(self.meta.get("channels"), int):
                 channels = self.meta["channels"]
         self.channels = channels  # None: taken from the first file read; later files must match
+        enc = self.meta.get("encoder_id")
+        self.encoder_id = enc if isinstance(enc, str) else None   # folders from before: None (width checked only)
+
+    def probe_channels(self) -> int | None:
+        """The channel count (meta.json's, else the first map's header), before any sample is made."""
+        if self.channels is None:
+            first = next((f for cam in sorted(p for p in self.root.iterdir() if p.is_dir())
+                          for f in cam.glob("*.npy")), None)
+            if first is not None:
+                try:
+                    f = np.load(first, allow_pickle=False, mmap_mode="r")
+                except (ValueError, OSError) as e:
+                    raise AgoInputError(first, f"not a readable .npy ({e})") from None
+                if f.ndim == 3:
+                    self.channels = int(f.shape[0])
+        return self.channels
 
     def config_dict(self) -> dict:
         return {"feats_root": str(self.root.resolve()), "channels": self.channels,
@@ -181,3 +197,29 @@ class FileImageEmbedder:
         if not np.all(np.isfinite(f)):
             raise AgoInputError(path, "feature map contains NaN or inf")
         return f
+
+
+def embedder_encoder_id(embedder) -> str | None:
+    """The encoder whose space an embedder's features lie in, when known: its `encoder_id` (MaskCLIP: the CLIP folder's
+    id; files: meta.json's, None for folders without one); the simulated embedder's is its texts' encoder (MiniLM
+    unless it names another as `text_encoder`)."""
+    if embedder.name == "simulated":
+        from ago_runtime.vocab.text_encoder import MINILM_ID
+
+        return getattr(embedder, "text_encoder", None) or MINILM_ID
+    return getattr(embedder, "encoder_id", None)
+
+
+def check_features_fit_bank(features: str, feat_encoder_id: str | None, feat_channels: int | None, bank: str,
+                            bank_encoder_id: str, bank_dim: int, source=None) -> None:
+    """One `error:` line, naming both, unless image features can be aligned with a text bank: the same width and,
+    when the features record one, the same encoder (`encoder_id`). Features that record no encoder (folders made
+    before encoder ids, or by other scripts) pass when their width fits."""
+    from ago_runtime.vocab.model_folder import check_same_encoder
+
+    if feat_channels is not None and int(feat_channels) != int(bank_dim):
+        raise AgoInputError(source, f"{features} are {int(feat_channels)}-d (encoder {feat_encoder_id or 'not recorded'}) "
+                            f"but {bank} is {int(bank_dim)}-d (encoder {bank_encoder_id!r}); they must come from the "
+                            "same model")
+    if feat_encoder_id is not None:
+        check_same_encoder(features, feat_encoder_id, bank, bank_encoder_id, source)

@@ -22,6 +22,14 @@ import numpy as np
 import typer
 
 
+def grounded_sam_config(box_threshold: float, text_threshold: float, nms_iou: float, max_boxes: int):
+    """The Grounded SAM settings (a dataclass of ago_train/vlm; importing it imports no torch)."""
+    from ago_train.vlm.grounded_sam import GroundedSamConfig
+
+    return GroundedSamConfig(box_threshold=box_threshold, text_threshold=text_threshold, nms_iou=nms_iou,
+                             max_boxes=max_boxes)
+
+
 def parse_grid(text: str):
     from ago_runtime.geometry.grid import Grid
 
@@ -33,10 +41,13 @@ def parse_grid(text: str):
 
 
 def build_backends(prompts: str, segmenter: str, masks: Path | None, embedder: str, feats: Path | None,
-                   seed: int, data: Path | None = None, write_masks: Path | None = None, text_encoder=None):
+                   seed: int, data: Path | None = None, write_masks: Path | None = None, text_encoder=None,
+                   vlm: dict | None = None):
     """(label_space, segmenter, embedder or None) from the CLI choices; `write_masks`: the folder the boxes
     segmenter also writes its label maps to (docs/vlm_files.md layout); `text_encoder`: a CLIP folder whose text
-    space the simulated embedder's features live in (None: the ONNX MiniLM's)."""
+    space the simulated embedder's features live in (None: the ONNX MiniLM's); `vlm`: the weight options of
+    `--segmenter grounded-sam` / `--embedder maskclip` (detector, sam, clip, device, config, clip_width;
+    ago_train/vlm/backends.py), whose models are loaded here so that a bad folder fails before any work."""
     from ago_runtime.errors import AgoInputError
     from ago_runtime.vocab.prompts import parse_prompt_file, resolve_prompt_file
 
@@ -47,7 +58,32 @@ def build_backends(prompts: str, segmenter: str, masks: Path | None, embedder: s
     space = parse_prompt_file(resolve_prompt_file(prompts))
     if write_masks is not None and segmenter != "boxes":
         raise AgoInputError("--write-masks", f"only --segmenter boxes writes label maps (this run: {segmenter})")
-    if segmenter == "files":
+    vlm = vlm or {}
+    for option, key, used in (("--detector", "detector", segmenter == "grounded-sam"),
+                              ("--sam", "sam", segmenter == "grounded-sam"), ("--clip", "clip", embedder == "maskclip")):
+        if vlm.get(key) is not None and not used:
+            raise AgoInputError(option, f"only used by --segmenter grounded-sam / --embedder maskclip (this run: "
+                                f"--segmenter {segmenter} --embedder {embedder})")
+    if segmenter == "grounded-sam":
+        if vlm.get("detector") is None or vlm.get("sam") is None:
+            raise AgoInputError("--detector" if vlm.get("detector") is None else "--sam", "--segmenter grounded-sam "
+                                "needs --detector DIR (GroundingDINO) and --sam DIR (SAM), save_pretrained folders "
+                                "(docs/vlm_files.md)")
+    if embedder == "maskclip" and vlm.get("clip") is None:
+        raise AgoInputError("--clip", "--embedder maskclip needs --clip DIR (a CLIP save_pretrained folder)")
+    if segmenter == "grounded-sam" or embedder == "maskclip":
+        from ago_runtime.errors import require_torch
+
+        require_torch("pseudo-labels --segmenter grounded-sam / --embedder maskclip")
+        from ago_train.vlm.backends import vlm_backends
+
+        vlm_seg, vlm_emb = vlm_backends(space, vlm.get("detector") if segmenter == "grounded-sam" else None,
+                                        vlm.get("sam") if segmenter == "grounded-sam" else None,
+                                        vlm.get("clip") if embedder == "maskclip" else None, vlm["device"],
+                                        vlm["config"], vlm["clip_width"], load=False)   # loaded by load_models
+    if segmenter == "grounded-sam":
+        seg = vlm_seg
+    elif segmenter == "files":
         if masks is None:
             raise AgoInputError("--masks", "--segmenter files needs --masks DIR (layout: docs/vlm_files.md)")
         seg = FileSegmenter(masks, space)
@@ -58,9 +94,11 @@ def build_backends(prompts: str, segmenter: str, masks: Path | None, embedder: s
 
         seg = BoxSegmenter(data, space, masks_out=write_masks)
     else:
-        raise AgoInputError("--segmenter", f"expected files, sim or boxes, got {segmenter!r}")
+        raise AgoInputError("--segmenter", f"expected files, sim, boxes or grounded-sam, got {segmenter!r}")
     if embedder == "none":
         emb = None
+    elif embedder == "maskclip":
+        emb = vlm_emb
     elif embedder == "files":
         if feats is None:
             raise AgoInputError("--feats", "--embedder files needs --feats DIR (layout: docs/vlm_files.md)")
@@ -75,8 +113,31 @@ def build_backends(prompts: str, segmenter: str, masks: Path | None, embedder: s
         emb = SimulatedImageEmbedder(class_text, SimEmbedderConfig(seed=seed), sky_text=sky, ids=space.class_table.ids,
                                      text_encoder=None if text is None else text.encoder_id)
     else:
-        raise AgoInputError("--embedder", f"expected sim, files or none, got {embedder!r}")
+        raise AgoInputError("--embedder", f"expected sim, files, maskclip or none, got {embedder!r}")
     return space, seg, emb
+
+
+def load_models(*backends) -> None:
+    """Load the models of the backends that have any (grounded-sam, maskclip): after the cheap checks, before work."""
+    for backend in backends:
+        if backend is not None and hasattr(backend, "load"):
+            backend.load()
+
+
+def check_embedder_fits_bank(emb, option: str, bank_encoder_id: str | None = None, bank_dim: int | None = None
+                             ) -> None:
+    """Image features must be in the text bank's space (same width, same encoder when recorded). The bank is the
+    one training will use: MiniLM's (all-MiniLM-L6-v2, 384-d) unless another text encoder's id and width are given
+    (a CLIP folder's: `clip_encoder_id`, its projection width)."""
+    from ago_runtime.vocab.text_encoder import MINILM_DIM, MINILM_ID
+
+    from .backends import check_features_fit_bank, embedder_encoder_id
+
+    bank_encoder_id = bank_encoder_id or MINILM_ID
+    bank_dim = bank_dim or MINILM_DIM
+    channels = emb.probe_channels() if hasattr(emb, "probe_channels") else getattr(emb, "channels", None)
+    check_features_fit_bank(f"the image features ({emb.name})", embedder_encoder_id(emb), channels,
+                            "the text bank training uses", bank_encoder_id, bank_dim, option)
 
 
 # the closed label space of each shipped class table, its classes in id order (the simulated embedder's texts)
@@ -176,12 +237,14 @@ def register(app: typer.Typer) -> None:
         data: Path = typer.Option(..., "--data", help="dataset folder, nuScenes or Occ3D-Waymo layout (real or `ago synth`)."),
         out: Path = typer.Option(..., "--out", help="Output folder (resumable; refused if made with other settings)."),
         prompts: str = typer.Option("cw", "--prompts", help="Prompt file (path or shipped name: cw, ow_pretrain, ow)."),
-        segmenter: str = typer.Option(None, "--segmenter", help="files (label maps, docs/vlm_files.md), sim "
+        segmenter: str = typer.Option(None, "--segmenter", help="files (label maps, docs/vlm_files.md), grounded-sam "
+                                      "(GroundingDINO + SAM from --detector / --sam, on the fly), sim "
                                       "(SIMULATED, `ago synth` data only) or boxes (painted from the dataset's 3D "
                                       "boxes and LiDAR ground: not a VLM; ago_train/pseudo/boxes.py). Default: files "
                                       "when there are label maps (--masks, or <data>/masks), sim on `ago synth` data."),
         masks: Path = typer.Option(None, "--masks", help="Label-map folder for --segmenter files (default <data>/masks)."),
-        embedder: str = typer.Option(None, "--embedder", help="files, sim (SIMULATED) or none. Default: files when "
+        embedder: str = typer.Option(None, "--embedder", help="files, maskclip (--clip, on the fly), sim (SIMULATED) "
+                                     "or none. Default: files when "
                                      "there are feature maps (--feats, or <data>/feats), else none."),
         feats: Path = typer.Option(None, "--feats", help="Feature-map folder for --embedder files (default <data>/feats)."),
         grid: str = typer.Option("100x100x8", "--grid", help="Voxel counts XxYxZ over the Occ3D range."),
@@ -207,6 +270,18 @@ def register(app: typer.Typer) -> None:
         text_encoder: Path = typer.Option(None, "--text-encoder", help="a CLIP save_pretrained folder: the text "
                                           "space of the bank the features go with (--embedder sim simulates "
                                           "features in it; needs torch + the vlm extra). Default: MiniLM."),
+        detector: Path = typer.Option(None, "--detector", help="--segmenter grounded-sam: GroundingDINO "
+                                      "save_pretrained folder (IDEA-Research/grounding-dino-tiny or -base)."),
+        sam: Path = typer.Option(None, "--sam", help="--segmenter grounded-sam: SAM save_pretrained folder "
+                                 "(facebook/sam-vit-base, -large, -huge)."),
+        clip: Path = typer.Option(None, "--clip", help="--embedder maskclip: CLIP save_pretrained folder "
+                                  "(openai/clip-vit-base-patch16)."),
+        device: str = typer.Option("cpu", "--device", help="grounded-sam / maskclip: cpu or cuda."),
+        max_boxes: int = typer.Option(64, "--max-boxes", min=1, max=1000, help="grounded-sam: boxes per image after NMS."),
+        box_threshold: float = typer.Option(0.2, "--box-threshold", min=0.0, max=1.0, help="grounded-sam (paper 0.2)."),
+        text_threshold: float = typer.Option(0.15, "--text-threshold", min=0.0, max=1.0, help="grounded-sam (paper 0.15)."),
+        nms_iou: float = typer.Option(0.5, "--nms-iou", min=0.0, max=1.0, help="grounded-sam: NMS IoU."),
+        clip_width: int = typer.Option(768, "--clip-width", min=1, max=4096, help="maskclip: CLIP input width."),
     ):
         """Lift 2-D masks (and image features) into 3-D pseudo-labels with the LiDAR (keyframes + non-key sweeps)."""
         from ago_runtime.formats.datasets import check_label_table, open_dataset
@@ -227,8 +302,19 @@ def register(app: typer.Typer) -> None:
 
             read_model_config(text_encoder, "--text-encoder", "clip")
         segmenter, masks, embedder, feats, notes = resolve_defaults(Path(data), segmenter, masks, embedder, feats)
+        vlm = {"detector": detector, "sam": sam, "clip": clip, "device": device, "clip_width": clip_width,
+               "config": grounded_sam_config(box_threshold, text_threshold, nms_iou, max_boxes)}
         space, seg, emb = build_backends(prompts, segmenter, masks, embedder, feats, seed, Path(data), write_masks,
-                                         text_encoder)
+                                         text_encoder, vlm)
+        if emb is not None:
+            bank_id = bank_dim = None
+            if text_encoder is not None:   # the bank training will use is this CLIP folder's text tower
+                from ago_runtime.vocab.model_folder import clip_encoder_id, read_model_config
+
+                bank_dim = int(read_model_config(text_encoder, "--text-encoder", "clip")["projection_dim"])
+                bank_id = clip_encoder_id(text_encoder)
+            check_embedder_fits_bank(emb, {"files": "--feats", "maskclip": "--clip"}.get(embedder, "--embedder"),
+                                     bank_id, bank_dim)
         needs_extras = segmenter == "sim" or embedder == "sim"
         ds = open_dataset(data, load_images=False, load_extras=needs_extras)
         check_label_table(ds, space)
@@ -245,6 +331,7 @@ def register(app: typer.Typer) -> None:
             notes.append(f"shard {shard_kn[0]}/{shard_kn[1]}: {len(indices)} keyframes")
             if not indices:
                 raise AgoInputError("--shard", f"shard {shard} of this split has no keyframes (fewer than N)")
+        load_models(seg, emb)   # the models (grounded-sam, maskclip) once every cheap check has passed
         for n in notes:
             typer.echo(f"note: using {n}")
         config = PseudoLabelConfig(grid=pgrid, num_keyframes=keyframes, interval=interval, nonkey_sweeps=nonkey,

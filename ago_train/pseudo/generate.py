@@ -42,6 +42,7 @@ from ago_runtime.readers import read_npz
 from ago_runtime.progress import track
 
 from .aggregate import EGO_BOX, LiftedFrame, attach_features, frames_to_aggregate, lift_frame_and_sweeps, warp_to
+from .backends import embedder_encoder_id
 from .lift import feature_sums_per_voxel
 from .raycast import traverse, unique_rays
 from .voting import FeatureMean, vote
@@ -327,7 +328,8 @@ def make_meta(label_space, segmenter, embedder, config: PseudoLabelConfig, comma
         "grid": config.grid.to_dict(),
         "segmenter": {"name": segmenter.name, "config": segmenter.config_dict()},
         "embedder": None if embedder is None else {"name": embedder.name, "config": embedder.config_dict(),
-                                                   "channels": getattr(embedder, "channels", None)},
+                                                   "channels": getattr(embedder, "channels", None),
+                                                   "encoder_id": embedder_encoder_id(embedder)},
         "num_keyframes": config.num_keyframes,
         "interval": config.interval,
         "nonkey_sweeps": config.nonkey_sweeps,
@@ -351,6 +353,7 @@ def _differences(a: dict, b: dict) -> list[str]:
             m["label_space"].pop("prompt_file", None)
         if m.get("embedder"):
             m["embedder"].pop("channels", None)   # files backends learn it from the first file
+            m["embedder"].pop("encoder_id", None)   # folders from before encoder ids lack it
             (m["embedder"].get("config") or {}).pop("channels", None)
         return m
     sa, sb = strip(a), strip(b)
