@@ -232,13 +232,6 @@ class Trainer:
         if width != cfg.model.embed_dim:
             raise AgoInputError(self.prompt_path, f"text embeddings are {width}-d but "
                                 f"the model's embed_dim is {cfg.model.embed_dim}")
-        if self.pseudo.has_embeds:   # the voxel embeddings the adapter aligns with must be in the bank's space
-            from .pseudo.backends import check_features_fit_bank
-
-            emb = self.pseudo.meta["embedder"]
-            check_features_fit_bank(f"the pseudo-labels' voxel embeddings ({emb.get('name')})", emb.get("encoder_id"),
-                                    emb.get("channels"), "the text bank", self.bank["encoder_id"],
-                                    self.bank["embeddings"].shape[1], self.pseudo.root / "meta.json")
         from .text.noise import training_noise_bank
 
         self.noise_bank = training_noise_bank(cfg.noise_bank, cfg.text_encoder, self.bank)
@@ -267,6 +260,15 @@ class Trainer:
         self.step = 0
         if self.resume:
             self._load_resume()
+        # after the resume / init_from checks (a checkpoint of another encoder is named first): the voxel
+        # embeddings the adapter aligns with must be in the bank's space
+        if self.pseudo.has_embeds:
+            from .pseudo.backends import check_features_fit_bank
+
+            emb = self.pseudo.meta["embedder"]
+            check_features_fit_bank(f"the pseudo-labels' voxel embeddings ({emb.get('name')})", emb.get("encoder_id"),
+                                    emb.get("channels"), "the text bank", self.bank["encoder_id"],
+                                    self.bank["embeddings"].shape[1], self.pseudo.root / "meta.json")
         if note and info.is_main and not self.quiet:   # after init_from / resume checks: an error stays one line
             print(note, file=sys.stderr, flush=True)
         if info.distributed:

@@ -59,3 +59,12 @@ def write_clip(folder: Path, projection_dim: int = 24, seed: int = 0, legacy_eos
     CLIPModel(cfg).eval().save_pretrained(folder)
     tok.save_pretrained(folder)
     return folder
+
+
+def write_noise(path: Path, clip_dir: Path) -> Path:
+    """Noise words in the CLIP's space (its random weights put every dictionary word "near" a label: threshold off)."""
+    from ago_train.text.clip import TorchClipTextEncoder
+    from ago_train.text.noise import build_noise_bank
+
+    return build_noise_bank(TorchClipTextEncoder(clip_dir), candidates=WORDS[23:], labels=["car"],
+                            threshold=1.0).save(path)

@@ -21,7 +21,7 @@ import pytest
 pytest.importorskip("torch")
 pytest.importorskip("transformers")
 
-from clip_tiny import WORDS, write_clip  # noqa: E402
+from clip_tiny import WORDS, write_clip, write_noise  # noqa: E402
 from test_bad_inputs import assert_one_error_line, ok, run_ago  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -208,15 +208,6 @@ def write_features(root: Path, out: Path, clip_dir: Path, dim: int = 24) -> None
                                                "model": "test"}))
 
 
-def write_noise(path: Path, clip_dir: Path) -> Path:
-    """Noise words in the CLIP's space (its random weights put every dictionary word "near" a label: threshold off)."""
-    from ago_train.text.clip import TorchClipTextEncoder
-    from ago_train.text.noise import build_noise_bank
-
-    return build_noise_bank(TorchClipTextEncoder(clip_dir), candidates=WORDS[23:], labels=["car"],
-                            threshold=1.0).save(path)
-
-
 BLOCK_TORCH = """import sys
 class Block:
     def find_spec(self, name, path=None, target=None):
@@ -372,9 +363,11 @@ def test_a_bank_of_another_encoder_is_refused_by_the_bundle(chain, other_clip):
 def test_noise_words_of_another_encoder_are_refused_by_training(chain, other_clip, clip_dir):
     from ago_runtime.vocab.model_folder import clip_encoder_id
 
+    # the bank (and the pseudo-labels' features) from clip_dir, the noise words from another CLIP
+    write_noise(chain / "noise_other.npz", other_clip)
     r = run_ago(["train", "--config", "tiny", "--data", "s", "--pseudo", "pl", "--prompts", "p.txt", "--out", "run2",
-                 "--text-encoder", other_clip, "--set", 'noise_bank="noise.npz"', "--set", 'device="cpu"'], chain)
-    assert_one_error_line(r, "noise.npz", "noise words", clip_encoder_id(clip_dir), clip_encoder_id(other_clip))
+                 "--text-encoder", clip_dir, "--set", 'noise_bank="noise_other.npz"', "--set", 'device="cpu"'], chain)
+    assert_one_error_line(r, "noise_other.npz", "noise words", clip_encoder_id(clip_dir), clip_encoder_id(other_clip))
     assert not (chain / "run2" / "last.pt").exists()
 
 

@@ -189,6 +189,21 @@ def test_town_vlm_files_pseudo_labels_and_training(tmp_path, models, town):
     ok(run_ago(["train", "--config", "tiny", "--data", town, "--pseudo", "pl", "--prompts", "cw", "--out", "run",
                 "--set", "max_steps=2"], tmp_path))
     assert (tmp_path / "run" / "last.pt").is_file()
+    # the paper's pairing (issues 48 + 49): MaskCLIP features of a CLIP folder, the text bank from the same CLIP's
+    # text tower (--text-encoder), so the modality adapter trains against features in the bank's own space
+    ok(run_ago(["pseudo-labels", "--data", town, "--out", "pl_clip", "--grid", "20x20x4", "--split", "all",
+                "--keyframes", "2", "--segmenter", "files", "--masks", "v/masks", "--embedder", "files", "--feats",
+                "v/feats", "--text-encoder", models.clip], tmp_path))
+    from ago_runtime.vocab.model_folder import clip_encoder_id
+    from clip_tiny import write_noise
+
+    meta = json.loads((tmp_path / "pl_clip" / "meta.json").read_text())
+    assert meta["embedder"]["encoder_id"] == clip_encoder_id(models.clip)
+    write_noise(tmp_path / "noise.npz", models.clip)
+    ok(run_ago(["train", "--config", "tiny", "--data", town, "--pseudo", "pl_clip", "--prompts", "cw", "--out",
+                "run_clip", "--text-encoder", models.clip, "--set", 'noise_bank="noise.npz"', "--set", "max_steps=2"],
+               tmp_path))
+    assert json.loads((tmp_path / "run_clip" / "log.jsonl").read_text().splitlines()[-1])["align"] > 0
 
 
 def test_on_the_fly_backends_compute_each_image_once(town, models):

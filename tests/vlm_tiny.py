@@ -82,19 +82,10 @@ def write_sam(folder: Path) -> Path:
 
 
 def write_clip(folder: Path, projection_dim: int = 24) -> Path:
-    from transformers import CLIPConfig, CLIPModel
-    import torch
+    """A tiny CLIP with its tokenizer: tests/clip_tiny.py's (one tiny CLIP for the text and the image tests)."""
+    from clip_tiny import write_clip as write_tiny_clip
 
-    torch.manual_seed(0)
-    folder.mkdir(parents=True, exist_ok=True)
-    cfg = CLIPConfig(
-        text_config={"vocab_size": 300, "hidden_size": 16, "intermediate_size": 32, "num_hidden_layers": 1,
-                     "num_attention_heads": 2, "max_position_embeddings": 32},
-        vision_config={"hidden_size": 32, "intermediate_size": 64, "num_hidden_layers": 2, "num_attention_heads": 2,
-                       "image_size": 32, "patch_size": 8},
-        projection_dim=projection_dim)
-    CLIPModel(cfg).eval().save_pretrained(folder)
-    return folder
+    return write_tiny_clip(folder, projection_dim)
 
 
 def write_all(root: Path) -> dict[str, Path]:

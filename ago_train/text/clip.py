@@ -18,36 +18,20 @@ frozen (eval mode, no gradients). Needs the vlm extra (transformers).
 
 from __future__ import annotations
 
-import os
 import warnings
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from ago_runtime.errors import AgoInputError, MissingExtra
+from ago_runtime.errors import AgoInputError
 from ago_runtime.vocab.clip_tokenizer import ClipTokenizer
 from ago_runtime.vocab.model_folder import ARCHITECTURES, clip_encoder_id, folder_hash, read_model_config
+from ago_train.vlm.loading import quiet_transformers   # the one offline, quiet import of transformers
 
 TOKENIZER_NAME = "tokenizer.json"
 DEFAULT_MAX_LENGTH = 77        # CLIP's context length (its text position embeddings)
 DEFAULT_PROJECTION = 512
-
-
-def quiet_transformers():
-    """transformers, imported offline with its logging and loading bars off; MissingExtra without the vlm extra."""
-    os.environ["HF_HUB_OFFLINE"] = "1"
-    os.environ["TRANSFORMERS_OFFLINE"] = "1"
-    os.environ["HF_HUB_DISABLE_PROGRESS_BARS"] = "1"
-    os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
-    try:
-        import transformers
-    except ImportError:
-        raise MissingExtra("a CLIP text encoder needs the vlm extra (transformers): bash scripts/setup.sh --vlm "
-                           "(or pip install -e '.[vlm]')") from None
-    transformers.utils.logging.set_verbosity_error()
-    transformers.utils.logging.disable_progress_bar()
-    return transformers
 
 
 def text_settings(cfg: dict) -> tuple[int, int]:
