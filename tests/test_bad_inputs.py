@@ -5,7 +5,7 @@ the named outputs absent).
 
 Every verb has usage-error rows (unknown option, wrong type, missing option, value out of range),
 because those come from click's exception classes, which typer >= 0.26 vendors as `typer._click`
-(ago_runtime/cli.py finds that module from typer.BadParameter). The rows run in this process through
+(ago_runtime/cli.py catches them by the classes typer exports). The rows run in this process through
 `ago_runtime.cli.run`, the function the `ago` console script calls.
 """
 
@@ -460,17 +460,19 @@ def test_the_table_covers_every_verb():
 
 # ------------------------------------------------------------------------------------ rows that are not exit 2
 def test_usage_error_classes_are_the_ones_typer_raises():
-    """The handler reads the one click typer runs on (typer._click for typer >= 0.26, else click), found
-    from the public typer.BadParameter; a usage error typer raises is one of its classes."""
+    """The handler catches the classes typer exports: a usage error of the click typer runs on (typer._click
+    for typer >= 0.26, else click) is a CLICK_ERROR with click's usage exit code, a bad value a typer.BadParameter."""
     import typer.main
 
-    from ago_runtime.cli import build_app, click_exceptions
+    from ago_runtime.cli import CLICK_ERROR, USAGE_EXIT_CODE, build_app
 
-    ce = click_exceptions()
-    assert issubclass(typer.BadParameter, ce.UsageError) and issubclass(ce.NoSuchOption, ce.UsageError)
+    assert issubclass(typer.BadParameter, CLICK_ERROR)
     command = typer.main.get_command(build_app("show"))
-    with pytest.raises(ce.UsageError):
+    with pytest.raises(CLICK_ERROR) as e:
         command.main(args=["show", "--bogus"], prog_name="ago", standalone_mode=False)
+    assert e.value.exit_code == USAGE_EXIT_CODE
+    with pytest.raises(typer.BadParameter):
+        command.main(args=["show", "x", "--view", "sideways"], prog_name="ago", standalone_mode=False)
 
 
 def test_scrambled_jpegs_are_refused_as_measured():

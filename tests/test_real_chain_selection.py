@@ -16,7 +16,6 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from conftest import shared_path  # noqa: E402
 
-from benchmarks.dataroot_cut import CutError, cut_dataroot  # noqa: E402
 from benchmarks.real_chain_select import pick  # noqa: E402
 
 
@@ -57,13 +56,14 @@ def test_cut_keeps_only_the_chosen_keyframes_boxes(cut):
 def test_cut_is_reused_or_refused(cut, tmp_path):
     src, dst, record = cut
     assert cut_dataroot(src, dst, 22, 8) == record                  # same cut: reused
-    with pytest.raises(CutError, match="not a cut"):
+    with pytest.raises(AgoInputError, match="not a cut"):
         cut_dataroot(src, dst, 30, 11)
-    with pytest.raises(CutError, match="41"):
+    with pytest.raises(AgoInputError, match="41"):
         cut_dataroot(src, tmp_path / "x", 40, 5)
     assert not (tmp_path / "x").exists()
-    r = subprocess.run([sys.executable, str(REPO / "benchmarks/dataroot_cut.py"), str(src), str(tmp_path / "y"),
-                        "--train", "0", "--val", "3"], capture_output=True, text=True)
+    r = subprocess.run([sys.executable, "-m", "benchmarks.dataroot_cut", str(src), str(tmp_path / "y"),
+                        "--train", "0", "--val", "3"], capture_output=True, text=True, cwd=REPO,
+                       env={**os.environ, "PYTHONPATH": str(REPO)})
     assert r.returncode == 2 and r.stderr.strip().startswith("error: --train/--val") and len(r.stderr.splitlines()) == 1
 
 

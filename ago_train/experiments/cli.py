@@ -16,8 +16,9 @@ import typer
 
 
 def register(app: typer.Typer) -> None:
-    exp = typer.Typer(help="Run the paper's experiments (tables + figures) on the synthetic benchmark.",
-                      no_args_is_help=True)
+    from ago_runtime.cli import verb_group
+
+    exp = verb_group("Run the paper's experiments (tables + figures) on the synthetic benchmark.")
     app.add_typer(exp, name="experiments")
 
     def _profile(name: str):
