@@ -29,8 +29,8 @@ Warnings print as one line each (`warning: <message>`, notes as `note: <message>
 Only typer's public API is used, the same on every typer of the pinned range (pyproject.toml; typer >= 0.26
 carries its own copy of click, older typer runs on click itself): the app is run through
 `typer.main.get_command(app).main(..., standalone_mode=False)`; errors are told apart by the classes typer
-exports (`typer.BadParameter`, `typer.Abort`, `typer.Exit`, and `CLICK_ERROR`: `typer.TyperException`, the base
-of its click's exceptions, or click's ClickException before typer had one) and the attributes click documents
+exports (`typer.BadParameter`, `typer.Abort`, `typer.Exit`, and `CLICK_ERROR`: the root of typer.BadParameter's
+exception classes, the base of every error its click raises) and the attributes click documents
 on them (`param`, `ctx`, `option_name`, `possibilities`, `param_type`); options with a fixed set of values are
 typed as Enums, so their help and their check come from the Enum; every verb's command class is
 `NonEmptyValues`, which refuses an empty value (`--out ''` would mean the working folder) option by option,
@@ -153,10 +153,10 @@ def __getattr__(name: str):
 
 
 # ------------------------------------------------------------------------------------ errors
-try:   # typer >= 0.26: the exceptions of its own click derive from TyperException
-    from typer import TyperException as CLICK_ERROR
-except ImportError:   # older typer runs on click itself (a dependency of those typers)
-    from click import ClickException as CLICK_ERROR
+# The root of the exceptions the click under typer raises: the ancestor of the public `typer.BadParameter` just
+# below Exception (click's ClickException on typer < 0.26 and on the 0.26 - 0.27 copies, typer.TyperException
+# after), so the handler never names a module of typer's own click.
+CLICK_ERROR: type[Exception] = typer.BadParameter.__mro__[typer.BadParameter.__mro__.index(Exception) - 1]
 
 USAGE_EXIT_CODE = 2   # click's UsageError (and each subclass: BadParameter, NoSuchOption ...) exits with 2
 
