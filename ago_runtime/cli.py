@@ -177,7 +177,7 @@ def usage_error_line(e: BaseException) -> str:
     command = e.ctx.command_path if getattr(e, "ctx", None) is not None else "ago"
     name = _param_name(getattr(e, "param", None))
     message = str(getattr(e, "message", "") or "")
-    if hasattr(e, "possibilities"):   # an unknown option (NoSuchOption)
+    if getattr(e, "option_name", None) and hasattr(e, "possibilities"):   # an unknown option (NoSuchOption)
         name = e.option_name
         message = "no such option"
         if e.possibilities:

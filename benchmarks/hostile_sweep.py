@@ -36,7 +36,6 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 os.environ.setdefault("AGO_NO_PROGRESS", "1")
 
 CASE_TIMEOUT_S = 60
@@ -114,8 +113,7 @@ def verdict(r, needles, cwd: Path, outputs, before, after) -> str:
 # ------------------------------------------------------------------------------------ fixtures
 def build_fixtures(work: Path):
     """A tiny synthetic dataset, its pseudo-labels, a tiny checkpoint and its bundle, an images folder."""
-    sys.path.insert(0, str(REPO / "tests"))
-    from test_bad_inputs import write_frame
+    from ago_runtime.formats.random_frame import write_random_frame as write_frame
 
     import torch
 

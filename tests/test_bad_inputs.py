@@ -26,6 +26,7 @@ import numpy as np
 import pytest
 
 from ago_runtime.formats.calibration import save_calibration
+from ago_runtime.formats.random_frame import write_random_frame
 from ago_runtime.geometry.camera import CAMERA_NAMES, Rig
 
 # ------------------------------------------------------------------------------------ running
@@ -82,17 +83,6 @@ def assert_one_error_line(r, *needles: str) -> str:
 
 
 # ------------------------------------------------------------------------------------ fixtures
-def write_frame(folder: Path, width: int = 400, height: int = 225, seed: int = 0) -> Path:
-    """Six smooth random JPEGs + a calib.json of a nuScenes-like rig."""
-    folder.mkdir(parents=True, exist_ok=True)
-    rng = np.random.default_rng(seed)
-    for name in CAMERA_NAMES:
-        coarse = rng.uniform(0, 255, (height // 8 + 1, width // 8 + 1, 3)).astype(np.float32)
-        cv2.imwrite(str(folder / f"{name}.jpg"), np.clip(cv2.resize(coarse, (width, height)), 0, 255).astype(np.uint8))
-    save_calibration(folder / "calib.json", Rig.nuscenes_like(width, height))
-    return folder
-
-
 def jpeg_with_size(data: bytes, width: int, height: int) -> bytes:
     """The same JPEG with its SOF0 frame header claiming another size (the data stays small)."""
     i = data.index(b"\xff\xc0")
@@ -137,7 +127,7 @@ def w(tmp_path_factory):
     x.a_file = root / "a_file.txt"
     x.a_file.write_text("not a folder\n")
 
-    x.frame = write_frame(root / "frame")
+    x.frame = write_random_frame(root / "frame")
     front = (x.frame / "CAM_FRONT.jpg").read_bytes()
     x.bomb = shutil.copytree(x.frame, root / "bomb")
     (x.bomb / "CAM_FRONT.jpg").write_bytes(jpeg_with_size(front, 30000, 16875))

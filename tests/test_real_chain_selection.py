@@ -1,22 +1,24 @@
 """The real chain's honest recipe selection (issue 35): the train/val cut of a one-scene dataroot
-(benchmarks/dataroot_cut.py) and the declared selection rule (benchmarks/real_chain_select.py).
-Tests on ../shared skip when it is absent."""
+(ago_runtime/formats/nuscenes_cut.py, run by `python -m benchmarks.dataroot_cut`) and the declared selection
+rule of benchmarks/real_chain_select.py (imported as the `benchmarks` package: the suite runs from the
+repository root, `python -m pytest`). Tests on ../shared skip when it is absent."""
 
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from conftest import shared_path
+
+from ago_runtime.errors import AgoInputError
+from ago_runtime.formats.nuscenes_cut import cut_dataroot
+from benchmarks.real_chain_select import pick
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from conftest import shared_path  # noqa: E402
-
-from benchmarks.real_chain_select import pick  # noqa: E402
 
 
 @pytest.fixture(scope="module")
