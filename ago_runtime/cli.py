@@ -189,6 +189,7 @@ def usage_error_line(e: BaseException) -> str:
         name = e.option_name
     if not message:
         message = e.format_message()
+    message = message.removeprefix("Value error, ")   # how typer 0.29 words a failed Enum check (0.26 does not)
     return one_line(f"{name or command}: {message} (see '{command} --help')")
 
 
