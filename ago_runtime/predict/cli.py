@@ -153,8 +153,8 @@ def prediction_picture(pred, images: dict | None, title: str = "", kind: str = "
 
 
 def infer_writer(out: Path, key: str, picture: str, volumes: bool, html: bool = False):
-    """`ago infer`'s write(name, images, prediction), called per frame of `predict_many`: `out/<name>.png` (unless picture is
-    none) and `out/<name>.html` (with html: pictures.html_viewer), then `out/<name>.npz` with `run_key` (a whole
+    """`ago infer`'s write(name, images, prediction), called per frame of `predict_many`: `out/<name>.png` (unless
+    picture is none) and `out/<name>.html` (with html: pictures.html_viewer), then `out/<name>.npz` with `run_key` (a whole
     npz means a whole frame: frame_is_whole), each written atomically; a killed run's temporary files of the frame are removed first. Gives the files."""
     from ago_runtime.atomic import save_npz
     from ago_runtime.pictures.render import save_png
@@ -193,7 +193,7 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
     from ago_runtime.predict.frames import open_frames
     from ago_runtime.predict.pipeline import auto_workers
     from ago_runtime.predict.predictor import Predictor
-    from ago_runtime.providers import Device, check_device, parse_device, parse_precision
+    from ago_runtime.providers import check_device, parse_device, parse_precision
     from ago_runtime.shards import parse_shard
 
     one_line_warnings()
