@@ -154,8 +154,8 @@ def __getattr__(name: str):
 
 # ------------------------------------------------------------------------------------ errors
 # The root of the exceptions the click under typer raises: the ancestor of the public `typer.BadParameter` just
-# below Exception (click's ClickException on typer < 0.26 and on the 0.26 - 0.27 copies, typer.TyperException
-# after), so the handler never names a module of typer's own click.
+# below Exception (click's ClickException on typer 0.18, typer's own copy of it on 0.26, typer.TyperException on
+# 0.29), so the handler never names a module of typer's own click.
 CLICK_ERROR: type[Exception] = typer.BadParameter.__mro__[typer.BadParameter.__mro__.index(Exception) - 1]
 
 USAGE_EXIT_CODE = 2   # click's UsageError (and each subclass: BadParameter, NoSuchOption ...) exits with 2
