@@ -17,17 +17,24 @@ imported inside the command), and `ago train` without torch says which extra to 
 
 Every failure caused by the user's input leaves through `exit_code_for` (used by `run`):
 - AgoInputError (a file, a config, an option value) and MissingExtra: `error: <file or option>: <problem>`;
-- click's usage errors (an unknown option, a value of the wrong type, a missing option, a value
-  outside an option's range): `error: <option>: <problem> (see 'ago VERB --help')`;
+- a usage error of the click typer runs on (an unknown option, a value of the wrong type or not one of an
+  enum's values, a missing option, a value outside an option's range, an empty value):
+  `error: <option>: <problem> (see 'ago VERB --help')`;
 - an OSError that names a file (PermissionError on an output folder, a full disk ...):
   `error: <file>: <strerror>`;
 each as ONE line on stderr and exit code 2. Anything else is a bug and keeps its traceback.
 Warnings print as one line each (`warning: <message>`, notes as `note: <message>`;
-`ago_runtime.errors.one_line_warnings`). `ago` or `ago prompts` alone print the help, exit 2.
+`ago_runtime.errors.one_line_warnings`). `ago` or `ago prompts` alone print the help, exit 2 (`verb_group`).
 
-The usage errors are the exception classes of the click that typer runs on: typer >= 0.26 carries its
-own copy (`typer._click`), older typer uses click itself. `click_exceptions()` is that module, found
-from `typer.BadParameter` (public in every typer), so only that one copy is consulted.
+Only typer's public API is used, the same on every typer of the pinned range (pyproject.toml; typer >= 0.26
+carries its own copy of click, older typer runs on click itself): the app is run through
+`typer.main.get_command(app).main(..., standalone_mode=False)`; errors are told apart by the classes typer
+exports (`typer.BadParameter`, `typer.Abort`, `typer.Exit`, and `CLICK_ERROR`: the root of typer.BadParameter's
+exception classes, the base of every error its click raises) and the attributes click documents
+on them (`param`, `ctx`, `option_name`, `possibilities`, `param_type`); options with a fixed set of values are
+typed as Enums, so their help and their check come from the Enum; every verb's command class is
+`CheckedValues`, which refuses an empty value (`--out ''` would mean the working folder), a control character
+or an over-long value (`value_problem`) option by option, right after click parsed them.
 """
 
 from __future__ import annotations
@@ -37,12 +44,13 @@ import sys
 from types import ModuleType
 
 import typer
+import typer.core
 import typer.main
 
 from ago_runtime.errors import AgoInputError, MissingExtra, one_line, one_line_warnings
 from ago_runtime.progress import quiet_library_bars
 
-__all__ = ["VERB_MODULES", "build_app", "run", "main", "exit_code_for"]
+__all__ = ["VERB_MODULES", "build_app", "verb_group", "run", "main", "exit_code_for"]
 
 # verb -> the modules that define it (each module has `register(app)`). Order = order in `ago --help`
 # (typer lists groups after commands). `prompts` is a group two packages add verbs to.
@@ -78,8 +86,74 @@ def _import_verb_module(name: str) -> ModuleType | None:
         raise
 
 
-def _group_callback() -> None:
-    """ago: open-world 3D semantic occupancy from surround cameras (AGO, ICCV 2025)."""
+def _help_when_alone(ctx: typer.Context) -> None:
+    """A group given no verb (`ago`, `ago prompts`): its help on stdout, exit code 2."""
+    if ctx.invoked_subcommand is None:
+        typer.echo(ctx.get_help())
+        raise typer.Exit(2)
+
+
+def verb_group(help: str) -> typer.Typer:
+    """A group of verbs (`ago prompts`, `ago experiments`): alone, it prints its help and exits 2."""
+    return typer.Typer(help=help, invoke_without_command=True, callback=_help_when_alone)
+
+
+MAX_OPTION_CHARS = 4096      # any option or argument value (a path: Linux's PATH_MAX)
+MAX_SET_CHARS = 100_000      # a --set KEY=VALUE (ago_train/train_config.py bounds the value alike)
+# options whose value is a name or a note, not a path: bounded as a phrase (ago_runtime.vocab.prompts.MAX_PHRASE_CHARS)
+NAME_OPTIONS = ("--phrase", "--template", "--card-note", "--sample", "--split", "--eval-split", "--subset", "--stage",
+                "--profile", "--identifier", "--device", "--precision", "--picture", "--view", "--layout", "--rig",
+                "--shard", "--seeds", "--readout", "--readout-grid", "--grid", "--image-size", "--segmenter",
+                "--embedder", "--ray-origin")
+
+
+def value_problem(name: str, value: str) -> str | None:
+    """What is wrong with one option or argument value, else None: empty or all blank (`--out ''` would mean the
+    working folder), a control character (a NUL, an escape; `--set` may hold the tabs and newlines of JSON), more
+    than MAX_OPTION_CHARS characters (--set: MAX_SET_CHARS), a name or note (NAME_OPTIONS) of more than
+    MAX_PHRASE_CHARS."""
+    from ago_runtime.vocab.prompts import MAX_PHRASE_CHARS
+
+    if not value.strip():
+        return "is empty"
+    allowed = "\t\n\r" if name == "--set" else ""
+    bad = next((c for c in value if (ord(c) < 32 or 127 <= ord(c) < 160) and c not in allowed), None)
+    if bad is not None:
+        return f"holds the control character {bad!r}"
+    limit = MAX_SET_CHARS if name == "--set" else MAX_PHRASE_CHARS if name in NAME_OPTIONS else MAX_OPTION_CHARS
+    if len(value) > limit:
+        return f"is {len(value)} characters long (at most {limit})"
+    return None
+
+
+class CheckedValues(typer.core.TyperCommand):
+    """Every verb's command class (set by `build_app`): each option and argument value is checked by
+    `value_problem` (empty, control characters, length bounds), naming the option, before click converts it
+    (a Path of '' is '.') and before any work. The values are the ones this command's own click parser
+    (`make_parser`) reads, so an option is found exactly as click finds it (`--out=`, `-o ''`, a repeated option)."""
+
+    def parse_args(self, ctx, args):
+        try:
+            raw, _, _ = self.make_parser(ctx).parse_args(args=list(args))
+        except Exception:  # noqa: BLE001 - a usage error: click's own parse below reports it
+            raw = {}
+        for param in self.get_params(ctx):
+            if param.param_type_name not in ("option", "argument") or param.name not in raw:
+                continue
+            value = raw[param.name]
+            name = _param_name(param)
+            for v in value if isinstance(value, (list, tuple)) else [value]:
+                problem = value_problem(name, v) if isinstance(v, str) else None
+                if problem is not None:
+                    raise AgoInputError(name, problem)
+        return super().parse_args(ctx, args)
+
+
+def _verb_commands(app: typer.Typer):
+    """The command records of `app` and of its groups (typer's registration, before any click command exists)."""
+    yield from app.registered_commands
+    for group in app.registered_groups:
+        yield from _verb_commands(group.typer_instance)
 
 
 def build_app(verb: str | None = None) -> typer.Typer:
@@ -88,12 +162,15 @@ def build_app(verb: str | None = None) -> typer.Typer:
     modules = VERB_MODULES.get(verb) if verb is not None else None
     if modules is None:
         modules = tuple(dict.fromkeys(m for ms in VERB_MODULES.values() for m in ms))
-    app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False, help=HELP,
-                      callback=_group_callback)   # a callback keeps one verb a group: `ago show X`, not `ago X`
+    app = typer.Typer(add_completion=False, pretty_exceptions_enable=False, help=HELP, invoke_without_command=True,
+                      callback=_help_when_alone)   # a callback keeps one verb a group: `ago show X`, not `ago X`
     for name in modules:
         module = _import_verb_module(name)
         if module is not None:
             module.register(app)
+    for command in _verb_commands(app):   # typer's default command class (a verb asking for its own keeps it)
+        if command.cls in (None, typer.core.TyperCommand):
+            command.cls = CheckedValues
     return app
 
 
@@ -108,10 +185,12 @@ def __getattr__(name: str):
 
 
 # ------------------------------------------------------------------------------------ errors
-def click_exceptions() -> ModuleType:
-    """The module of the exception classes the click under typer raises (`typer._click.exceptions` for
-    typer >= 0.26, `click.exceptions` before), found from the public `typer.BadParameter`."""
-    return sys.modules[typer.BadParameter.__module__]
+# The root of the exceptions the click under typer raises: the ancestor of the public `typer.BadParameter` just
+# below Exception (click's ClickException on typer 0.18, typer's own copy of it on 0.26, typer.TyperException on
+# 0.29), so the handler never names a module of typer's own click.
+CLICK_ERROR: type[Exception] = typer.BadParameter.__mro__[typer.BadParameter.__mro__.index(Exception) - 1]
+
+USAGE_EXIT_CODE = 2   # click's UsageError (and each subclass: BadParameter, NoSuchOption ...) exits with 2
 
 
 def _param_name(param) -> str | None:
@@ -127,35 +206,34 @@ def _param_name(param) -> str | None:
 
 def usage_error_line(e: BaseException) -> str:
     """One line `<option or command>: <problem> (see '<command> --help')` for a click usage error."""
-    ce = click_exceptions()
     command = e.ctx.command_path if getattr(e, "ctx", None) is not None else "ago"
     name = _param_name(getattr(e, "param", None))
     message = str(getattr(e, "message", "") or "")
-    if isinstance(e, ce.NoSuchOption):
+    if getattr(e, "option_name", None) and hasattr(e, "possibilities"):   # an unknown option (NoSuchOption)
         name = e.option_name
         message = "no such option"
         if e.possibilities:
             message += f" (did you mean {', '.join(sorted(e.possibilities))}?)"
-    elif isinstance(e, ce.MissingParameter):
+    elif isinstance(e, typer.BadParameter) and hasattr(e, "param_type"):   # a missing option or argument
         what = "argument" if e.param is not None and e.param.param_type_name == "argument" else "option"
         message = f"missing {what}" + (f" ({message})" if message else "")
-    elif isinstance(e, ce.BadOptionUsage):
-        name = e.option_name or name
+    elif getattr(e, "option_name", None):   # an option used wrongly (BadOptionUsage)
+        name = e.option_name
     if not message:
         message = e.format_message()
+    message = message.removeprefix("Value error, ")   # how typer 0.29 words a failed Enum check (0.26 does not)
     return one_line(f"{name or command}: {message} (see '{command} --help')")
 
 
 def exit_code_for(e: BaseException) -> int:
     """Print the one error line for `e` on stderr and give the exit code; re-raise what is not bad input."""
-    ce = click_exceptions()
     if isinstance(e, (AgoInputError, MissingExtra)):
         print(f"error: {one_line(e)}", file=sys.stderr)
         return 2
-    if isinstance(e, ce.UsageError):
+    if isinstance(e, CLICK_ERROR) and getattr(e, "exit_code", None) == USAGE_EXIT_CODE:
         print(f"error: {usage_error_line(e)}", file=sys.stderr)
         return 2
-    if isinstance(e, ce.ClickException):   # click's other errors (a file it could not open)
+    if isinstance(e, CLICK_ERROR):   # click's other errors (a file it could not open)
         print(f"error: {one_line(e.format_message())}", file=sys.stderr)
         return 2
     if isinstance(e, (typer.Abort, KeyboardInterrupt)):
@@ -167,70 +245,6 @@ def exit_code_for(e: BaseException) -> int:
     raise e
 
 
-def _named_command(command, args: list[str]):
-    """(the click command `args` name: the group, a sub-group or a verb; the index of the first other argument)."""
-    i = 0
-    while i < len(args) and hasattr(command, "commands") and args[i] in command.commands:
-        command = command.commands[args[i]]
-        i += 1
-    return command, i
-
-
-MAX_OPTION_CHARS = 4096      # any option or argument value (a path: Linux's PATH_MAX)
-MAX_SET_CHARS = 100_000      # a --set KEY=VALUE (ago_train/train_config.py bounds the value alike)
-# options whose value is a name or a note, not a path: bounded as a phrase (ago_runtime.vocab.prompts.MAX_PHRASE_CHARS)
-NAME_OPTIONS = ("--phrase", "--template", "--card-note", "--sample", "--split", "--eval-split", "--subset", "--stage", "--profile",
-                "--identifier", "--device", "--precision", "--picture", "--view", "--layout", "--rig", "--shard",
-                "--seeds", "--readout", "--readout-grid", "--grid", "--image-size", "--segmenter", "--embedder",
-                "--ray-origin")
-
-
-def option_values(command, args: list[str]):
-    """(name, value) of every value in `args` after the verb: an option's value under the option's name
-    (`--out x`, `--out=x`), a positional argument under its name in capitals (`PATH`). Found on the verb's click command:
-    options that take a value (not flags)."""
-    cmd, i = _named_command(command, args)
-    takes_value = {o: not p.is_flag for p in cmd.params if p.param_type_name == "option"
-                   for o in list(p.opts) + list(p.secondary_opts)}
-    arguments = [p.name.upper() for p in cmd.params if p.param_type_name == "argument"]
-    position = 0
-    while i < len(args):
-        a = args[i]
-        if a == "--":
-            break
-        name, value = a.split("=", 1) if a.startswith("--") and "=" in a else (a, None)
-        if takes_value.get(name):
-            if value is None:
-                i += 1
-                value = args[i] if i < len(args) else None
-            if value is not None:
-                yield name, value
-        elif name not in takes_value and not a.startswith("-"):
-            yield arguments[position] if position < len(arguments) else f"argument {position + 1}", a
-            position += 1
-        i += 1
-
-
-def option_problem(command, args: list[str]) -> tuple[str, str] | None:
-    """(option, problem) for the first value of `args` that no verb takes, else None: an empty (or all-blank)
-    value (`--out ''` would mean the working folder), a control character (a NUL, an escape; `--set` may hold
-    tabs and newlines of JSON), more than MAX_OPTION_CHARS characters (--set: MAX_SET_CHARS), a name or note
-    (NAME_OPTIONS) of more than MAX_PHRASE_CHARS. Checked once here for every verb, before any work."""
-    from ago_runtime.vocab.prompts import MAX_PHRASE_CHARS
-
-    for name, value in option_values(command, args):
-        if not value.strip():
-            return name, "is empty"
-        allowed = "\t\n\r" if name == "--set" else ""
-        bad = next((c for c in value if (ord(c) < 32 or 127 <= ord(c) < 160) and c not in allowed), None)
-        if bad is not None:
-            return name, f"holds the control character {bad!r}"
-        limit = MAX_SET_CHARS if name == "--set" else MAX_PHRASE_CHARS if name in NAME_OPTIONS else MAX_OPTION_CHARS
-        if len(value) > limit:
-            return name, f"is {len(value)} characters long (at most {limit})"
-    return None
-
-
 def run(argv: list[str] | None = None) -> int:
     """Run `ago` with `argv` (default sys.argv[1:]); gives the exit code (errors already printed)."""
     one_line_warnings()
@@ -238,19 +252,12 @@ def run(argv: list[str] | None = None) -> int:
     args = list(sys.argv[1:] if argv is None else argv)
     try:
         command = typer.main.get_command(build_app(args[0] if args else None))
-        named, i = _named_command(command, args)
-        if i == len(args) and hasattr(named, "commands"):   # `ago`, `ago prompts`: a group alone, its help
-            command.main(args=args + ["--help"], prog_name="ago", standalone_mode=False)
-            return 2
-        problem = option_problem(command, args)
-        if problem is not None:   # e.g. `--out ''` would write into the working folder: refused for every option
-            raise AgoInputError(*problem)
         rc = command.main(args=args, prog_name="ago", standalone_mode=False)
     except SystemExit:
         raise
     except BaseException as e:  # noqa: BLE001 - every exit goes through exit_code_for
         return exit_code_for(e)
-    return rc if isinstance(rc, int) else 0   # click returns Exit's code (e.g. 0 after --help)
+    return rc if isinstance(rc, int) else 0   # click returns Exit's code (e.g. 0 after --help, 2 for a group alone)
 
 
 def main() -> None:

@@ -18,8 +18,6 @@ from __future__ import annotations
 
 from enum import Enum
 
-import onnxruntime as ort
-
 from ago_runtime.errors import AgoInputError
 
 
@@ -99,6 +97,8 @@ def openvino_options(precision: Precision = Precision.FP32) -> dict:
 def check_device(device: Device, precision: Precision = Precision.FP32,
                  available: list[str] | None = None) -> None:
     """Refuse a device this onnxruntime cannot run, or a precision it does not take, with what to do."""
+    import onnxruntime as ort   # here, so that the CLI's option types (Device, Precision) cost no onnxruntime import
+
     available = ort.get_available_providers() if available is None else available
     if precision is Precision.FP16 and device in (Device.CPU, Device.CUDA):
         raise AgoInputError("--precision", f"fp16 runs through TensorRT or OpenVINO, not {device.value} "

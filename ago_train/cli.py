@@ -11,10 +11,22 @@
 from __future__ import annotations
 
 import json
+from enum import Enum
 from pathlib import Path
 from typing import List, Optional
 
 import typer
+
+from ago_runtime.predict.contract import Identifier
+
+
+class OpenWorldStage(str, Enum):
+    """`ago open-world --stage`."""
+
+    PRETRAIN = "pretrain"
+    ZEROSHOT = "zeroshot"
+    FEWSHOT = "fewshot"
+    ALL = "all"
 
 
 def _config(config: str, sets: Optional[List[str]], out: Optional[str], data: Optional[str] = None,
@@ -89,9 +101,9 @@ def register(app: typer.Typer) -> None:
         data: Path = typer.Option(..., "--data", help="dataset root with Occ3D gts/"),
         split: str = typer.Option("val", "--split", help="split of the dataset's splits.json, or all"),
         prompts: Optional[str] = typer.Option(None, "--prompts", help="prompt file (default: the checkpoint's)"),
-        identifier: Optional[str] = typer.Option(None, "--identifier",
-                                                 help="min-entropy | max-conf | none (default: none in the "
-                                                      "closed world, min-entropy with unknown classes)"),
+        identifier: Optional[Identifier] = typer.Option(None, "--identifier",
+                                                        help="default: none in the closed world, min-entropy "
+                                                             "with unknown classes"),
         out: Optional[Path] = typer.Option(None, "--out", help="folder for metrics.json / metrics.md "
                                                                "(default: <ckpt folder>/eval-<split>)"),
         gts: Optional[str] = typer.Option(None, "--gts", help="Occ3D gts root when not <data>/gts"),
@@ -117,14 +129,15 @@ def register(app: typer.Typer) -> None:
             raise AgoInputError("--gts", f"{gts}: Occ3D gts folder not found")
         out = out if out is not None else Path(ckpt).parent / f"eval-{split}"
         check_output_dir(out, "--out")
-        r = evaluate(ckpt, data, split=split, prompts=prompts, identifier=identifier, out=out, gts=gts,
+        r = evaluate(ckpt, data, split=split, prompts=prompts, identifier=identifier.value if identifier else None,
+                     out=out, gts=gts,
                      max_frames=max_frames, device=device, readout=readout)
         subs = ", ".join(f"{k} {v}" for k, v in r["subsets"].items())
         typer.echo(f"mIoU {r['mIoU']} (%){'; ' + subs if subs else ''}; written {out}/metrics.json, metrics.md")
 
     @app.command("open-world")
     def open_world_cmd(
-        stage: str = typer.Option("all", "--stage", help="pretrain | zeroshot | fewshot | all"),
+        stage: OpenWorldStage = typer.Option(OpenWorldStage.ALL, "--stage", help="which stages to run"),
         config: str = typer.Option("cpu", "--config", help="base training preset or JSON file"),
         sets: Optional[List[str]] = typer.Option(None, "--set", help="override a base config value"),
         data: Optional[str] = typer.Option(None, "--data", help="dataset root"),
@@ -137,7 +150,7 @@ def register(app: typer.Typer) -> None:
         fewshot_epochs: Optional[int] = typer.Option(None, "--fewshot-epochs", min=1,
                                                      help="fine-tuning epochs (default 12; 1 for tiny)"),
         eval_split: str = typer.Option("val", "--eval-split"),
-        identifier: str = typer.Option("min-entropy", "--identifier"),
+        identifier: Identifier = typer.Option(Identifier.MIN_ENTROPY, "--identifier"),
         out: Path = typer.Option(Path("runs/open-world"), "--out"),
     ):
         """The paper's open-world protocol: pretrain (5 classes), zero-shot and few-shot on 15 classes."""
@@ -147,13 +160,10 @@ def register(app: typer.Typer) -> None:
         require_torch("open-world")
         from ago_runtime.outputs import check_output_dir
 
-        from ago_runtime.predict.contract import Identifier
 
         from .open_world import OpenWorldConfig, run_open_world
 
-        if stage not in ("pretrain", "zeroshot", "fewshot", "all"):
-            raise AgoInputError("--stage", f"must be pretrain, zeroshot, fewshot or all, got {stage!r}")
-        identifier = Identifier.parse(identifier, "--identifier").value
+        stage, identifier = stage.value, identifier.value
         check_output_dir(out, "--out")
         try:   # each option's own problem first: --seeds, the folders, then what the stage needs
             seed_list = tuple(int(s) for s in seeds.split(",") if s.strip())

@@ -7,7 +7,7 @@ zero-shot known / unknown / all mIoU with the min-entropy identifier and with th
 the adapted branch's mean entropy, and how class-specific F~_3D is: per GT class, cos(F~_3D, own class
 text) minus the mean cos to the other classes' texts (E_3D of the simulated VLM beside it).
 
-    python benchmarks/adapter_training_length.py --exp data/exp --steps 1200
+    python -m benchmarks.adapter_training_length --exp data/exp --steps 1200
         -> benchmarks/results/adapter_training_length.md
 """
 
@@ -17,14 +17,12 @@ import argparse
 import dataclasses
 import json
 import os
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 os.environ.setdefault("AGO_NO_PROGRESS", "1")
 RESULTS = REPO / "benchmarks" / "results" / "adapter_training_length.md"
 
@@ -78,7 +76,7 @@ def main() -> None:
     e3d = np.asarray(gap["cos"])[np.ix_(idx, idx)]
 
     L = ["# Does the adapter learn class directions with more training?", "",
-         f"Command: `python benchmarks/adapter_training_length.py --exp {args.exp} --steps {args.steps}`  ",
+         f"Command: `python -m benchmarks.adapter_training_length --exp {args.exp} --steps {args.steps}`  ",
          f"Data: the `cpu` experiments profile's synthetic city (72 train frames, 24 val frames), open-world "
          f"pretraining on ow_pretrain (5 classes), zero-shot on ow (15 classes: 10 known, 5 unknown).  ",
          "Simulated VLM embeddings (E_3D) — a simulation, docs/synth.md.", "",

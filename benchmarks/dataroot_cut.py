@@ -1,121 +1,17 @@
-"""A train/val cut of a one-scene nuScenes dataroot, as a new dataroot (issue 35: select a recipe on
-held-out training frames, score the test frames once).
+"""A train/val cut of a one-scene nuScenes dataroot, as a new dataroot (ago_runtime/formats/nuscenes_cut.py
+says what is written; benchmarks/real_chain.py --cut uses it).
 
-    python benchmarks/dataroot_cut.py SRC DST --train 22 --val 8
-
-DST gets the first TRAIN + VAL keyframes (time order) of SRC's one scene, split into two scenes,
-"<scene>-train" (the first TRAIN) and "<scene>-val" (the next VAL), and a splits.json naming them, so
-every `ago` verb's `--split train` / `val` (and `ago train`'s train_split) takes exactly those frames.
-Because they are two scenes, `ago pseudo-labels --keyframes K` superimposes neighbours from inside the
-frame's own part only: no train pseudo-label ever uses a val keyframe's LiDAR or boxes.
-
-What is written: DST/<version>/ with every table of SRC (sample, sample_data and sample_annotation
-kept for the chosen keyframes only, links to dropped records emptied; scene.json the two scenes; the
-other tables copied), DST/splits.json, DST/cut.json (what was asked, to reuse the cut), and DST/samples
-as a symbolic link to SRC/samples (no image or LiDAR file is copied). Built in a temporary folder and
-renamed, so an interrupted run leaves no half-made DST.
+    python -m benchmarks.dataroot_cut SRC DST --train 22 --val 8
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import shutil
-import sys
-from pathlib import Path
 
-# the tables whose records belong to one sample (kept only for the chosen keyframes)
-PER_SAMPLE_TABLES = ("sample_data", "sample_annotation")
+from ago_runtime.cli import exit_code_for
+from ago_runtime.formats.nuscenes_cut import cut_dataroot
 
-
-class CutError(Exception):
-    """Bad input to the cut; main() prints it as one `error: ...` line and exits 2."""
-
-
-def _read(path: Path):
-    with open(path) as f:
-        return json.load(f)
-
-
-def _write(path: Path, obj) -> None:
-    with open(path, "w") as f:
-        json.dump(obj, f)
-
-
-def _relink(records: list[dict], kept: set[str]) -> None:
-    """Empty the prev/next links of records that point at a dropped record."""
-    for r in records:
-        for key in ("prev", "next"):
-            if r.get(key) and r[key] not in kept:
-                r[key] = ""
-
-
-def cut_dataroot(src: str | Path, dst: str | Path, train: int, val: int) -> dict:
-    """Write the cut (see the module docstring) to `dst` and return its cut.json record; an existing
-    `dst` made with the same source and counts is reused, any other `dst` is refused."""
-    src, dst = Path(src).resolve(), Path(dst)
-    asked = {"source": str(src), "train": train, "val": val}
-    if dst.exists():
-        marker = dst / "cut.json"
-        if marker.is_file() and {k: _read(marker).get(k) for k in asked} == asked:
-            return _read(marker)
-        raise CutError(f"{dst}: exists and is not a cut of {src} with train={train}, val={val}")
-    if train < 1 or val < 1:
-        raise CutError(f"--train/--val: need at least 1 keyframe each, got {train}, {val}")
-    versions = sorted(p.name for p in src.glob("v1.0-*") if p.is_dir())
-    if len(versions) != 1:
-        raise CutError(f"{src}: needs exactly one v1.0-* table folder, found {versions}")
-    version = versions[0]
-    scenes = _read(src / version / "scene.json")
-    if len(scenes) != 1:
-        raise CutError(f"{src / version / 'scene.json'}: the cut takes a one-scene dataroot, "
-                         f"this one has {len(scenes)} scenes")
-    scene = scenes[0]
-    samples = sorted(_read(src / version / "sample.json"), key=lambda r: int(r["timestamp"]))
-    if train + val > len(samples):
-        raise CutError(f"--train/--val: {train} + {val} keyframes asked, the scene has {len(samples)}")
-
-    parts = {"train": samples[:train], "val": samples[train:train + val]}
-    new_scenes, scene_of = [], {}
-    for part, recs in parts.items():
-        token = f"{scene['token']}-{part}"
-        new_scenes.append({**scene, "token": token, "name": f"{scene['name']}-{part}", "nbr_samples": len(recs),
-                           "first_sample_token": recs[0]["token"], "last_sample_token": recs[-1]["token"]})
-        scene_of.update({r["token"]: token for r in recs})
-    kept_samples = [dict(r, scene_token=scene_of[r["token"]]) for r in samples if r["token"] in scene_of]
-    for part_recs in parts.values():   # each part's first / last keyframe has no prev / next
-        first, last = part_recs[0]["token"], part_recs[-1]["token"]
-        for r in kept_samples:
-            if r["token"] == first:
-                r["prev"] = ""
-            if r["token"] == last:
-                r["next"] = ""
-
-    tmp = dst.with_name(dst.name + ".tmp")
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    (tmp / version).mkdir(parents=True)
-    for table in sorted(src.joinpath(version).glob("*.json")):
-        name = table.stem
-        if name == "scene":
-            records = new_scenes
-        elif name == "sample":
-            records = kept_samples
-        elif name in PER_SAMPLE_TABLES:
-            records = [r for r in _read(table) if r.get("sample_token") in scene_of]
-            _relink(records, {r["token"] for r in records})
-        else:
-            shutil.copyfile(table, tmp / version / table.name)
-            continue
-        _write(tmp / version / table.name, records)
-    os.symlink(src / "samples", tmp / "samples")
-    _write(tmp / "splits.json", {part: [f"{scene['name']}-{part}"] for part in parts})
-    record = {**asked, "scene": scene["name"], "version": version,
-              "train_tokens": [r["token"] for r in parts["train"]], "val_tokens": [r["token"] for r in parts["val"]]}
-    _write(tmp / "cut.json", record)
-    os.replace(tmp, dst)
-    return record
+__all__ = ["cut_dataroot", "main"]
 
 
 def main(argv=None) -> None:
@@ -127,9 +23,8 @@ def main(argv=None) -> None:
     args = ap.parse_args(argv)
     try:
         rec = cut_dataroot(args.src, args.dst, args.train, args.val)
-    except CutError as e:
-        print(f"error: {e}", file=sys.stderr)
-        raise SystemExit(2) from None
+    except Exception as e:  # noqa: BLE001 - bad input: one `error:` line, exit 2 (others re-raised)
+        raise SystemExit(exit_code_for(e)) from None
     print(f"{args.dst}: {rec['scene']} keyframes 0-{args.train - 1} = train, "
           f"{args.train}-{args.train + args.val - 1} = val")
 

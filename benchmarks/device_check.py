@@ -1,6 +1,6 @@
 """The runtime on accelerators (issue 39): each bundle on each device and precision, against CPU fp32.
 
-    python benchmarks/device_check.py [--devices cpu:fp32,cuda:fp32,tensorrt:fp32,tensorrt:fp16] \
+    python -m benchmarks.device_check [--devices cpu:fp32,cuda:fp32,tensorrt:fp32,tensorrt:fp16] \
         [--paper-scale] [--reps 5] [--out benchmarks/results/device_check.md]
 
 The script to run, once, on a machine with a GPU (onnxruntime-gpu installed: `bash scripts/setup.sh --device
@@ -20,7 +20,7 @@ it lives in an environment of its own, and `--python openvino=ENV/bin/python` ru
 
     python -m venv /tmp/ov && /tmp/ov/bin/pip install 'onnxruntime-openvino>=1.17,<1.33' 'numpy<2.5' \
         'opencv-python-headless<5.2' 'typer<0.30'
-    python benchmarks/device_check.py --devices cpu:fp32,openvino:fp32,openvino:fp16 --paper-scale \
+    python -m benchmarks.device_check --devices cpu:fp32,openvino:fp32,openvino:fp16 --paper-scale \
         --python openvino=/tmp/ov/bin/python --rounds 2 --out benchmarks/results/openvino_cpu.md
 """
 
@@ -35,14 +35,13 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "benchmarks"))
 RESULTS = REPO / "benchmarks" / "results" / "device_check.md"
 
 
 def child(bundle: str, device: str, precision: str, reps: int, labels_out: str) -> dict:
     from ago_runtime.errors import AgoInputError
     from ago_runtime.predict.predictor import Predictor
-    from paper_scale import predictor_frames
+    from benchmarks.paper_scale import predictor_frames
 
     try:
         p, *_, record = predictor_frames(lambda: Predictor(bundle, device=device, precision=precision), reps,
@@ -59,8 +58,8 @@ def run_child(*args: str, python: str | None = None) -> dict:
     env = {**os.environ, "AGO_NO_PROGRESS": "1"}
     if python:
         env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
-    r = subprocess.run([python or sys.executable, __file__, "--child", *args], capture_output=True, text=True,
-                       env=env)
+    r = subprocess.run([python or sys.executable, "-m", "benchmarks.device_check", "--child", *args],
+                       capture_output=True, text=True, env=env, cwd=REPO)
     if r.returncode != 0:
         return {"failed": r.stderr.strip().splitlines()[-1][:300] if r.stderr.strip() else f"exit {r.returncode}"}
     return json.loads(r.stdout.strip().splitlines()[-1])
@@ -133,7 +132,7 @@ def main() -> None:
     import onnxruntime as ort
 
     lines = ["# The runtime on accelerators (issue 39)", "",
-             f"Command: `python benchmarks/device_check.py {' '.join(sys.argv[1:])}` "
+             f"Command: `python -m benchmarks.device_check {' '.join(sys.argv[1:])}` "
              f"({time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; onnxruntime {ort.__version__}, providers "
              f"{', '.join(ort.get_available_providers())}).", "",
              "| bundle | device | precision | onnxruntime | open (s) | first frame (s) | steady frame (s) | "

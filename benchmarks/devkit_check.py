@@ -6,7 +6,7 @@ dependency of ago), e.g.
     python -m venv --system-site-packages /tmp/devkit
     /tmp/devkit/bin/pip install --no-deps nuscenes-devkit
     /tmp/devkit/bin/pip install pyquaternion matplotlib shapely Pillow scikit-learn
-    /tmp/devkit/bin/python benchmarks/devkit_check.py --version v1.0-mini --dataroot /tmp/ds
+    /tmp/devkit/bin/python -m benchmarks.devkit_check --version v1.0-mini --dataroot /tmp/ds
 
 With `--write`, the script first writes a small dataset there itself (needs ago importable, i.e.
 run from the repository root), then moves every camera's ego pose 0.3 m / 0.5 deg away from the
@@ -20,7 +20,6 @@ the LiDAR exactly where `NuScenesDataset` + `Camera.project` do, reads the map m
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
@@ -28,7 +27,6 @@ import numpy as np
 
 
 def write_dataset(root: Path, version: str) -> None:
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     from ago_runtime.geometry.camera import Rig
     from ago_runtime.formats.nuscenes_writer import BoxAnnotation, NuScenesWriter
     from ago_runtime.formats.nuscenes_schema import record_to_matrix
@@ -83,7 +81,6 @@ def check(dataroot: Path, version: str) -> None:
     from nuscenes.nuscenes import NuScenes
     from nuscenes.utils.geometry_utils import view_points
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     from ago_runtime.formats.nuscenes_schema import record_to_matrix
 
     t0 = time.time()

@@ -6,7 +6,7 @@ the time between the camera and the LiDAR, how far the camera moved, and the pix
 the two projections of the same points (median, 95th percentile, max). Writes the table to
 benchmarks/results/ego_motion_compensation.md.
 
-    python benchmarks/ego_motion_compensation.py
+    python -m benchmarks.ego_motion_compensation
 """
 
 from __future__ import annotations
@@ -17,7 +17,6 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 from ago_runtime.formats.mmdet3d_info import load_mmdet3d_info, read_mmdet3d_info  # noqa: E402
 from ago_runtime.atomic import write_text  # noqa: E402
@@ -46,7 +45,7 @@ def main() -> None:
     print(table)
     write_text(REPO / "benchmarks" / "results" / "ego_motion_compensation.md",
                "# Camera ego-motion compensation on the real nuScenes keyframe (scene-0061)\n\n"
-               "Command: `python benchmarks/ego_motion_compensation.py` (1600x900 images; pixel distance between\n"
+               "Command: `python -m benchmarks.ego_motion_compensation` (1600x900 images; pixel distance between\n"
                "projections with `compensate_ego_motion=True` and `False`, points inside both).\n\n" + table + "\n")
 
 

@@ -10,8 +10,8 @@ changes (8x the voxels through the decoder MLP).
 Scores each checkpoint both ways with `ago_train.evaluate.evaluate` (`ago eval --readout model|gt`) and
 prints mIoU, geometry IoU, the predicted / GT occupied ratio and the object classes' IoU:
 
-    python benchmarks/fine_query.py --ckpt work/db24/train_cb05_s1/last.pt --data work/db24/synth --split val
-    python benchmarks/fine_query.py --ckpt ... --data work/fresh101 --split all --out benchmarks/results/fine_query.md
+    python -m benchmarks.fine_query --ckpt work/db24/train_cb05_s1/last.pt --data work/db24/synth --split val
+    python -m benchmarks.fine_query --ckpt ... --data work/fresh101 --split all --out benchmarks/results/fine_query.md
 """
 
 from __future__ import annotations
@@ -53,7 +53,7 @@ def main() -> None:
             print(json.dumps(rows[-1]))
     if args.out:
         cols = list(rows[0])
-        lines = [f"\n`python benchmarks/fine_query.py {' '.join('--ckpt ' + c for c in args.ckpt)} --data {args.data} "
+        lines = [f"\n`python -m benchmarks.fine_query {' '.join('--ckpt ' + c for c in args.ckpt)} --data {args.data} "
                  f"--split {args.split}`\n", "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
         lines += ["| " + " | ".join(str(r[c]) for c in cols) + " |" for r in rows]
         with open(args.out, "a") as fh:

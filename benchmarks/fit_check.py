@@ -33,7 +33,6 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 
 def ago(*args: str) -> None:
@@ -61,8 +60,7 @@ def prepare(work: Path, frames: int, grid: str, render: str) -> None:
 
 def pseudo_miou(work: Path) -> float:
     """mIoU of the pseudo-labels against the GT of the same frames (benchmarks/pseudo_class_iou.py's rule)."""
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    from pseudo_class_iou import pseudo_label_metric
+    from benchmarks.pseudo_class_iou import pseudo_label_metric
 
     return 100.0 * pseudo_label_metric(work / "pseudo", work / "synth" / "gts").miou()
 

@@ -1,6 +1,6 @@
 """A bundle on a synthetic town it never saw, through the torch-free runtime (issue "The model must see").
 
-    python benchmarks/fresh_town.py --town work/fresh101 [--bundle DIR] [--prompts prompts/cw.txt] \
+    python -m benchmarks.fresh_town --town work/fresh101 [--bundle DIR] [--prompts prompts/cw.txt] \
         [--out benchmarks/results/default_bundle_fresh_town.md]
 
 Make the town first with a seed no training used, e.g.
@@ -21,7 +21,6 @@ import tempfile
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 from ago_runtime.atomic import write_text  # noqa: E402
 from benchmarks.learning_curve import occupancy_ratio  # noqa: E402
@@ -63,7 +62,7 @@ def main(argv=None) -> dict:
         rows.append(f"| {c} | {'n/a' if iou is None else f'{iou:.2f}'} | {gt} | {pr} |")
     obj = {c: m["iou"].get(c) for c in OBJECTS if c in m["iou"]}
     zero = [c for c, v in obj.items() if v is not None and not v]   # None: absent from GT and prediction
-    cmd = "python benchmarks/fresh_town.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    cmd = "python -m benchmarks.fresh_town " + " ".join(argv if argv is not None else sys.argv[1:])
     verdict = lambda ok: "met" if ok else "**missed**"   # noqa: E731
     text = f"""# A bundle on a town it never saw, through the torch-free runtime
 

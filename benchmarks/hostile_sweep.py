@@ -38,7 +38,6 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 os.environ.pop("AGO_NO_PROGRESS", None)   # bars on: each case's stderr is not a terminal, so none may be drawn
 
 CASE_TIMEOUT_S = 60
@@ -153,8 +152,7 @@ def verdict(r, needles, cwd: Path, outputs, before, after, argv, root: Path) -> 
 # ------------------------------------------------------------------------------------ fixtures
 def build_fixtures(work: Path):
     """A tiny synthetic dataset, its pseudo-labels, a tiny checkpoint and its bundle, an images folder."""
-    sys.path.insert(0, str(REPO / "tests"))
-    from test_bad_inputs import write_frame
+    from ago_runtime.formats.random_frame import write_random_frame as write_frame
 
     import torch
 

@@ -12,8 +12,8 @@ and warm optimised-graph cache; the table gives the minimum and median seconds p
 run_infer / frames: bundle load, sessions, decode, graphs, heads, npz written) and the per-round ratios
 (neighbours in time, so a slow spell of this shared machine hits both).
 
-    python benchmarks/infer_ab.py --vary workers --dataset work/synth12 --bundle work/db24/bundle_model
-    python benchmarks/infer_ab.py --vary warm_up --dataset work/synth12 --bundle work/db24/bundle_model
+    python -m benchmarks.infer_ab --vary workers --dataset work/synth12 --bundle work/db24/bundle_model
+    python -m benchmarks.infer_ab --vary warm_up --dataset work/synth12 --bundle work/db24/bundle_model
 """
 
 from __future__ import annotations
@@ -70,7 +70,7 @@ def main() -> None:
     load0 = " ".join(f"{x:.2f}" for x in os.getloadavg())
     with tempfile.TemporaryDirectory() as tmp:
         def run(value: str, r: int) -> dict:
-            cmd = [sys.executable, __file__, "--child", args.bundle, args.dataset, f"{tmp}/{value}{r}", args.vary,
+            cmd = [sys.executable, "-m", "benchmarks.infer_ab", "--child", args.bundle, args.dataset, f"{tmp}/{value}{r}", args.vary,
                    value, args.picture]
             p = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=REPO)
             if p.returncode:
@@ -86,7 +86,7 @@ def main() -> None:
     load1 = " ".join(f"{x:.2f}" for x in os.getloadavg())
     frames = res[a][0]["frames"]
     L = [f"# `ago infer`: {TITLES[args.vary]}\n",
-         f"Command: `python benchmarks/infer_ab.py --vary {args.vary} --dataset {args.dataset} --rounds {args.rounds} "
+         f"Command: `python -m benchmarks.infer_ab --vary {args.vary} --dataset {args.dataset} --rounds {args.rounds} "
          f"--picture {args.picture}" + (f" --bundle {args.bundle}" if args.bundle else "") + "`  ",
          f"Bundle: {args.bundle or 'the shipped default bundle'}; {frames} frames; load average at start {load0}, "
          f"at end {load1}.\n",

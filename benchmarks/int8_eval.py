@@ -8,7 +8,7 @@ bundle's label space, Occ3D classes it does not cover ignored: as `ago eval`). A
 whose label agrees between int8 and fp32, and the steady-state frame time of both (median of
 --reps, alternating, wall and process CPU time).
 
-    python benchmarks/int8_eval.py --bundle B --data work/db/synth --split val
+    python -m benchmarks.int8_eval --bundle B --data work/db/synth --split val
 """
 
 from __future__ import annotations
@@ -16,14 +16,11 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 
 def main() -> None:
@@ -83,7 +80,7 @@ def main() -> None:
     miou = {k: m.miou() * 100 for k, m in metrics.items()}
     geo = {k: m.geometry_iou() * 100 for k, m in metrics.items()}
     L = [f"# int8 vs fp32 bundle\n",
-         f"Command: `python benchmarks/int8_eval.py --bundle {args.bundle} --data {args.data} --split {args.split}`; "
+         f"Command: `python -m benchmarks.int8_eval --bundle {args.bundle} --data {args.data} --split {args.split}`; "
          f"{len(indices)} frames; load average {load_start} -> {load_end}.  ",
          f"Bundle checkpoint: {fp32.bundle.meta['checkpoint']['path']} (step {fp32.bundle.meta['checkpoint']['step']}); "
          f"export parity: {fp32.bundle.meta['parity'].get('int8', {}).get('frame', '-')}.\n",

@@ -23,7 +23,7 @@ Speed: on one frame, each variant's steady whole frame (Predictor.predict_arrays
 the median of --reps rounds that alternate between the variants (wall and process CPU time), so a load
 change on a shared machine hits every variant alike.
 
-    python benchmarks/int8_static.py --data DIR [--bundle B] [--split val] [--calibration-frames 16]
+    python -m benchmarks.int8_static --data DIR [--bundle B] [--split val] [--calibration-frames 16]
         [--out benchmarks/results/int8_static.md]
 
 --paper-scale (speed only): the `full` preset with random weights (as benchmarks/paper_scale.py: 1600x928
@@ -36,8 +36,8 @@ opening one variant's session at a time (one paper-scale session holds GBs), tim
 --sweep: the label agreement of static variants (SWEEP: which convolutions stay float32, how many calibration
 frames, minmax or percentile ranges) on every 4th frame of --split, with a rough planes CPU-time ratio.
 
-    python benchmarks/int8_static.py --sweep --data DIR [--out FILE]
-    python benchmarks/int8_static.py --paper-scale [--reps 2] [--bundle B (an exported random `full` bundle)]
+    python -m benchmarks.int8_static --sweep --data DIR [--out FILE]
+    python -m benchmarks.int8_static --paper-scale [--reps 2] [--bundle B (an exported random `full` bundle)]
         [--out benchmarks/results/int8_static_paper.md]
 """
 
@@ -47,7 +47,6 @@ import argparse
 import os
 import shutil
 import statistics
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -55,7 +54,6 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 PARITY_FRAME = REPO.parent / "shared" / "data" / "nuscenes-sample"
 NUSCENES_SCENE = REPO.parent / "shared" / "data" / "nuscenes-scene"
 UNCALIBRATED_RANGE = (-8.0, 8.0)   # --paper-scale: the activations' fixed range (random weights; speed only)
@@ -172,7 +170,7 @@ def paper_scale(args) -> str:
     load_end = " ".join(f"{x:.2f}" for x in os.getloadavg())
     best = {v: (min(a for a, _ in ts), min(c for _, c in ts)) for v, ts in times.items()}
     L = ["# fp32 vs dynamic int8 vs static (QDQ) int8 at the paper's scale (speed only)\n",
-         f"Command: `python benchmarks/int8_static.py --paper-scale --reps {args.reps}"
+         f"Command: `python -m benchmarks.int8_static --paper-scale --reps {args.reps}"
          f"{f' --bundle {args.bundle}' if args.bundle else ''}` ({started}; load average {load_start} -> "
          f"{load_end}).  ",
          "`full` preset (1600x928 input, 200x200x16 grid), random weights (cost only), exported without the parity "
@@ -233,7 +231,7 @@ def sweep(args) -> str:
     ref = [fp32.predict_arrays(x, m, bank, identifier).semantics for x, m in inputs]
     parity = read_frames(PARITY_FRAME, 1, b.rig) if (PARITY_FRAME / "mmdet3d_info.pkl").is_file() else []
     L = ["## Sweep: what stays float32, calibration frames and method (labels only)\n",
-         f"Command: `python benchmarks/int8_static.py --sweep --bundle {args.bundle} --data {args.data} --split "
+         f"Command: `python -m benchmarks.int8_static --sweep --bundle {args.bundle} --data {args.data} --split "
          f"{args.split}` ({started}); labels compared with fp32 on {len(indices)} frames (every 4th of the split); "
          "calibration: the parity frame plus N frames of the train split; voxel stages dynamic int8 (they feed only "
          "the adapted branch). Planes CPU time: median of 3 runs each, alternating with fp32 (rough: loaded "
@@ -362,7 +360,7 @@ def main() -> None:
     pl = {v: med(planes_t[v]) for v in VARIANTS}
     miou = {v: metrics[v].miou() * 100 for v in VARIANTS}
     geo = {v: metrics[v].geometry_iou() * 100 for v in VARIANTS}
-    cmd = (f"python benchmarks/int8_static.py --bundle {args.bundle} --data {args.data} --split {args.split} "
+    cmd = (f"python -m benchmarks.int8_static --bundle {args.bundle} --data {args.data} --split {args.split} "
            f"--calibration-split {args.calibration_split} --calibration-frames {args.calibration_frames} "
            f"--reps {args.reps}" + (f" --max-frames {args.max_frames}" if args.max_frames else ""))
     L = ["# fp32 vs dynamic int8 vs static (QDQ) int8\n",

@@ -1,6 +1,6 @@
 """Learning curve of a training run: val mIoU, geometry IoU and occupancy ratio at several step counts.
 
-    python benchmarks/learning_curve.py --run RUN_DIR --data DATASET [--fresh FRESH_DATASET] \
+    python -m benchmarks.learning_curve --run RUN_DIR --data DATASET [--fresh FRESH_DATASET] \
         [--pseudo PSEUDO_DIR] [--out benchmarks/results/learning_curve.md] [--figure docs/figures/learning_curve.png]
 
 RUN_DIR is an `ago train` output folder whose config has `snapshot_steps` (model-only checkpoints in
@@ -26,7 +26,6 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 from ago_runtime.atomic import atomic_path, write_json, write_text  # noqa: E402
 from ago_runtime.pictures.charts import PALETTE, line_chart  # noqa: E402
@@ -118,7 +117,7 @@ def main(argv=None) -> dict:
         return float(np.mean(near)) if near else float("nan")
 
     cfg = json.loads((run / "config.json").read_text())
-    cmd = "python benchmarks/learning_curve.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    cmd = "python -m benchmarks.learning_curve " + " ".join(argv if argv is not None else sys.argv[1:])
     head = ["step", "train loss", f"{args.split} mIoU", f"{args.split} geometry IoU", f"{args.split} occupancy ratio"]
     if args.fresh:
         head += ["fresh-town mIoU", "fresh-town geometry IoU", "fresh-town occupancy ratio"]

@@ -1,6 +1,6 @@
 """onnxruntime's memory pattern on or off in the runtime's sessions (issue 39): first frame, steady frame, peak RSS.
 
-    python benchmarks/mem_pattern.py [--paper-bundle DIR] [--rounds 2] [--reps 5]
+    python -m benchmarks.mem_pattern [--paper-bundle DIR] [--rounds 2] [--reps 5]
         # writes benchmarks/results/mem_pattern.md (+ .json)
 
 The runtime turns the memory pattern off (ago_runtime.cache.session_options). With it on, onnxruntime plans
@@ -23,14 +23,13 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "benchmarks"))
 RESULTS = REPO / "benchmarks" / "results" / "mem_pattern.md"
 
 
 def child(bundle: str, pattern: str, reps: int, labels_out: str) -> dict:
     import ago_runtime.cache as cache
     import ago_runtime.predict.bank_product as bank_product
-    from paper_scale import predictor_frames
+    from benchmarks.paper_scale import predictor_frames
 
     runtime_options = cache.session_options
 
@@ -47,8 +46,8 @@ def child(bundle: str, pattern: str, reps: int, labels_out: str) -> dict:
 
 
 def run_child(*args: str) -> dict:
-    r = subprocess.run([sys.executable, __file__, "--child", *args], capture_output=True, text=True,
-                       env={**os.environ, "AGO_NO_PROGRESS": "1"})
+    r = subprocess.run([sys.executable, "-m", "benchmarks.mem_pattern", "--child", *args], capture_output=True,
+                       text=True, env={**os.environ, "AGO_NO_PROGRESS": "1"}, cwd=REPO)
     if r.returncode != 0:
         raise SystemExit(f"child failed: {r.stderr.strip()[-2000:]}")
     return json.loads(r.stdout.strip().splitlines()[-1])
@@ -91,7 +90,7 @@ def main() -> None:
                                                          for k, v in old.items()}
         agree = float((np.load(work / f"labels_{b}_on.npy") == np.load(work / f"labels_{b}_off.npy")).mean())
         results[label] = {"on": best["on"], "off": best["off"], "agreement": agree}
-    command = "python benchmarks/mem_pattern.py " + " ".join(sys.argv[1:])
+    command = "python -m benchmarks.mem_pattern " + " ".join(sys.argv[1:])
     lines = ["# onnxruntime's memory pattern in the runtime's sessions (issue 39)", "",
              f"Command: `{command.strip()}` ({time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, this 2-core "
              f"CPU; load average {load_start:.2f} at the start, {os.getloadavg()[0]:.2f} at the end). Each figure the "

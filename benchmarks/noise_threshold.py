@@ -4,18 +4,16 @@ For the noise candidates (filters 1-4 of ago_train/text/noise.py) prints how man
 max cosine to any shipped label phrase above each threshold, and 12 random words (with their
 nearest label phrase) per cosine band. Writes benchmarks/results/noise_threshold.md.
 
-    python benchmarks/noise_threshold.py
+    python -m benchmarks.noise_threshold
 """
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
 from ago_runtime.atomic import write_text  # noqa: E402
 from ago_train.text.minilm import TorchMiniLMEncoder  # noqa: E402
@@ -30,7 +28,7 @@ def main() -> None:
     best, arg = sim.max(1), sim.argmax(1)
     rng = np.random.default_rng(0)
     lines = ["# Noise words: cosine to the nearest label phrase", "",
-             "Command: `python benchmarks/noise_threshold.py` (torch fp32 MiniLM; "
+             "Command: `python -m benchmarks.noise_threshold` (torch fp32 MiniLM; "
              f"{len(words)} candidates, {len(labels)} label phrases/class names of all shipped prompt files).", "",
              "| threshold | words above |", "|---|---|"]
     for t in (0.4, 0.45, 0.5, 0.55, 0.6, 0.65, 0.7, 0.8):

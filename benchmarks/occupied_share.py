@@ -10,7 +10,7 @@ bank mean nothing, only the share matters here. Per factor: the share, the media
 the bundle's own bank with the adapted branch on EVERY voxel (the encoder's chunks + decision.decide: what
 the runtime did before it ran the adapter on the occupied voxels only).
 
-    python benchmarks/occupied_share.py --bundle BUNDLE [--scales 1,0.5,0.3] [--reps 3]
+    python -m benchmarks.occupied_share --bundle BUNDLE [--scales 1,0.5,0.3] [--reps 3]
 """
 
 from __future__ import annotations
@@ -19,15 +19,11 @@ import argparse
 import dataclasses
 import os
 import statistics
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "benchmarks"))
 
 from ago_runtime.predict import decision  # noqa: E402
 from ago_runtime.predict.contract import Branch, Identifier  # noqa: E402
@@ -39,7 +35,7 @@ def main() -> None:
     ap.add_argument("--scales", default="1,0.5,0.3,0.2")
     ap.add_argument("--reps", type=int, default=3)
     args = ap.parse_args()
-    from runtime_speed import load_frame
+    from benchmarks.runtime_speed import load_frame
 
     from ago_runtime.predict.predictor import Predictor
 

@@ -1,6 +1,6 @@
 """Where the zero-shot unknown-class IoU is lost: occupancy, the adapted branch, or the identifier.
 
-    python benchmarks/open_world_ceiling.py --data DATASET --run NAME=RUN_DIR [--run ...] \
+    python -m benchmarks.open_world_ceiling --data DATASET --run NAME=RUN_DIR [--run ...] \
         [--max-frames N] [--out benchmarks/results/open_world_ceiling.md]
 
 A DIAGNOSTIC (it reads the GT to route voxels, so it is never a rule anyone could ship). Each RUN_DIR is
@@ -31,7 +31,6 @@ import numpy as np
 import torch
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 from ago_runtime.atomic import write_text  # noqa: E402
 
@@ -165,10 +164,10 @@ def main() -> None:
     if args.prompts is None:
         import tempfile
 
-        from open_world_zeroshot import known_prompts
+        from benchmarks.open_world_zeroshot import known_prompts
         args.prompts = str(known_prompts(Path(tempfile.mkdtemp(prefix="ago-ceiling-"))))
     lines = ["# Zero-shot open world: where the unknown-class IoU is lost (a diagnostic that reads the GT)", "",
-             "Command: `python benchmarks/" + Path(__file__).name + " " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+             "Command: `python -m benchmarks." + Path(__file__).stem + " " + " ".join(shlex.quote(a) for a in sys.argv[1:])
              + "`", ""]
     for spec in args.run:
         name, _, run = spec.partition("=")

@@ -1,6 +1,6 @@
 """Zero-shot open world on the synthetic benchmark: grounding alone vs AGO, identifiers, seeds, adapter diagnostics.
 
-    python benchmarks/open_world_zeroshot.py --data DATASET \
+    python -m benchmarks.open_world_zeroshot --data DATASET \
         --run grounding:0=RUN_DIR --run grounding:1=RUN_DIR --run ago:0=RUN_DIR --run ago:1=RUN_DIR \
         [--run "ago, no centring:0=RUN_DIR"] [--snapshots] [--max-frames N] \
         [--out benchmarks/results/open_world_zeroshot.md] [--figure docs/figures/entropy_per_class.png]
@@ -32,7 +32,6 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 from ago_runtime.atomic import atomic_path, write_json, write_text  # noqa: E402
 
@@ -144,7 +143,7 @@ def main(argv=None) -> dict:
     from ago_train.open_world import paper_split
 
     pk, pu = paper_split("ow", "ow_pretrain")
-    cmd = "python benchmarks/open_world_zeroshot.py " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
+    cmd = "python -m benchmarks.open_world_zeroshot " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
     L = [f"# Zero-shot open world (pretrain on 5 classes, score on 15): grounding vs AGO", "",
          f"Command: `{cmd}`", "",
          f"Val split of `{args.data}`{'' if args.max_frames is None else f' (first {args.max_frames} frames)'}; "

@@ -1,7 +1,7 @@
 """The runtime at the paper's scale on this CPU (issue 39): the `full` preset (1600x928 input, 200x200x16 grid,
 the preset's widths) through the runtime, this tree against a baseline commit, side by side in one run.
 
-    python benchmarks/paper_scale.py [--baseline a2187f0] [--reps 3] [--rounds 2] [--profile]
+    python -m benchmarks.paper_scale [--baseline a2187f0] [--reps 3] [--rounds 2] [--profile]
         # writes benchmarks/results/paper_scale.md (+ .json)
 
 The weights are random (the full preset's TPV encoder and heads; the EfficientNet-Lite0 backbone without its
@@ -167,8 +167,7 @@ def child_flops() -> dict:
 
 
 def child_rate() -> dict:
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    from runtime_speed import matmul_rates
+    from benchmarks.runtime_speed import matmul_rates
 
     return matmul_rates()
 
@@ -178,10 +177,9 @@ CHILDREN = {"checkpoint": child_checkpoint, "export": child_export, "frame": chi
 
 
 def run_child(tree: Path, *args: str) -> dict:
-    env = {**os.environ, "PYTHONPATH": str(tree), "AGO_NO_PROGRESS": "1"}
-    script = REPO / "benchmarks" / "paper_scale.py"
-    r = subprocess.run([sys.executable, str(script), "--child", *args], capture_output=True, text=True, env=env,
-                       cwd=str(tree))
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tree), str(REPO)]), "AGO_NO_PROGRESS": "1"}
+    r = subprocess.run([sys.executable, "-m", "benchmarks.paper_scale", "--child", *args], capture_output=True,
+                       text=True, env=env, cwd=str(tree))   # the tree's ago_runtime, this repository's benchmarks
     if r.returncode != 0:
         raise SystemExit(f"child {args[0]} in {tree} failed:\n{r.stderr[-3000:]}")
     return json.loads(r.stdout.strip().splitlines()[-1])
@@ -228,7 +226,7 @@ def main() -> None:
     ckpt = work / "full_random.pt"
     if not ckpt.is_file():
         run_child(REPO, "checkpoint", str(ckpt))
-    res: dict = {"baseline": args.baseline, "command": "python benchmarks/paper_scale.py " + " ".join(sys.argv[1:]),
+    res: dict = {"baseline": args.baseline, "command": "python -m benchmarks.paper_scale " + " ".join(sys.argv[1:]),
                  "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "load_start": os.getloadavg()[0]}
     sides = {"base": base, "new": REPO}
     for side, tree in sides.items():

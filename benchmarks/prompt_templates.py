@@ -10,20 +10,18 @@ from its class name is encoded as T(p), and every class name (underscores as spa
   probe acc held-out synonyms (PROBES) classified through the bank as voxels are (max over phrases).
 Winner: highest probe accuracy, ties broken by accuracy, then probe margin. Writes benchmarks/results/prompt_templates.md.
 
-    python benchmarks/prompt_templates.py [--encoder torch|onnx|int8]
+    python -m benchmarks.prompt_templates [--encoder torch|onnx|int8]
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
 from ago_runtime.atomic import write_text  # noqa: E402
 from ago_runtime.vocab.bank import apply_template, build_bank  # noqa: E402
@@ -115,7 +113,7 @@ def main() -> None:
     lines = [
         "# Prompt templates on the closed-world label space (prompts/cw.txt)",
         "",
-        f"Command: `python benchmarks/prompt_templates.py --encoder {args.encoder}` "
+        f"Command: `python -m benchmarks.prompt_templates --encoder {args.encoder}` "
         f"(encoder {enc.encoder_id}, {enc.variant}; {time.time() - t0:.1f} s).",
         "",
         f"probe acc / probe margin: {rows[0]['n_probe']} held-out words (3 per class, in no prompt file, listed in",

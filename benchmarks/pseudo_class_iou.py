@@ -1,6 +1,6 @@
 """Per-class IoU of closed-world (cw) pseudo-labels against the Occ3D GT of the same frames.
 
-    python benchmarks/pseudo_class_iou.py --pseudo PSEUDO_DIR --gts DATASET/gts [--out FILE.md]
+    python -m benchmarks.pseudo_class_iou --pseudo PSEUDO_DIR --gts DATASET/gts [--out FILE.md]
 
 Answers "could the supervision see this class here?" for any town, e.g. a fresh town the model never
 trained on (make its pseudo-labels with `ago pseudo-labels --prompts cw --split train ...` first). The
@@ -18,8 +18,6 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 from ago_runtime.atomic import write_text  # noqa: E402
 from ago_runtime.classes import FREE, OCC3D_CLASSES  # noqa: E402
@@ -53,7 +51,7 @@ def main(argv=None) -> None:
     counts = metric.counts()
     iou = metric.iou()
     lines = ["# Pseudo-label IoU per class against the GT", "",
-             "Command: `python benchmarks/pseudo_class_iou.py " + " ".join(shlex.quote(a) for a in
+             "Command: `python -m benchmarks.pseudo_class_iou " + " ".join(shlex.quote(a) for a in
                                                                             (argv or sys.argv[1:])) + "`", "",
              f"{metric.frames} frames; camera mask; unobserved pseudo-label voxels count as free.", "",
              "| class | IoU (%) | GT voxels | pseudo-label voxels |", "|---|---:|---:|---:|"]

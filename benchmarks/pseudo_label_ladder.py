@@ -5,7 +5,7 @@ segmenter (and, for the last rung, the SIMULATED image embedder), scores them ag
 Occ3D ground truth with the Occ3D metric, and writes benchmarks/results/pseudo_labels.md plus two
 pictures (BEV pseudo-labels vs GT; the simulated embeddings' similarity to "car" over one image).
 
-    python benchmarks/pseudo_label_ladder.py            # ~10 min on 2 busy cores
+    python -m benchmarks.pseudo_label_ladder            # ~10 min on 2 busy cores
 
 Two scoring protocols (the metric always counts GT voxels inside the GT camera mask only):
 - "all GT-visible voxels": pseudo-label 255 (unknown) is scored as free, i.e. "nothing claimed there";
@@ -26,7 +26,6 @@ import cv2
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 os.environ.setdefault("AGO_NO_PROGRESS", "1")
 
 from ago_runtime.classes import FREE, IGNORE, NUM_SEMANTIC, OCC3D_CLASSES, OCC3D_ID  # noqa: E402
@@ -239,7 +238,7 @@ def generation_speed(ds, space, emb) -> list[tuple]:
 
 
 def write_report(args, root, indices, rows, seg2d, emb2d, emb3d, final_observed, pic, speed):
-    cmd = "python benchmarks/pseudo_label_ladder.py" + "".join(
+    cmd = "python -m benchmarks.pseudo_label_ladder" + "".join(
         f" --{k.replace('_', '-')} {v}" for k, v in vars(args).items() if k not in ("out", "data", "load") and v is not None)
     L = ["# Pseudo-labels on synthetic data: the ladder", "",
          f"Command: `{cmd}` (dataset `ago synth --scenes {args.scenes} --frames {args.frames} --image-size "

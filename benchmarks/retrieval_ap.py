@@ -1,6 +1,6 @@
 """Open-vocabulary retrieval scored as POP-3D scores it: average precision of the voxel ranking per phrase.
 
-    python benchmarks/retrieval_ap.py --bundle BUNDLE --data DATASET [--split val] \
+    python -m benchmarks.retrieval_ap --bundle BUNDLE --data DATASET [--split val] \
         [--prompts prompts/ow.txt] [--known-from prompts/ow_pretrain.txt] [--max-frames N] \
         [--out benchmarks/results/retrieval_ap.md]
 
@@ -24,7 +24,6 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 from ago_runtime.atomic import write_text  # noqa: E402
 from ago_runtime.vocab.bank import load_prompt_bank  # noqa: E402
@@ -65,7 +64,7 @@ def main(argv=None) -> dict:
     gts = []
     for i in track(indices, "retrieval similarity", total=len(indices)):
         f = ds[i]
-        h, g = predictor.encode(f.images, f.rig, str(args.data))
+        h, g = predictor.encode_arrays(*predictor.prepare(f.images, f.rig, str(args.data)))
         pred = predictor.predict_hidden(h, g, bank, b.identifier)
         gt = f.gt
         factor = tuple(a // s for a, s in zip(gt.semantics.shape, b.grid.shape))
@@ -93,7 +92,7 @@ def main(argv=None) -> dict:
             unknown_prev.append(prevalence)
     mean_ap = float(np.mean(unknown_ap)) if unknown_ap else float("nan")
     mean_prev = float(np.mean(unknown_prev)) if unknown_prev else float("nan")
-    cmd = "python benchmarks/retrieval_ap.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    cmd = "python -m benchmarks.retrieval_ap " + " ".join(argv if argv is not None else sys.argv[1:])
     table = "\n".join(f"| {n} | {kind} | {cnt} | {100 * a:.2f} | {100 * p:.2f} | {a / p if p else float('nan'):.1f} |"
                       for n, kind, cnt, a, p in rows)
     ls = (b.card or {}).get("label_space") or {}

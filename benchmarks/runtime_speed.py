@@ -38,9 +38,9 @@ FLOP bound: matmul + conv FLOPs of one frame (torch.utils.flop_counter on the to
 exported: today's model forward + the bank's product, and this tree's PlanesGraph + VoxelsGraph) /
 this CPU's best measured fp32 rate (onnxruntime MatMul at 1024..3072 and a 3x3 Conv).
 
-    python benchmarks/runtime_speed.py --ckpt-200 work/s6/train200/last.pt --ckpt-cpu work/db24/train/last.pt
+    python -m benchmarks.runtime_speed --ckpt-200 work/s6/train200/last.pt --ckpt-cpu work/db24/train/last.pt
         # writes benchmarks/results/runtime_speed.md
-    python benchmarks/runtime_speed.py --configs cpu --reps 5 --rounds 2
+    python -m benchmarks.runtime_speed --configs cpu --reps 5 --rounds 2
 """
 
 from __future__ import annotations
@@ -267,9 +267,9 @@ def child_infer(bundle: str, dataset: str, out: str, picture: str, cache: str) -
 
 # ---------------------------------------------------------------------------- parent
 def run_child(tree: Path, *args: str) -> dict:
-    env = dict(os.environ, PYTHONPATH=str(tree), AGO_NO_PROGRESS="1")
-    r = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--child", *args], capture_output=True,
-                       text=True, env=env, cwd=tree)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tree), str(REPO)]), AGO_NO_PROGRESS="1")
+    r = subprocess.run([sys.executable, "-m", "benchmarks.runtime_speed", "--child", *args], capture_output=True,
+                       text=True, env=env, cwd=tree)   # the tree's ago_runtime, this repository's benchmarks
     if r.returncode != 0:
         raise RuntimeError(f"child {args} in {tree} failed:\n{r.stderr[-3000:]}")
     return json.loads(r.stdout.strip().splitlines()[-1])
@@ -645,7 +645,6 @@ def main() -> None:
     ap.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.report_only:
-        sys.path.insert(0, str(REPO))
         print(write_report(json.loads(args.report_only.read_text()), args.out))
         return
     if args.child:
@@ -656,7 +655,6 @@ def main() -> None:
             rest[1] = int(rest[1])
         print(json.dumps(fn(*rest)))
         return
-    sys.path.insert(0, str(REPO))
     log = lambda s: print(s, flush=True)   # noqa: E731
     load_start = loadavg()
     rates = matmul_rates()

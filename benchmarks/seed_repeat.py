@@ -5,7 +5,7 @@ closed-world runs with other seeds (same config, only `seed` changed; resumable;
 `DIR/extra/seed<s>/<run>`), scores them like the experiments (cw view) and writes a table of mIoU and
 geometry IoU per run and seed, with the seed-0 numbers from the experiments beside them.
 
-    python benchmarks/seed_repeat.py --exp data/exp --runs cw/ago cw/ago-no-occ --seeds 1
+    python -m benchmarks.seed_repeat --exp data/exp --runs cw/ago cw/ago-no-occ --seeds 1
         -> benchmarks/results/seed_repeat.md
 """
 
@@ -15,12 +15,10 @@ import argparse
 import dataclasses
 import json
 import os
-import sys
 import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 os.environ.setdefault("AGO_NO_PROGRESS", "1")
 RESULTS = REPO / "benchmarks" / "results" / "seed_repeat.md"
 
@@ -63,7 +61,7 @@ def main() -> None:
             v = json.loads((out / "views.json").read_text())["views"]["cw"]
             rows.append((name, seed, v["mIoU"], v["geometry_IoU"], str(out)))
     L = ["# Seed repeats of closed-world experiment runs", "",
-         f"Command: `python benchmarks/seed_repeat.py --exp {args.exp} --runs {' '.join(args.runs)} "
+         f"Command: `python -m benchmarks.seed_repeat --exp {args.exp} --runs {' '.join(args.runs)} "
          f"--seeds {' '.join(map(str, args.seeds))}`  ",
          "Same config as the experiments' run (profile cpu: 300 steps, 72 synthetic train frames), only the "
          "training seed (model init, noise words, voxel samples, frame order) changed; scored on the 24 val "

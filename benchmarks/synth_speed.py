@@ -1,7 +1,7 @@
 """Speed of `ago synth` (keyframes/s, everything included: world, 6 cameras, LiDAR, Occ3D GT, JPEG/PNG/npz
 writing) and the voxel share of each class in the generated GT, next to nuScenes' shares.
 
-    python benchmarks/synth_speed.py [--scenes 2] [--frames 10] [--image-size 800x450] [--grid 200x200x16]
+    python -m benchmarks.synth_speed [--scenes 2] [--frames 10] [--image-size 800x450] [--grid 200x200x16]
 
 Writes benchmarks/results/synth_speed.md (with the command that produced it). Wall time depends on
 what else runs on the machine: the load average and the CPU time of this process are reported too.
@@ -19,7 +19,6 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from ago_runtime.classes import FREE, OCC3D_CLASSES, NUM_SEMANTIC  # noqa: E402
 from ago_runtime.formats.occ3d import Occ3DLabels  # noqa: E402
@@ -73,7 +72,7 @@ def main() -> None:
     occ = counts[:NUM_SEMANTIC].sum()
     occ_cam = counts_cam[:NUM_SEMANTIC].sum()
     ref_total = sum(NUSC_REFERENCE.values())
-    command = "python benchmarks/synth_speed.py " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    command = "python -m benchmarks.synth_speed " + " ".join(shlex.quote(a) for a in sys.argv[1:])
     lines = [
         "# `ago synth` speed and class frequencies", "",
         f"Command: `{command.strip()}`", "",

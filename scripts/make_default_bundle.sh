@@ -14,7 +14,7 @@
 # benchmarks/results/training_cpu.md); every step resumes or reuses what an interrupted run left. Usage:
 #   bash scripts/make_default_bundle.sh [WORK_DIR]
 # The training run keeps snapshots for the learning curve:
-#   python benchmarks/learning_curve.py --run WORK_DIR/train --data WORK_DIR/synth --fresh FRESH_TOWN
+#   python -m benchmarks.learning_curve --run WORK_DIR/train --data WORK_DIR/synth --fresh FRESH_TOWN
 set -euo pipefail
 
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"

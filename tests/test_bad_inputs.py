@@ -5,7 +5,7 @@ the named outputs absent).
 
 Every verb has usage-error rows (unknown option, wrong type, missing option, value out of range),
 because those come from click's exception classes, which typer >= 0.26 vendors as `typer._click`
-(ago_runtime/cli.py finds that module from typer.BadParameter). The rows run in this process through
+(ago_runtime/cli.py catches them by the classes typer exports). The rows run in this process through
 `ago_runtime.cli.run`, the function the `ago` console script calls.
 """
 
@@ -26,6 +26,7 @@ import numpy as np
 import pytest
 
 from ago_runtime.formats.calibration import save_calibration
+from ago_runtime.formats.random_frame import write_random_frame
 from ago_runtime.geometry.camera import CAMERA_NAMES, Rig
 
 # ------------------------------------------------------------------------------------ running
@@ -82,17 +83,6 @@ def assert_one_error_line(r, *needles: str) -> str:
 
 
 # ------------------------------------------------------------------------------------ fixtures
-def write_frame(folder: Path, width: int = 400, height: int = 225, seed: int = 0) -> Path:
-    """Six smooth random JPEGs + a calib.json of a nuScenes-like rig."""
-    folder.mkdir(parents=True, exist_ok=True)
-    rng = np.random.default_rng(seed)
-    for name in CAMERA_NAMES:
-        coarse = rng.uniform(0, 255, (height // 8 + 1, width // 8 + 1, 3)).astype(np.float32)
-        cv2.imwrite(str(folder / f"{name}.jpg"), np.clip(cv2.resize(coarse, (width, height)), 0, 255).astype(np.uint8))
-    save_calibration(folder / "calib.json", Rig.nuscenes_like(width, height))
-    return folder
-
-
 def jpeg_with_size(data: bytes, width: int, height: int) -> bytes:
     """The same JPEG with its SOF0 frame header claiming another size (the data stays small)."""
     i = data.index(b"\xff\xc0")
@@ -137,7 +127,7 @@ def w(tmp_path_factory):
     x.a_file = root / "a_file.txt"
     x.a_file.write_text("not a folder\n")
 
-    x.frame = write_frame(root / "frame")
+    x.frame = write_random_frame(root / "frame")
     front = (x.frame / "CAM_FRONT.jpg").read_bytes()
     x.bomb = shutil.copytree(x.frame, root / "bomb")
     (x.bomb / "CAM_FRONT.jpg").write_bytes(jpeg_with_size(front, 30000, 16875))
@@ -460,17 +450,19 @@ def test_the_table_covers_every_verb():
 
 # ------------------------------------------------------------------------------------ rows that are not exit 2
 def test_usage_error_classes_are_the_ones_typer_raises():
-    """The handler reads the one click typer runs on (typer._click for typer >= 0.26, else click), found
-    from the public typer.BadParameter; a usage error typer raises is one of its classes."""
+    """The handler catches the classes typer exports: a usage error of the click typer runs on (typer._click
+    for typer >= 0.26, else click) is a CLICK_ERROR with click's usage exit code, a bad value a typer.BadParameter."""
     import typer.main
 
-    from ago_runtime.cli import build_app, click_exceptions
+    from ago_runtime.cli import CLICK_ERROR, USAGE_EXIT_CODE, build_app
 
-    ce = click_exceptions()
-    assert issubclass(typer.BadParameter, ce.UsageError) and issubclass(ce.NoSuchOption, ce.UsageError)
+    assert issubclass(typer.BadParameter, CLICK_ERROR)
     command = typer.main.get_command(build_app("show"))
-    with pytest.raises(ce.UsageError):
+    with pytest.raises(CLICK_ERROR) as e:
         command.main(args=["show", "--bogus"], prog_name="ago", standalone_mode=False)
+    assert e.value.exit_code == USAGE_EXIT_CODE
+    with pytest.raises(typer.BadParameter):
+        command.main(args=["show", "x", "--view", "sideways"], prog_name="ago", standalone_mode=False)
 
 
 def test_scrambled_jpegs_are_refused_as_measured():
@@ -1086,20 +1078,23 @@ def test_graph_signature_check_names_the_graph(w):
         check_graph(planes, bigger, "planes.onnx", "planes")
 
 
-def test_option_bounds_are_one_rule_for_every_verb():
-    """ago_runtime.cli.option_problem: names and notes at most 300 characters, paths 4096, no control characters
-    except JSON white space in --set, checked on every value (options and arguments) before the verb runs."""
-    import typer.main
+def test_option_bounds_are_one_rule_for_every_verb(tmp_path):
+    """ago_runtime.cli.value_problem: names and notes at most 300 characters, paths 4096, no control characters
+    except JSON white space in --set; run by every verb's command class (CheckedValues) on click's own parse of
+    options and arguments, before the verb runs."""
+    from ago_runtime.cli import value_problem
 
-    from ago_runtime.cli import build_app, option_problem
-
-    def problem(args):
-        return option_problem(typer.main.get_command(build_app(args[0])), args)
-
-    assert problem(["train", "--set", 'model.grid={\n"shape": [20, 20, 4]}', "--out", "o"]) is None
-    assert problem(["train", "--set", "epochs=1\x00", "--out", "o"]) == ("--set", "holds the control character '\\x00'")
-    assert problem(["export", "x.pt", "-o", "b", "--card-note", "n" * 300]) is None
-    assert problem(["export", "x.pt", "-o", "b", "--card-note", "n" * 301])[0] == "--card-note"
-    assert problem(["show", "p" * 4096, "--out", "o.png"]) is None
-    assert problem(["show", "p" * 4097, "--out", "o.png"]) == ("PATH", "is 4097 characters long (at most 4096)")
-    assert problem(["show", "x.npz", "--out=" + " "]) == ("--out", "is empty")
+    assert value_problem("--set", 'model.grid={\n"shape": [20, 20, 4]}') is None
+    assert value_problem("--set", "epochs=1\x00") == "holds the control character '\\x00'"
+    assert value_problem("--card-note", "n" * 300) is None
+    assert value_problem("--card-note", "n" * 301) == "is 301 characters long (at most 300)"
+    assert value_problem("PATH", "p" * 4096) is None
+    assert value_problem("PATH", "p" * 4097) == "is 4097 characters long (at most 4096)"
+    assert value_problem("--out", " ") == "is empty"
+    # through the CLI: an option's value, an argument, and `--opt=value`, each one line naming it, nothing run
+    assert_one_error_line(run_ago(["train", "--set", "epochs=1\x00", "--out", "o"], tmp_path), "--set", "control")
+    assert_one_error_line(run_ago(["export", "x.pt", "-o", "b", "--card-note", "n" * 301], tmp_path), "--card-note",
+                          "at most 300")
+    assert_one_error_line(run_ago(["show", "p" * 4097, "--out", "o.png"], tmp_path), "PATH", "at most 4096")
+    assert_one_error_line(run_ago(["show", "x.npz", "--out=" + " "], tmp_path), "--out", "is empty")
+    assert not (tmp_path / "o").exists() and not (tmp_path / "b").exists()

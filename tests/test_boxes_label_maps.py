@@ -5,16 +5,13 @@ when it is absent."""
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from conftest import shared_path  # noqa: E402
-from test_bad_inputs import assert_one_error_line, run_ago  # noqa: E402
+from conftest import shared_path
+from test_bad_inputs import assert_one_error_line, run_ago
 
 
 def scene_root() -> Path:

@@ -1,17 +1,19 @@
-"""FramePipeline from Python (ago_runtime/predict/pipeline.py): many frames through one bundle, in order,
-with what Predictor.predict gives per frame; a bad frame ends the run after the frames before it are
-written. Uses the shipped default bundle and demo frame (no torch)."""
+"""Predictor.predict_many from Python (ago_runtime/predict/predictor.py over predict/pipeline.py): many frames
+through one bundle, in order, with what Predictor.predict gives per frame; a bad frame ends the iteration after
+the frames before it; leaving the loop early stops the threads. Uses the shipped default bundle and demo frame
+(no torch)."""
 
 from __future__ import annotations
+
+import contextlib
+import threading
 
 import numpy as np
 import pytest
 
+from ago_runtime import InputFrame, Predictor, open_frames
 from ago_runtime.errors import AgoInputError
-from ago_runtime.formats.calibration import load_images_folder
 from ago_runtime.predict.bundle import DEMO_FRAME_DIR, Bundle, resolve_bundle
-from ago_runtime.predict.pipeline import FramePipeline, PipelineFrame
-from ago_runtime.predict.predictor import Predictor
 
 
 @pytest.fixture(scope="module")
@@ -19,48 +21,55 @@ def demo():
     if not DEMO_FRAME_DIR.is_dir():
         pytest.skip("no demo frame installed")
     bundle = Bundle.load(resolve_bundle(None))
-    images, rig, _ = load_images_folder(DEMO_FRAME_DIR, fallback_rig=bundle.rig)
+    (frame,) = list(open_frames(DEMO_FRAME_DIR, rig=bundle.rig))
+    images, rig = frame.images, frame.rig
     # three different frames: the demo, its images mirrored, its images darkened
-    frames = [PipelineFrame("demo", images, rig, DEMO_FRAME_DIR),
-              PipelineFrame("mirrored", {k: np.ascontiguousarray(v[:, ::-1]) for k, v in images.items()}, rig),
-              PipelineFrame("dark", {k: (v // 3).astype(np.uint8) for k, v in images.items()}, rig)]
-    return bundle, frames
+    frames = [InputFrame("demo", images, rig, DEMO_FRAME_DIR),
+              InputFrame("mirrored", {k: np.ascontiguousarray(v[:, ::-1]) for k, v in images.items()}, rig),
+              ("dark", {k: (v // 3).astype(np.uint8) for k, v in images.items()}, rig)]   # a plain tuple too
+    return bundle, frames, Predictor(bundle, workers=2)
 
 
-def test_pipeline_predicts_every_frame_in_order_as_predict_does(demo):
-    bundle, frames = demo
+def test_predict_many_gives_every_frame_in_order_as_predict_does(demo):
+    bundle, frames, predictor = demo
     bank = bundle.load_bank()
-    seen = []
-
-    def write(name, images, pred):
-        seen.append(name)
+    got = []
+    for frame, pred in predictor.predict_many(frames, bank):
         assert pred.timings["preprocess"] >= 0 and "encoder" in pred.timings
-        return [(name, pred.semantics.copy())]
-
-    got = FramePipeline(bundle, bank, workers=2, progress=None).run(frames, write)
-    assert seen == [f.name for f in frames] and [n for n, _ in got] == seen
-    predictor = Predictor(bundle)
-    expected = [predictor.predict(f.images, f.rig, bank).semantics for f in frames]
+        got.append((frame.name, pred.semantics.copy()))
+    assert [n for n, _ in got] == ["demo", "mirrored", "dark"]
+    one = Predictor(bundle, workers=1)
+    expected = [one.predict(f[1], f[2], bank).semantics for f in frames]
     for (_, sem), exp in zip(got, expected):
         np.testing.assert_array_equal(sem, exp)
     assert not np.array_equal(expected[0], expected[2])   # the frames differ, so the order is checked
-    # an open Predictor can be reused, one frame at a time, from a generator of unknown length
-    again = FramePipeline(bundle, bank, workers=1, progress=None).run(
-        (f for f in frames), lambda name, images, pred: [pred.semantics], predictor=predictor)
+    # one worker, from a generator of unknown length
+    again = [pred.semantics for _, pred in one.predict_many(f for f in frames)]
     for sem, exp in zip(again, expected):
         np.testing.assert_array_equal(sem, exp)
 
 
 def test_a_bad_frame_ends_the_run_after_the_frames_before_it(demo):
-    bundle, frames = demo
+    bundle, frames, predictor = demo
     square = dict(frames[0].images, CAM_FRONT=np.zeros((90, 90, 3), np.uint8))   # not the rig's aspect ratio
-    broken = PipelineFrame("square", square, frames[0].rig, "broken/")
-    written = []
-    pipe = FramePipeline(bundle, bundle.load_bank(), workers=2, progress=None)
-    with pytest.raises(AgoInputError):
-        pipe.run([frames[0], broken, frames[2]], lambda name, images, pred: written.append(name) or [name])
-    assert written == ["demo"]
-    with pytest.raises(AgoInputError):   # a bad first frame: nothing is written
-        pipe.run([broken, frames[0]], lambda name, images, pred: written.append(name) or [name])
-    assert written == ["demo"]
-    assert pipe.run([], lambda *a: [1]) == []
+    broken = InputFrame("square", square, frames[0].rig, "broken/")
+    seen = []
+    with pytest.raises(AgoInputError, match="CAM_FRONT"):
+        for frame, _ in predictor.predict_many([frames[0], broken, frames[2]]):
+            seen.append(frame.name)
+    assert seen == ["demo"]
+    with pytest.raises(AgoInputError):   # a bad first frame: nothing is handed out
+        for frame, _ in predictor.predict_many([broken, frames[0]]):
+            seen.append(frame.name)
+    assert seen == ["demo"]
+    assert list(predictor.predict_many([])) == []
+
+
+def test_leaving_the_loop_early_stops_the_threads(demo):
+    bundle, frames, predictor = demo
+    before = threading.active_count()
+    with contextlib.closing(predictor.predict_many(frames * 3)) as predictions:
+        for frame, _ in predictions:
+            break
+    assert frame.name == "demo"
+    assert threading.active_count() <= before

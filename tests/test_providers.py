@@ -108,7 +108,7 @@ def test_infer_refuses_a_missing_provider_before_any_work(tmp_path):
     code, err = _ago(["infer", "--images", tmp_path, "--precision", "fp16", "--out", out])
     assert code == 2 and err.startswith("error: --precision:")
     code, err = _ago(["retrieve", "--phrase", "car", "--images", tmp_path, "--device", "gpu", "--out", out])
-    assert code == 2 and err.startswith("error: --device: unknown device 'gpu'")
+    assert code == 2 and err.startswith("error: --device: 'gpu' is not one of 'cpu', 'cuda'")   # the Enum's check
     assert not out.exists()
 
 

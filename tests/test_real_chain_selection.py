@@ -1,23 +1,24 @@
 """The real chain's honest recipe selection (issue 35): the train/val cut of a one-scene dataroot
-(benchmarks/dataroot_cut.py) and the declared selection rule (benchmarks/real_chain_select.py).
-Tests on ../shared skip when it is absent."""
+(ago_runtime/formats/nuscenes_cut.py, run by `python -m benchmarks.dataroot_cut`) and the declared selection
+rule of benchmarks/real_chain_select.py (imported as the `benchmarks` package: the suite runs from the
+repository root, `python -m pytest`). Tests on ../shared skip when it is absent."""
 
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from conftest import shared_path
+
+from ago_runtime.errors import AgoInputError
+from ago_runtime.formats.nuscenes_cut import cut_dataroot
+from benchmarks.real_chain_select import pick
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from conftest import shared_path  # noqa: E402
-
-from benchmarks.dataroot_cut import CutError, cut_dataroot  # noqa: E402
-from benchmarks.real_chain_select import pick  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -57,13 +58,14 @@ def test_cut_keeps_only_the_chosen_keyframes_boxes(cut):
 def test_cut_is_reused_or_refused(cut, tmp_path):
     src, dst, record = cut
     assert cut_dataroot(src, dst, 22, 8) == record                  # same cut: reused
-    with pytest.raises(CutError, match="not a cut"):
+    with pytest.raises(AgoInputError, match="not a cut"):
         cut_dataroot(src, dst, 30, 11)
-    with pytest.raises(CutError, match="41"):
+    with pytest.raises(AgoInputError, match="41"):
         cut_dataroot(src, tmp_path / "x", 40, 5)
     assert not (tmp_path / "x").exists()
-    r = subprocess.run([sys.executable, str(REPO / "benchmarks/dataroot_cut.py"), str(src), str(tmp_path / "y"),
-                        "--train", "0", "--val", "3"], capture_output=True, text=True)
+    r = subprocess.run([sys.executable, "-m", "benchmarks.dataroot_cut", str(src), str(tmp_path / "y"),
+                        "--train", "0", "--val", "3"], capture_output=True, text=True, cwd=REPO,
+                       env={**os.environ, "PYTHONPATH": str(REPO)})
     assert r.returncode == 2 and r.stderr.strip().startswith("error: --train/--val") and len(r.stderr.splitlines()) == 1
 
 

@@ -4,7 +4,6 @@ and the refusals a user with a real dataroot meets. Tests on ../shared skip when
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -14,10 +13,8 @@ from ago_runtime.classes import FREE
 from ago_runtime.scoring.lidar_agreement import MIN_RANGE, measures, score_frame
 from ago_runtime.scoring.ray_iou import RayIoU, lidar_like_rays
 from ago_runtime.scoring.rays import first_occupied, passed_voxels
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from conftest import shared_path  # noqa: E402
-from test_bad_inputs import assert_one_error_line, run_ago  # noqa: E402
+from conftest import shared_path
+from test_bad_inputs import assert_one_error_line, run_ago
 
 RMIN, VS = np.array([-8.0, -8.0, -1.0]), np.array([0.4, 0.4, 0.4])
 

@@ -26,9 +26,6 @@ SWEEPS = 3
 
 
 def _run(args, cwd):
-    import sys
-
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
     from test_bad_inputs import run_ago
 
     return run_ago(args, cwd)

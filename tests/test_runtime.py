@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 
 from ago_runtime.formats.calibration import load_calibration, save_calibration
+from ago_runtime.formats.random_frame import write_random_frame
 from ago_runtime.geometry.camera import CAMERA_NAMES, Rig
 from ago_runtime.classes import FREE, OCC3D_CLASSES, OCC3D_ID
 from ago_runtime.errors import AgoInputError
@@ -57,22 +58,9 @@ def bundle_dir(tmp_path_factory):
     return out
 
 
-def write_frame(folder: Path, width=400, height=225, seed=0, calib=True) -> Path:
-    """Six smooth random images + calib.json of a nuScenes-like rig at (width, height)."""
-    folder.mkdir(parents=True, exist_ok=True)
-    rng = np.random.default_rng(seed)
-    for name in CAMERA_NAMES:
-        coarse = rng.uniform(0, 255, (height // 8 + 1, width // 8 + 1, 3)).astype(np.float32)
-        img = np.clip(cv2.resize(coarse, (width, height)), 0, 255).astype(np.uint8)
-        cv2.imwrite(str(folder / f"{name}.jpg"), img)
-    if calib:
-        save_calibration(folder / "calib.json", Rig.nuscenes_like(width, height))
-    return folder
-
-
 @pytest.fixture
 def frame_dir(tmp_path):
-    return write_frame(tmp_path / "frame")
+    return write_random_frame(tmp_path / "frame")
 
 
 def run_subprocess(args, cwd=None):
@@ -423,7 +411,7 @@ def test_cli_infer_images_folder(bundle_dir, frame_dir, tmp_path):
 
 
 def test_cli_infer_without_calib_warns_and_uses_bundle_rig(bundle_dir, tmp_path):
-    frame = write_frame(tmp_path / "f", 800, 450, calib=False)
+    frame = write_random_frame(tmp_path / "f", 800, 450, calib=False)
     r = run_subprocess(["infer", "--images", frame, "--bundle", bundle_dir, "--out", tmp_path / "o"])
     assert r.returncode == 0, r.stderr
     assert "no calib.json" in r.stderr and "scaling the intrinsics" in r.stderr   # 800x450 vs 1600x900

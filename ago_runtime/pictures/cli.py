@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+from enum import Enum
 from pathlib import Path
 from typing import Optional
 
@@ -28,6 +29,14 @@ from ago_runtime.formats.occ3d_waymo import is_waymo_file, load_ground_truth
 from ago_runtime.scoring.metric import to_gt_resolution
 
 
+class View(str, Enum):
+    """`ago show --view`."""
+
+    BEV = "bev"
+    VOXELS = "voxels"
+    BOTH = "both"
+
+
 def register(app: typer.Typer) -> None:
     @app.command("show")
     def show(
@@ -38,7 +47,7 @@ def register(app: typer.Typer) -> None:
                                           "--html also a GT folder holding <token>/labels.npz)"),
         html: Optional[Path] = typer.Option(None, "--html", help="also write an interactive 3-D page (one "
                                             "self-contained .html file, no network needed)"),
-        view: Optional[str] = typer.Option(None, "--view", help="bev | voxels | both (default both; a grid only)"),
+        view: Optional[View] = typer.Option(None, "--view", help="what the PNG draws (default both; a grid only)"),
         sample: Optional[str] = typer.Option(None, "--sample", help="dataset folder: sample token"),
         index: Optional[int] = typer.Option(None, "--index", help="dataset folder: sample index"),
         use_mask: Optional[bool] = typer.Option(None, "--mask/--no-mask",
@@ -52,8 +61,6 @@ def register(app: typer.Typer) -> None:
 
         from ago_runtime.outputs import check_output_file, check_suffix
 
-        if view is not None and view not in ("bev", "voxels", "both"):
-            raise AgoInputError("--view", f"must be bev, voxels or both, got {view!r}")
         if not path.exists():
             raise AgoInputError(path, "not found (give a labels .npz or a dataset folder)")
         if path.is_dir():
@@ -62,7 +69,7 @@ def register(app: typer.Typer) -> None:
         else:
             refuse_unused({"--sample": sample, "--index": index}, f"a labels file ({path.name}); they pick a "
                           "sample of a dataset folder")
-        view = view or "both"
+        view = (view or View.BOTH).value
         if html is not None:
             from ago_runtime.pictures.html_viewer import HTML_SUFFIXES
 

@@ -2,7 +2,9 @@
 
 Holds `bundle` (Bundle: the exported folder, read and checked), `encoder` (the ONNX camera-to-voxel
 encoder, slab by slab), `heads` (the linear heads folded with a bank, numpy), `predictor`
-(Predictor, Prediction) and `cli` (`ago infer`, `ago demo`, `ago retrieve`).
+(Predictor, Prediction; `predict_many` for many frames), `frames` (open_frames: the frames of a folder,
+dataset or info file), `pipeline` (the overlap of reading, prediction and the caller's work) and `cli`
+(`ago infer`, `ago demo`, `ago retrieve`).
 
 May import: numpy, onnxruntime, OpenCV, ago_runtime's basics, geometry, formats and vocab;
 `cli` may also import pictures and typer.

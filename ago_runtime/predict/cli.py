@@ -13,8 +13,8 @@ uint8 with free = 17 when every class is one Occ3D class, else bank class indice
 `class_names`, `free_index`; with --save-volumes also `entropy`, `confidence`, `branch` and the
 unexplained-obstacle volumes `unexplained` (score), `unexplained_mask`, `unexplained_threshold`) and
 `<name>.png` (--picture full: BEV of the classes, entropy BEV, camera mosaic, legend; bev: the class
-BEV and legend; none: no PNG). Reading, inference and writing overlap (FramePipeline,
-ago_runtime/predict/pipeline.py). Over a dataset or an
+BEV and legend; none: no PNG). Reading, inference and writing overlap (`Predictor.predict_many`
+over `open_frames`, the library API: docs/runtime.md). Over a dataset or an
 info file a re-run resumes: frames whose outputs are whole and of the same settings are skipped
 (frame_is_whole; docs/bad_inputs.md). File names in the data files stay under the data root
 (ago_runtime.paths) unless --allow-outside-root.
@@ -22,14 +22,18 @@ info file a re-run resumes: frames whose outputs are whole and of the same setti
 
 from __future__ import annotations
 
+import contextlib
 import glob
+from enum import Enum
 from pathlib import Path
-from typing import Iterator, List, Optional
+from typing import List, Optional
 
 import numpy as np
 import typer
 
 from ago_runtime.errors import AgoInputError, one_line_warnings
+from ago_runtime.predict.contract import Identifier
+from ago_runtime.providers import Device, Precision
 
 
 def choose_bank(bundle, prompts: Optional[str], bank: Optional[str]):
@@ -54,68 +58,15 @@ def choose_bank(bundle, prompts: Optional[str], bank: Optional[str]):
     return bundle.load_bank()
 
 
-def iter_frames(images: Path, sample, info: Optional[Path], fallback_rig) -> Iterator[tuple]:
-    """Yields (name, images dict, rig, source) per frame. `sample`: None (every frame), or sample tokens
-    and/or scene names (a str or a list; each scene gives its keyframes in time order)."""
-    return open_frames(images, sample, info, fallback_rig)[1]
+class Picture(str, Enum):
+    """`ago infer --picture`: the PNG per frame."""
+
+    FULL = "full"   # BEVs, legend, cameras
+    BEV = "bev"     # the class BEV and the legend (cheap)
+    NONE = "none"   # no PNG
 
 
-def open_frames(images: Path, sample, info: Optional[Path], fallback_rig, skip=None,
-                allow_outside_root: bool = False, shard=None) -> tuple[int, Iterator[tuple]]:
-    """(number of frames, iter_frames' iterator): the count is known before any image is decoded; bad
-    arguments (a missing folder, an unknown sample) raise here. `skip(name)` True: a frame of a dataset or
-    info file left out before its images are read (a resumed run); an images folder is never skipped.
-    `allow_outside_root`: file names in the data files may leave the data root (ago_runtime.paths).
-    `shard`: (K, N) from `--shard K/N`, the K-th of N contiguous runs of a dataset's frames (ago_runtime.shards)."""
-    from ago_runtime.formats.calibration import find_camera_images, load_images_folder
-    from ago_runtime.geometry.camera import CAMERA_NAMES
-    from ago_runtime.shards import shard_indices
-
-    wanted = [sample] if isinstance(sample, str) else list(sample or [])
-    if info is not None:
-        from ago_runtime.formats.mmdet3d_info import load_mmdet3d_info
-
-        frames = load_mmdet3d_info(info, images if images is not None else info.parent,
-                                   allow_outside_root=allow_outside_root)
-        if wanted:
-            unknown = [w for w in wanted if not any(w in (f.token, f.scene) for f in frames)]
-            if unknown:
-                raise AgoInputError(info, f"no sample or scene {', '.join(map(repr, unknown))}")
-            frames = [f for w in wanted for f in frames if w in (f.token, f.scene)]
-        frames = shard_indices(frames, shard)
-        frames = [f for f in frames if skip is None or not skip(f.token)]
-        return len(frames), ((f.token, f.images, f.rig, str(info)) for f in frames)
-    if images is None:
-        raise AgoInputError(None, "give --images DIR (or --info PKL)")
-    images = Path(images)
-    if not images.is_dir():
-        raise AgoInputError(images, "images folder not found")
-    from ago_runtime.formats.datasets import dataset_layout, open_dataset
-
-    if dataset_layout(images) is not None:   # a nuScenes or Occ3D-Waymo dataset root
-        ds = open_dataset(images, load_extras=False, allow_outside_root=allow_outside_root)
-        indices = list(ds.indices_of(wanted) if wanted else range(len(ds)))
-        indices = shard_indices(indices, shard)   # --shard K/N: before resume's skip, so shards never change
-        indices = [i for i in indices if skip is None or not skip(ds.sample_tokens[i])]
-
-        def dataset_frames():
-            for i in indices:
-                f = ds[i]
-                yield f.token, f.images, f.rig, str(images)
-        return len(indices), dataset_frames()
-    if wanted or shard is not None or allow_outside_root:
-        option = "--sample" if wanted else "--shard" if shard is not None else "--allow-outside-root"
-        raise AgoInputError(option, f"{images} is an images folder (one frame), not a dataset: the option does not "
-                                    "apply to it")
-    find_camera_images(images, fallback_rig.names if fallback_rig is not None else CAMERA_NAMES)   # inside a dataroot: named
-
-    def folder_frame():
-        imgs, rig, _ = load_images_folder(images, fallback_rig=fallback_rig)
-        yield images.resolve().name, imgs, rig, str(images)
-    return 1, folder_frame()
-
-
-PICTURES = ("full", "bev", "none")
+PICTURES = tuple(p.value for p in Picture)
 
 
 def run_key(bundle, bank, identifier: str, picture: str, save_volumes: bool, int8: bool,
@@ -199,8 +150,8 @@ def prediction_picture(pred, images: dict | None, title: str = "", kind: str = "
 
 
 def infer_writer(out: Path, key: str, picture: str, volumes: bool, html: bool = False):
-    """`ago infer`'s write(name, images, prediction) for FramePipeline: `out/<name>.png` (unless picture is
-    none) and `out/<name>.html` (with html: pictures.html_viewer), then `out/<name>.npz` with `run_key` (a whole
+    """`ago infer`'s write(name, images, prediction), called per frame of `predict_many`: `out/<name>.png` (unless
+    picture is none) and `out/<name>.html` (with html: pictures.html_viewer), then `out/<name>.npz` with `run_key` (a whole
     npz means a whole frame: frame_is_whole), each written atomically; a killed run's temporary files of the frame are removed first. Gives the files."""
     from ago_runtime.atomic import save_npz
     from ago_runtime.pictures.render import save_png
@@ -232,13 +183,14 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
               device: str = "cpu", precision: str = "fp32", html: bool = False) -> list[Path]:
     """`ago infer`: check the options, load the bundle and choose the bank, open the frames (a resumed run
     leaves out the frames whose outputs in `out` are whole and were made with the same bundle, bank and
-    settings: frame_is_whole), then predict and write them with a FramePipeline (reading, prediction and
-    writing overlap; ago_runtime/predict/pipeline.py). Gives the files written."""
+    settings: frame_is_whole), then predict them with `Predictor.predict_many` and write each (reading, prediction
+    and writing overlap; ago_runtime/predict/pipeline.py). Gives the files written."""
     from ago_runtime.outputs import check_output_dir
     from ago_runtime.predict.bundle import Bundle, card_line, resolve_bundle
-    from ago_runtime.predict.contract import Identifier
-    from ago_runtime.predict.pipeline import FramePipeline, PipelineFrame
-    from ago_runtime.providers import Device, check_device, parse_device, parse_precision
+    from ago_runtime.predict.frames import open_frames
+    from ago_runtime.predict.pipeline import auto_workers
+    from ago_runtime.predict.predictor import Predictor
+    from ago_runtime.providers import check_device, parse_device, parse_precision
     from ago_runtime.shards import parse_shard
 
     one_line_warnings()
@@ -267,9 +219,10 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
             return True
         return False
 
-    count, frames = open_frames(Path(images) if images else None, sample, Path(info) if info else None, b.rig,
-                                skip=whole if resume and out.is_dir() else None,
-                                allow_outside_root=allow_outside_root, shard=parse_shard(shard))
+    frames = open_frames(Path(images) if images else None, sample, Path(info) if info else None, b.rig,
+                         skip=whole if resume and out.is_dir() else None,
+                         allow_outside_root=allow_outside_root, shard=parse_shard(shard))
+    count = len(frames)
     if shard is not None:
         typer.echo(f"note: using shard {shard}: {count + len(kept)} frames")
     if kept:
@@ -278,21 +231,18 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
     if count == 0:
         typer.echo(card_line(b))
         return []
-    pipeline = FramePipeline(b, chosen, identifier, volumes=save_volumes, int8=int8, warm_up=warm_up,
-                             workers=int(workers) if workers is not None else None, device=device.value,
-                             precision=precision.value)
+    predictor = Predictor(b, int8=int8, warm_up=warm_up, device=device, precision=precision,
+                          workers=int(workers) if workers is not None else auto_workers(count))
+    # stdout: information, once every input is checked (the graphs' signatures are checked as the predictor opens
+    # them); stderr keeps only warnings and the one error line
+    typer.echo(card_line(b))
     write = infer_writer(out, key, picture, save_volumes, html)
-    card_said = []
-
-    def write_after_card_line(*args):
-        # stdout: information, once every input is checked (the graphs' signatures when the pipeline opens them);
-        # stderr keeps only warnings and the one error line
-        if not card_said:
-            typer.echo(card_line(b))
-            card_said.append(True)
-        return write(*args)
-
-    return pipeline.run((PipelineFrame(*frame) for frame in frames), write_after_card_line, total=count)
+    written: list[Path] = []
+    with contextlib.closing(predictor.predict_many(frames, chosen, identifier, volumes=save_volumes,
+                                                   progress="predicting")) as predictions:
+        for frame, pred in predictions:
+            written += write(frame.name, frame.images, pred)
+    return written
 
 
 def register(app: typer.Typer) -> None:
@@ -303,15 +253,17 @@ def register(app: typer.Typer) -> None:
         bank: Optional[str] = typer.Option(None, "--bank", help="a prompt bank .npz, or the name of a bank in the bundle"),
         bundle: Optional[Path] = typer.Option(None, "--bundle", help="bundle folder (default: $AGO_BUNDLE, then the shipped one)"),
         out: Path = typer.Option(Path("ago_out"), "--out", "-o", help="output folder"),
-        identifier: Optional[str] = typer.Option(None, "--identifier", help="min-entropy | max-conf | none (default: the bundle's open-world identifier when the prompts hold classes it was not trained on, else none)"),
+        identifier: Optional[Identifier] = typer.Option(None, "--identifier", help="how each voxel's branch is chosen "
+                                                        "(default: the bundle's open-world identifier when the prompts hold "
+                                                        "classes it was not trained on, else none)"),
         save_volumes: bool = typer.Option(False, "--save-volumes", help="also save entropy, confidence, branch and the unexplained-obstacle score and mask (drawn in the PNG)"),
         sample: Optional[List[str]] = typer.Option(None, "--sample", help="a dataset's sample token or scene name "
                                                    "(repeatable: several frames, one bundle load)"),
         info: Optional[Path] = typer.Option(None, "--info", help="mmdetection3d info .pkl"),
         int8: bool = typer.Option(False, "--int8", help="use the bundle's int8 encoder (needs a bundle exported "
                                   "with `ago export --int8`; faster, less exact: docs/runtime.md)"),
-        picture: str = typer.Option("full", "--picture", help="PNG per frame: full (BEVs, legend, cameras), "
-                                    "bev (class BEV + legend, cheap) or none"),
+        picture: Picture = typer.Option(Picture.FULL, "--picture", help="PNG per frame: full (BEVs, legend, "
+                                        "cameras), bev (class BEV + legend, cheap) or none"),
         workers: Optional[int] = typer.Option(None, "--workers", help="frames predicted at once (default: 2 over "
                                               "a dataset on a multi-core CPU, else 1; each worker holds a frame's "
                                               "activations)"),
@@ -323,27 +275,25 @@ def register(app: typer.Typer) -> None:
                                                 "or with '..' (refused by default)"),
         shard: Optional[str] = typer.Option(None, "--shard", help="K/N: only the K-th of N contiguous runs of the "
                                             "dataset's frames (N machines, no coordination; ago_runtime/shards.py)"),
-        device: str = typer.Option("cpu", "--device", help="where the encoder graphs run: cpu | cuda | tensorrt | "
-                                   "openvino (an onnxruntime build with that provider: scripts/setup.sh --device; "
-                                   "the heads stay on the CPU)"),
-        precision: str = typer.Option("fp32", "--precision", help="fp32, or fp16 with --device tensorrt|openvino"),
+        device: Device = typer.Option(Device.CPU, "--device", help="where the encoder graphs run (an onnxruntime "
+                                      "build with that provider: scripts/setup.sh --device; the heads stay on the CPU)"),
+        precision: Precision = typer.Option(Precision.FP32, "--precision", help="fp16 with --device tensorrt|openvino"),
         html: bool = typer.Option(False, "--html", help="also write <name>.html beside the PNG: the prediction in 3-D "
                                   "(one self-contained file, no network needed; docs/metric_and_pictures.md)"),
     ) -> None:
         """Predict 3D occupancy for camera images with an exported bundle (numpy + onnxruntime)."""
-        run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, sample, info, int8, picture,
-                  workers=workers, resume=resume, allow_outside_root=allow_outside_root, shard=shard,
-                  device=device, precision=precision, html=html)
+        run_infer(images, prompts, bank, bundle, out, identifier.value if identifier else None, save_volumes, sample,
+                  info, int8, picture.value, workers=workers, resume=resume, allow_outside_root=allow_outside_root,
+                  shard=shard, device=device.value, precision=precision.value, html=html)
 
     @app.command("demo")
     def demo_cmd(
         out: Path = typer.Option(Path("ago_demo"), "--out", "-o", help="output folder"),
         bundle: Optional[Path] = typer.Option(None, "--bundle", help="bundle folder (default: the shipped one)"),
         prompts: Optional[str] = typer.Option(None, "--prompts", help="prompt file (default: the bundle's classes)"),
-        device: str = typer.Option("cpu", "--device", help="where the encoder graphs run: cpu | cuda | tensorrt | "
-                                   "openvino (an onnxruntime build with that provider: scripts/setup.sh --device; "
-                                   "the heads stay on the CPU)"),
-        precision: str = typer.Option("fp32", "--precision", help="fp32, or fp16 with --device tensorrt|openvino"),
+        device: Device = typer.Option(Device.CPU, "--device", help="where the encoder graphs run (an onnxruntime "
+                                      "build with that provider: scripts/setup.sh --device; the heads stay on the CPU)"),
+        precision: Precision = typer.Option(Precision.FP32, "--precision", help="fp16 with --device tensorrt|openvino"),
         html: bool = typer.Option(False, "--html", help="also write <name>.html beside the PNG: the prediction in 3-D "
                                   "(one self-contained file, no network needed; docs/metric_and_pictures.md)"),
     ) -> None:
@@ -352,8 +302,8 @@ def register(app: typer.Typer) -> None:
 
         if not DEMO_FRAME_DIR.is_dir():
             raise AgoInputError(DEMO_FRAME_DIR, f"no demo frame installed; {HOW_TO_MAKE_DEFAULT}")
-        written = run_infer(DEMO_FRAME_DIR, prompts, None, bundle, out, None, True, device=device, precision=precision,
-                            html=html)
+        written = run_infer(DEMO_FRAME_DIR, prompts, None, bundle, out, None, True, device=device.value,
+                            precision=precision.value, html=html)
         typer.echo(f"demo written to {out}/ ({', '.join(p.name for p in written)})")
 
     @app.command("retrieve")
@@ -365,15 +315,14 @@ def register(app: typer.Typer) -> None:
                                              "(default: its first keyframe)"),
         bundle: Optional[Path] = typer.Option(None, "--bundle", help="bundle folder"),
         out: Path = typer.Option(Path("ago_retrieve"), "--out", "-o", help="output folder"),
-        device: str = typer.Option("cpu", "--device", help="where the encoder graphs run: cpu | cuda | tensorrt | "
-                                   "openvino (an onnxruntime build with that provider: scripts/setup.sh --device; "
-                                   "the heads stay on the CPU)"),
-        precision: str = typer.Option("fp32", "--precision", help="fp32, or fp16 with --device tensorrt|openvino"),
+        device: Device = typer.Option(Device.CPU, "--device", help="where the encoder graphs run (an onnxruntime "
+                                      "build with that provider: scripts/setup.sh --device; the heads stay on the CPU)"),
+        precision: Precision = typer.Option(Precision.FP32, "--precision", help="fp16 with --device tensorrt|openvino"),
         html: bool = typer.Option(False, "--html", help="also write the .html beside the PNG: the similarity in 3-D "
                                   "as heat colours with a threshold slider (one self-contained file)"),
     ) -> None:
         """Similarity of every voxel to a phrase (cosine, on the adapted VLM-aligned branch) + a BEV picture."""
-        run_retrieve(phrase, images, bundle, out, sample, device, precision, html)
+        run_retrieve(phrase, images, bundle, out, sample, device.value, precision.value, html)
 
 
 def run_retrieve(phrase: str, images: Path, bundle, out: Path, sample: str | None = None, device: str = "cpu",
@@ -381,6 +330,7 @@ def run_retrieve(phrase: str, images: Path, bundle, out: Path, sample: str | Non
     from ago_runtime.pictures import render
     from ago_runtime.atomic import save_npz
     from ago_runtime.predict.bundle import Bundle, resolve_bundle
+    from ago_runtime.predict.frames import open_frames
     from ago_runtime.predict.heads import phrase_similarity
     from ago_runtime.predict.predictor import Predictor
     from ago_runtime.vocab.text_encoder import bundle_text_encoder
@@ -403,11 +353,11 @@ def run_retrieve(phrase: str, images: Path, bundle, out: Path, sample: str | Non
     predictor = Predictor(b, device=device, precision=precision)
     bank = choose_bank(b, None, None)
     predictor.fold(bank)
-    count, frames = open_frames(Path(images), sample, None, b.rig)
-    name, imgs, rig, source = next(frames)   # a dataset: the first keyframe (of --sample)
-    if count > 1:
-        typer.echo(f"note: using keyframe {name}, the first of {count} (--sample TOKEN picks another)")
-    h, g = predictor.encode(imgs, rig, source)
+    frames = open_frames(Path(images), sample, None, b.rig)
+    name, imgs, rig, source = next(iter(frames))   # a dataset: the first keyframe (of --sample)
+    if len(frames) > 1:
+        typer.echo(f"note: using keyframe {name}, the first of {len(frames)} (--sample TOKEN picks another)")
+    h, g = predictor.encode_arrays(*predictor.prepare(imgs, rig, source))
     pred = predictor.predict_hidden(h, g, bank, b.identifier)
     # the adapted branch F~_3D everywhere: it is the embedding aligned with the VLM's image space, the one that
     # can know phrases no training class had (benchmarks/results/retrieval_ap.md compares the branches)

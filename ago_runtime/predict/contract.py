@@ -37,12 +37,19 @@ from ago_runtime.classes import OCC3D_NUSCENES, ClassTable, table_from_ref, tabl
 from ago_runtime.errors import AgoInputError
 from ago_runtime.geometry.camera import Rig, check_camera_names
 from ago_runtime.geometry.grid import check_grid_dict
-from ago_runtime.vocab.text_encoder import file_sha256
 
 __all__ = ["BUNDLE_FORMAT", "BUNDLE_FORMAT_VERSION", "BUNDLE_JSON", "Identifier", "Branch", "FileEntry",
            "VoxelStageSpec", "CameraSlot", "RigSpec", "TextEncoderSpec", "LabelClass", "LabelSpaceSpec",
            "BundleContract", "TensorSpec", "planes_signature", "planes_width", "stage_signature", "check_graph",
            "check_bank_fits", "file_sha256", "reexport_hint"]
+
+
+def file_sha256(path) -> str:
+    """sha256 hex of a file's bytes (ago_runtime.vocab.text_encoder.file_sha256, memoised), imported when first
+    used so that the CLI's option types (Identifier) cost no onnxruntime import."""
+    from ago_runtime.vocab.text_encoder import file_sha256 as sha256_of_file
+
+    return sha256_of_file(path)
 
 BUNDLE_FORMAT = "ago-bundle"
 BUNDLE_FORMAT_VERSION = 4

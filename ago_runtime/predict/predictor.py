@@ -1,8 +1,10 @@
-"""`Predictor`: a bundle + a frame's camera images + its rig + a prompt bank -> an occupancy prediction. No torch.
+"""`Predictor`: a bundle + camera images + their rig + a prompt bank -> an occupancy prediction. No torch.
 
     p = Predictor("bundle_dir")                       # or Predictor(Bundle.load(...))
-    pred = p.predict(images, rig, bank)               # images: dict camera -> (H, W, 3) uint8 RGB
+    pred = p.predict(images, rig, bank)               # one frame; images: dict camera -> (H, W, 3) uint8 RGB
     pred.semantics                                    # (X, Y, Z) uint8 bank class index, free = K
+    for frame, pred in p.predict_many(open_frames("DATAROOT")):   # many frames (ago_runtime.predict.frames)
+        ...                                           # runs while the next frames are read and predicted
 
 Steps: Preprocess (resize to the model's input size, ImageNet normalisation; intrinsics scaled to
 match) -> the ONNX encoder (onnxruntime; ago_runtime/predict/encoder.py: the TPV planes once, then the
@@ -13,14 +15,19 @@ features never exist at once, so memory follows the slab, not the grid.
 
 Swapping the bank (a new prompt file) changes the classes with no retraining and no re-export:
 folding a bank costs one (P+1, C) x (C, Dh) product, cached per bank.
+
+The user's entry points are `predict` and `predict_many`; `prepare`, `encode_arrays`, `predict_arrays`,
+`predict_hidden`, `fold` and `fold_with_reference` are the steps, for parity checks, retrieval and benchmarks.
 """
 
 from __future__ import annotations
 
 import hashlib
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Iterable, Iterator, Sized
 
 import numpy as np
 
@@ -33,6 +40,7 @@ from ago_runtime.predict.bundle import Bundle
 from ago_runtime.predict.classifier import FrameFeatures, VoxelClassifier
 from ago_runtime.predict.contract import Identifier
 from ago_runtime.predict.encoder import open_encoder
+from ago_runtime.predict.frames import InputFrame
 from ago_runtime.predict.heads import FoldedHeads
 from ago_runtime.providers import Device, Precision, check_device, parse_device, parse_precision
 from ago_runtime.vocab.bank import check_class_count
@@ -137,20 +145,27 @@ def prepare_inputs(bundle: Bundle, images: dict[str, np.ndarray], rig: Rig, sour
 
 
 class Predictor:
-    def __init__(self, bundle: Bundle | str | Path, int8: bool = False, threads: int | None = None,
-                 chunk: int | None = None, warm_up: bool = True, device: Device | str = Device.CPU,
-                 precision: Precision | str = Precision.FP32):
-        """warm_up: run each graph once on dummy inputs now, so that the first frame runs at the steady-state
-        speed; False lets the first frame pay onnxruntime's first-run allocations instead (`ago infer` runs without
-        it, benchmarks/results/infer_warm_up.md).
+    def __init__(self, bundle: Bundle | str | Path, *, device: Device | str = Device.CPU,
+                 precision: Precision | str = Precision.FP32, int8: bool = False, workers: int = 1,
+                 warm_up: bool = True):
+        """bundle: a bundle folder or a loaded Bundle (checked on load).
         device, precision: where the graphs run (`cpu`, `cuda`, `tensorrt`, `openvino`; `fp16` through
-        TensorRT or OpenVINO; ago_runtime/providers.py); the heads and bank products stay on the CPU."""
+        TensorRT or OpenVINO; ago_runtime/providers.py); the heads and bank products stay on the CPU.
+        int8: the bundle's int8 encoder graphs (CPU only; `ago export --int8`).
+        workers: frames `predict_many` predicts at once; with more than one, each gets cpu_count // workers
+        onnxruntime threads (`pipeline.auto_workers` is `ago infer`'s choice), with one, every core.
+        warm_up: run each graph once on dummy inputs now, so that the first frame runs at the steady-state
+        speed; False lets the first frame pay onnxruntime's first-run allocations instead (`ago infer` runs without
+        it, benchmarks/results/infer_warm_up.md)."""
+        if not 1 <= int(workers) <= 64:
+            raise AgoInputError("workers", f"must be between 1 and 64, got {workers}")
         self.bundle = bundle if isinstance(bundle, Bundle) else Bundle.load(bundle)
+        self.workers = int(workers)
         device, precision = parse_device(device), parse_precision(precision)
         check_device(device, precision)   # before any session is made
+        threads = max(1, (os.cpu_count() or 1) // self.workers) if self.workers > 1 else None
         self.encoder = open_encoder(self.bundle, int8, threads, warm_up=warm_up, device=device, precision=precision)
         self.classifier = VoxelClassifier(self.encoder)
-        self.chunk = chunk   # voxels per head chunk in predict_hidden; None = FoldedHeads.default_chunk
         self._folded: dict[str, FoldedHeads] = {}
 
     @property
@@ -158,14 +173,11 @@ class Predictor:
         return self.bundle.grid
 
     # ---- banks -----------------------------------------------------------------------------
-    def check_bank(self, bank, source=None) -> None:
-        self.bundle.check_bank(bank, source)
-
     def fold(self, bank) -> FoldedHeads:
         """The bank folded into the heads (cached per bank content)."""
         key = bank_key(bank)
         if key not in self._folded:
-            self.check_bank(bank)
+            self.bundle.check_bank(bank)
             self._folded[key] = FoldedHeads(self.bundle.heads, bank.embeddings, bank.phrase_class,
                                             bank.num_classes)
         return self._folded[key]
@@ -179,7 +191,7 @@ class Predictor:
         as something no prompt explains. Labels are unchanged (FoldedHeads ignores the reference rows)."""
         key = bank_key(bank) + "+reference"   # the bundle's training bank is fixed: one entry per user bank
         if key not in self._folded:
-            self.check_bank(bank)
+            self.bundle.check_bank(bank)
             train = self.bundle.load_bank()
             covered = {i for ids in bank.occ3d_ids for i in ids}
             user_phrases = set(bank.phrases)
@@ -202,11 +214,6 @@ class Predictor:
         """-> model inputs: images (1, 6, 3, H, W) float32, ego2img (1, 6, 4, 4) float32."""
         return prepare_inputs(self.bundle, images, rig, source)
 
-    def encode(self, images: dict[str, np.ndarray], rig: Rig, source=None) -> tuple[np.ndarray, np.ndarray]:
-        """-> hidden features h (N, Dh), g (N, Da) float32."""
-        x, m = self.prepare(images, rig, source)
-        return self.encode_arrays(x, m)
-
     def encode_arrays(self, x: np.ndarray, m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The whole grid's h (N, Dh), g (N, Da) (retrieval, parity; `predict` streams slabs instead)."""
         return self.encoder.hidden(x, m)
@@ -224,6 +231,36 @@ class Predictor:
         pred = self.predict_arrays(x, m, bank, identifier, folded, volumes)
         pred.timings = {"preprocess": t1 - t0, **pred.timings}
         return pred
+
+    def predict_many(self, frames: Iterable[InputFrame | tuple], bank=None, identifier: Identifier | str | None = None,
+                     volumes: bool = False, progress: str | None = None) -> Iterator[tuple[InputFrame, Prediction]]:
+        """(frame, Prediction) for each frame of `frames`, in order: `open_frames(...)`, or any iterable of
+        InputFrame / (name, images, rig[, source]) tuples. A reader thread decodes and preprocesses the next
+        frames and `workers` threads predict them while the caller's loop body handles the previous one
+        (ago_runtime/predict/pipeline.py). bank, identifier, volumes: as `predict`, checked and folded once,
+        before the first frame is read. A frame that cannot be read or predicted ends the iteration with its
+        error (AgoInputError naming its source) after the frames before it. `progress`: a progress bar's
+        label (stderr), None for none."""
+        from ago_runtime.predict.pipeline import overlapped
+
+        bank = bank if bank is not None else self.bundle.load_bank()
+        identifier = Identifier.parse(identifier, "identifier") if identifier else self.bundle.identifier_for(bank)
+        folded = self.fold_with_reference(bank) if volumes else self.fold(bank)
+        total = len(frames) if isinstance(frames, Sized) else None
+
+        def read(frame) -> tuple[InputFrame, np.ndarray, np.ndarray, float]:
+            frame = InputFrame(*frame)
+            t = time.perf_counter()
+            x, m = self.prepare(frame.images, frame.rig, frame.source)
+            return frame, x, m, time.perf_counter() - t
+
+        def predict(item) -> tuple[InputFrame, Prediction]:
+            frame, x, m, t_pre = item
+            pred = self.predict_arrays(x, m, bank, identifier, folded, volumes)
+            pred.timings = {"preprocess": t_pre, **pred.timings}
+            return frame, pred
+
+        return overlapped(frames, read, predict, self.workers, progress, total)
 
     def predict_arrays(self, x: np.ndarray, m: np.ndarray, bank, identifier: Identifier = Identifier.MIN_ENTROPY,
                        folded: FoldedHeads | None = None, volumes: bool = False,
@@ -258,7 +295,7 @@ class Predictor:
         folded = folded or self.fold(bank)
         check_class_count(bank.num_classes, None)
         identifier = Identifier(identifier)
-        return self._prediction(folded.run(h, g, identifier, self.chunk), bank, identifier)
+        return self._prediction(folded.run(h, g, identifier), bank, identifier)
 
     def _prediction(self, out: dict, bank, identifier: Identifier) -> Prediction:
         shape = self.grid.shape

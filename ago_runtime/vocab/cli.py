@@ -101,7 +101,9 @@ def prompts_group(app: typer.Typer) -> typer.Typer:
     for info in app.registered_groups:
         if info.name == "prompts":
             return info.typer_instance
-    group = typer.Typer(no_args_is_help=True, help="Prompt files, prompt banks and the text encoder.")
+    from ago_runtime.cli import verb_group
+
+    group = verb_group("Prompt files, prompt banks and the text encoder.")
     group.command("build")(build)
     group.command("show")(show)
     app.add_typer(group, name="prompts")

@@ -9,31 +9,33 @@
 
 from __future__ import annotations
 
+from enum import Enum
 from pathlib import Path
 from typing import List, Optional
 
 import typer
 
+from .plan import PROFILES
+
+# --profile's choices, an Enum so that typer derives its help and its check (plan.ExperimentProfile.preset)
+Profile = Enum("Profile", {name: name for name in PROFILES}, type=str)
+
 
 def register(app: typer.Typer) -> None:
-    exp = typer.Typer(help="Run the paper's experiments (tables + figures) on the synthetic benchmark.",
-                      no_args_is_help=True)
+    from ago_runtime.cli import verb_group
+
+    exp = verb_group("Run the paper's experiments (tables + figures) on the synthetic benchmark.")
     app.add_typer(exp, name="experiments")
 
-    def _profile(name: str):
-        from ago_runtime.errors import AgoInputError
-
+    def _profile(profile: Profile):
         from .plan import ExperimentProfile
 
-        try:
-            return ExperimentProfile.preset(name)
-        except AgoInputError as e:
-            raise AgoInputError("--profile", e.problem) from None
+        return ExperimentProfile.preset(profile.value)
 
     @exp.command("run")
     def run_cmd(
         names: Optional[List[str]] = typer.Argument(None, help="experiments to run (default: all)"),
-        profile: str = typer.Option("cpu", "--profile", help="tiny | cpu | full (docs/experiments.md)"),
+        profile: Profile = typer.Option(Profile("cpu"), "--profile", help="docs/experiments.md"),
         out: Path = typer.Option(Path("runs/experiments"), "--out", help="experiments folder (cache; resumable)"),
         records: Optional[Path] = typer.Option(None, "--records", help="folder of run records (scores, no "
                                                "checkpoints) kept up to date and reused, also on another machine"),
@@ -60,7 +62,7 @@ def register(app: typer.Typer) -> None:
 
     @exp.command("report")
     def report_cmd(
-        profile: str = typer.Option("cpu", "--profile"),
+        profile: Profile = typer.Option(Profile("cpu"), "--profile"),
         out: Path = typer.Option(Path("runs/experiments"), "--out"),
     ):
         """Rewrite results.md / results.json / figures from the runs that exist (trains nothing)."""
@@ -74,7 +76,7 @@ def register(app: typer.Typer) -> None:
         typer.echo(f"written {out}/results.md, {out}/results.json, {out}/figures/")
 
     @exp.command("list")
-    def list_cmd(profile: str = typer.Option("cpu", "--profile")):
+    def list_cmd(profile: Profile = typer.Option(Profile("cpu"), "--profile")):
         """Each experiment and the training runs it needs."""
         from .driver import EXPERIMENTS, runs_for
 

@@ -10,9 +10,17 @@ Needs numpy + opencv only (no torch). Deterministic given the seed.
 
 from __future__ import annotations
 
+from enum import Enum
 from pathlib import Path
+from typing import Optional
 
 import typer
+
+from .rigs import LAYOUTS, RIGS
+
+# the choices of --rig and --layout, as Enums so that typer derives their help and their check (synth/rigs.py)
+SynthRig = Enum("SynthRig", {name: name for name in RIGS}, type=str)
+SynthLayout = Enum("SynthLayout", {name: name for name in LAYOUTS}, type=str)
 
 
 # Bounds on what one `ago synth` may be asked to make, checked before any work (tests/test_bad_inputs.py).
@@ -30,12 +38,12 @@ def register(app: typer.Typer) -> None:
         frames: int = typer.Option(40, "--frames", min=1, max=MAX_FRAMES,
                                    help="keyframes per scene (2 Hz; the city grows with the scene's length)"),
         seed: int = typer.Option(0, "--seed", min=0, help="random seed (same seed, same dataset)"),
-        rig: str = typer.Option("nuscenes", "--rig",
-                                help="cameras: nuscenes (six, nuScenes layout), waymo (five, Occ3D-Waymo layout) "
-                                     "or front (Waymo's front camera alone, Occ3D-Waymo layout)"),
-        layout: str = typer.Option(None, "--layout",
-                                   help="dataset layout: nuscenes or occ3d-waymo (default: the rig's own; "
-                                        "--layout nuscenes writes any rig with Occ3D-nuScenes labels)"),
+        rig: SynthRig = typer.Option(SynthRig("nuscenes"), "--rig",
+                                     help="cameras: nuscenes (six, nuScenes layout), waymo (five, Occ3D-Waymo layout) "
+                                          "or front (Waymo's front camera alone, Occ3D-Waymo layout)"),
+        layout: Optional[SynthLayout] = typer.Option(None, "--layout",
+                                                     help="dataset layout (default: the rig's own; --layout "
+                                                          "nuscenes writes any rig with Occ3D-nuScenes labels)"),
         image_size: str = typer.Option(None, "--image-size",
                                        help="camera image WIDTHxHEIGHT (default 800x450; waymo/front: 960x640, "
                                             "the side cameras as wide and 886/1280 as tall)"),
@@ -55,12 +63,9 @@ def register(app: typer.Typer) -> None:
         from ..model.config import check_min_grid
         from .config import SynthConfig, parse_size
         from .generate import write_dataset
-        from .rigs import DEFAULT_IMAGE_SIZE, LAYOUT_OF_RIG, LAYOUTS, RIGS
+        from .rigs import DEFAULT_IMAGE_SIZE, LAYOUT_OF_RIG
 
-        if rig not in RIGS:
-            raise AgoInputError("--rig", f"{rig!r}: one of {', '.join(RIGS)}")
-        if layout is not None and layout not in LAYOUTS:
-            raise AgoInputError("--layout", f"{layout!r}: one of {', '.join(LAYOUTS)}")
+        rig, layout = rig.value, layout.value if layout is not None else None
         if (layout or LAYOUT_OF_RIG[rig]) == "occ3d-waymo" and sweeps_between:
             raise AgoInputError("--sweeps-between", "the Occ3D-Waymo layout has no LiDAR sweeps")
         w, h = parse_size(image_size, 2, "--image-size") if image_size is not None else DEFAULT_IMAGE_SIZE[rig]
