@@ -52,10 +52,11 @@ def test_an_empty_value_is_refused_naming_its_option(tmp_path, args, option):
     assert list(tmp_path.iterdir()) == []
 
 
-def test_an_empty_argument_or_flag_is_not_an_empty_option(tmp_path):
-    """Only options with a value are checked: an empty positional argument reaches the verb's own check."""
+def test_an_empty_argument_is_refused_by_its_name(tmp_path):
+    """Arguments are values too (CheckedValues): an empty positional argument is one line naming it."""
     r = run_ago(["show", ""], tmp_path)
-    assert r.code == 2 and "is empty" not in r.stderr
+    assert_one_error_line(r, "error: PATH: is empty")
+    assert list(tmp_path.iterdir()) == []
 
 
 @pytest.mark.parametrize("args", [[], ["prompts"], ["experiments"]])
