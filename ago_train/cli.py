@@ -42,6 +42,28 @@ def _config(config: str, sets: Optional[List[str]], out: Optional[str], data: Op
     return cfg.with_overrides(extra)
 
 
+def _prompts_from_pseudo(cfg, config: str):
+    """`cfg` with the prompt file its pseudo-labels were made with, when the user named none (no --prompts, no
+    --set prompts=, a preset whose prompts is only a default): the label space follows the data. A JSON config's
+    own `prompts` is kept. The pseudo-label folder records its prompt file (meta.json label_space.prompt_file) and
+    keeps a copy (label_space.txt), used when the recorded file is gone and the table is a shipped one."""
+    from .pseudo.generate import PseudoLabelDir
+    from .train_config import PRESETS
+
+    if config not in PRESETS or not cfg.pseudo or not (Path(cfg.pseudo) / "meta.json").is_file():
+        return cfg
+    ls = PseudoLabelDir(cfg.pseudo).meta.get("label_space") or {}
+    recorded = ls.get("prompt_file")
+    if recorded and Path(recorded).is_file():
+        chosen = recorded
+    elif "class_table" not in ls or isinstance(ls.get("class_table"), str):   # a shipped table: the copy reads alone
+        chosen = str(Path(cfg.pseudo) / "label_space.txt")
+    else:
+        return cfg
+    typer.echo(f"note: using --prompts {chosen} (the prompt file the pseudo-labels in {cfg.pseudo} were made with)")
+    return cfg.with_overrides([f"prompts={json.dumps(chosen)}"])
+
+
 def register(app: typer.Typer) -> None:
     @app.command("train")
     def train_cmd(
@@ -64,6 +86,8 @@ def register(app: typer.Typer) -> None:
         require_torch("train")
         # the folder's absolute path: export and eval find it again from another working directory
         cfg = _config(config, sets, out, data, pseudo, prompts, str(Path(text_encoder).resolve()) if text_encoder else None)
+        if prompts is None and not any(a.split("=", 1)[0].strip() == "prompts" for a in sets or []):
+            cfg = _prompts_from_pseudo(cfg, config)
         if cfg.text_encoder is not None:   # a wrong folder is one line before anything runs
             from ago_runtime.vocab.model_folder import read_model_config
 

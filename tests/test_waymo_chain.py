@@ -114,3 +114,24 @@ def test_seen_gt_mixes_the_waymo_ground_truth_in(chain):
         with np.load(f) as a, np.load(chain / "pl_seen" / f.relative_to(chain / "pl")) as b:
             changed += int((a["semantics"] != b["semantics"]).sum())
     assert changed > 0   # the seen classes' voxels were taken from the GT files
+
+
+def test_defaults_follow_the_data(chain):
+    """Issue 51 (5): with no --prompts, pseudo-labels take the data's table's closed prompt file, and training takes
+    the prompt file the pseudo-labels were made with; no 'no such file here' note for a name nobody typed."""
+    r = run_ago(["pseudo-labels", "--data", "w", "--out", "pl_default", "--grid", "20x20x4", "--limit", "1"], chain)
+    ok(r)
+    assert "waymo/cw_waymo.txt (the closed prompt file of the data's label table)" in r.stdout
+    assert "no such file here" not in r.stdout + r.stderr
+    meta = json.loads((chain / "pl_default" / "meta.json").read_text())
+    assert meta["label_space"]["classes"] == WAYMO_NAMES
+    r = run_ago(["train", "--config", "tiny", "--data", "w", "--pseudo", "pl_default", "--out", "run_default",
+                 "--print-config"], chain)
+    ok(r)
+    assert json.loads(r.stdout[r.stdout.index("{"):])["prompts"].endswith("cw_waymo.txt")
+    assert "pseudo-labels in pl_default were made with" in r.stdout
+    # a prompt file named on the command line still wins (and a wrong one is refused as before)
+    r = run_ago(["train", "--config", "tiny", "--data", "w", "--pseudo", "pl_default", "--out", "run_default",
+                 "--prompts", "cw", "--print-config"], chain)
+    ok(r)
+    assert json.loads(r.stdout[r.stdout.index("{"):])["prompts"] == "cw"

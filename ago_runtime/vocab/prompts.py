@@ -372,8 +372,10 @@ def resolve_prompt_file(name_or_path: str | Path, option: str | None = None) -> 
     if not candidate.is_file():
         raise AgoInputError(where, f"{value}: prompt file not found, nor a shipped label space of that name "
                                    f"(shipped: {shipped})")
-    warnings.warn(f"{option + ' ' if option else ''}{value}: no such file here; using the shipped {candidate}",
-                  AgoNote, stacklevel=3)
+    # a shipped name ("cw", "waymo/cw_waymo", a preset's default) names a shipped file; a path-like value that is not
+    # here ("cw.txt", "prompts/ow.txt") is worth saying
+    why = "" if p.suffix == "" and p.parent.parts[:1] != ("prompts",) else "no such file here; "
+    warnings.warn(f"{option + ' ' if option else ''}{value}: {why}using the shipped {candidate}", AgoNote, stacklevel=3)
     return candidate
 
 

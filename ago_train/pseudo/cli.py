@@ -144,6 +144,21 @@ def check_embedder_fits_bank(emb, option: str, bank_encoder_id: str | None = Non
 CLOSED_PROMPTS = {"occ3d_nuscenes": "cw", "occ3d_waymo": "waymo/cw_waymo"}
 
 
+def default_prompts_for_data(data: Path) -> str:
+    """The shipped closed prompt file of the class table `data`'s labels use (its layout's, or its own
+    class_table.json); a table of one's own has none, so the user must name one (AgoInputError on --prompts)."""
+    from ago_runtime.errors import AgoInputError
+    from ago_runtime.formats.datasets import open_dataset
+
+    table = open_dataset(data, load_extras=False).class_table
+    if table.name not in CLOSED_PROMPTS:
+        raise AgoInputError("--prompts", f"{data} holds labels of its own class table {table.name!r}, which has no "
+                            "shipped prompt file: give --prompts FILE (with an '@table:' line naming that table)")
+    from ago_runtime.vocab.prompts import PROMPTS_DIR
+
+    return str(PROMPTS_DIR / f"{CLOSED_PROMPTS[table.name]}.txt")
+
+
 def simulated_text_embeddings(table="occ3d_nuscenes", encoder=None):
     """(class_text (K, C), sky (C,)): text embeddings (`encoder`, default the ONNX MiniLM, C = 384) of the phrases of
     the class table's closed label space (cw.txt: K = 17; waymo/cw_waymo.txt: K = 15), one row per class in the
@@ -236,7 +251,9 @@ def register(app: typer.Typer) -> None:
     def pseudo_labels(
         data: Path = typer.Option(..., "--data", help="dataset folder, nuScenes or Occ3D-Waymo layout (real or `ago synth`)."),
         out: Path = typer.Option(..., "--out", help="Output folder (resumable; refused if made with other settings)."),
-        prompts: str = typer.Option("cw", "--prompts", help="Prompt file (path or shipped name: cw, ow_pretrain, ow)."),
+        prompts: str = typer.Option(None, "--prompts", help="Prompt file (path or shipped name: cw, ow_pretrain, "
+                                    "ow). Default: the closed prompt file of the data's label table (cw for "
+                                    "Occ3D-nuScenes, waymo/cw_waymo for Occ3D-Waymo)."),
         segmenter: str = typer.Option(None, "--segmenter", help="files (label maps, docs/vlm_files.md), grounded-sam "
                                       "(GroundingDINO + SAM from --detector / --sam, on the fly), sim "
                                       "(SIMULATED, `ago synth` data only) or boxes (painted from the dataset's 3D "
@@ -302,6 +319,9 @@ def register(app: typer.Typer) -> None:
 
             read_model_config(text_encoder, "--text-encoder", "clip")
         segmenter, masks, embedder, feats, notes = resolve_defaults(Path(data), segmenter, masks, embedder, feats)
+        if prompts is None:   # the label space follows the data: its table's closed prompt file
+            prompts = default_prompts_for_data(Path(data))
+            notes.append(f"--prompts {prompts} (the closed prompt file of the data's label table)")
         vlm = {"detector": detector, "sam": sam, "clip": clip, "device": device, "clip_width": clip_width,
                "config": grounded_sam_config(box_threshold, text_threshold, nms_iou, max_boxes)}
         space, seg, emb = build_backends(prompts, segmenter, masks, embedder, feats, seed, Path(data), write_masks,
