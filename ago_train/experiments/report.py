@@ -803,8 +803,8 @@ def render_frames(out: Path, profile: ExperimentProfile) -> list[np.ndarray]:
     from ago_runtime.scoring.metric import upsample_nearest
     from ago_runtime.formats.datasets import open_dataset
     from ago_runtime.vocab.prompts import parse_prompt_file
-    from ago_runtime.pictures.render import legend
-    from ago_runtime.readers import open_npz, side_by_side, voxel_view
+    from ago_runtime.pictures.render import legend, side_by_side, voxel_view
+    from ago_runtime.readers import open_npz
 
     from ..pseudo.generate import load_pseudo_labels
 
