@@ -111,8 +111,10 @@ def load_average() -> list[float]:
     return [round(x, 2) for x in os.getloadavg()]
 
 
-def train_real(dataroot: str | Path, out: str | Path, recipe: RealRecipe | None = None, say=print) -> dict:
-    """Run the stages (module docstring); returns the record written to OUT/train_real.json."""
+def train_real(dataroot: str | Path, out: str | Path, recipe: RealRecipe | None = None, say=print,
+               run_verb=_run) -> dict:
+    """Run the stages (module docstring); returns the record written to OUT/train_real.json. `run_verb(stage
+    name, ago arguments, work folder, say)` runs one verb (tests pass a stand-in)."""
     from ago_runtime.formats.nuscenes import NuScenesDataset
 
     from .time_split import time_split
@@ -157,7 +159,7 @@ def train_real(dataroot: str | Path, out: str | Path, recipe: RealRecipe | None 
     else:
         shutil.rmtree(town, ignore_errors=True)
         (work / "town.json").unlink(missing_ok=True)
-        _run("town", ["synth", "--out", town, "--scenes", r.town_scenes, "--frames", r.town_frames, "--seed", 0,
+        run_verb("town", ["synth", "--out", town, "--scenes", r.town_scenes, "--frames", r.town_frames, "--seed", 0,
                       "--image-size", r.town_image_size, "--grid", "200x200x16", "--jobs", r.jobs, "--rig", "nuscenes"],
              work, say)
         write_json(work / "town.json", asked)
@@ -165,11 +167,11 @@ def train_real(dataroot: str | Path, out: str | Path, recipe: RealRecipe | None 
 
     # 3. pseudo-labels (the verb skips the frames already written and checks its folder's settings)
     t0 = stage(3, "pseudo", "pseudo-labels: town (simulated segmenter), real train + val (dataset boxes + LiDAR ground)")
-    _run("pseudo", ["pseudo-labels", "--data", town, "--out", work / "town-pseudo", "--prompts", "cw", "--grid",
+    run_verb("pseudo", ["pseudo-labels", "--data", town, "--out", work / "town-pseudo", "--prompts", "cw", "--grid",
                     "100x100x8", "--split", "all", "--segmenter", "sim", "--embedder", "none", "--keyframes", 10,
                     "--jobs", r.jobs], work, say)
     for part in ("train", "val"):
-        _run("pseudo", ["pseudo-labels", "--data", real, "--out", work / f"real-pseudo-{part}", "--prompts", "cw",
+        run_verb("pseudo", ["pseudo-labels", "--data", real, "--out", work / f"real-pseudo-{part}", "--prompts", "cw",
                         "--grid", "100x100x8", "--split", part, "--segmenter", "boxes", "--embedder", "none",
                         "--keyframes", r.keyframes, "--jobs", r.jobs], work, say)
     done("pseudo", t0)
@@ -186,7 +188,7 @@ def train_real(dataroot: str | Path, out: str | Path, recipe: RealRecipe | None 
     t0 = stage(4, "train", f"{r.preset} preset, {r.steps} steps, {n_real} real frames x {w_real:.2f} + "
                            f"{n_town} town frames x {w_town:.2f} per epoch")
     resume = (run / "last.pt").is_file()
-    _run("train", ["train", "--config", r.preset, "--out", run, "--set", "sources=" + json.dumps(sources),
+    run_verb("train", ["train", "--config", r.preset, "--out", run, "--set", "sources=" + json.dumps(sources),
                    "--set", f"max_steps={r.steps}", "--set", "ckpt_every=200",
                    "--set", "snapshot_steps=" + json.dumps(snaps), *(["--resume"] if resume else [])], work, say)
     done("train", t0, "resumed from last.pt" if resume else "")
@@ -200,7 +202,7 @@ def train_real(dataroot: str | Path, out: str | Path, recipe: RealRecipe | None 
             raise AgoInputError(snap, "snapshot missing after training (remove OUT/work/train to retrain)")
         ev = work / "select" / f"step_{step:06d}"
         if not ((ev / "metrics.json").is_file() and (ev / "metrics.json").stat().st_mtime > snap.stat().st_mtime):
-            _run("select", ["eval", "--ckpt", snap, "--data", real, "--split", "val", "--gts", work / "real-pseudo-val",
+            run_verb("select", ["eval", "--ckpt", snap, "--data", real, "--split", "val", "--gts", work / "real-pseudo-val",
                             "--out", ev, "--readout", "model"], work, say)
         else:
             reused_n += 1
@@ -223,7 +225,7 @@ def train_real(dataroot: str | Path, out: str | Path, recipe: RealRecipe | None 
     else:
         tmp = work / "bundle.tmp"
         shutil.rmtree(tmp, ignore_errors=True)
-        _run("export", ["export", snap, "-o", tmp, "--parity-frame", real, "--readout-grid", r.readout_grid,
+        run_verb("export", ["export", snap, "-o", tmp, "--parity-frame", real, "--readout-grid", r.readout_grid,
                         "--train-bank-only", "--card-note",
                         f"trained by `ago train-real` on {n_real} real keyframes ({dataroot.name}, boxes pseudo-labels) "
                         f"mixed with a {n_town}-frame synthetic town; length {chosen} steps chosen on a val block"],
