@@ -32,12 +32,12 @@ PARTS = ("train", "val", "test")
 PER_SAMPLE_TABLES = ("sample_data", "sample_annotation")   # records that belong to one sample
 
 
-def _read(path: Path):
+def read_table(path: Path):
     with open(path) as f:
         return json.load(f)
 
 
-def _write(path: Path, obj) -> None:
+def write_table(path: Path, obj) -> None:
     with open(path, "w") as f:
         json.dump(obj, f)
 
@@ -74,7 +74,7 @@ def write_parts(src: Path, tmp: Path, version: str, parts_of_scene: dict[str, di
         elif name == "sample":
             records = kept
         elif name in PER_SAMPLE_TABLES:
-            records = [r for r in _read(table) if r.get("sample_token") in scene_of]
+            records = [r for r in read_table(table) if r.get("sample_token") in scene_of]
             tokens = {r["token"] for r in records}
             for r in records:
                 for key in ("prev", "next"):
@@ -83,7 +83,7 @@ def write_parts(src: Path, tmp: Path, version: str, parts_of_scene: dict[str, di
         else:
             shutil.copyfile(table, tmp / version / table.name)
             continue
-        _write(tmp / version / table.name, records)
+        write_table(tmp / version / table.name, records)
     for folder in ("samples", "sweeps"):
         if (src / folder).is_dir():
             os.symlink(src / folder, tmp / folder)
@@ -96,8 +96,8 @@ def time_split(src: str | Path, dst: str | Path, val_share: float = 0.15, test_s
     asked = {"source": str(src), "val_share": val_share, "test_share": test_share, "max_scenes": max_scenes}
     if dst.exists():
         marker = dst / "split.json"
-        if marker.is_file() and {k: _read(marker).get(k) for k in asked} == asked:
-            return _read(marker)
+        if marker.is_file() and {k: read_table(marker).get(k) for k in asked} == asked:
+            return read_table(marker)
         raise AgoInputError(dst, f"exists and is not the time split of {src} asked ({asked}); remove it or choose another OUT")
     if not 0 < val_share < 1 or not 0 < test_share < 1 or val_share + test_share >= 1:
         raise AgoInputError("--val-share/--test-share", f"need 0 < shares and a sum < 1, got {val_share}, {test_share}")
@@ -106,16 +106,16 @@ def time_split(src: str | Path, dst: str | Path, val_share: float = 0.15, test_s
         raise AgoInputError(src, f"not a nuScenes dataroot: needs exactly one v1.0-* table folder, found {versions}")
     version = versions[0]
     tables = src / version
-    samples = _read(tables / "sample.json")
+    samples = read_table(tables / "sample.json")
     by_scene: dict[str, list[dict]] = {}
     for r in samples:
         by_scene.setdefault(r["scene_token"], []).append(r)
     first_cam = {}
-    for r in _read(tables / "sample_data.json"):
+    for r in read_table(tables / "sample_data.json"):
         if r.get("is_key_frame") and "/CAM_FRONT/" in "/" + r.get("filename", ""):
             first_cam[r["sample_token"]] = r["filename"]
     scenes = []
-    for s in sorted(_read(tables / "scene.json"), key=lambda s: s["name"]):
+    for s in sorted(read_table(tables / "scene.json"), key=lambda s: s["name"]):
         recs = sorted(by_scene.get(s["token"], []), key=lambda r: int(r["timestamp"]))
         if recs and recs[0]["token"] in first_cam and (src / first_cam[recs[0]["token"]]).is_file():
             scenes.append((s, recs))
@@ -136,11 +136,11 @@ def time_split(src: str | Path, dst: str | Path, val_share: float = 0.15, test_s
     if tmp.exists():
         shutil.rmtree(tmp)
     write_parts(src, tmp, version, parts_of_scene, [s for s, _ in scenes])
-    _write(tmp / "splits.json", {part: [f"{s['name']}-{part}" for s, _ in scenes] for part in PARTS})
+    write_table(tmp / "splits.json", {part: [f"{s['name']}-{part}" for s, _ in scenes] for part in PARTS})
     record = {**asked, "version": version, "scenes_in_source": len(by_scene),
               "scenes": {s["name"]: {part: [r["token"] for r in parts_of_scene[s["token"]][part]] for part in PARTS}
                          for s, _ in scenes}}
-    _write(tmp / "split.json", record)
+    write_table(tmp / "split.json", record)
     dst.parent.mkdir(parents=True, exist_ok=True)
     os.replace(tmp, dst)
     return record

@@ -19,36 +19,19 @@ renamed, so an interrupted run leaves no half-made DST.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shutil
 import sys
 from pathlib import Path
 
-# the tables whose records belong to one sample (kept only for the chosen keyframes)
-PER_SAMPLE_TABLES = ("sample_data", "sample_annotation")
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from ago_train.time_split import read_table as _read, write_parts, write_table as _write  # noqa: E402
 
 
 class CutError(Exception):
     """Bad input to the cut; main() prints it as one `error: ...` line and exits 2."""
-
-
-def _read(path: Path):
-    with open(path) as f:
-        return json.load(f)
-
-
-def _write(path: Path, obj) -> None:
-    with open(path, "w") as f:
-        json.dump(obj, f)
-
-
-def _relink(records: list[dict], kept: set[str]) -> None:
-    """Empty the prev/next links of records that point at a dropped record."""
-    for r in records:
-        for key in ("prev", "next"):
-            if r.get(key) and r[key] not in kept:
-                r[key] = ""
 
 
 def cut_dataroot(src: str | Path, dst: str | Path, train: int, val: int) -> dict:
@@ -77,39 +60,10 @@ def cut_dataroot(src: str | Path, dst: str | Path, train: int, val: int) -> dict
         raise CutError(f"--train/--val: {train} + {val} keyframes asked, the scene has {len(samples)}")
 
     parts = {"train": samples[:train], "val": samples[train:train + val]}
-    new_scenes, scene_of = [], {}
-    for part, recs in parts.items():
-        token = f"{scene['token']}-{part}"
-        new_scenes.append({**scene, "token": token, "name": f"{scene['name']}-{part}", "nbr_samples": len(recs),
-                           "first_sample_token": recs[0]["token"], "last_sample_token": recs[-1]["token"]})
-        scene_of.update({r["token"]: token for r in recs})
-    kept_samples = [dict(r, scene_token=scene_of[r["token"]]) for r in samples if r["token"] in scene_of]
-    for part_recs in parts.values():   # each part's first / last keyframe has no prev / next
-        first, last = part_recs[0]["token"], part_recs[-1]["token"]
-        for r in kept_samples:
-            if r["token"] == first:
-                r["prev"] = ""
-            if r["token"] == last:
-                r["next"] = ""
-
     tmp = dst.with_name(dst.name + ".tmp")
     if tmp.exists():
         shutil.rmtree(tmp)
-    (tmp / version).mkdir(parents=True)
-    for table in sorted(src.joinpath(version).glob("*.json")):
-        name = table.stem
-        if name == "scene":
-            records = new_scenes
-        elif name == "sample":
-            records = kept_samples
-        elif name in PER_SAMPLE_TABLES:
-            records = [r for r in _read(table) if r.get("sample_token") in scene_of]
-            _relink(records, {r["token"] for r in records})
-        else:
-            shutil.copyfile(table, tmp / version / table.name)
-            continue
-        _write(tmp / version / table.name, records)
-    os.symlink(src / "samples", tmp / "samples")
+    write_parts(src, tmp, version, {scene["token"]: parts}, [scene])   # the tables, cut (ago_train/time_split.py)
     _write(tmp / "splits.json", {part: [f"{scene['name']}-{part}"] for part in parts})
     record = {**asked, "scene": scene["name"], "version": version,
               "train_tokens": [r["token"] for r in parts["train"]], "val_tokens": [r["token"] for r in parts["val"]]}
