@@ -24,6 +24,7 @@ weights, calibration) reads the right folder.
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -136,13 +137,28 @@ class PseudoSources:
         return self.of(scene, token).embeds(scene, token)
 
 
+def open_frames(data: str | Path, gts: str | None, split: str, load_images: bool = True):
+    """The dataset at `data` (`ago_runtime.formats.datasets.open_dataset`: the nuScenes or the Occ3D-Waymo
+    layout; GT from `gts`, else where the layout keeps it) and its indices in `split`."""
+    from ago_runtime.formats.datasets import open_dataset
+
+    root = Path(data)
+    if not root.exists():
+        raise AgoInputError(root, "dataset root not found (make a synthetic one with `ago synth`)")
+    ds = open_dataset(root, gts_root=gts, load_images=load_images, load_extras=False)
+    indices = ds.split(split)
+    note = ds.split_note(split)
+    if note:   # no splits.json: say which default split is used
+        print(f"note: using {note}", file=sys.stderr, flush=True)
+    return ds, list(indices)
+
+
 def open_sources(cfg, grid, label_space, load_images: bool):
     """(MixedFrames, PseudoSources, the first frame's rig) for the config's sources, everything checked
     (module docstring) before any file is written."""
     from ago_runtime.formats.datasets import check_label_table
 
     from .dataset import PseudoLabelSet
-    from .trainer import open_frames
 
     srcs = sources_of(cfg)
     datasets, entries, sets, keys, names = [], [], [], [], []

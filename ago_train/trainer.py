@@ -43,22 +43,6 @@ from .train_config import TrainConfig
 
 
 # ---- pieces shared with evaluation --------------------------------------------------------------
-def open_frames(data: str | Path, gts: str | None, split: str, load_images: bool = True):
-    """The dataset at `data` (`ago_runtime.formats.datasets.open_dataset`: the nuScenes or the Occ3D-Waymo
-    layout; GT from `gts`, else where the layout keeps it) and its indices in `split`."""
-    from ago_runtime.formats.datasets import open_dataset
-
-    root = Path(data)
-    if not root.exists():
-        raise AgoInputError(root, "dataset root not found (make a synthetic one with `ago synth`)")
-    ds = open_dataset(root, gts_root=gts, load_images=load_images, load_extras=False)
-    indices = ds.split(split)
-    note = ds.split_note(split)
-    if note:   # no splits.json: say which default split is used
-        print(f"note: using {note}", file=sys.stderr, flush=True)
-    return ds, list(indices)
-
-
 _BANKS: dict[str, dict] = {}  # per process: prompt file sha256 -> bank dict (the encoder is frozen)
 
 
