@@ -23,7 +23,8 @@ each timed and printed, each reusing what an earlier (interrupted) run left afte
             temporary name and renamed; reused when OUT/bundle/train_real.json names the same snapshot).
 
 The test frames are never read here: benchmarks/train_real.py scores them (`ago infer` + `ago metric --lidar`).
-OUT/train_real.json records the settings, the split, each stage's wall time and the machine's load.
+OUT/train_real.json records the settings, the split, each stage's wall time and the machine's load (rewritten
+after every stage; a rerun keeps the earlier invocations' times under `earlier_invocations`).
 """
 
 from __future__ import annotations
@@ -127,8 +128,17 @@ def train_real(dataroot: str | Path, out: str | Path, recipe: RealRecipe | None 
         raise AgoInputError(dataroot, "nuScenes dataroot not found")
     work = out / "work"
     work.mkdir(parents=True, exist_ok=True)
+    earlier = []   # the stage times of earlier (interrupted or finished) invocations on this OUT
+    if (out / "train_real.json").is_file():
+        try:
+            old = json.loads((out / "train_real.json").read_text())
+            earlier = old.get("earlier_invocations", []) + [{k: old.get(k) for k in ("stages", "load_average_start",
+                                                                                      "load_average_end", "started")}]
+        except (OSError, json.JSONDecodeError, AttributeError):
+            earlier = []
     record: dict = {"dataroot": str(dataroot.resolve()), "recipe": asdict(r), "load_average_start": load_average(),
-                    "stages": {}}
+                    "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "stages": {},
+                    "earlier_invocations": earlier}
     t_all = time.perf_counter()
 
     def stage(n: int, name: str, what: str):
@@ -139,6 +149,8 @@ def train_real(dataroot: str | Path, out: str | Path, recipe: RealRecipe | None 
         sec = round(time.perf_counter() - t0, 1)
         record["stages"][name] = {"seconds": sec, **({"note": note} if note else {})}
         say(f"   {name}: {sec:.1f} s{' (' + note + ')' if note else ''}; {time.perf_counter() - t_all:.0f} s so far")
+        record["load_average_end"] = load_average()
+        write_json(out / "train_real.json", record)   # after every stage: an interrupted run keeps its times
 
     # 1. split by time
     t0 = stage(1, "split", f"time split of {dataroot} (val {r.val_share}, test {r.test_share}, <= {r.max_scenes} scenes)")

@@ -104,12 +104,13 @@ def main(argv=None) -> None:
             curve[step] = predict_and_score(f"step{step}", b, real, tokens, prior, bench, args.metric_path)
 
     preds = scored["trained"]["predictors"]
+    baselines = scored["trained"]["baselines"]
     rows = [("trained bundle (`ago train-real`, step %d)" % chosen, preds["prediction"]),
             ("shipped synthetic bundle", scored["synthetic"]["predictors"]["prediction"])]
-    rows += [(f"{b} (no image: {desc})", preds[b]) for b, desc in scored["trained"]["baselines"].items()]
-    beaten = {k: [n for n, m in rows[1:] if m.get(k) is not None and (preds["prediction"].get(k) is None
-                                                                       or m[k] >= preds["prediction"][k])]
-              for k, _ in PRIMARY}
+    rows += [(f"{b} (no image)", preds[b]) for b in baselines]
+    short = ["synthetic bundle", *baselines]
+    beaten = {k: [n for n, (_, m) in zip(short, rows[1:]) if m.get(k) is not None
+                  and (preds["prediction"].get(k) is None or m[k] >= preds["prediction"][k])] for k, _ in PRIMARY}
     veh = [c for c in VEHICLES if any(m.get("object_ray_iou_per_class", {}).get(c, {}).get("@1") is not None
                                       for _, m in rows[:2])]
     load = rec.get("load_average_start"), rec.get("load_average_end")
@@ -140,6 +141,7 @@ def main(argv=None) -> None:
              f"### LiDAR measures on the {len(tokens)} test keyframes (`ago metric --lidar`, all higher is better)", "",
              "| predictor | " + " | ".join(label for _, label in PRIMARY) + " |", "|---|" + "---:|" * len(PRIMARY),
              *[f"| {n} | " + " | ".join(fmt(m.get(k)) for k, _ in PRIMARY) + " |" for n, m in rows], "",
+             "Baselines: " + "; ".join(f"{b} = {d}" for b, d in baselines.items()) + ".", "",
              "Predictors at or above the trained bundle, per measure: "
              + "; ".join(f"{label}: {', '.join(v) if v else 'none'}" for (k, label), v in zip(PRIMARY, beaten.values())) + ".", "",
              "### Object ray IoU per class (%, @1 m / @2 m / @4 m) on the test keyframes", "",

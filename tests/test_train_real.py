@@ -209,6 +209,7 @@ def test_train_real_reuses_finished_stages_after_checking(tmp_path):
     assert "synth" not in again and "eval" not in again and "export" not in again
     assert ("train", "train", True) in calls                        # training is resumed, not restarted
     assert "reused" in r2["stages"]["town"]["note"] and "reused" in r2["stages"]["export"]["note"]
+    assert "note" not in r2["earlier_invocations"][0]["stages"]["town"]   # the first run's own times are kept
     calls.clear()
     train_real(src, tmp_path / "out", RealRecipe(steps=8, snapshots=4, town_scenes=3, town_frames=2),
                say=lambda s: None, run_verb=fake)
