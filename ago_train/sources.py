@@ -18,7 +18,8 @@ What must agree, checked before any work, each a one-line error naming the sourc
 `MixedFrames` is the frame sequence the trainer's dataset reads (a source's frames repeated per its
 weight), and `PseudoSources` answers `labels` / `embeds` for a (scene, token) from that frame's own
 pseudo-label folder, so every place that reads a training frame's labels (losses, the free prior, class
-weights, calibration) reads the right folder.
+weights, calibration) reads the right folder. `open_frames(data, gts, split)` opens one dataset and its split
+(training and `ago eval` share it).
 """
 
 from __future__ import annotations

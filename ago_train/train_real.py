@@ -126,6 +126,8 @@ def train_real(dataroot: str | Path, out: str | Path, recipe: RealRecipe | None 
     dataroot, out = Path(dataroot), Path(out)
     if not dataroot.is_dir():
         raise AgoInputError(dataroot, "nuScenes dataroot not found")
+    if not any(p.is_dir() for p in dataroot.glob("v1.0-*")):
+        raise AgoInputError(dataroot, "not a nuScenes dataroot (no v1.0-* table folder)")
     work = out / "work"
     work.mkdir(parents=True, exist_ok=True)
     earlier = []   # the stage times of earlier (interrupted or finished) invocations on this OUT

@@ -214,3 +214,12 @@ def test_train_real_reuses_finished_stages_after_checking(tmp_path):
     train_real(src, tmp_path / "out", RealRecipe(steps=8, snapshots=4, town_scenes=3, town_frames=2),
                say=lambda s: None, run_verb=fake)
     assert [c[1] for c in calls].count("synth") == 1                # another town: made again
+
+
+def test_train_real_bad_dataroot_is_one_line_and_writes_nothing(tmp_path):
+    env = dict(os.environ, AGO_NO_PROGRESS="1", PYTHONPATH=str(REPO))
+    for root, words in ((tmp_path / "missing", "dataroot not found"), (tmp_path, "no v1.0-* table folder")):
+        r = subprocess.run([sys.executable, "-m", "ago_runtime", "train-real", str(root), str(tmp_path / "out")],
+                           cwd=REPO, env=env, capture_output=True, text=True)
+        assert r.returncode == 2 and words in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+        assert not (tmp_path / "out" / "work").exists()
