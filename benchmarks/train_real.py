@@ -10,9 +10,10 @@ trained on nor used to choose):
 3. `ago metric --pred P --lidar OUT/work/real --allow-missing --prior OUT/work/real-pseudo-train --json` of each,
    whose JSON holds the LiDAR measures of the prediction and of the no-image baselines (all free, all occupied,
    slabs, bowl, the training-frame prior), scored with the same rays;
-and appends the tables (primary measures, vehicles per class, the learning curve, the stage times) to --out
-below its part written before the run. `--metric-path DIR` runs `ago metric` from another checkout (a branch
-whose metric is not merged yet); every other verb runs from this one. Predictions and scores stay in
+and writes the tables (primary measures, vehicles per class, the learning curve, the stage times) into --out
+between its part written before the run and a "## Reading" part written by hand (both kept). `--metric-path DIR` runs `ago metric` from another checkout (a branch
+whose metric is not merged yet); every other verb runs from this one. `--export-only` exports the snapshots
+there are and stops (it reads no test keyframe, so the curve's exports may run beside the training). Predictions and scores stay in
 OUT/bench/ and are reused when there (delete it to redo).
 """
 
@@ -38,6 +39,7 @@ PRIMARY = (("object_ray_iou", "object ray IoU (%)"), ("geometry_ray_iou_nongroun
            ("voxel_f1_pct", "voxel F1 (%)"))
 VEHICLES = ("car", "truck", "bus", "trailer", "construction_vehicle", "bicycle", "motorcycle", "pedestrian")
 MARKER = "## Results (written by benchmarks/train_real.py)"
+READING = "## Reading (written by hand after the run)"
 
 
 def ago(args: list, log: Path, pythonpath: str | None = None) -> float:
@@ -54,6 +56,16 @@ def ago(args: list, log: Path, pythonpath: str | None = None) -> float:
     if r.returncode:
         raise SystemExit(f"ago {args[0]} failed (exit {r.returncode}); see {log}")
     return time.perf_counter() - t
+
+
+def export_snapshot(snapshot: Path, bundle: Path, readout_grid: str, real: Path, log: Path) -> None:
+    """`ago export` of a snapshot as `ago train-real` exports its chosen one (under a temporary name, renamed)."""
+    import shutil
+
+    tmp = bundle.with_name(bundle.name + ".tmp")
+    shutil.rmtree(tmp, ignore_errors=True)
+    ago(["export", snapshot, "-o", tmp, "--readout-grid", readout_grid, "--train-bank-only", "--parity-frame", real], log)
+    os.replace(tmp, bundle)
 
 
 def predict_and_score(name: str, bundle: Path | None, real: Path, tokens: list[str], prior: Path, bench: Path,
@@ -80,13 +92,24 @@ def main(argv=None) -> None:
     ap.add_argument("--curve", action="store_true", help="also export and score every other snapshot")
     ap.add_argument("--metric-path", default=None, help="run `ago metric` from this checkout (PYTHONPATH)")
     ap.add_argument("--out", default=str(REPO / "benchmarks/results/train_real.md"))
+    ap.add_argument("--export-only", action="store_true", help="only export the snapshots there are (for --curve; "
+                    "reads no test keyframe, so it may run while the training does)")
     args = ap.parse_args(argv)
     run = Path(args.run)
-    rec = json.loads((run / "train_real.json").read_text())
     work, real = run / "work", run / "work" / "real"
+    bench = run / "bench"
+    if args.export_only:
+        bench.mkdir(exist_ok=True)
+        from ago_train.train_real import RealRecipe
+
+        grid = RealRecipe().readout_grid
+        for snap in sorted((work / "train" / "snapshots").glob("step_*.pt")):
+            if not (bench / f"bundle_{snap.stem[5:]}").is_dir():
+                export_snapshot(snap, bench / f"bundle_{snap.stem[5:]}", grid, real, bench / "bench.log")
+        return
+    rec = json.loads((run / "train_real.json").read_text())
     split = json.loads((real / "split.json").read_text())
     tokens = [t for parts in split["scenes"].values() for t in parts["test"]]
-    bench = run / "bench"
     bench.mkdir(exist_ok=True)
     prior = work / "real-pseudo-train"
     chosen = rec["select"]["chosen_step"]
@@ -98,9 +121,9 @@ def main(argv=None) -> None:
             if step == chosen:
                 continue
             b = bench / f"bundle_{step:06d}"
-            if not (b / "manifest.json").is_file() and not (bench / f"metric_step{step}.json").is_file():
-                ago(["export", work / "train" / "snapshots" / f"step_{step:06d}.pt", "-o", b, "--readout-grid",
-                     rec["recipe"]["readout_grid"], "--train-bank-only", "--parity-frame", real], bench / "bench.log")
+            if not b.is_dir() and not (bench / f"metric_step{step}.json").is_file():
+                export_snapshot(work / "train" / "snapshots" / f"step_{step:06d}.pt", b, rec["recipe"]["readout_grid"],
+                                real, bench / "bench.log")
             curve[step] = predict_and_score(f"step{step}", b, real, tokens, prior, bench, args.metric_path)
 
     preds = scored["trained"]["predictors"]
@@ -158,8 +181,10 @@ def main(argv=None) -> None:
     notes = scored["trained"].get("notes") or []
     lines += [f"Note from `ago metric`: {n}" for n in notes]
     out = Path(args.out)
-    head = out.read_text().split(MARKER)[0].rstrip() + "\n\n" if out.is_file() else ""
-    write_text(out, head + "\n".join(lines) + "\n")
+    text = out.read_text() if out.is_file() else ""
+    head = text.split(MARKER)[0].rstrip() + "\n\n" if text else ""
+    tail = ("\n" + READING + text.split(READING, 1)[1]) if READING in text else ""   # written by hand: kept
+    write_text(out, head + "\n".join(lines) + "\n" + tail)
     write_text(bench / "summary.json", json.dumps({"tokens": tokens, "scored": {k: v["predictors"] for k, v in scored.items()},
                                                     "curve": {str(s): c["predictors"]["prediction"] for s, c in curve.items()}},
                                                    indent=1))
