@@ -140,6 +140,7 @@ def train_real(dataroot: str | Path, out: str | Path, recipe: RealRecipe | None 
             earlier = []
     record: dict = {"dataroot": str(dataroot.resolve()), "recipe": asdict(r), "load_average_start": load_average(),
                     "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "stages": {},
+                    "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
                     "earlier_invocations": earlier}
     t_all = time.perf_counter()
 

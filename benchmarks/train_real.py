@@ -144,7 +144,8 @@ def main(argv=None) -> None:
         model = platform.processor() or "?"
     commit = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
     lines = [MARKER, "",
-             f"Commands: `bash scripts/train_real.sh {rec['dataroot']} {run}` then "
+             f"Commands: `{'OMP_NUM_THREADS=' + rec['omp_num_threads'] + ' ' if rec.get('omp_num_threads') else ''}"
+             f"bash scripts/train_real.sh {rec['dataroot']} {run}` then "
              f"`python benchmarks/train_real.py {' '.join(shlex.quote(a) for a in (argv or sys.argv[1:]))}` "
              f"({time.strftime('%Y-%m-%d')}, commit {commit}; `ago metric` from "
              f"{args.metric_path or 'this checkout'}).", "",
