@@ -12,7 +12,8 @@ inside a frame's own part only: no training pseudo-label uses a val or test keyf
 - per scene of n keyframes (time order): test = the last round(test_share * n), val = the round(val_share
   * n) before them, train = the rest (each at least 1; a scene of fewer than 3 keyframes is refused).
 What is written: DST/<version>/ with every table of SRC (sample, sample_data and sample_annotation kept for the
-chosen keyframes only, links to dropped records emptied, scene.json the new scenes, the other tables copied),
+chosen keyframes only, links to dropped records emptied, ego_pose cut to the poses the kept sample_data use,
+scene.json the new scenes, the other tables copied),
 DST/splits.json, DST/split.json (what was asked and the tokens of each part: the record a results file cites),
 and DST/samples (and DST/sweeps when SRC has them) as symbolic links (no image or LiDAR file is copied).
 Built in a temporary folder and renamed; an existing DST made with the same source and settings is reused
@@ -67,15 +68,20 @@ def write_parts(src: Path, tmp: Path, version: str, parts_of_scene: dict[str, di
             if r.get(key) and scene_of.get(r[key]) != r["scene_token"]:
                 r[key] = ""
     (tmp / version).mkdir(parents=True)
-    for table in sorted(src.joinpath(version).glob("*.json")):
+    poses: set[str] = set()   # the ego poses the kept sample_data use (official ego_pose.json is ~2.6M records)
+    tables = sorted(src.joinpath(version).glob("*.json"), key=lambda t: (t.stem != "sample_data", t.name))
+    for table in tables:
         name = table.stem
-        if name == "scene":
+        if name == "ego_pose" and poses:
+            records = [r for r in read_table(table) if r.get("token") in poses]
+        elif name == "scene":
             records = new_scenes
         elif name == "sample":
             records = kept
         elif name in PER_SAMPLE_TABLES:
             records = [r for r in read_table(table) if r.get("sample_token") in scene_of]
             tokens = {r["token"] for r in records}
+            poses.update(r["ego_pose_token"] for r in records if r.get("ego_pose_token"))
             for r in records:
                 for key in ("prev", "next"):
                     if r.get(key) and r[key] not in tokens:
