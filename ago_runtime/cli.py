@@ -66,6 +66,7 @@ VERB_MODULES: dict[str, tuple[str, ...]] = {
     "pseudo-labels": ("ago_train.pseudo.cli",),
     "seen-gt": ("ago_train.pseudo.cli",),
     "train": ("ago_train.cli",),
+    "train-real": ("ago_train.cli",),
     "calibrate": ("ago_train.cli",),
     "eval": ("ago_train.cli",),
     "open-world": ("ago_train.cli",),

@@ -104,6 +104,31 @@ def register(app: typer.Typer) -> None:
         if r["last"]:
             typer.echo(f"trained {r['step']} steps; checkpoint {r['last']}")
 
+    @app.command("train-real")
+    def train_real_cmd(
+        dataroot: Path = typer.Argument(..., help="a nuScenes dataroot (official, or a trimmed extract)"),
+        out: Path = typer.Argument(..., help="output folder: OUT/bundle, OUT/train_real.json, OUT/work"),
+        max_scenes: int = typer.Option(3, "--max-scenes", min=1, help="real scenes used at most (evenly spaced)"),
+        steps: int = typer.Option(2000, "--steps", min=1, help="training steps (the val block picks a snapshot)"),
+        town_scenes: int = typer.Option(8, "--town-scenes", min=2, help="synthetic town mixed in: scenes"),
+        town_frames: int = typer.Option(8, "--town-frames", min=2, help="synthetic town: keyframes per scene"),
+        preset: str = typer.Option("cpu", "--preset", help="training preset (cpu; full on a GPU)"),
+        jobs: int = typer.Option(2, "--jobs", min=1, help="worker processes for synth and pseudo-labels"),
+    ):
+        """A nuScenes dataroot -> OUT/bundle: time split, synthetic town, pseudo-labels, mixed training, length
+        chosen on a val block, export (docs/training.md, "Training on your own data"); resumes."""
+        from ago_runtime.errors import require_torch
+
+        require_torch("train-real")
+        from ago_runtime.outputs import check_output_dir
+
+        check_output_dir(out, "OUT")
+        from .train_real import RealRecipe, train_real
+
+        train_real(dataroot, out, RealRecipe(max_scenes=max_scenes, steps=steps, town_scenes=town_scenes,
+                                             town_frames=town_frames, preset=preset, jobs=jobs),
+                   say=lambda s: typer.echo(s))
+
     @app.command("calibrate")
     def calibrate_cmd(
         run: Path = typer.Argument(..., help="a finished `ago train` folder (config.json, last.pt)"),

@@ -135,6 +135,9 @@ def check_train_config(cfg, source=None):
     if cfg.frame_tokens is not None and (not isinstance(cfg.frame_tokens, (list, tuple))
                                          or not all(isinstance(t, str) for t in cfg.frame_tokens)):
         raise AgoInputError(source, "frame_tokens must be a list of sample tokens or null")
+    from .sources import check_sources
+
+    check_sources(cfg.sources, source)
     from .losses.sampling import SAMPLING_RULES
 
     if cfg.voxel_sampling not in SAMPLING_RULES:

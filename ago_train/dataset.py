@@ -179,13 +179,14 @@ class OccSampleDataset(torch.utils.data.Dataset):
         """The item of frame i, mirrored / turned by this epoch's draw of `augment` (augment.py)."""
         from .augment import draw
 
-        base = self._memory.get(i)
+        key = self.frames.key(i) if hasattr(self.frames, "key") else i   # repeats of a frame share one copy
+        base = self._memory.get(key)
         if base is None:
             base = self._load(i)
             if self.memory_bytes > 0 and self.color_jitter == 0:
                 size = sum(t.numel() * t.element_size() for t in _tensors(base))
                 if self._memory_used + size <= self.memory_bytes:
-                    self._memory[i] = base
+                    self._memory[key] = base
                     self._memory_used += size
         t = draw(self.augment, self.seed, self.epoch, i)
         item = dict(base)
@@ -294,3 +295,7 @@ class FrameList:
 
     def __getitem__(self, i: int):
         return self.source[self.indices[i]]
+
+    def key(self, i: int) -> int:
+        """The frame's index in the source (repeated indices name one frame)."""
+        return self.indices[i]

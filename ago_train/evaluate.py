@@ -168,7 +168,7 @@ def evaluate(ckpt_path: str | Path, data: str | Path, split: str = "val", prompt
     runtime's bundle does); "gt" reads the TPV planes directly at the GT grid's voxel centres (same
     weights, finer surfaces, 8x the voxels through the decoder at 100x100x8 -> 200x200x16;
     benchmarks/results/fine_query.md)."""
-    from .trainer import open_frames
+    from .sources import open_frames
 
     if readout not in READOUTS:
         raise AgoInputError("--readout", f"must be one of {', '.join(READOUTS)}, got {readout!r}")

@@ -124,7 +124,8 @@ def _mean_rows(rows: list[dict]) -> dict:
 
 def run_open_world(ow: OpenWorldConfig, stage: str = "all", quiet: bool = False) -> dict:
     from .evaluate import evaluate
-    from .trainer import open_frames, train
+    from .sources import open_frames
+    from .trainer import train
 
     if stage not in STAGES:
         raise AgoInputError(None, f"unknown stage {stage!r}; choose one of {list(STAGES)}")

@@ -48,6 +48,8 @@ class TrainConfig:
     data: str = "data/synth-cpu"      # dataset root (nuScenes layout or `ago synth` output)
     gts: str | None = None            # Occ3D gts root when not <data>/gts
     pseudo: str = "data/synth-cpu-pseudo"  # pseudo-label dir made by `ago pseudo-labels`
+    sources: list[dict] | None = None  # several [{data, pseudo, weight, split}] at once (sources.py); when set,
+                                       # they replace data / pseudo / train_split
     prompts: str = "cw"               # prompt file (label space); a bare name means prompts/<name>.txt
     text_encoder: str | None = None   # a CLIP save_pretrained folder whose text tower makes the banks (None = MiniLM);
                                       # model.embed_dim follows its projection width (docs/prompts.md)
@@ -129,6 +131,8 @@ class TrainConfig:
         d["loss"] = dataclasses.asdict(self.loss) if dataclasses.is_dataclass(self.loss) else dict(self.loss)
         if d["frame_tokens"] is not None:
             d["frame_tokens"] = list(d["frame_tokens"])
+        if d["sources"] is not None:
+            d["sources"] = [dict(s) for s in d["sources"]]
         if d["snapshot_steps"] is not None:
             d["snapshot_steps"] = [int(s) for s in d["snapshot_steps"]]
         return d

@@ -30,34 +30,18 @@ from torch.utils.data import DataLoader, DistributedSampler
 
 from ago_runtime.atomic import write_text
 from ago_runtime.errors import AgoInputError
-from ago_runtime.formats.datasets import check_label_table
 from ago_runtime.geometry.preprocess import Preprocess
 from ago_runtime.vocab.prompts import LabelSpace, label_space_record, parse_prompt_file
 
 from . import distributed as D
 from .checkpoint import (check_checkpoint_bank, check_resume_model, load_checkpoint, load_model_weights, plain, rng_state,
                          save_checkpoint, set_rng_state)
-from .dataset import FrameList, OccSampleDataset, PseudoLabelSet, collate
+from .dataset import FrameList, OccSampleDataset, collate
+from .sources import open_sources
 from .train_config import TrainConfig
 
 
 # ---- pieces shared with evaluation --------------------------------------------------------------
-def open_frames(data: str | Path, gts: str | None, split: str, load_images: bool = True):
-    """The dataset at `data` (`ago_runtime.formats.datasets.open_dataset`: the nuScenes or the Occ3D-Waymo
-    layout; GT from `gts`, else where the layout keeps it) and its indices in `split`."""
-    from ago_runtime.formats.datasets import open_dataset
-
-    root = Path(data)
-    if not root.exists():
-        raise AgoInputError(root, "dataset root not found (make a synthetic one with `ago synth`)")
-    ds = open_dataset(root, gts_root=gts, load_images=load_images, load_extras=False)
-    indices = ds.split(split)
-    note = ds.split_note(split)
-    if note:   # no splits.json: say which default split is used
-        print(f"note: using {note}", file=sys.stderr, flush=True)
-    return ds, list(indices)
-
-
 _BANKS: dict[str, dict] = {}  # per process: prompt file sha256 -> bank dict (the encoder is frozen)
 
 
@@ -188,30 +172,19 @@ class Trainer:
         self.label_space = parse_prompt_file(self.prompt_path)
         K = self.label_space.num_classes
         self.grid = cfg.model.grid_obj()
-        self.pseudo = PseudoLabelSet.open(cfg.pseudo)
-        self.pseudo.check(self.grid, self.label_space.class_names)
-
         use_cache = cfg.uses_feature_cache()
-        ds, indices = open_frames(cfg.data, cfg.gts, cfg.train_split, load_images=not use_cache)
-        check_label_table(ds, self.label_space)   # the pseudo-labels' classes index the data's class table
-        if cfg.frame_tokens is not None:
-            wanted = set(cfg.frame_tokens)
-            indices = [i for i in indices if ds.sample_tokens[i] in wanted]
-        if cfg.max_frames is not None:
-            indices = indices[: cfg.max_frames]
-        if not indices:
-            raise AgoInputError(cfg.data, f"no frames in split {cfg.train_split!r}")
-        self.pseudo.check_files([(ds.scene_of(i), ds.sample_tokens[i]) for i in indices])  # before any file is written
+        # one or several (data, pseudo-labels) sources, checked against the grid, label space and each
+        # other's rig before any work (sources.py)
+        frames, self.pseudo, first_rig = open_sources(cfg, self.grid, self.label_space, load_images=not use_cache)
         init = load_checkpoint(cfg.init_from) if cfg.init_from else None   # checked before any work
         # the rig comes from the data: the model takes as many cameras as the training frames have
-        first_rig = ds[indices[0]].rig
         if len(first_rig.cameras) != cfg.model.num_cameras:
             print(f"note: the training data's rig has {len(first_rig.cameras)} camera(s) ({', '.join(first_rig.names)}); "
                   f"model.num_cameras {cfg.model.num_cameras} -> {len(first_rig.cameras)}", file=sys.stderr, flush=True)
             cfg = self.cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model,
                                                                                 num_cameras=len(first_rig.cameras)))
         self.preprocess = Preprocess(cfg.model.image_width, cfg.model.image_height)
-        self.dataset = OccSampleDataset(FrameList(ds, indices), self.pseudo, K, self.grid, self.preprocess,
+        self.dataset = OccSampleDataset(frames, self.pseudo, K, self.grid, self.preprocess,
                                         with_embeds=True, color_jitter=cfg.color_jitter, seed=cfg.seed,
                                         memory_bytes=cfg.item_memory_mb << 20, augment=cfg.augment,
                                         camera_names=first_rig.names)
@@ -345,7 +318,8 @@ class Trainer:
                   "--set feature_cache=DIR moves it, $AGO_CACHE_DIR too)", file=sys.stderr, flush=True)
         if self.info.is_main:
             flips = (False, True) if self.cfg.augment != "none" else (False,)
-            cache.fill(self.dataset.frames, progress=not self.quiet, flips=flips)
+            frames = self.dataset.frames   # each distinct frame once (a source's weight repeats frames)
+            cache.fill(FrameList(frames, frames.unique()), progress=not self.quiet, flips=flips)
         D.barrier(self.info)
         return cache
 

@@ -326,7 +326,7 @@ class ExperimentRunner:
 
         from ..dataset import PseudoLabelSet
         from ..open_world import select_kshot
-        from ..trainer import open_frames
+        from ..sources import open_frames
 
         folder = self.out / "kshot" if dataset == "nuscenes" else self.out / "kshot" / dataset
         path = folder / f"seed{seed}.json"

@@ -133,7 +133,7 @@ def evaluate_views(ckpt_path: str | Path, data: str | Path, views: list[View], s
     A result has evaluate.py's keys: mIoU, mIoU_star, geometry_IoU, subsets (known/unknown mIoU), metric."""
     from ago_runtime.progress import track
 
-    from ..trainer import open_frames
+    from ..sources import open_frames
 
     dev = torch.device("cpu")
     ckpt = load_checkpoint(ckpt_path, map_location="cpu")
