@@ -235,13 +235,15 @@ class Trainer:
             self._load_resume()
         # after the resume / init_from checks (a checkpoint of another encoder is named first): the voxel
         # embeddings the adapter aligns with must be in the bank's space
-        if self.pseudo.has_embeds:
-            from .pseudo.backends import check_features_fit_bank
+        from .pseudo.backends import check_features_fit_bank
 
-            emb = self.pseudo.meta["embedder"]
-            check_features_fit_bank(f"the pseudo-labels' voxel embeddings ({emb.get('name')})", emb.get("encoder_id"),
-                                    emb.get("channels"), "the text bank", self.bank["encoder_id"],
-                                    self.bank["embeddings"].shape[1], self.pseudo.root / "meta.json")
+        for pseudo in self.pseudo.sets:   # each source's pseudo-label folder
+            if pseudo.has_embeds:
+                emb = pseudo.meta["embedder"]
+                check_features_fit_bank(f"the pseudo-labels' voxel embeddings ({emb.get('name')})",
+                                        emb.get("encoder_id"), emb.get("channels"), "the text bank",
+                                        self.bank["encoder_id"], self.bank["embeddings"].shape[1],
+                                        pseudo.root / "meta.json")
         if note and info.is_main and not self.quiet:   # after init_from / resume checks: an error stays one line
             print(note, file=sys.stderr, flush=True)
         if info.distributed:

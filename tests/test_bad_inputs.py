@@ -241,6 +241,8 @@ ROWS = [
     ("infer --workers 0", lambda w: ["infer", "--images", w.frame, "--bundle", w.bundle, "--workers", "0",
                                      "--out", "o"], ["--workers", "between 1 and 64"], ["o"]),
     ("demo --bogus", lambda w: ["demo", "--bogus"], ["--bogus"], []),
+    ("train-real: dataroot missing", lambda w: ["train-real", "no_such_root", "o"], ["no_such_root"], ["o"]),
+    ("train-real --steps 0", lambda w: ["train-real", w.data, "o", "--steps", "0"], ["--steps"], ["o"]),
     ("vlm-files no --detector folder", lambda w: ["vlm-files", "--data", w.data, "--out", "o", "--prompts", "cw",
                                                   "--detector", "no_such_folder", "--sam", "no_sam"],
      ["--detector", "no such folder", "grounding-dino"], ["o"]),
