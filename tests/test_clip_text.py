@@ -311,17 +311,17 @@ def test_ago_eval_encodes_another_prompt_file_with_the_checkpoints_folder(chain,
 
 @pytest.mark.slow
 def test_a_real_scene_goes_from_clip_features_to_a_torch_free_prompt_swap(tmp_path, clip_dir):
-    """The real nuScenes scene (../shared, skipped without it): CLIP-width features for its camera images, labels
-    from its 3D boxes (no VLM here), a few training steps, export (parity on the real keyframe), then a new prompt
+    """The real nuScenes scene (../shared, skipped without it): MaskCLIP features of the same CLIP folder for its camera
+    images (`--embedder maskclip`, issue 48's code), labels from its 3D boxes (no detector here), a few training steps, export (parity on the real keyframe), then a new prompt
     file's bank and a prediction of one keyframe without torch (about 2 minutes on 2 shared cores)."""
     from conftest import shared_path
 
     root = shared_path("nuscenes-scene")
-    write_features(root, tmp_path / "feats", clip_dir)
     (tmp_path / "p.txt").write_text(PROMPTS.replace("tree [vegetation]: tree, bush", "pedestrian [pedestrian]: person"))
     (tmp_path / "new.txt").write_text(NEW_PROMPTS)
     ok(run_ago(["pseudo-labels", "--data", root, "--out", "pl", "--prompts", "p.txt", "--segmenter", "boxes",
-                "--embedder", "files", "--feats", "feats", "--text-encoder", clip_dir, "--grid", "20x20x4",
+                "--embedder", "maskclip", "--clip", clip_dir, "--clip-width", "128",   # issue 48's MaskCLIP read-out
+                "--text-encoder", clip_dir, "--grid", "20x20x4",
                 "--keyframes", "1", "--limit", "2"], tmp_path))
     write_noise(tmp_path / "noise.npz", clip_dir)
     ok(run_ago(["train", "--config", "tiny", "--data", root, "--pseudo", "pl", "--prompts", "p.txt", "--out", "run",
