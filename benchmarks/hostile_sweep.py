@@ -884,9 +884,46 @@ def option_cases(x) -> list:
     ]
 
 
+def new_verb_cases(x) -> list:
+    """Issues 47, 48, 49, 53: the verbs and options added after round three (vlm-files, train-real, --text-encoder,
+    --html): missing or wrong model folders, a pickle-only folder, a device without a GPU, bad HTML targets."""
+    pickle_only = x.root / "hostile" / "new" / "pickle_only"
+    if not pickle_only.is_dir():
+        pickle_only.mkdir(parents=True)
+        (pickle_only / "config.json").write_text('{"model_type": "clip"}')
+        (pickle_only / "pytorch_model.bin").write_bytes(b"not read")
+    return [
+        ("new verbs", "vlm-files --detector missing", lambda: ["vlm-files", "--data", x.data, "--out", "o", "--prompts",
+                                                                "cw", "--detector", "nope", "--sam", "nope"],
+         ["--detector", "no such folder"], ["o"]),
+        ("new verbs", "vlm-files --detector is a bundle", lambda: ["vlm-files", "--data", x.data, "--out", "o",
+                                                                    "--prompts", "cw", "--detector", x.bundle, "--sam",
+                                                                    "nope"], ["--detector", "config.json"], ["o"]),
+        ("new verbs", "vlm-files --device cuda", lambda: ["vlm-files", "--data", x.data, "--out", "o", "--prompts", "cw",
+                                                           "--detector", "nope", "--sam", "nope", "--device", "gpu0"],
+         ["--device"], ["o"]),
+        ("new verbs", "pseudo-labels --text-encoder a pickle-only folder", lambda: [
+            "pseudo-labels", "--data", x.data, "--out", "o", "--text-encoder", pickle_only],
+         ["--text-encoder", "pickle"], ["o"]),
+        ("new verbs", "prompts build --text-encoder missing", lambda: ["prompts", "build", "cw", "-o", "b.npz",
+                                                                        "--text-encoder", "nope"],
+         ["--text-encoder", "no such folder"], ["b.npz"]),
+        ("new verbs", "train --text-encoder is a bundle", lambda: ["train", "--config", "tiny", "--data", x.data,
+                                                                    "--pseudo", x.pseudo, "--out", "o",
+                                                                    "--text-encoder", x.bundle],
+         ["--text-encoder", "config.json"], ["o"]),
+        ("new verbs", "show --html o.png", lambda: ["show", x.gt, "--html", "o.png"], ["--html", ".html"], ["o.png"]),
+        ("new verbs", "infer --html --picture nope", lambda: ["infer", "--images", x.frame, "--bundle", x.bundle,
+                                                                      "--out", "o", "--html", "--picture", "nope"],
+         ["--picture"], ["o"]),
+        ("new verbs", "train-real a missing dataroot", lambda: ["train-real", "nope", "o"], ["nope"], ["o"]),
+        ("new verbs", "train-real --steps 0", lambda: ["train-real", x.data, "o", "--steps", "0"], ["--steps"], ["o"]),
+    ]
+
+
 GROUPS = {"bundles": bundle_cases, "nuScenes tables": dataset_cases, "info files": info_calib_cases,
           "checkpoints": checkpoint_cases, "npz / banks": npz_cases, "outputs": output_cases,
-          "options": option_cases}
+          "options": option_cases, "new verbs": new_verb_cases}
 
 
 def main() -> int:

@@ -21,6 +21,8 @@ from pathlib import Path
 import numpy as np
 import typer
 
+from ago_train.vlm.loading import TorchDevice
+
 
 def grounded_sam_config(box_threshold: float, text_threshold: float, nms_iou: float, max_boxes: int):
     """The Grounded SAM settings (a dataclass of ago_train/vlm; importing it imports no torch)."""
@@ -293,7 +295,7 @@ def register(app: typer.Typer) -> None:
                                  "(facebook/sam-vit-base, -large, -huge)."),
         clip: Path = typer.Option(None, "--clip", help="--embedder maskclip: CLIP save_pretrained folder "
                                   "(openai/clip-vit-base-patch16)."),
-        device: str = typer.Option("cpu", "--device", help="grounded-sam / maskclip: cpu or cuda."),
+        device: TorchDevice = typer.Option(TorchDevice.CPU, "--device", help="grounded-sam / maskclip: where the 2D models run."),
         max_boxes: int = typer.Option(64, "--max-boxes", min=1, max=1000, help="grounded-sam: boxes per image after NMS."),
         box_threshold: float = typer.Option(0.2, "--box-threshold", min=0.0, max=1.0, help="grounded-sam (paper 0.2)."),
         text_threshold: float = typer.Option(0.15, "--text-threshold", min=0.0, max=1.0, help="grounded-sam (paper 0.15)."),
@@ -322,7 +324,7 @@ def register(app: typer.Typer) -> None:
         if prompts is None:   # the label space follows the data: its table's closed prompt file
             prompts = default_prompts_for_data(Path(data))
             notes.append(f"--prompts {prompts} (the closed prompt file of the data's label table)")
-        vlm = {"detector": detector, "sam": sam, "clip": clip, "device": device, "clip_width": clip_width,
+        vlm = {"detector": detector, "sam": sam, "clip": clip, "device": device.value, "clip_width": clip_width,
                "config": grounded_sam_config(box_threshold, text_threshold, nms_iou, max_boxes)}
         space, seg, emb = build_backends(prompts, segmenter, masks, embedder, feats, seed, Path(data), write_masks,
                                          text_encoder, vlm)

@@ -14,6 +14,8 @@ from pathlib import Path
 
 import typer
 
+from ago_train.vlm.loading import TorchDevice
+
 from .maskclip import DEFAULT_WIDTH
 
 
@@ -29,7 +31,7 @@ def register(app: typer.Typer) -> None:
         sam: Path = typer.Option(..., "--sam", help="SAM save_pretrained folder (facebook/sam-vit-base, -large, -huge)."),
         clip: Path = typer.Option(None, "--clip", help="CLIP save_pretrained folder (openai/clip-vit-base-patch16): "
                                   "also write MaskCLIP features to OUT/feats."),
-        device: str = typer.Option("cpu", "--device", help="cpu or cuda."),
+        device: TorchDevice = typer.Option(TorchDevice.CPU, "--device", help="where the 2D models run."),
         split: str = typer.Option(None, "--split", help="train, val, ... or all (default: all keyframes; "
                                   "pseudo-labels of a split also need its neighbours' images)."),
         limit: int = typer.Option(0, "--limit", min=0, help="only the first N keyframes (0 = all)."),
@@ -71,7 +73,7 @@ def register(app: typer.Typer) -> None:
             indices = shard_indices(indices, shard_kn)
             if not indices:
                 raise AgoInputError("--shard", f"shard {shard} of these keyframes is empty (fewer than N)")
-        seg, emb = vlm_backends(space, detector, sam, clip, device, config, clip_width)
+        seg, emb = vlm_backends(space, detector, sam, clip, device.value, config, clip_width)
         command = "ago " + " ".join(shlex.quote(a) for a in sys.argv[1:])
         r = write_vlm_files(ds, indices, out, space, seg, emb, command=command)
         rate = f" ({r['images_per_s']} images/s)" if r.get("images_per_s") else ""

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import os
 import warnings
+from enum import Enum
 from pathlib import Path
 
 from ago_runtime.errors import AgoInputError, MissingExtra
@@ -38,10 +39,17 @@ def quiet_transformers():
     return transformers
 
 
+class TorchDevice(str, Enum):
+    """`--device` of the verbs that run the 2D models (vlm-files, pseudo-labels --segmenter grounded-sam ...)."""
+    CPU = "cpu"
+    CUDA = "cuda"
+
+
 def resolve_device(device: str):
     """`--device cpu|cuda` -> torch.device; cuda without a GPU is one error line."""
     import torch
 
+    device = getattr(device, "value", device)
     if device not in ("cpu", "cuda"):
         raise AgoInputError("--device", f"expected cpu or cuda, got {device!r}")
     if device == "cuda" and not torch.cuda.is_available():
