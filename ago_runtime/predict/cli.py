@@ -233,14 +233,13 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
         return []
     predictor = Predictor(b, int8=int8, warm_up=warm_up, device=device, precision=precision,
                           workers=int(workers) if workers is not None else auto_workers(count))
-    # stdout: information, once every input is checked (the graphs' signatures are checked as the predictor opens
-    # them); stderr keeps only warnings and the one error line
-    typer.echo(card_line(b))
     write = infer_writer(out, key, picture, save_volumes, html)
     written: list[Path] = []
     with contextlib.closing(predictor.predict_many(frames, chosen, identifier, volumes=save_volumes,
                                                    progress="predicting")) as predictions:
         for frame, pred in predictions:
+            if not written:   # stdout: information, once every input is checked (the first frame read and
+                typer.echo(card_line(b))   # predicted); a failure before leaves stdout empty, stderr one line
             written += write(frame.name, frame.images, pred)
     return written
 
