@@ -13,7 +13,7 @@ calibrations (paths leaving the data root, deep nesting, empty lists), options (
 smallest model grid, options that do not apply to the input, free text over its bound or with control characters).
 Every input handed to a verb is snapshot before and after (the whole work folder); stdout may hold `note:` lines only.
 
-    python benchmarks/hostile_sweep.py [--work DIR] [--only GROUP] [--out benchmarks/results/hostile_sweep.md]
+    python -m benchmarks.hostile_sweep [--work DIR] [--only GROUP] [--out benchmarks/results/hostile_sweep.md]
 
 Each case runs in this process through `ago_runtime.cli.run` (the console script's function) with a
 60 s alarm (a hang is a failure). Writes a markdown table (case, exit code, the error line, verdict) and
@@ -981,7 +981,7 @@ def write_report(rows, out: Path, seconds: float, args) -> None:
         options += f" --work {args.work}"
     load = os.getloadavg()
     lines = ["# Hostile-input sweep (issues 36, 54)", "",
-             f"Command: `python benchmarks/hostile_sweep.py{options}`"
+             f"Command: `python -m benchmarks.hostile_sweep{options}`"
              f" at commit `{git('rev-parse', 'HEAD')}`{' (with uncommitted changes)' if dirty else ''}, "
              f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, {seconds:.0f} s on a shared 2-core machine "
              f"(load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} at the end).", "",
