@@ -6,7 +6,7 @@
 # time split -> synthetic town -> pseudo-labels -> training from both at once -> length chosen on the val
 # block -> export to OUT/bundle. Each stage prints its time and reuses what an interrupted run left
 # (ago_train/train_real.py; docs/training.md, "Training on your own data"). Needs the training extra.
-# Score the held-out test keyframes: python benchmarks/train_real.py --out-dir OUT
+# Score the held-out test keyframes: python -m benchmarks.train_real --run OUT
 set -euo pipefail
 REPO="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 export PYTHONPATH="$REPO${PYTHONPATH:+:$PYTHONPATH}"   # the checkout this script is in
