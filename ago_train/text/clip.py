@@ -27,7 +27,7 @@ import torch
 from ago_runtime.errors import AgoInputError
 from ago_runtime.vocab.clip_tokenizer import ClipTokenizer
 from ago_runtime.vocab.model_folder import ARCHITECTURES, clip_encoder_id, folder_hash, read_model_config
-from ago_train.vlm.loading import quiet_transformers   # the one offline, quiet import of transformers
+from ago_train.vlm.loading import load_model, quiet_transformers   # one offline, quiet loader of HF folders
 
 TOKENIZER_NAME = "tokenizer.json"
 DEFAULT_MAX_LENGTH = 77        # CLIP's context length (its text position embeddings)
@@ -45,25 +45,18 @@ def load_clip_text_model(folder: str | Path, option: str = "--text-encoder"):
     """The folder's CLIPTextModelWithProjection (eager attention, frozen, CPU) and its config.json dict."""
     folder = Path(folder)
     cfg = read_model_config(folder, option, "clip")
-    expected = f"expected a save_pretrained folder of {ARCHITECTURES['clip']}"
     transformers = quiet_transformers()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        try:
-            full = transformers.CLIPConfig.from_pretrained(str(folder), local_files_only=True)
-            text_cfg = full.text_config
-            text_cfg.projection_dim = full.projection_dim
-            model, info = transformers.CLIPTextModelWithProjection.from_pretrained(
-                str(folder), config=text_cfg, local_files_only=True, use_safetensors=True,
-                attn_implementation="eager", output_loading_info=True)
-        except (OSError, ValueError, RuntimeError, KeyError, TypeError) as e:
-            first = str(e).strip().splitlines()[0] if str(e).strip() else e.__class__.__name__
-            raise AgoInputError(option, f"{folder}: cannot be loaded ({first}); {expected}") from None
-    bad = list(info.get("missing_keys") or []) + [str(m) for m in (info.get("mismatched_keys") or [])]
-    if bad:
-        raise AgoInputError(option, f"{folder}: its weights do not fill the text tower of its config.json "
-                            f"({len(bad)} tensors missing or of another shape, e.g. {bad[0]}); {expected}")
-    model.eval()
+    try:
+        full = transformers.CLIPConfig.from_pretrained(str(folder), local_files_only=True)
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        first = str(e).strip().splitlines()[0] if str(e).strip() else e.__class__.__name__
+        raise AgoInputError(option, f"{folder}: cannot be loaded ({first}); expected a save_pretrained folder of "
+                            f"{ARCHITECTURES['clip']}") from None
+    text_cfg = full.text_config
+    text_cfg.projection_dim = full.projection_dim
+    # the text tower alone, from the whole CLIP's weights (the vision tower's tensors are left unread)
+    model = load_model(transformers.CLIPTextModelWithProjection, folder, option, "clip", "cpu", config=text_cfg,
+                       attn_implementation="eager")   # in eval mode
     for p in model.parameters():
         p.requires_grad_(False)
     return model, cfg

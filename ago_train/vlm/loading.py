@@ -62,24 +62,20 @@ def resolve_device(device: str):
     return torch.device(device)
 
 
-def check_folder(folder: str | Path, option: str, model_type: str) -> dict:
-    """config.json of the folder after the cheap checks (exists, architecture, safetensors): see read_model_config."""
-    return read_model_config(folder, option, model_type)
-
-
-def load_model(model_class, folder: str | Path, option: str, model_type: str, device):
-    """`model_class.from_pretrained(folder)` (local files only, safetensors only) in eval mode on `device`.
+def load_model(model_class, folder: str | Path, option: str, model_type: str, device, **from_pretrained):
+    """`model_class.from_pretrained(folder, **from_pretrained)` (local files only, safetensors only) in eval mode on
+    `device` (e.g. `config=` a sub-config: the CLIP text tower of ago_train/text/clip.py).
 
     A folder whose weights do not fill the model its config describes (missing or wrongly shaped tensors) is
     refused: a half-random model would run and give noise."""
     expected = f"expected a save_pretrained folder of {ARCHITECTURES[model_type]}"
-    check_folder(folder, option, model_type)
+    read_model_config(folder, option, model_type)
     quiet_transformers()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         try:
             model, info = model_class.from_pretrained(str(folder), local_files_only=True, use_safetensors=True,
-                                                      output_loading_info=True)
+                                                      output_loading_info=True, **from_pretrained)
         except (OSError, ValueError, RuntimeError, KeyError, TypeError) as e:
             first = str(e).strip().splitlines()[0] if str(e).strip() else e.__class__.__name__
             raise AgoInputError(option, f"{folder}: cannot be loaded ({first}); {expected}") from None
