@@ -309,7 +309,7 @@ def test_a_waymo_prompt_bank_carries_its_table_to_the_prediction_files(tmp_path)
     """A bank of an `@table: occ3d_waymo` prompt file keeps its table through save/load; the prediction's
     Occ3D-style output is in that table's dense order (free = 15 where the files store 23) with its names."""
     from ago_runtime.classes import OCC3D_WAYMO
-    from ago_runtime.predict.predictor import occ3d_lookup
+    from ago_runtime.predict.predictor import table_id_lookup
     from ago_runtime.vocab.bank import PromptBank, build_bank
     from ago_runtime.vocab.prompts import parse_prompt_file
 
@@ -327,7 +327,7 @@ def test_a_waymo_prompt_bank_carries_its_table_to_the_prediction_files(tmp_path)
     assert bank.class_table == OCC3D_WAYMO
     back = PromptBank.load(bank.save(tmp_path / "w.npz"))
     assert back.class_table == OCC3D_WAYMO and json.loads(str(np.load(tmp_path / "w.npz")["meta"][0]))["class_table"] == "occ3d_waymo"
-    lut = occ3d_lookup(back)
+    lut = table_id_lookup(back)
     assert lut[-1] == OCC3D_WAYMO.free_index == 15
     k = back.class_names.index("sidewalk")
     assert OCC3D_WAYMO.label_names[lut[k]] == "walkable"

@@ -112,7 +112,7 @@ class _Enc:   # a stand-in text encoder: what the bank stores does not depend on
 
 
 def test_a_bank_carries_the_table_itself_and_the_cache_follows_the_table(tmp_path):
-    from ago_runtime.predict.predictor import occ3d_lookup
+    from ago_runtime.predict.predictor import table_id_lookup
     from ago_runtime.vocab.bank import PromptBank, build_bank, load_prompt_bank
     from ago_runtime.vocab.prompts import parse_prompt_file
 
@@ -122,7 +122,7 @@ def test_a_bank_carries_the_table_itself_and_the_cache_follows_the_table(tmp_pat
     assert back.class_table == load_class_table(tmp_path / "p" / "my_table.json")
     assert json.loads(str(np.load(tmp_path / "b.npz")["meta"][0]))["class_table"]["classes"][0] == \
         {"name": "vehicle", "id": 10, "color": list(back.class_table.colors[0])}
-    lut = occ3d_lookup(back)   # bank class -> the table's dense order (free last)
+    lut = table_id_lookup(back)   # bank class -> the table's dense order (free last)
     assert lut.tolist() == [0, 1, 2, 3, 4, 5, 6]
     # a cached bank of the same prompt text is not reused once the table file says other ids
     cache = tmp_path / "cache"

@@ -210,8 +210,8 @@ def test_predictor_outputs_and_identifier(bundle_dir, frame_dir):
     sel = best.branch == 0
     assert np.array_equal(best.semantics[sel], main.semantics[sel])
     # cw classes are each one Occ3D class -> an Occ3D-id volume, free = 17
-    assert best.occ3d is not None and set(np.unique(best.occ3d)) <= set(range(18))
-    assert np.array_equal(best.occ3d == FREE, best.semantics == K)
+    assert best.table_ids is not None and set(np.unique(best.table_ids)) <= set(range(18))
+    assert np.array_equal(best.table_ids == FREE, best.semantics == K)
 
 
 def test_streamed_slabs_match_whole_grid_heads(bundle_dir, frame_dir, monkeypatch):
@@ -367,7 +367,7 @@ def test_bank_swap_to_unseen_classes(bundle_dir, frame_dir, tmp_path):
     assert pred.class_names == ["fire hydrant", "mailbox", "road"] and pred.free_index == 3
     assert set(np.unique(pred.semantics)) <= {0, 1, 2, 3}
     assert len(set(np.unique(pred.semantics)) - {3}) >= 1                # some voxel gets an unseen class
-    assert pred.occ3d is None                                           # not all classes are Occ3D classes
+    assert pred.table_ids is None                                           # not all classes are Occ3D classes
     # the bank is cached by hash: building it again reads the cache file
     assert load_prompt_bank(prompt, cache_dir=tmp_path / "banks").embeddings.tobytes() == bank.embeddings.tobytes()
     arrays = pred.output_arrays()

@@ -45,7 +45,7 @@ from ago_runtime.predict.heads import FoldedHeads
 from ago_runtime.providers import Device, Precision, check_device, parse_device, parse_precision
 from ago_runtime.vocab.bank import check_class_count
 
-__all__ = ["Predictor", "Prediction", "FrameFeatures", "prepare_inputs", "occ3d_lookup", "UNEXPLAINED_THRESHOLD"]
+__all__ = ["Predictor", "Prediction", "FrameFeatures", "prepare_inputs", "table_id_lookup", "UNEXPLAINED_THRESHOLD"]
 
 
 @dataclass
@@ -60,8 +60,8 @@ class Prediction:
     branch: np.ndarray             # (X, Y, Z) uint8: 0 = original (main) branch, 1 = adapted branch
     identifier: Identifier
     grid: Grid
-    occ3d: np.ndarray | None = None   # (X, Y, Z) uint8 in `class_table`'s dense order (Occ3D-nuScenes: its ids, free = 17)
-                                      # when every class is one class of the table
+    table_ids: np.ndarray | None = None   # (X, Y, Z) uint8 in `class_table`'s dense order (Occ3D-nuScenes: its ids,
+                                          # free = 17) when every class is one class of the table
     class_table: ClassTable = OCC3D_NUSCENES   # the bank's class table (ago_runtime.classes)
     timings: dict = field(default_factory=dict)   # seconds: preprocess, encoder, heads
     unexplained: np.ndarray | None = None   # (X, Y, Z) float32 unexplained-obstacle score (volumes=True)
@@ -81,9 +81,9 @@ class Prediction:
 
     def output_arrays(self, volumes: bool = False) -> dict[str, np.ndarray]:
         """The arrays of an Occ3D-format prediction file (see docs/runtime.md)."""
-        if self.occ3d is not None:
+        if self.table_ids is not None:
             table = self.class_table
-            out = {"semantics": self.occ3d, "class_names": np.array(table.label_names, dtype=str),
+            out = {"semantics": self.table_ids, "class_names": np.array(table.label_names, dtype=str),
                    "free_index": np.array(table.free_index, np.int64), "bank_semantics": self.semantics,
                    "bank_class_names": np.array(self.label_names, dtype=str)}
             if table != OCC3D_NUSCENES:   # (nuScenes files stay as they were)
@@ -108,7 +108,7 @@ class Prediction:
 UNEXPLAINED_THRESHOLD = 0.5
 
 
-def occ3d_lookup(bank) -> np.ndarray | None:
+def table_id_lookup(bank) -> np.ndarray | None:
     """(K+1,) uint8 bank index -> the class's index in the bank's class table, dense order (`ClassTable.label_names`:
     the table's classes, then free; for Occ3D-nuScenes the Occ3D ids, free = 17; for Occ3D-Waymo its ids 0..14,
     free = 15 where the files store 23) when every bank class is exactly one class of the table."""
@@ -301,12 +301,12 @@ class Predictor:
         shape = self.grid.shape
         K = bank.num_classes
         sem = out["label"].reshape(shape)
-        lut = occ3d_lookup(bank)
+        lut = table_id_lookup(bank)
         return Prediction(
             semantics=sem, class_names=list(bank.class_names), free_index=K,
             entropy=out["entropy"].reshape(shape), confidence=out["confidence"].reshape(shape),
             branch=out["branch"].reshape(shape), identifier=identifier, grid=self.grid,
-            occ3d=lut[sem] if lut is not None else None, class_table=bank.class_table,
+            table_ids=lut[sem] if lut is not None else None, class_table=bank.class_table,
             unexplained=out["unexplained"].reshape(shape) if "unexplained" in out else None,
             occupancy=out["occupancy"].reshape(shape) if "occupancy" in out else None)
 
