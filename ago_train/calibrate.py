@@ -11,7 +11,7 @@ result is two numbers the runtime multiplies in (`bundle heads`, docs/runtime.md
 
 Before the scales, `fit_scales` also takes the mean and covariance of F~_3D over the visible occupied
 voxels of the same training frames (the voxels the alignment loss sees; no labels at all). With them
-the adapted branch's phrase scores are standardised (model/scoring.py, `phrase_standardisation`; a
+the adapted branch's phrase scores are standardised (model/text_logits.py, `phrase_standardisation`; a
 departure from the paper, docs/training.md), and its scale is fitted on the standardised logits.
 
 `fit_scales(trainer, max_frames=16, voxels_per_frame=4000)` -> {"scale_main", "scale_adapted",
@@ -26,7 +26,7 @@ import math
 import numpy as np
 import torch
 
-from .model.scoring import adapted_logits, class_logits
+from .model.text_logits import adapted_logits, class_logits
 
 SCALE_GRID = np.exp(np.linspace(math.log(1e-2), math.log(1e3), 81))
 

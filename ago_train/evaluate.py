@@ -120,7 +120,7 @@ def predict_labels(model, images: torch.Tensor, ego2img: torch.Tensor, text: tor
     """(B, N) int64 labels on the model grid (or on `grid_shape`, the read-out grid): 0..K-1 class, K free.
     voxel_index (B, M) int64 flat indices into that grid: (B, M) labels of those voxels only (the same
     values as the full grid's at those indices: every step after the TPV planes is per voxel)."""
-    from .model.scoring import adapted_logits, class_logits, open_world_identify
+    from .model.text_logits import adapted_logits, class_logits, open_world_identify
 
     # F~_3D only when the identifier reads it
     identifier = Identifier(identifier)

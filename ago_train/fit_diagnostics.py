@@ -25,6 +25,6 @@ def feature_spread(feat: torch.Tensor) -> float:
 
 @torch.no_grad()
 def free_share(logits: torch.Tensor, num_classes: int) -> float:
-    """logits (..., K + 1 [+ noise]) in ago_train.model.scoring's column order -> share argmax == free."""
+    """logits (..., K + 1 [+ noise]) in ago_train.model.text_logits's column order -> share argmax == free."""
     cols = logits.detach()[..., : num_classes + 1]
     return float((cols.argmax(-1) == num_classes).float().mean())

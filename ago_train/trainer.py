@@ -103,7 +103,7 @@ class TrainStep(nn.Module):
                                 adapter=self.model.adapt, class_weight=class_weight)
         if diagnose:
             from .fit_diagnostics import feature_spread, free_share
-            from .model.scoring import class_logits
+            from .model.text_logits import class_logits
 
             with torch.no_grad():
                 logits = class_logits(outputs["feat"], text, phrase_class, self.num_classes,

@@ -45,7 +45,7 @@ def main() -> None:
     from ago_runtime.atomic import write_json, write_text
     from ago_train.experiments.driver import ExperimentRunner, views_for
     from ago_train.experiments.plan import ExperimentProfile, ow_run
-    from ago_train.experiments.scoring import evaluate_views
+    from ago_train.experiments.view_eval import evaluate_views
     from ago_train.trainer import train
 
     runner = ExperimentRunner(ExperimentProfile.preset("cpu"), args.exp, quiet=True)

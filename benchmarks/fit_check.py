@@ -73,7 +73,7 @@ def grid_diagnostics(ckpt: Path, data: Path, device: str) -> dict:
     from ago_train.dataset import FrameList, OccSampleDataset
     from ago_train.evaluate import bank_for, checkpoint_label_space, load_model
     from ago_train.fit_diagnostics import feature_spread, free_share
-    from ago_train.model.scoring import class_logits
+    from ago_train.model.text_logits import class_logits
     from ago_train.sources import open_frames
     from ago_runtime.geometry.preprocess import Preprocess
 

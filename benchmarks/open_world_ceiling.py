@@ -44,8 +44,8 @@ def score_run(ckpt_path: Path, data: str, prompts: str, max_frames: int | None) 
     from ago_train.checkpoint import load_checkpoint
     from ago_train.dataset import FrameList, OccSampleDataset, collate
     from ago_train.evaluate import (_to_gt_resolution, checkpoint_adapted_stats, checkpoint_scales, load_model)
-    from ago_train.experiments.scoring import _bank
-    from ago_train.model.scoring import adapted_logits, class_logits, open_world_identify
+    from ago_train.experiments.view_eval import _bank
+    from ago_train.model.text_logits import adapted_logits, class_logits, open_world_identify
     from ago_train.sources import open_frames
     from ago_runtime.progress import track
 
@@ -118,7 +118,7 @@ def training_occupancy(ckpt_path: Path, data: str, pseudo: str, frames: int) -> 
     from ago_train.checkpoint import load_checkpoint
     from ago_train.dataset import FrameList, OccSampleDataset, PseudoLabelSet, collate
     from ago_train.evaluate import bank_for, checkpoint_label_space, load_model
-    from ago_train.model.scoring import class_logits
+    from ago_train.model.text_logits import class_logits
     from ago_train.sources import open_frames
 
     ckpt = load_checkpoint(ckpt_path, map_location="cpu")

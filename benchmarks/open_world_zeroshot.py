@@ -8,7 +8,7 @@
 Every RUN_DIR is an `ago train` folder of the open-world pretraining (prompts/ow_pretrain.txt, 5
 classes). Each checkpoint is scored on the val split with the 15-class prompts/ow.txt (known = the
 classes the 5 pretraining classes cover, unknown = barrier, traffic cone, terrain, manmade,
-vegetation), from one forward pass per frame (ago_train.experiments.scoring.evaluate_views), under
+vegetation), from one forward pass per frame (ago_train.experiments.view_eval.evaluate_views), under
 the identifiers "none" (F_3D only), "max-conf", "min-entropy" (AGO's) and "adapted" (F~_3D only).
 Runs named `METHOD:SEED` are averaged per method (each seed shown). Per run also: how class-specific
 the adapted embedding is — the class margin (per GT class, cos to its own class text minus the mean
@@ -75,7 +75,7 @@ def score(ckpt: Path, data: str, prompts: Path, cache: Path, max_frames) -> dict
         cached = json.loads(cache.read_text())
         if cached.get("checkpoint_stamp") in (stamp, None):
             return cached
-    from ago_train.experiments.scoring import View, evaluate_views
+    from ago_train.experiments.view_eval import View, evaluate_views
 
     views = [View(i, str(prompts), i) for i in IDS]
     r = evaluate_views(ckpt, data, views, stats_view="min-entropy", max_frames=max_frames, quiet=True)

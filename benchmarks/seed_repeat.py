@@ -35,7 +35,7 @@ def main() -> None:
     from ago_runtime.vocab.prompts import resolve_prompt_file
     from ago_train.experiments.driver import EXPERIMENTS, ExperimentRunner, runs_for
     from ago_train.experiments.plan import ExperimentProfile
-    from ago_train.experiments.scoring import View, evaluate_views
+    from ago_train.experiments.view_eval import View, evaluate_views
     from ago_train.trainer import train
 
     runner = ExperimentRunner(ExperimentProfile.preset("cpu"), args.exp, quiet=True)

@@ -13,7 +13,7 @@ from ago_runtime.predict.bundle import _load_heads
 from ago_runtime.predict.decision import phrase_standardisation as numpy_standardisation
 from ago_runtime.predict.decision import softmax_stats
 from ago_runtime.predict.heads import FoldedHeads, HeadWeights
-from ago_train.model.scoring import adapted_logits, phrase_standardisation
+from ago_train.model.text_logits import adapted_logits, phrase_standardisation
 
 
 def _heads(rng, C=16, Dh=10, Da=12):

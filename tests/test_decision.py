@@ -43,11 +43,11 @@ def _spec_decision(z_main, z_ad, identifier, K, scales):
 
 @pytest.mark.parametrize("identifier", list(Identifier))
 def test_torch_identifier_equals_the_numpy_specification(identifier):
-    """ago_train.model.scoring (class logits with free bias, the adapted standardisation, open_world_identify)
+    """ago_train.model.text_logits (class logits with free bias, the adapted standardisation, open_world_identify)
     gives the labels, branches and entropies of decision.decide, for every identifier ("none" included:
     entropy over the K classes, scaled, in both)."""
     torch = pytest.importorskip("torch")
-    from ago_train.model.scoring import adapted_logits, class_logits, open_world_identify
+    from ago_train.model.text_logits import adapted_logits, class_logits, open_world_identify
 
     rng = np.random.default_rng(3)
     w = _heads(rng)

@@ -371,7 +371,7 @@ def test_free_bias_is_exported_and_applied(tmp_path, bias):
     the free score, and its labels equal torch's (class_logits with the bias) on a random frame."""
     from ago_train.checkpoint import load_checkpoint, save_checkpoint
     from ago_train.model import ModelConfig
-    from ago_train.model.scoring import class_logits
+    from ago_train.model.text_logits import class_logits
 
     cfg = ModelConfig.preset("tiny")
     cfg.pretrained, cfg.free_bias = False, True

@@ -152,7 +152,7 @@ def test_class_weight_changes_only_the_cross_entropy():
         moved = compute_losses(out, batch, bank, LossConfig(variant="grounding", use_noise=False),
                                class_weight=heavy_free)
         # by hand: free voxels' CE counted 5 times in the weighted mean
-        from ago_train.model.scoring import class_logits
+        from ago_train.model.text_logits import class_logits
 
         logits = class_logits(out["feat"], bank.text, bank.phrase_class, K, out["free_embedding"], None)
         tgt = semantics_to_targets(batch["semantics"].reshape(-1), K)
@@ -379,7 +379,7 @@ def test_occupancy_weight_of_hit_but_unlabelled_voxels():
     assert float(plain["occ"]) == pytest.approx(float(plain1["occ"]))     # no such voxel: no change
     # by hand: the weighted mean with the unlabelled voxels' weight x4
     from ago_train.losses.occupancy import occupancy_binary, occupancy_logits
-    from ago_train.model.scoring import class_logits
+    from ago_train.model.text_logits import class_logits
     K = bank.num_classes
     logits = class_logits(out["feat"], bank.text, bank.phrase_class, K, out["free_embedding"], bank.noise)[0]
     s = sem.reshape(-1)

@@ -11,7 +11,7 @@ from torch import nn
 from ago_runtime.geometry.camera import Rig
 from ago_runtime.errors import AgoInputError
 from ago_train.model.config import ModelConfig
-from ago_train.model.scoring import NO_PHRASE_SCORE, class_logits, open_world_identify
+from ago_train.model.text_logits import NO_PHRASE_SCORE, class_logits, open_world_identify
 from ago_train.model.tpv import ImageCrossAttention, project_to_cameras
 
 # static shapes are read as Python ints on purpose while tracing (fixed-size ONNX graph)

@@ -2,7 +2,7 @@
 
 Used by the runtime's slab loop (ago_runtime.predict.classifier.VoxelClassifier, float32), by the export
 parity reference (ago_export/parity.py: the same functions in float64 on the torch model's embeddings) and
-compared against the torch training path (ago_train.model.scoring; tests/test_decision.py).
+compared against the torch training path (ago_train.model.text_logits; tests/test_decision.py).
 
 Inputs: a prompt bank (P phrase embeddings t_p of width C, phrase p belonging to class k(p) of K) and the
 bundle's linear heads (heads.npz, `HeadWeights`): per voxel the main embedding F = h W_dec^T + b_dec

@@ -37,7 +37,7 @@ from ago_runtime.readers import read_json
 from . import records
 from .plan import (ADAPTED_SCALES, FEWSHOT_VARIANTS, PARADIGMS, PROMPTS, WAYMO_PRETRAIN_EVAL, ExperimentProfile,
                    RunSpec, cw_run, fewshot_run, ow_run, profile_differences, shipped_prompts, waymo_run)
-from .scoring import View
+from .view_eval import View
 
 EXPERIMENTS = ("tab1", "tab2", "tab3", "tab4", "tab5", "supp", "figures", "tabG", "tabH")
 
@@ -369,7 +369,7 @@ class ExperimentRunner:
         from ago_runtime.vocab.prompts import resolve_prompt_file
 
         from ..open_world import OpenWorldConfig, known_prompt_file
-        from .scoring import evaluate_views
+        from .view_eval import evaluate_views
 
         path = self.run_dir(spec.name) / "views.json"
         ow_prompts = str(self.out / "ow_known.txt")

@@ -32,7 +32,7 @@ from dataclasses import asdict, dataclass
 import torch
 
 from ago_runtime.classes import OCCUPIED_UNLABELLED
-from ago_train.model.scoring import class_logits
+from ago_train.model.text_logits import class_logits
 
 from .align import ALIGN_LOSSES, align_loss
 from .grounding import grounding_loss, semantics_to_targets

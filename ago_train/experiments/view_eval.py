@@ -7,7 +7,7 @@ and scoring every `View` from its output costs one eval instead of five.
 
 A `View` is (prompt file, identifier, closed_set):
 - identifier (ago_runtime.predict.contract.Identifier): NONE (F_3D only), MAX_CONF / MIN_ENTROPY (the
-  open-world identifier between F_3D and the adapted F~_3D, ago_train.model.scoring.open_world_identify)
+  open-world identifier between F_3D and the adapted F~_3D, ago_train.model.text_logits.open_world_identify)
   or ADAPTED (F~_3D only);
 - closed_set=True drops the phrases of the label space's unknown classes, so they can never be
   predicted: a closed-world classifier over the known classes (the SelfOcc-like baseline);
@@ -40,7 +40,7 @@ from ..checkpoint import checkpoint_camera_names, load_checkpoint
 from ..dataset import FrameList, OccSampleDataset, collate
 from ..evaluate import (_pct, _to_gt_resolution, bank_for, checkpoint_adapted_stats, checkpoint_scales, load_model,
                         scored_subsets, scored_voxels)
-from ..model.scoring import adapted_logits, class_logits, entropy, open_world_identify
+from ..model.text_logits import adapted_logits, class_logits, entropy, open_world_identify
 from ago_runtime.predict.contract import Identifier
 
 @dataclass(frozen=True)

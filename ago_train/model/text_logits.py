@@ -1,4 +1,5 @@
-"""Text-space scoring of voxel embeddings (torch; training and evaluation, not exported).
+"""Class logits of voxel embeddings against the text embeddings, and the open-world identifier (torch; training
+and evaluation, not exported).
 
 Column order of every logits tensor here:
     [ K label classes | free (index K) | Nn noise words (each its own column) ]
