@@ -168,7 +168,7 @@ def evaluate(ckpt_path: str | Path, data: str | Path, split: str = "val", prompt
     runtime's bundle does); "gt" reads the TPV planes directly at the GT grid's voxel centres (same
     weights, finer surfaces, 8x the voxels through the decoder at 100x100x8 -> 200x200x16;
     benchmarks/results/fine_query.md)."""
-    from .sources import open_frames
+    from .sources import open_split
 
     if readout not in READOUTS:
         raise AgoInputError("--readout", f"must be one of {', '.join(READOUTS)}, got {readout!r}")
@@ -185,7 +185,7 @@ def evaluate(ckpt_path: str | Path, data: str | Path, split: str = "val", prompt
 
     if max_frames is not None and (not isinstance(max_frames, int) or max_frames < 1):
         raise AgoInputError("--max-frames", f"must be >= 1 (or left out for every frame), got {max_frames!r}")
-    ds, indices = open_frames(data, gts, split)
+    ds, indices = open_split(data, gts, split)
     check_label_table(ds, label_space)   # GT ids and the label space's table agree (nuScenes / Occ3D-Waymo)
     if max_frames is not None:
         indices = indices[:max_frames]

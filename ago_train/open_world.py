@@ -124,7 +124,7 @@ def _mean_rows(rows: list[dict]) -> dict:
 
 def run_open_world(ow: OpenWorldConfig, stage: str = "all", quiet: bool = False) -> dict:
     from .evaluate import evaluate
-    from .sources import open_frames
+    from .sources import open_split
     from .trainer import train
 
     if stage not in STAGES:
@@ -157,7 +157,7 @@ def run_open_world(ow: OpenWorldConfig, stage: str = "all", quiet: bool = False)
             raise AgoInputError(pre_ckpt, "no pretrained checkpoint; run --stage pretrain first")
         space = parse_prompt_file(ow.eval_prompts)
         pseudo = PseudoLabelSet.open(ow.pseudo_full)
-        ds, indices = open_frames(ow.base.data, ow.base.gts, ow.base.train_split)
+        ds, indices = open_split(ow.base.data, ow.base.gts, ow.base.train_split)
         if ow.base.max_frames is not None:
             indices = indices[: ow.base.max_frames]
         frames = [(ds.scene_of(i), ds.sample_tokens[i]) for i in indices]

@@ -18,7 +18,7 @@ What must agree, checked before any work, each a one-line error naming the sourc
 `MixedFrames` is the frame sequence the trainer's dataset reads (a source's frames repeated per its
 weight), and `PseudoSources` answers `labels` / `embeds` for a (scene, token) from that frame's own
 pseudo-label folder, so every place that reads a training frame's labels (losses, the free prior, class
-weights, calibration) reads the right folder. `open_frames(data, gts, split)` opens one dataset and its split
+weights, calibration) reads the right folder. `open_split(data, gts, split)` opens one dataset and its split
 (training and `ago eval` share it).
 """
 
@@ -138,7 +138,7 @@ class PseudoSources:
         return self.of(scene, token).embeds(scene, token)
 
 
-def open_frames(data: str | Path, gts: str | None, split: str, load_images: bool = True):
+def open_split(data: str | Path, gts: str | None, split: str, load_images: bool = True):
     """The dataset at `data` (`ago_runtime.formats.datasets.open_dataset`: the nuScenes or the Occ3D-Waymo
     layout; GT from `gts`, else where the layout keeps it) and its indices in `split`."""
     from ago_runtime.formats.datasets import open_dataset
@@ -167,7 +167,7 @@ def open_sources(cfg, grid, label_space, load_images: bool):
     for n, src in enumerate(srcs):
         pseudo = PseudoLabelSet.open(src.pseudo)
         pseudo.check(grid, label_space.class_names)
-        ds, indices = open_frames(src.data, src.gts, src.split, load_images=load_images)
+        ds, indices = open_split(src.data, src.gts, src.split, load_images=load_images)
         check_label_table(ds, label_space)   # the pseudo-labels' classes index the data's class table
         if cfg.frame_tokens is not None:
             wanted = set(cfg.frame_tokens)

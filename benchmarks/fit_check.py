@@ -74,7 +74,7 @@ def grid_diagnostics(ckpt: Path, data: Path, device: str) -> dict:
     from ago_train.evaluate import bank_for, checkpoint_label_space, load_model
     from ago_train.fit_diagnostics import feature_spread, free_share
     from ago_train.model.text_logits import class_logits
-    from ago_train.sources import open_frames
+    from ago_train.sources import open_split
     from ago_runtime.geometry.preprocess import Preprocess
 
     dev = torch.device(device)
@@ -82,7 +82,7 @@ def grid_diagnostics(ckpt: Path, data: Path, device: str) -> dict:
     mcfg, model = load_model(state, dev, ckpt)
     space = checkpoint_label_space(state)
     text, phrase_class = (t.to(dev) for t in bank_for(state, space))
-    ds, indices = open_frames(data, None, "train")
+    ds, indices = open_split(data, None, "train")
     items = OccSampleDataset(FrameList(ds, indices), None, space.num_classes, mcfg.grid_obj(),
                              Preprocess(mcfg.image_width, mcfg.image_height))
     spread, free = [], []

@@ -46,7 +46,7 @@ def score_run(ckpt_path: Path, data: str, prompts: str, max_frames: int | None) 
     from ago_train.evaluate import (_to_gt_resolution, checkpoint_adapted_stats, checkpoint_scales, load_model)
     from ago_train.experiments.view_eval import _bank
     from ago_train.model.text_logits import adapted_logits, class_logits, open_world_identify
-    from ago_train.sources import open_frames
+    from ago_train.sources import open_split
     from ago_runtime.progress import track
 
     ckpt = load_checkpoint(ckpt_path, map_location="cpu")
@@ -56,7 +56,7 @@ def score_run(ckpt_path: Path, data: str, prompts: str, max_frames: int | None) 
     bank = _bank(ckpt, prompts, False)
     space, K = bank.space, bank.space.num_classes
     unknown = np.array([c not in space.known for c in space.class_names])
-    ds, indices = open_frames(data, None, "val")
+    ds, indices = open_split(data, None, "val")
     indices = indices[:max_frames] if max_frames else indices
     grid = mcfg.grid_obj()
     pre = Preprocess(mcfg.image_width, mcfg.image_height)
@@ -119,14 +119,14 @@ def training_occupancy(ckpt_path: Path, data: str, pseudo: str, frames: int) -> 
     from ago_train.dataset import FrameList, OccSampleDataset, PseudoLabelSet, collate
     from ago_train.evaluate import bank_for, checkpoint_label_space, load_model
     from ago_train.model.text_logits import class_logits
-    from ago_train.sources import open_frames
+    from ago_train.sources import open_split
 
     ckpt = load_checkpoint(ckpt_path, map_location="cpu")
     mcfg, model = load_model(ckpt, torch.device("cpu"), ckpt_path)
     space = checkpoint_label_space(ckpt)
     K = space.num_classes
     text, pc = bank_for(ckpt, space)
-    ds, idx = open_frames(data, None, "train")
+    ds, idx = open_split(data, None, "train")
     idx = idx[:: max(1, len(idx) // frames)][:frames]
     dataset = OccSampleDataset(FrameList(ds, idx), PseudoLabelSet(pseudo), K, mcfg.grid_obj(),
                                Preprocess(mcfg.image_width, mcfg.image_height))

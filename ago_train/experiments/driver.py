@@ -326,7 +326,7 @@ class ExperimentRunner:
 
         from ..dataset import PseudoLabelSet
         from ..open_world import select_kshot
-        from ..sources import open_frames
+        from ..sources import open_split
 
         folder = self.out / "kshot" if dataset == "nuscenes" else self.out / "kshot" / dataset
         path = folder / f"seed{seed}.json"
@@ -334,7 +334,7 @@ class ExperimentRunner:
             return read_json(path)["tokens"]
         space = parse_prompt_file(shipped_prompts(PROMPTS[dataset]["ow"]))
         pseudo = PseudoLabelSet.open(self.pseudo("ow", dataset))
-        ds, indices = open_frames(str(self.data_of(dataset)), None, self.profile.train_split)
+        ds, indices = open_split(str(self.data_of(dataset)), None, self.profile.train_split)
         frames = [(ds.scene_of(i), ds.sample_tokens[i]) for i in indices]
         tokens, counts = select_kshot(pseudo, frames, space.num_classes, self.profile.k, seed)
         write_json(path, {"seed": seed, "k": self.profile.k, "tokens": tokens,

@@ -133,7 +133,7 @@ def evaluate_views(ckpt_path: str | Path, data: str | Path, views: list[View], s
     A result has evaluate.py's keys: mIoU, mIoU_star, geometry_IoU, subsets (known/unknown mIoU), metric."""
     from ago_runtime.progress import track
 
-    from ..sources import open_frames
+    from ..sources import open_split
 
     dev = torch.device("cpu")
     ckpt = load_checkpoint(ckpt_path, map_location="cpu")
@@ -141,7 +141,7 @@ def evaluate_views(ckpt_path: str | Path, data: str | Path, views: list[View], s
     scales = checkpoint_scales(ckpt)
     adapted_stats = checkpoint_adapted_stats(ckpt)
     banks = {v.name: _bank(ckpt, v.prompts, v.closed_set) for v in views}
-    ds, indices = open_frames(data, gts, split)
+    ds, indices = open_split(data, gts, split)
     if max_frames is not None:
         indices = indices[:max_frames]
     grid = mcfg.grid_obj()
