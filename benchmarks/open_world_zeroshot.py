@@ -188,7 +188,7 @@ def main(argv=None) -> dict:
     write_text(args.out, text)
     ago = [(m, r) for m, items in by_method.items() for _, r in items if not m.startswith("grounding")]
     if ago and args.figure:
-        from ago_train.experiments.report import bar_chart
+        from ago_runtime.pictures.charts import bar_chart
         import cv2
 
         m = ago[0][0]

@@ -2,7 +2,7 @@
 
 paper_tables.md is the paper's tables transcribed from its LaTeX source and checked cell by cell. This
 script copies the numbers of the tables the experiments driver compares against into the JSON that
-report.py reads, so that no number is typed by hand. tests/test_paper_tables.py checks the result
+ago_train/experiments/paper.py reads, so that no number is typed by hand. tests/test_paper_tables.py checks the result
 against the markdown again, cell by cell.
 
     python scripts/paper_tables_from_md.py [--md ../shared/paper/paper_tables.md] [--out ago_train/experiments/paper_tables.json]

@@ -52,7 +52,8 @@ def test_plan_names_every_run_once_and_views_match_the_method():
 
 
 def test_seed_means_keep_each_value_and_the_spread_note_says_what_is_apart(tmp_path):
-    from ago_train.experiments.report import SeedMean, _fmt, _views, spread_note
+    from ago_train.experiments.collect import SeedMean, fmt, views
+    from ago_train.experiments.tables import spread_note
     from ago_runtime.atomic import write_json
 
     for name, known in (("ow/ago", 10.0), ("ow/ago-seed1", 12.0)):
@@ -60,11 +61,11 @@ def test_seed_means_keep_each_value_and_the_spread_note_says_what_is_apart(tmp_p
                    {"views": {"ow-none": {"mIoU": known, "subsets": {"known": known, "unknown": None}}},
                     "stats": {"classes": ["a"]}})
     missing = []
-    v = _views(tmp_path, "ow/ago", (0, 1, 2), missing)
+    v = views(tmp_path, "ow/ago", (0, 1, 2), missing)
     m = v["views"]["ow-none"]["mIoU"]
     assert isinstance(m, SeedMean) and m == 11.0 and m.values == [10.0, 12.0]
     assert missing == ["ow/ago-seed2"] and v["views"]["ow-none"]["subsets"]["unknown"] is None
-    assert _fmt(m) == "11.00 (10.00, 12.00)" and _fmt(None) == "–" and _fmt(3.0) == "3.00"
+    assert fmt(m) == "11.00 (10.00, 12.00)" and fmt(None) == "–" and fmt(3.0) == "3.00"
     rows = [{"n": "ref", "x": SeedMean([10.0, 11.0])}, {"n": "far", "x": SeedMean([13.0, 14.0])},
             {"n": "near", "x": SeedMean([10.5, 12.0])}]
     note = " ".join(spread_note(rows, "x", lambda r: r["n"], rows[0], "mIoU"))

@@ -20,7 +20,7 @@ from ago_runtime.classes import OCC3D_WAYMO  # noqa: E402
 from ago_runtime.errors import AgoInputError  # noqa: E402
 from ago_train.experiments.driver import EXPERIMENTS, ExperimentRunner, runs_for  # noqa: E402
 from ago_train.experiments.plan import ExperimentProfile, profile_differences, waymo_run  # noqa: E402
-from ago_train.experiments.report import read_paper_tables  # noqa: E402
+from ago_train.experiments.paper import read_paper_tables  # noqa: E402
 
 ENV = {**os.environ, "AGO_NO_PROGRESS": "1"}
 OW_WAYMO = ["pedestrian", "road", "sidewalk", "vehicle", "bicycle", "motorcycle", "bicyclist", "sign", "traffic light",

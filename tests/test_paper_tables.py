@@ -3,7 +3,7 @@
 With ../shared/paper/paper_tables.md present (the paper's tables transcribed from its LaTeX source):
 every value of every row of every JSON table equals its markdown cell, each table has the markdown's
 full column and row set, and the open-world k. / u. mIoU are the means the JSON says they are.
-Without it those tests skip. The JSON's provenance and report.py's paper blocks are checked always.
+Without it those tests skip. The JSON's provenance and paper.py's paper blocks are checked always.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from ago_train.experiments import report
+from ago_train.experiments import paper as paper_module
 
 REPO = Path(__file__).resolve().parents[1]
 PAPER_MD = REPO.parent / "shared" / "paper" / "paper_tables.md"
@@ -169,12 +169,12 @@ def test_provenance_is_the_papers_source():
 
 
 def test_report_prints_the_paper_tables_with_their_labels():
-    paper = report.read_paper_tables()
-    for ours, blocks in report.PAPER_BESIDE.items():
-        text = "\n".join(report.paper_markdown(paper, ours))
+    paper = paper_module.read_paper_tables()
+    for ours, blocks in paper_module.PAPER_BESIDE.items():
+        text = "\n".join(paper_module.paper_markdown(paper, ours))
         for key, _comment in blocks:
             assert f"Paper, {paper[key]['source']}" in text
         assert "unverified" not in text.lower()
-    tab2 = "\n".join(report.paper_markdown(paper, "tab2"))
+    tab2 = "\n".join(paper_module.paper_markdown(paper, "tab2"))
     assert "| Zero-shot Evaluation | AGO (ours) | 32.15 | 3.16 | 8.96 | 11.64 | 3.59 | 8.96 |" in tab2
-    assert report.paper_markdown(None, "tab1") == []
+    assert paper_module.paper_markdown(None, "tab1") == []

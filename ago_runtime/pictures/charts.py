@@ -1,8 +1,12 @@
-"""Small line charts drawn with opencv (no plotting library): learning curves and the like.
+"""Small charts drawn with opencv (no plotting library): learning curves, bars per class, matrices.
 
-`line_chart(title, series, x_label, y_label, ...)` -> (H, W, 3) uint8 BGR image; each series is
-(name, xs, ys, colour BGR). Axes get round tick values; the legend sits under the title. Save with
-`cv2.imwrite` (ago_runtime.atomic.atomic_path for an atomic write).
+- `line_chart(title, series, x_label, y_label, ...)` -> (H, W, 3) uint8 BGR image; each series is
+  (name, xs, ys, colour BGR). Axes get round tick values; the legend sits under the title. Save with
+  `cv2.imwrite` (ago_runtime.atomic.atomic_path for an atomic write).
+- `bar_chart(title, labels, series, marks, ylabel)`: grouped bars, one group per label, each series
+  (name, values, colour); `marks` draws those labels in red ((200, 0, 0): an RGB image, save with
+  `pictures.render.save_png`).
+- `heatmap(title, rows, cols, values)`: a matrix as viridis cells with its names, RGB.
 """
 
 from __future__ import annotations
@@ -92,4 +96,69 @@ def line_chart(title: str, series: list[tuple[str, list[float], list[float], tup
             cv2.line(img, a, b, colour, 2, cv2.LINE_AA)
         for p in pts:
             cv2.circle(img, p, 4, colour, -1, cv2.LINE_AA)
+    return img
+
+
+BLACK = (30, 30, 30)
+FONT = cv2.FONT_HERSHEY_SIMPLEX
+
+
+def bar_chart(title: str, labels: list[str], series: list[tuple[str, list[float], tuple]], marks: list[bool],
+              ylabel: str) -> np.ndarray:
+    """Grouped vertical bars, one group per label; `marks` draws the labels that are unknown in red."""
+    n, m = len(labels), len(series)
+    bw, gap, left, top, H = 14, 14, 60, 50, 260
+    W = left + n * (m * bw + gap) + 20
+    img = np.full((top + H + 170, W, 3), 255, np.uint8)
+    vmax = max([max(s[1]) for s in series if s[1]] + [1e-6])
+    cv2.putText(img, title, (10, 24), FONT, 0.6, BLACK, 1, cv2.LINE_AA)
+    cv2.line(img, (left, top + H), (W - 10, top + H), BLACK, 1)
+    for t in np.linspace(0, vmax, 5):
+        y = int(top + H - H * t / vmax)
+        cv2.line(img, (left - 4, y), (W - 10, y), (225, 225, 225), 1)
+        cv2.putText(img, f"{t:.2f}", (4, y + 4), FONT, 0.38, BLACK, 1, cv2.LINE_AA)
+    cv2.putText(img, ylabel, (4, top - 10), FONT, 0.4, BLACK, 1, cv2.LINE_AA)
+    for i, lab in enumerate(labels):
+        x0 = left + i * (m * bw + gap) + gap // 2
+        for j, (_name, vals, col) in enumerate(series):
+            h = int(H * vals[i] / vmax)
+            cv2.rectangle(img, (x0 + j * bw, top + H - h), (x0 + (j + 1) * bw - 2, top + H), col, -1)
+        txt = np.full((18, 140, 3), 255, np.uint8)   # right-aligned, so after rotation it hangs from the axis
+        tw = cv2.getTextSize(lab[:20], FONT, 0.4, 1)[0][0]
+        cv2.putText(txt, lab[:20], (138 - tw, 13), FONT, 0.4, (200, 0, 0) if marks[i] else BLACK, 1, cv2.LINE_AA)
+        rot = cv2.rotate(txt, cv2.ROTATE_90_COUNTERCLOCKWISE)
+        ys, xs = top + H + 4, x0 + (m * bw) // 2 - 9
+        img[ys:ys + rot.shape[0], xs:xs + rot.shape[1]] = np.minimum(img[ys:ys + rot.shape[0], xs:xs + rot.shape[1]], rot)
+    x = W - 10 - 170 * m
+    for j, (name, _vals, col) in enumerate(series):
+        cv2.rectangle(img, (x + 170 * j, 34), (x + 170 * j + 12, 46), col, -1)
+        cv2.putText(img, name, (x + 170 * j + 16, 45), FONT, 0.42, BLACK, 1, cv2.LINE_AA)
+    cv2.putText(img, "red labels: unknown classes", (left, img.shape[0] - 8), FONT, 0.4, (200, 0, 0), 1, cv2.LINE_AA)
+    return img
+
+def heatmap(title: str, rows: list[str], cols: list[str], values: np.ndarray, cell: int = 26) -> np.ndarray:
+    """A matrix as coloured cells (viridis over its own range) with row / column names and values."""
+    v = np.asarray(values, dtype=np.float64)
+    lo, hi = float(np.nanmin(v)), float(np.nanmax(v))
+    norm = np.clip((v - lo) / max(hi - lo, 1e-9), 0, 1)
+    col = cv2.applyColorMap((norm * 255).astype(np.uint8), cv2.COLORMAP_VIRIDIS)[:, :, ::-1]
+    left, top = 150, 150
+    img = np.full((top + cell * len(rows) + 40, left + cell * len(cols) + 20, 3), 255, np.uint8)
+    cv2.putText(img, title, (6, 20), FONT, 0.5, BLACK, 1, cv2.LINE_AA)
+    cv2.putText(img, f"rows: GT class; columns: class text; range {lo:.2f}..{hi:.2f}", (6, 40), FONT, 0.38,
+                BLACK, 1, cv2.LINE_AA)
+    for i in range(len(rows)):
+        cv2.putText(img, rows[i][:20], (4, top + cell * i + cell - 8), FONT, 0.38, BLACK, 1, cv2.LINE_AA)
+        for j in range(len(cols)):
+            y, x = top + cell * i, left + cell * j
+            img[y:y + cell - 1, x:x + cell - 1] = col[i, j]
+            if i == j:
+                cv2.rectangle(img, (x, y), (x + cell - 2, y + cell - 2), (255, 60, 60), 1)
+    for j in range(len(cols)):
+        txt = np.full((16, top - 50, 3), 255, np.uint8)
+        tw = cv2.getTextSize(cols[j][:16], FONT, 0.38, 1)[0][0]
+        cv2.putText(txt, cols[j][:16], (top - 52 - tw, 12), FONT, 0.38, BLACK, 1, cv2.LINE_AA)
+        rot = cv2.rotate(txt, cv2.ROTATE_90_COUNTERCLOCKWISE)
+        x = left + cell * j + (cell - 16) // 2
+        img[top - rot.shape[0] - 2:top - 2, x:x + 16] = rot
     return img
