@@ -22,6 +22,8 @@ from ago_runtime.providers import Device, Precision
     (["eval"], "--identifier", [i.value for i in Identifier]),
     (["open-world"], "--stage", ["pretrain", "zeroshot", "fewshot", "all"]),
     (["synth"], "--rig", ["nuscenes", "waymo", "front"]),
+    (["pseudo-labels"], "--segmenter", ["files", "grounded-sam", "sim", "boxes"]),
+    (["pseudo-labels"], "--embedder", ["files", "maskclip", "sim", "none"]),
     (["experiments", "list"], "--profile", ["tiny", "cpu", "full"]),
 ])
 def test_an_enum_option_lists_its_values_and_refuses_others(tmp_path, monkeypatch, verb, option, values):

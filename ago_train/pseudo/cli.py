@@ -16,12 +16,51 @@ from __future__ import annotations
 
 import shlex
 import sys
+from enum import Enum
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 import typer
 
 from ago_train.vlm.loading import TorchDevice
+
+
+class Segmenter(str, Enum):
+    """`ago pseudo-labels --segmenter`: where each image's 2-D label map comes from."""
+
+    FILES = "files"
+    GROUNDED_SAM = "grounded-sam"
+    SIM = "sim"
+    BOXES = "boxes"
+
+
+class Embedder(str, Enum):
+    """`ago pseudo-labels --embedder`: where each image's dense features come from."""
+
+    FILES = "files"
+    MASKCLIP = "maskclip"
+    SIM = "sim"
+    NONE = "none"
+
+
+# what each choice does, printed in --help (a KeyError at import if a choice has none)
+SEGMENTER_HELP = {Segmenter.FILES: "label maps, docs/vlm_files.md",
+                  Segmenter.GROUNDED_SAM: "GroundingDINO + SAM from --detector / --sam, on the fly",
+                  Segmenter.SIM: "SIMULATED, `ago synth` data only",
+                  Segmenter.BOXES: "painted from the dataset's 3D boxes and LiDAR ground: not a VLM; "
+                                   "ago_train/pseudo/boxes.py"}
+EMBEDDER_HELP = {Embedder.FILES: "feature maps, docs/vlm_files.md", Embedder.MASKCLIP: "--clip, on the fly",
+                 Embedder.SIM: "SIMULATED", Embedder.NONE: "no features: training will not align the adapter"}
+
+
+def choices_help(choices: type[Enum], meaning: dict) -> str:
+    """'a (what a does), b (...)' for every member of `choices`, in their order."""
+    return ", ".join(f"{c.value} ({meaning[c]})" for c in choices)
+
+
+def _names(choices: type[Enum]) -> str:
+    return ", ".join(c.value for c in choices)
 
 
 def grounded_sam_config(box_threshold: float, text_threshold: float, nms_iou: float, max_boxes: int):
@@ -96,7 +135,7 @@ def build_backends(prompts: str, segmenter: str, masks: Path | None, embedder: s
 
         seg = BoxSegmenter(data, space, masks_out=write_masks)
     else:
-        raise AgoInputError("--segmenter", f"expected files, sim, boxes or grounded-sam, got {segmenter!r}")
+        raise AgoInputError("--segmenter", f"expected {_names(Segmenter)}, got {segmenter!r}")
     if embedder == "none":
         emb = None
     elif embedder == "maskclip":
@@ -115,7 +154,7 @@ def build_backends(prompts: str, segmenter: str, masks: Path | None, embedder: s
         emb = SimulatedImageEmbedder(class_text, SimEmbedderConfig(seed=seed), sky_text=sky, ids=space.class_table.ids,
                                      text_encoder=None if text is None else text.encoder_id)
     else:
-        raise AgoInputError("--embedder", f"expected sim, files, maskclip or none, got {embedder!r}")
+        raise AgoInputError("--embedder", f"expected {_names(Embedder)}, got {embedder!r}")
     return space, seg, emb
 
 
@@ -256,15 +295,13 @@ def register(app: typer.Typer) -> None:
         prompts: str = typer.Option(None, "--prompts", help="Prompt file (path or shipped name: cw, ow_pretrain, "
                                     "ow). Default: the closed prompt file of the data's label table (cw for "
                                     "Occ3D-nuScenes, waymo/cw_waymo for Occ3D-Waymo)."),
-        segmenter: str = typer.Option(None, "--segmenter", help="files (label maps, docs/vlm_files.md), grounded-sam "
-                                      "(GroundingDINO + SAM from --detector / --sam, on the fly), sim "
-                                      "(SIMULATED, `ago synth` data only) or boxes (painted from the dataset's 3D "
-                                      "boxes and LiDAR ground: not a VLM; ago_train/pseudo/boxes.py). Default: files "
-                                      "when there are label maps (--masks, or <data>/masks), sim on `ago synth` data."),
+        segmenter: Optional[Segmenter] = typer.Option(None, "--segmenter", help=choices_help(Segmenter, SEGMENTER_HELP)
+                                                      + ". Default: files when there are label maps (--masks, or "
+                                                      "<data>/masks), sim on `ago synth` data."),
         masks: Path = typer.Option(None, "--masks", help="Label-map folder for --segmenter files (default <data>/masks)."),
-        embedder: str = typer.Option(None, "--embedder", help="files, maskclip (--clip, on the fly), sim (SIMULATED) "
-                                     "or none. Default: files when "
-                                     "there are feature maps (--feats, or <data>/feats), else none."),
+        embedder: Optional[Embedder] = typer.Option(None, "--embedder", help=choices_help(Embedder, EMBEDDER_HELP)
+                                                    + ". Default: files when there are feature maps (--feats, or "
+                                                    "<data>/feats), else none."),
         feats: Path = typer.Option(None, "--feats", help="Feature-map folder for --embedder files (default <data>/feats)."),
         grid: str = typer.Option("100x100x8", "--grid", help="Voxel counts XxYxZ over the Occ3D range."),
         keyframes: int = typer.Option(10, "--keyframes", min=1, help="KEYFRAMES superimposed per sample, the "
@@ -320,7 +357,8 @@ def register(app: typer.Typer) -> None:
             from ago_runtime.vocab.model_folder import read_model_config
 
             read_model_config(text_encoder, "--text-encoder", "clip")
-        segmenter, masks, embedder, feats, notes = resolve_defaults(Path(data), segmenter, masks, embedder, feats)
+        segmenter, masks, embedder, feats, notes = resolve_defaults(
+            Path(data), segmenter.value if segmenter else None, masks, embedder.value if embedder else None, feats)
         if prompts is None:   # the label space follows the data: its table's closed prompt file
             prompts = default_prompts_for_data(Path(data))
             notes.append(f"--prompts {prompts} (the closed prompt file of the data's label table)")
