@@ -146,6 +146,7 @@ def main() -> None:
     old_bundle = (args.old_bundle or old_tree / SHIPPED).resolve()
     new_bundle = (args.new_bundle or new_tree / SHIPPED).resolve()
     label = args.label or git_commit(old_tree)
+    commit = git_commit(new_tree)   # at the start: the code that runs
     for tree in (old_tree, new_tree):
         check_tree(tree)
     load0 = " ".join(f"{x:.2f}" for x in os.getloadavg())
@@ -184,7 +185,7 @@ def main() -> None:
     argv = " ".join(shlex.quote(a) for a in sys.argv[1:])
     L = [f"# `ago infer` against {label}, side by side, and against the Predictor's steady frame\n",
          f"Command: `python -m benchmarks.infer_speed {argv}` ({time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())})  ",
-         f"New: this tree, commit {git_commit(new_tree)}, bundle `{new_bundle}`  ",
+         f"New: this tree, commit {commit}, bundle `{new_bundle}`  ",
          f"Old: `{old_tree}` ({label}), bundle `{old_bundle}`  ",
          f"Dataset: {args.dataset or 'a town made by `ago synth --scenes 1 --frames 12 --seed 5`'} ({frames} frames); "
          f"`ago infer` with its defaults (full PNG, automatic workers); {args.rounds} rounds, order alternating; "
