@@ -292,7 +292,7 @@ def voxel_view(semantics: np.ndarray, colors: np.ndarray | None = None, free_ind
     lo = np.floor(gc.min(axis=0)).astype(int) + offsets.min(axis=0) - 2
     hi = np.ceil(gc.max(axis=0)).astype(int) + offsets.max(axis=0) + 3
     W, H = (hi - lo)
-    img = np.full((H, W, 3), BACKGROUND, dtype=np.uint8)
+    img = _canvas(H, W)
 
     if len(ii):
         vox = np.stack([ii, jj, kk], axis=1)
@@ -384,7 +384,7 @@ def scalar_bev(volume: np.ndarray, reduce: str = "max", colormap: int = cv2.COLO
 
 def _colour_bar(height: int, colormap: int, lo: float, hi: float, label: str) -> np.ndarray:
     bar_w, text_w, pad = 18, 90, 8
-    out = np.full((height, pad + bar_w + text_w, 3), BACKGROUND, dtype=np.uint8)
+    out = _canvas(height, pad + bar_w + text_w)
     top, bottom = 24, height - 12
     ramp = np.linspace(255, 0, max(bottom - top, 2)).round().astype(np.uint8)[:, None]
     ramp = cv2.cvtColor(cv2.applyColorMap(ramp, colormap), cv2.COLOR_BGR2RGB)  # (n, 1, 3)
@@ -434,7 +434,7 @@ def _title_bar(text: str, width: int, scale: float | None = None) -> np.ndarray:
     thick = 2 if scale >= 0.7 else 1
     lines = _wrap(text, max(width - 12, 8), scale, thick)
     _, th = _text_size("Ag", scale, thick)
-    bar = np.full((len(lines) * (th + 4) + 8, width, 3), BACKGROUND, dtype=np.uint8)
+    bar = _canvas(len(lines) * (th + 4) + 8, width)
     for i, line in enumerate(lines):
         cv2.putText(bar, line, (6, (i + 1) * (th + 4) - 1), FONT, scale, TEXT, thick, cv2.LINE_AA)
     return bar
@@ -446,8 +446,18 @@ def with_title(img: np.ndarray, text: str) -> np.ndarray:
     return np.concatenate([_title_bar(text, img.shape[1]), img], axis=0)
 
 
+def _canvas(h: int, w: int, color=BACKGROUND) -> np.ndarray:
+    """An (h, w, 3) uint8 image of one RGB colour. One row is filled, then copied down: np.full with an
+    RGB triple fills element by element, ~100x slower (25 ms for a 1300 x 1300 picture)."""
+    row = np.empty((1, w, 3), np.uint8)
+    row[...] = color
+    out = np.empty((h, w, 3), np.uint8)
+    out[...] = row
+    return out
+
+
 def _pad_to(img: np.ndarray, h: int, w: int) -> np.ndarray:
-    out = np.full((h, w, 3), BACKGROUND, dtype=np.uint8)
+    out = _canvas(h, w)
     y0, x0 = (h - img.shape[0]) // 2, (w - img.shape[1]) // 2
     out[y0:y0 + img.shape[0], x0:x0 + img.shape[1]] = img
     return out
@@ -459,7 +469,7 @@ def _as_rgb(img: np.ndarray) -> np.ndarray:
         img = np.repeat(img[:, :, None], 3, axis=2)
     if img.ndim != 3 or img.shape[2] != 3:
         raise ValueError(f"expected an (H, W, 3) RGB image, got shape {img.shape}")
-    return img.astype(np.uint8)
+    return img.astype(np.uint8, copy=False)   # no copy of an image that is uint8 already (callers only read it)
 
 
 def side_by_side(panels: Sequence[tuple[str, np.ndarray]], gap: int = 8) -> np.ndarray:
@@ -475,7 +485,7 @@ def side_by_side(panels: Sequence[tuple[str, np.ndarray]], gap: int = 8) -> np.n
     for i, t in enumerate(titled):
         cols.append(_pad_to(t, h, t.shape[1]))
         if i < len(titled) - 1:
-            cols.append(np.full((h, gap, 3), BACKGROUND, dtype=np.uint8))
+            cols.append(_canvas(h, gap))
     return np.concatenate(cols, axis=1)
 
 
@@ -487,7 +497,7 @@ def stack_vertical(images: Sequence[np.ndarray], gap: int = 8) -> np.ndarray:
     for n, i in enumerate(images):
         rows.append(_pad_to(i, i.shape[0], w))
         if n < len(images) - 1:
-            rows.append(np.full((gap, w, 3), BACKGROUND, dtype=np.uint8))
+            rows.append(_canvas(gap, w))
     return np.concatenate(rows, axis=0)
 
 
@@ -507,7 +517,7 @@ def legend(class_names: Sequence[str], colors: np.ndarray | None = None, width: 
             x, y = pad, y + row_h
         items.append((x, y, name, col))
         x += item_w
-    out = np.full((y + row_h + pad, width, 3), BACKGROUND, dtype=np.uint8)
+    out = _canvas(y + row_h + pad, width)
     for x, y, name, col in items:
         cv2.rectangle(out, (x, y), (x + sw - 1, y + sw - 1), tuple(int(c) for c in col), -1)
         cv2.rectangle(out, (x, y), (x + sw - 1, y + sw - 1), (90, 90, 90), 1)

@@ -23,7 +23,6 @@ info file a re-run resumes: frames whose outputs are whole and of the same setti
 from __future__ import annotations
 
 import contextlib
-import glob
 from enum import Enum
 from pathlib import Path
 from typing import List, Optional
@@ -152,14 +151,18 @@ def prediction_picture(pred, images: dict | None, title: str = "", kind: str = "
 def infer_writer(out: Path, key: str, picture: str, volumes: bool, html: bool = False):
     """`ago infer`'s write(name, images, prediction), called per frame of `predict_many`: `out/<name>.png` (unless
     picture is none) and `out/<name>.html` (with html: pictures.html_viewer), then `out/<name>.npz` with `run_key` (a whole
-    npz means a whole frame: frame_is_whole), each written atomically; a killed run's temporary files of the frame are removed first. Gives the files."""
+    npz means a whole frame: frame_is_whole), each written atomically; a killed run's temporary files of the frame are removed first
+    (the folder is scanned for them once, here: a scan per frame would grow with the files written). Gives the files."""
     from ago_runtime.atomic import save_npz
     from ago_runtime.pictures.render import save_png
 
+    stale = list(out.glob(".*.tmp.*")) if out.is_dir() else []
+
     def write(name: str, images: dict, pred) -> list[Path]:
         npz = out / f"{name}.npz"
-        for stale in out.glob(glob.escape(f".{name}.") + "*.tmp.*"):
-            stale.unlink(missing_ok=True)
+        for p in [p for p in stale if p.name.startswith(f".{name}.")]:
+            p.unlink(missing_ok=True)
+            stale.remove(p)
         files = [npz]
         if picture != "none":
             files.append(save_png(out / f"{name}.png", prediction_picture(pred, images, name, picture)))
