@@ -28,7 +28,7 @@ from ago_runtime.errors import AgoInputError
 from ago_runtime.formats.datasets import check_label_table
 from ago_runtime.scoring.metric import OccupancyMetric, upsample_nearest
 from ago_runtime.geometry.preprocess import Preprocess
-from ago_runtime.predict.contract import Identifier
+from ago_runtime.predict.decision import Identifier
 from ago_runtime.vocab.prompts import LabelSpace, label_space_from_record, parse_prompt_file
 
 from .checkpoint import checkpoint_camera_names, load_checkpoint

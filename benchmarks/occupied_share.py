@@ -26,7 +26,7 @@ import numpy as np
 
 
 from ago_runtime.predict import decision  # noqa: E402
-from ago_runtime.predict.contract import Branch, Identifier  # noqa: E402
+from ago_runtime.predict.decision import Branch, Identifier  # noqa: E402
 
 
 def main() -> None:

@@ -16,7 +16,8 @@ import pytest
 
 from ago_runtime.errors import AgoInputError
 from ago_runtime.predict import decision
-from ago_runtime.predict.contract import Branch, BundleContract, Identifier
+from ago_runtime.predict.contract import BundleContract
+from ago_runtime.predict.decision import Branch, Identifier
 from ago_runtime.predict.heads import HeadWeights
 
 REPO = Path(__file__).resolve().parents[1]
@@ -176,7 +177,7 @@ def test_contract_refuses_bad_metadata_naming_the_file(change, words):
 def test_identifier_names_come_from_one_type():
     """ago eval takes the identifiers ago infer takes; no module spells an identifier name as a string
     literal outside the contract (the CLI option defaults of ago_train/cli.py and open_world.py excepted)."""
-    from ago_runtime.predict.contract import Identifier as I
+    from ago_runtime.predict.decision import Identifier as I
 
     assert I.parse("adapted", "--identifier") is I.ADAPTED
     with pytest.raises(AgoInputError, match="--identifier: must be one of min-entropy, max-conf, none, adapted"):

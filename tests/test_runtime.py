@@ -27,7 +27,7 @@ from ago_runtime.geometry.camera import CAMERA_NAMES, Rig
 from ago_runtime.classes import FREE, OCC3D_CLASSES, OCC3D_ID
 from ago_runtime.errors import AgoInputError
 from ago_runtime.predict import decision
-from ago_runtime.predict.contract import Branch, Identifier
+from ago_runtime.predict.decision import Branch, Identifier
 from ago_runtime.predict.heads import FoldedHeads, HeadWeights
 
 
@@ -656,7 +656,7 @@ def test_runtime_sessions_run_without_onnxruntime_memory_pattern(bundle_dir, tmp
     """Every graph session of a Predictor runs with the memory pattern off, cached optimised graph or not:
     with it on, the compact planes graph's first real frame after the warm-up ran 1.8x its steady time and
     the peak RSS was 1.5x (benchmarks/results/mem_pattern.md)."""
-    from ago_runtime.predict.contract import Branch
+    from ago_runtime.predict.decision import Branch
     from ago_runtime.predict.predictor import Predictor
 
     monkeypatch.setenv("AGO_CACHE_DIR", str(tmp_path / "cache"))

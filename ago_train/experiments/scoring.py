@@ -41,7 +41,7 @@ from ..dataset import FrameList, OccSampleDataset, collate
 from ..evaluate import (_pct, _to_gt_resolution, bank_for, checkpoint_adapted_stats, checkpoint_scales, load_model,
                         scored_subsets, scored_voxels)
 from ..model.scoring import adapted_logits, class_logits, entropy, open_world_identify
-from ago_runtime.predict.contract import Identifier
+from ago_runtime.predict.decision import Identifier
 
 @dataclass(frozen=True)
 class View:

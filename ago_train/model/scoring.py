@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import torch
 
-from ago_runtime.predict.contract import Identifier
+from ago_runtime.predict.decision import Identifier
 
 NO_PHRASE_SCORE = -1e4  # a class without any phrase scores this (finite, so CE/softmax stay defined)
 
