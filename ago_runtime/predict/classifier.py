@@ -58,7 +58,7 @@ class VoxelClassifier:
     (see the module doc). `classify` runs an encoder's graphs on a frame, slab by slab (`ago infer`);
     `classify_hidden` takes the whole grid's h, g already computed (`ago retrieve`, benchmarks); `branch_labels`
     gives each branch's own argmax on every voxel (the export's parity check). All three decide a block of
-    voxels in `_decide`."""
+    voxels in `decide_block`."""
 
     def __init__(self, encoder=None):
         self.encoder = encoder   # a SplitEncoder; None: classify_hidden only
@@ -99,7 +99,7 @@ class VoxelClassifier:
                 t_adapted += time.perf_counter() - t_a
                 return s_ad
 
-            d = _decide(folded, s_main, adapted_scores, identifier, volumes)
+            d = decide_block(folded, s_main, adapted_scores, identifier, volumes)
             _store(out, slice(x0 * row, x1 * row), d, volumes)
             t5 = time.perf_counter()
             t_enc += (t2 - t) + t_adapted
@@ -122,7 +122,7 @@ class VoxelClassifier:
         for start in range(0, n, chunk):
             sl = slice(start, min(n, start + chunk))
             g_sl = g[sl]
-            d = _decide(folded, folded.A[Branch.MAIN] @ h[sl].T,
+            d = decide_block(folded, folded.A[Branch.MAIN] @ h[sl].T,
                         lambda need: folded.A[Branch.ADAPTED] @ g_sl[need].T, identifier, volumes)
             _store(out, sl, d, volumes)
         return out
@@ -140,7 +140,7 @@ class VoxelClassifier:
         return {k: np.concatenate(v) for k, v in out.items()}
 
 
-def _decide(folded: FoldedHeads, s_main: np.ndarray, adapted_scores, identifier: Identifier,
+def decide_block(folded: FoldedHeads, s_main: np.ndarray, adapted_scores, identifier: Identifier,
             volumes: bool) -> decision.Decision:
     """One block of n voxels: s_main (P+1, n) the main branch's scores A x^T (overwritten); adapted_scores(need)
     -> the adapted branch's scores (P+1, m) of the voxels `need` (sorted indices), asked for only when some
