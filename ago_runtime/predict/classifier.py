@@ -123,7 +123,7 @@ class VoxelClassifier:
             sl = slice(start, min(n, start + chunk))
             g_sl = g[sl]
             d = decide_block(folded, folded.A[Branch.MAIN] @ h[sl].T,
-                        lambda need: folded.A[Branch.ADAPTED] @ g_sl[need].T, identifier, volumes)
+                             lambda need: folded.A[Branch.ADAPTED] @ g_sl[need].T, identifier, volumes)
             _store(out, sl, d, volumes)
         return out
 
@@ -141,7 +141,7 @@ class VoxelClassifier:
 
 
 def decide_block(folded: FoldedHeads, s_main: np.ndarray, adapted_scores, identifier: Identifier,
-            volumes: bool) -> decision.Decision:
+                 volumes: bool) -> decision.Decision:
     """One block of n voxels: s_main (P+1, n) the main branch's scores A x^T (overwritten); adapted_scores(need)
     -> the adapted branch's scores (P+1, m) of the voxels `need` (sorted indices), asked for only when some
     voxel needs them."""

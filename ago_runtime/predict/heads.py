@@ -84,7 +84,7 @@ class HeadWeights:
         return out
 
 
-@dataclass
+@dataclass(eq=False)
 class FoldedHeads:
     """A bank folded into both heads, as data (the slab loop that uses it: ago_runtime.predict.classifier).
 
