@@ -43,8 +43,9 @@ from ago_runtime.geometry.camera import CAMERA_NAMES, Rig
 from ago_runtime.geometry.grid import Grid
 from ago_runtime.geometry.preprocess import Preprocess
 from ago_runtime.predict.contract import (BUNDLE_FORMAT, BUNDLE_FORMAT_VERSION, BUNDLE_JSON, BundleContract,
-                                          CameraSlot, FileEntry, Identifier, LabelClass, LabelSpaceSpec, RigSpec,
-                                          TextEncoderSpec, VoxelStageSpec, file_sha256)
+                                          CameraSlot, FileEntry, LabelClass, LabelSpaceSpec, RigSpec,
+                                          TextEncoderSpec, VoxelStageSpec, check_bank_fits, file_sha256)
+from ago_runtime.predict.decision import Identifier
 from ago_runtime.predict.encoder import SplitEncoder, StageGraph
 from ago_runtime.predict.heads import HeadWeights
 from ago_runtime.vocab.prompts import LabelSpace, label_space_from_record, shipped_label_spaces
@@ -311,7 +312,7 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
             key = Path(name).stem
             try:
                 b = load_prompt_bank(name, encoder=bank_encoder)
-                b.check_compatible(bank.encoder_id, bank.dim, checkpoint)
+                check_bank_fits(b, encoder_spec, checkpoint)
             except AgoInputError as e:
                 bank_notes[key] = f"not built: {e}"
                 log(f"note: bank {key!r} not built ({e})")

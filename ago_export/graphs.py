@@ -28,7 +28,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from ago_runtime.predict.contract import Branch, VoxelStageSpec
+from ago_runtime.predict.contract import VoxelStageSpec
+from ago_runtime.predict.decision import Branch
 from ago_train.model.tpv_canvas import PLANES, encode_frame
 
 

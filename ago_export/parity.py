@@ -25,8 +25,9 @@ import numpy as np
 
 from ago_runtime.predict import decision
 from ago_runtime.predict.classifier import VoxelClassifier
-from ago_runtime.predict.contract import Branch, Identifier
+from ago_runtime.predict.decision import Branch, Identifier
 from ago_runtime.predict.heads import FoldedHeads, HeadWeights, embeddings
+from ago_runtime.vocab.phrase_layout import PhraseLayout
 
 
 @dataclass(frozen=True)
@@ -44,7 +45,7 @@ def reference_labels(feat: np.ndarray, feat_ad: np.ndarray, bank, heads: HeadWei
     """The float64 reference from the per-voxel embeddings F (N, C), F~ (N, C): each branch's argmax over
     [K classes + free] ("main", "adapted") and the identifier's labels, by the voxel decision
     (ago_runtime.predict.decision) with the bank applied to the embeddings directly (unfolded)."""
-    layout = decision.PhraseLayout(bank.phrase_class, bank.num_classes)
+    layout = PhraseLayout(bank.phrase_class, bank.num_classes)
     phrases = np.asarray(bank.embeddings)[layout.order]
     out, z = {}, {}
     for branch, f in ((Branch.MAIN, feat), (Branch.ADAPTED, feat_ad)):
@@ -61,16 +62,12 @@ def reference_labels(feat: np.ndarray, feat_ad: np.ndarray, bank, heads: HeadWei
 
 def runtime_labels(encoder, folded: FoldedHeads, images: np.ndarray, ego2img: np.ndarray,
                    identifier: Identifier = Identifier.MIN_ENTROPY) -> dict[str, np.ndarray]:
-    """Labels the way `ago infer` gets them: "identifier" from the runtime's slab loop (VoxelClassifier: the
-    adapted branch only where the main branch calls a voxel occupied); "main" and "adapted" from each branch's
-    folded scores on every voxel, slab by slab, each through the class max and softmax."""
-    out: dict[str, list] = {Branch.MAIN.value: [], Branch.ADAPTED.value: []}
-    for _start, _stop, h, g in encoder.chunks(images, ego2img):
-        for branch, x in ((Branch.MAIN, h), (Branch.ADAPTED, g)):
-            z = folded.class_scores(encoder.scores(folded.A[branch], x), branch)
-            out[branch.value].append(decision.softmax_stats(z).label)
-    labels = {k: np.concatenate(v) for k, v in out.items()}
-    labels["identifier"] = VoxelClassifier(encoder).classify(images, ego2img, folded, identifier)[0]["label"]
+    """Labels the way `ago infer` gets them, all from the runtime's slab loop (VoxelClassifier): "identifier"
+    (`classify`: the adapted branch only where the main branch calls a voxel occupied); "main" and "adapted"
+    (`branch_labels`: each branch's folded scores on every voxel, through the class max and argmax)."""
+    classifier = VoxelClassifier(encoder)
+    labels = classifier.branch_labels(images, ego2img, folded)
+    labels["identifier"] = classifier.classify(images, ego2img, folded, identifier)[0]["label"]
     return labels
 
 
@@ -101,7 +98,7 @@ def check_parity(model, encoder, heads: HeadWeights, bank, images: np.ndarray, e
     def rel(which):
         return err[which] / max(scale[which], 1e-12)
 
-    folded = FoldedHeads(heads, bank.embeddings, bank.phrase_class, bank.num_classes)
+    folded = FoldedHeads.fold(heads, bank.embeddings, bank.phrase_class, bank.num_classes)
     got = runtime_labels(encoder, folded, images, ego2img)
     report = {
         "frame": frame,

@@ -26,7 +26,7 @@ import math
 import numpy as np
 import torch
 
-from .model.text_logits import adapted_logits, class_logits
+from .model.text_logits import adapted_logits, class_logits, class_probabilities, entropy
 
 SCALE_GRID = np.exp(np.linspace(math.log(1e-2), math.log(1e3), 81))
 
@@ -58,8 +58,7 @@ def entropy_matched_scale(logits: torch.Tensor, target_entropy: float) -> float:
     logits = logits.double()
 
     def mean_entropy(s: float) -> float:
-        p = torch.softmax(s * logits, -1)
-        return float(-(p * torch.log(p.clamp_min(1e-300))).sum(-1).mean())
+        return float(entropy(class_probabilities(logits, s)).mean())
 
     lo, hi = float(SCALE_GRID[0]), float(SCALE_GRID[-1])
     if mean_entropy(lo) <= target_entropy:
@@ -144,8 +143,7 @@ def fit_scales(trainer, max_frames: int = 16, voxels_per_frame: int = 4000, adap
            "voxels": int(t.numel()), "frames": len(order), **stats}
     # the main branch's mean entropy at its fitted scale on the same voxels, and the adapted scale that
     # gives the adapted branch that mean entropy (adapted_rule "entropy")
-    p = torch.softmax(s_main * torch.cat(main).double(), -1)
-    h_main = float(-(p * torch.log(p.clamp_min(1e-300))).sum(-1).mean())
+    h_main = float(entropy(class_probabilities(torch.cat(main).double(), s_main)).mean())
     out["entropy_main"] = h_main
     out["scale_adapted_nll"] = s_ad
     out["scale_adapted_entropy"] = entropy_matched_scale(ad, h_main)

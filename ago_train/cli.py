@@ -17,7 +17,7 @@ from typing import List, Optional
 
 import typer
 
-from ago_runtime.predict.contract import Identifier
+from ago_runtime.predict.decision import Identifier
 
 
 class OpenWorldStage(str, Enum):

@@ -28,7 +28,7 @@ from ago_runtime.errors import AgoInputError
 from ago_runtime.formats.datasets import check_label_table
 from ago_runtime.scoring.metric import OccupancyMetric, upsample_nearest
 from ago_runtime.geometry.preprocess import Preprocess
-from ago_runtime.predict.contract import Identifier
+from ago_runtime.predict.decision import Identifier
 from ago_runtime.vocab.prompts import LabelSpace, label_space_from_record, parse_prompt_file
 
 from .checkpoint import checkpoint_camera_names, load_checkpoint
@@ -120,18 +120,16 @@ def predict_labels(model, images: torch.Tensor, ego2img: torch.Tensor, text: tor
     """(B, N) int64 labels on the model grid (or on `grid_shape`, the read-out grid): 0..K-1 class, K free.
     voxel_index (B, M) int64 flat indices into that grid: (B, M) labels of those voxels only (the same
     values as the full grid's at those indices: every step after the TPV planes is per voxel)."""
-    from .model.text_logits import adapted_logits, class_logits, open_world_identify
+    from .model.text_logits import adapted_logits, class_logits, decide
 
     # F~_3D only when the identifier reads it
     identifier = Identifier(identifier)
-    out = model(images, ego2img, voxel_index=voxel_index, adapted=identifier != Identifier.NONE, grid_shape=grid_shape)
+    out = model(images, ego2img, voxel_index=voxel_index, adapted=identifier.reads_adapted, grid_shape=grid_shape)
     free = out.get("free_embedding", model.free_embedding)
     main = class_logits(out["feat"], text, phrase_class, num_classes, free, None, free_bias=out.get("free_bias"))
-    if identifier == Identifier.NONE:
-        return main.argmax(dim=-1)
-    adapted = adapted_logits(out["feat_adapted"], text, phrase_class, num_classes, free, adapted_stats)
-    pred, _branch, _entropy = open_world_identify(main, adapted, identifier, num_classes, *scales)
-    return pred.long()
+    adapted = (adapted_logits(out["feat_adapted"], text, phrase_class, num_classes, free, adapted_stats)
+               if identifier.reads_adapted else None)
+    return decide(main, adapted, identifier, num_classes, scales).label
 
 
 def scored_subsets(label_space: LabelSpace) -> dict[str, list[str]]:

@@ -26,7 +26,7 @@ import numpy as np
 
 
 from ago_runtime.predict import decision  # noqa: E402
-from ago_runtime.predict.contract import Branch, Identifier  # noqa: E402
+from ago_runtime.predict.decision import Branch, Identifier  # noqa: E402
 
 
 def main() -> None:
@@ -57,8 +57,10 @@ def main() -> None:
     for _ in range(args.reps + 1):
         t = time.perf_counter()
         for _start, _stop, h, g in p.encoder.chunks(x, m):
-            z_main = folded.class_scores(p.encoder.scores(folded.A_main_T, h), Branch.MAIN)
-            z_ad = folded.class_scores(p.encoder.scores(folded.A_ad_T, g), Branch.ADAPTED)
+            z_main = decision.class_scores(p.encoder.scores(folded.A[Branch.MAIN], h), folded.c[Branch.MAIN],
+                                           folded.layout)
+            z_ad = decision.class_scores(p.encoder.scores(folded.A[Branch.ADAPTED], g), folded.c[Branch.ADAPTED],
+                                         folded.layout)
             decision.decide(z_main, decision.main_free(z_main, folded.num_classes), z_ad, np.arange(len(h)),
                             Identifier.MIN_ENTROPY, folded.num_classes, folded.scales)
         every.append(time.perf_counter() - t)

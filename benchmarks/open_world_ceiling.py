@@ -45,7 +45,7 @@ def score_run(ckpt_path: Path, data: str, prompts: str, max_frames: int | None) 
     from ago_train.dataset import FrameList, OccSampleDataset, collate
     from ago_train.evaluate import (_to_gt_resolution, checkpoint_adapted_stats, checkpoint_scales, load_model)
     from ago_train.experiments.view_eval import _bank
-    from ago_train.model.text_logits import adapted_logits, class_logits, open_world_identify
+    from ago_train.model.text_logits import adapted_logits, class_logits, decide
     from ago_train.sources import open_split
     from ago_runtime.progress import track
 
@@ -79,7 +79,7 @@ def score_run(ckpt_path: Path, data: str, prompts: str, max_frames: int | None) 
         def up(labels: torch.Tensor) -> np.ndarray:
             return _to_gt_resolution(labels.numpy().reshape(grid.shape).astype(np.uint8), gt.shape, tok)
 
-        lab = {v: up(open_world_identify(main, adap, v, K, *scales)[0]) for v in ("none", "min-entropy", "adapted")}
+        lab = {v: up(decide(main, adap, v, K, scales).label) for v in ("none", "min-entropy", "adapted")}
         gt_unknown = (gt < K) & unknown[np.minimum(gt, K - 1)]
         lab["oracle"] = np.where(gt_unknown, lab["adapted"], lab["none"])
         adapted_class = up(adap[:, :K].argmax(-1))     # F~_3D's class everywhere (a positive scale keeps the argmax)

@@ -11,7 +11,7 @@ import torch
 from ago_runtime.errors import AgoInputError
 from ago_runtime.predict.bundle import _load_heads
 from ago_runtime.predict.decision import phrase_standardisation as numpy_standardisation
-from ago_runtime.predict.decision import softmax_stats
+from ago_runtime.predict.decision import Branch, class_scores, softmax_stats
 from ago_runtime.predict.heads import FoldedHeads, HeadWeights
 from ago_train.model.text_logits import adapted_logits, phrase_standardisation
 
@@ -51,13 +51,13 @@ def test_folded_heads_apply_the_standardisation_exactly():
     pc = np.array([2, 0, 1, 3, 0, 2, 1, 3, 3])
     emb = rng.standard_normal((P, 16)).astype(np.float32)
     g = rng.standard_normal((500, 12)).astype(np.float32)
-    fh = FoldedHeads(w, emb, pc, K)
+    fh = FoldedHeads.fold(w, emb, pc, K)
     feat_ad = g.astype(np.float64) @ w.W_ad.T.astype(np.float64) + w.b_ad
     t = emb.astype(np.float64)
     sd = np.sqrt(np.einsum("pc,cd,pd->p", t, w.adapted_cov.astype(np.float64), t))
     z = (feat_ad @ t.T - t @ w.adapted_mean.astype(np.float64)) / sd
     want = np.stack([z[:, pc == k].max(1) for k in range(K)], axis=1)
-    got = fh.class_scores(fh.A_ad_T @ g.T, "adapted").T    # (n, K + 1)
+    got = class_scores(fh.A[Branch.ADAPTED] @ g.T, fh.c[Branch.ADAPTED], fh.layout).T    # (n, K + 1)
     np.testing.assert_allclose(got[:, :K], want, rtol=1e-4, atol=1e-4)
     # the torch path of training and evaluation gives the same class logits
     logits = adapted_logits(torch.from_numpy(feat_ad.astype(np.float32))[None], torch.from_numpy(emb),
@@ -118,8 +118,8 @@ def test_export_parity_reference_standardises_like_the_runtime():
     feat = h.astype(np.float64) @ w.W_dec.T + w.b_dec
     feat_ad = g.astype(np.float64) @ w.W_ad.T + w.b_ad
     ref = reference_labels(feat, feat_ad, bank, w)
-    fh = FoldedHeads(w, emb, pc, K)
-    got = softmax_stats(fh.class_scores(fh.A_ad_T @ g.T, "adapted")).label
+    fh = FoldedHeads.fold(w, emb, pc, K)
+    got = softmax_stats(class_scores(fh.A[Branch.ADAPTED] @ g.T, fh.c[Branch.ADAPTED], fh.layout)).label
     assert np.mean(got == ref["adapted"]) > 0.995
     plain = reference_labels(feat, feat_ad, bank, dataclasses.replace(w, adapted_mean=None, adapted_cov=None))
     assert np.mean(plain["adapted"] != ref["adapted"]) > 0.05   # the map does change the labels

@@ -12,7 +12,11 @@ tests that run the code in a child process):
   whose body is only imports;
 - importing every ago_runtime module and building the whole `ago` app loads no torch;
 - `ago infer` (its verb module, `ago infer --help`) loads no ago_train / ago_export module and no other
-  verb module, and VERB_MODULES says where each verb is (these import the code, in a child process).
+  verb module, and VERB_MODULES says where each verb is (these import the code, in a child process);
+- one prediction engine: inside ago_runtime only the slab loop (predict/classifier.py) calls the voxel
+  decision's steps (predict/decision.py), `FoldedHeads` is data, and the export's parity check
+  (`runtime_labels`) and `ago retrieve` (`Predictor.predict_hidden`) reach the decision through
+  `VoxelClassifier`.
 """
 
 from __future__ import annotations
@@ -257,3 +261,84 @@ def test_verb_modules_table_says_where_each_verb_is():
     missing = [v for v, verbs in per_verb.items() if v not in verbs]
     assert missing == [], f"VERB_MODULES names modules that do not define these verbs: {missing}"
     assert sorted(per_verb) == every
+
+
+# ---- one prediction engine ----------------------------------------------------------------------------
+# the steps of ago_runtime.predict.decision that turn scores into labels (fold / score_rows only prepare data)
+DECISION_STEPS = {"class_scores", "main_free", "adapted_voxels", "decide", "softmax_stats", "user_confidence",
+                  "occupied_probability"}
+ENGINE = "ago_runtime/predict/classifier.py"
+
+
+def _decision_step_uses(tree: ast.AST) -> list[str]:
+    """The decision steps a piece of code calls: `decision.<step>` and steps imported by name."""
+    found = []
+    for node in ast.walk(tree):
+        if (isinstance(node, ast.Attribute) and node.attr in DECISION_STEPS and isinstance(node.value, ast.Name)
+                and node.value.id == "decision"):
+            found.append(f"decision.{node.attr} (line {node.lineno})")
+        if isinstance(node, ast.ImportFrom) and (node.module or "").endswith("decision"):
+            found += [f"import {a.name} (line {node.lineno})" for a in node.names if a.name in DECISION_STEPS]
+    return found
+
+
+def _function(path: Path, qualname: str) -> ast.AST:
+    tree = ast.parse(path.read_text())
+    node = tree
+    for name in qualname.split("."):
+        node = next(n for n in node.body if isinstance(n, (ast.FunctionDef, ast.ClassDef)) and n.name == name)
+    return node
+
+
+def _calls(node: ast.AST) -> set[str]:
+    """Names called in `node`: f(...) -> "f", a.b.f(...) -> "f"."""
+    out = set()
+    for n in ast.walk(node):
+        if isinstance(n, ast.Call):
+            f = n.func
+            out.add(f.id if isinstance(f, ast.Name) else f.attr if isinstance(f, ast.Attribute) else "")
+    return out
+
+
+def test_only_the_classifier_drives_the_decision_in_the_runtime():
+    drivers = {}
+    for path in sorted((REPO / "ago_runtime").rglob("*.py")):
+        rel = str(path.relative_to(REPO))
+        if rel in (ENGINE, "ago_runtime/predict/decision.py"):
+            continue
+        uses = _decision_step_uses(ast.parse(path.read_text()))
+        if uses:
+            drivers[rel] = uses
+    assert drivers == {}, f"only {ENGINE} may drive the voxel decision: {drivers}"
+    assert _decision_step_uses(ast.parse((REPO / ENGINE).read_text())), "the classifier no longer drives it?"
+    # FoldedHeads is data: its only methods build it or describe it
+    heads = _function(REPO / "ago_runtime/predict/heads.py", "FoldedHeads")
+    methods = {n.name for n in heads.body if isinstance(n, ast.FunctionDef)}
+    assert methods <= {"fold", "num_classes", "num_rows", "width"}, methods
+
+
+def test_parity_and_retrieve_go_through_the_classifier():
+    """parity.runtime_labels (the export's check of what `ago infer` gives) and `ago retrieve`
+    (run_retrieve -> Predictor.predict_hidden) call VoxelClassifier and no decision step themselves."""
+    runtime_labels = _function(REPO / "ago_export/parity.py", "runtime_labels")
+    assert _decision_step_uses(runtime_labels) == []
+    assert {"VoxelClassifier", "classify", "branch_labels"} <= _calls(runtime_labels)
+    predict_hidden = _function(REPO / "ago_runtime/predict/predictor.py", "Predictor.predict_hidden")
+    assert "classify_hidden" in _calls(predict_hidden)
+    assert "predict_hidden" in _calls(_function(REPO / "ago_runtime/predict/cli.py", "run_retrieve"))
+    classifier = _function(REPO / ENGINE, "VoxelClassifier")
+    for method in ("classify", "classify_hidden"):
+        body = next(n for n in classifier.body if isinstance(n, ast.FunctionDef) and n.name == method)
+        assert "decide_block" in _calls(body), method
+
+
+def test_training_names_a_decision_without_the_bundle_contract():
+    """ago_train imports Identifier / Branch from the decision module, never the bundle contract."""
+    offenders = []
+    for path in sorted((REPO / "ago_train").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module == "ago_runtime.predict.contract":
+                names = {a.name for a in node.names} & {"Identifier", "Branch"}
+                if names:
+                    offenders.append(f"{path.relative_to(REPO)}: {sorted(names)}")
+    assert offenders == []

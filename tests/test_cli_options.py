@@ -9,7 +9,7 @@ from __future__ import annotations
 import pytest
 from test_bad_inputs import assert_one_error_line, run_ago
 
-from ago_runtime.predict.contract import Identifier
+from ago_runtime.predict.decision import Identifier
 from ago_runtime.providers import Device, Precision
 
 

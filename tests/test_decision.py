@@ -16,8 +16,10 @@ import pytest
 
 from ago_runtime.errors import AgoInputError
 from ago_runtime.predict import decision
-from ago_runtime.predict.contract import Branch, BundleContract, Identifier
+from ago_runtime.predict.contract import BundleContract
+from ago_runtime.predict.decision import Branch, Identifier
 from ago_runtime.predict.heads import HeadWeights
+from ago_runtime.vocab.phrase_layout import PhraseLayout
 
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_BUNDLE = REPO / "ago_runtime" / "assets" / "default_bundle"
@@ -43,11 +45,11 @@ def _spec_decision(z_main, z_ad, identifier, K, scales):
 
 @pytest.mark.parametrize("identifier", list(Identifier))
 def test_torch_identifier_equals_the_numpy_specification(identifier):
-    """ago_train.model.text_logits (class logits with free bias, the adapted standardisation, open_world_identify)
+    """ago_train.model.text_logits (class logits with free bias, the adapted standardisation, decide)
     gives the labels, branches and entropies of decision.decide, for every identifier ("none" included:
     entropy over the K classes, scaled, in both)."""
     torch = pytest.importorskip("torch")
-    from ago_train.model.text_logits import adapted_logits, class_logits, open_world_identify
+    from ago_train.model.text_logits import adapted_logits, class_logits, decide
 
     rng = np.random.default_rng(3)
     w = _heads(rng)
@@ -61,14 +63,15 @@ def test_torch_identifier_equals_the_numpy_specification(identifier):
     stats = {"adapted_mean": w.adapted_mean, "adapted_cov": w.adapted_cov}
     adapted = adapted_logits(t(feat_ad)[None], t(emb), torch.from_numpy(pc), K, t(w.free_embedding), stats)[0].double()
     # the spec's score rows give the same class logits (float64 reference vs torch float32)
-    layout = decision.PhraseLayout(pc, K)
+    layout = PhraseLayout(pc, K)
     z = {}
     for branch, f in ((Branch.MAIN, feat), (Branch.ADAPTED, feat_ad)):
         R, o = decision.score_rows(w, emb[layout.order], branch)
         z[branch] = decision.class_scores(R @ f.astype(np.float64).T, o[:, None], layout).T   # (n, K + 1)
     np.testing.assert_allclose(z[Branch.MAIN], main.numpy(), rtol=1e-4, atol=1e-4)
     np.testing.assert_allclose(z[Branch.ADAPTED][:, :K], adapted.numpy()[:, :K], rtol=1e-4, atol=1e-4)
-    pred, branch, entropy = open_world_identify(main, adapted, identifier, K, *w.scales)
+    d = decide(main, adapted, identifier, K, w.scales)
+    pred, branch, entropy = d.label, d.branch, d.entropy
     spec = _spec_decision(main.numpy(), adapted.numpy(), identifier, K, w.scales)
     free = spec.label == K
     assert free.any() and (~free).any()
@@ -80,10 +83,12 @@ def test_torch_identifier_equals_the_numpy_specification(identifier):
 
 
 def test_runtime_float32_equals_the_float64_specification():
-    """FoldedHeads (float32, folded, class-major, numpy products) decides as the float64 spec does on the
-    unfolded embeddings, with standardisation, free bias and branch scales."""
+    """The runtime's slab loop on whole-grid features (VoxelClassifier.classify_hidden: FoldedHeads float32,
+    folded, class-major, numpy products) decides as the float64 spec does on the unfolded embeddings, with
+    standardisation, free bias and branch scales."""
     from ago_export.parity import reference_labels  # noqa: F401  (numpy only; torch imported lazily)
 
+    from ago_runtime.predict.classifier import VoxelClassifier
     from ago_runtime.predict.heads import FoldedHeads, embeddings
 
     rng = np.random.default_rng(5)
@@ -94,10 +99,10 @@ def test_runtime_float32_equals_the_float64_specification():
     g = rng.standard_normal((4000, 12)).astype(np.float32)
     F, Fa = embeddings(h, w.W_dec, w.b_dec), embeddings(g, w.W_ad, w.b_ad)
     bank = type("Bank", (), {"embeddings": emb, "phrase_class": pc, "num_classes": K})()
-    fh = FoldedHeads(w, emb, pc, K)
+    fh = FoldedHeads.fold(w, emb, pc, K)
     for identifier in Identifier:
         want = reference_labels(F, Fa, bank, w, identifier)["identifier"]
-        got = fh.run(h, g, identifier, chunk=999)
+        got = VoxelClassifier().classify_hidden(h, g, fh, identifier, chunk=999)
         assert np.mean(got["label"] == want) > 0.999
         assert got["label"].dtype == np.uint8
 
@@ -175,8 +180,8 @@ def test_contract_refuses_bad_metadata_naming_the_file(change, words):
 
 def test_identifier_names_come_from_one_type():
     """ago eval takes the identifiers ago infer takes; no module spells an identifier name as a string
-    literal outside the contract (the CLI option defaults of ago_train/cli.py and open_world.py excepted)."""
-    from ago_runtime.predict.contract import Identifier as I
+    literal outside the decision module (the CLI option defaults of ago_train/cli.py and open_world.py excepted)."""
+    from ago_runtime.predict.decision import Identifier as I
 
     assert I.parse("adapted", "--identifier") is I.ADAPTED
     with pytest.raises(AgoInputError, match="--identifier: must be one of min-entropy, max-conf, none, adapted"):
@@ -191,7 +196,7 @@ def test_identifier_names_come_from_one_type():
         evaluate("no/such.pt", "no/data", identifier="adapted")
     assert "identifier" not in str(e.value)
     pattern = re.compile(r"""["'](min-entropy|max-conf)["']""")
-    allowed = {"ago_runtime/predict/contract.py", "ago_train/cli.py", "ago_train/open_world.py"}
+    allowed = {"ago_runtime/predict/decision.py", "ago_train/cli.py", "ago_train/open_world.py"}
     found = [str(p.relative_to(REPO)) for pkg in ("ago_runtime", "ago_train", "ago_export")
              for p in (REPO / pkg).rglob("*.py")
              if str(p.relative_to(REPO)) not in allowed and pattern.search(p.read_text())]

@@ -333,7 +333,7 @@ def test_voxel_stages_equal_the_model_for_any_depth(decoder_layers, adapter_dept
     the adapter's from h to g) gives the model's forward_hidden for any decoder / adapter depth."""
     from ago_export.graphs import PlanesGraph, VoxelsReference, voxel_stages
     from ago_runtime.geometry.camera import Rig
-    from ago_runtime.predict.contract import Branch
+    from ago_runtime.predict.decision import Branch
     from ago_runtime.geometry.preprocess import Preprocess
     from ago_train.model import ModelConfig
 

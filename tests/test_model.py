@@ -11,7 +11,7 @@ from torch import nn
 from ago_runtime.geometry.camera import Rig
 from ago_runtime.errors import AgoInputError
 from ago_train.model.config import ModelConfig
-from ago_train.model.text_logits import NO_PHRASE_SCORE, class_logits, open_world_identify
+from ago_train.model.text_logits import NO_PHRASE_SCORE, class_logits, decide
 from ago_train.model.tpv import ImageCrossAttention, project_to_cameras
 
 # static shapes are read as Python ints on purpose while tracing (fixed-size ONNX graph)
@@ -358,29 +358,36 @@ def test_class_logits_order_and_max_over_phrases():
     torch.testing.assert_close(text_g.grad, expected)
 
 
-def test_open_world_identify_modes():
+def test_decide_modes():
     K = 2
     # voxel 0: main confident (class 0), adapted flat; voxel 1: main flat, adapted confident (class 1)
     main = torch.tensor([[5.0, 0.0, 0.0, 9.0], [0.0, 0.0, 0.0, 0.0]])        # last column: a noise word
     adapted = torch.tensor([[0.0, 0.1, 0.0, 0.0], [0.0, 6.0, 0.0, 0.0]])
-    pred, branch, ent = open_world_identify(main, adapted, "min-entropy", num_classes=K)
-    assert pred.tolist() == [0, 1] and branch.tolist() == [0, 1]              # noise column ignored
-    assert torch.all(ent < np.log(3))
-    pred, branch, _ = open_world_identify(main, adapted, "max-conf", num_classes=K)
-    assert pred.tolist() == [0, 1] and branch.tolist() == [0, 1]
-    pred, branch, _ = open_world_identify(main, adapted, "none", num_classes=K)
-    assert branch.tolist() == [0, 0] and pred[0] == 0
+    d = decide(main, adapted, "min-entropy", num_classes=K)
+    assert d.label.tolist() == [0, 1] and d.branch.tolist() == [0, 1]          # noise column ignored
+    assert torch.all(d.entropy < np.log(3))
+    assert torch.equal(d.entropy, torch.where(d.branch == 1, d.entropy_adapted, d.entropy_main))
+    d = decide(main, adapted, "max-conf", num_classes=K)
+    assert d.label.tolist() == [0, 1] and d.branch.tolist() == [0, 1]
+    d = decide(main, adapted, "none", num_classes=K)
+    assert d.branch.tolist() == [0, 0] and d.label[0] == 0
+    # "none" needs no adapted logits and gives the main branch's argmax over [K classes + free]
+    alone = decide(main, None, "none", num_classes=K)
+    assert torch.equal(alone.label, d.label) and alone.entropy_adapted is None
+    assert torch.equal(alone.label, main[:, : K + 1].argmax(-1))
+    with pytest.raises(ValueError, match="reads the adapted branch"):
+        decide(main, None, "min-entropy", num_classes=K)
     with pytest.raises(ValueError):
-        open_world_identify(main, adapted, "vote", num_classes=K)
+        decide(main, adapted, "vote", num_classes=K)
     # a voxel the main branch calls free stays free, however sure the adapted branch is
     free_main = torch.tensor([[0.0, 0.0, 4.0, 0.0]])
     sure = torch.tensor([[0.0, 9.0, 0.0, 0.0]])
     for mode in ("min-entropy", "max-conf", "adapted"):
-        pred, branch, _ = open_world_identify(free_main, sure, mode, num_classes=K)
-        assert pred.tolist() == [K] and branch.tolist() == [0]
+        d = decide(free_main, sure, mode, num_classes=K)
+        assert d.label.tolist() == [K] and d.branch.tolist() == [0]
     # the scales are temperatures: a flat-looking adapted branch wins once its scale is large enough
     soft = torch.tensor([[0.0, 0.3, -9.0, 0.0]])
     firm = torch.tensor([[2.0, 0.0, -9.0, 0.0]])
-    assert open_world_identify(firm, soft, "min-entropy", K)[1].tolist() == [0]
-    pred, branch, _ = open_world_identify(firm, soft, "min-entropy", K, scale_adapted=20.0)
-    assert branch.tolist() == [1] and pred.tolist() == [1]
+    assert decide(firm, soft, "min-entropy", K).branch.tolist() == [0]
+    d = decide(firm, soft, "min-entropy", K, scales=(1.0, 20.0))
+    assert d.branch.tolist() == [1] and d.label.tolist() == [1]

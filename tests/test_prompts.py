@@ -214,13 +214,23 @@ def test_class_similarity_shape_and_symmetry():
     assert sim[1, 1] == 1.0  # barrier has one phrase
 
 
-def test_check_compatible():
+def test_check_bank_fits_is_the_one_bank_check():
+    """contract.check_bank_fits refuses a bank of another text encoder or width, or with more classes than
+    `ago infer` writes, naming the source; the old per-object checks are gone (one check, one message)."""
+    from ago_runtime.predict.bundle import Bundle
+    from ago_runtime.predict.contract import TextEncoderSpec, check_bank_fits
+
     bank = build_bank(parse_prompt_text("car: car\n"), FakeEncoder())
-    bank.check_compatible("fake-encoder", 16)
-    with pytest.raises(AgoInputError, match="rebuild"):
-        bank.check_compatible("all-MiniLM-L6-v2", 16, source="model.onnx")
+    check_bank_fits(bank, TextEncoderSpec("fake-encoder", "h", 16))
+    with pytest.raises(AgoInputError, match="rebuild") as e:
+        check_bank_fits(bank, TextEncoderSpec("all-MiniLM-L6-v2", "h", 16), source="model.onnx")
+    assert str(e.value).startswith("model.onnx:")
     with pytest.raises(AgoInputError, match="dim 16"):
-        bank.check_compatible("fake-encoder", 384)
+        check_bank_fits(bank, TextEncoderSpec("fake-encoder", "h", 384))
+    many = parse_prompt_text("".join(f"c{i}: thing {i}\n" for i in range(255)))
+    with pytest.raises(AgoInputError, match="255 classes"):
+        check_bank_fits(build_bank(many, FakeEncoder()), TextEncoderSpec("fake-encoder", "h", 16))
+    assert not hasattr(PromptBank, "check_compatible") and not hasattr(Bundle, "check_bank")
 
 
 def test_load_rejects_corrupt_and_foreign_files(tmp_path):

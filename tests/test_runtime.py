@@ -27,17 +27,15 @@ from ago_runtime.geometry.camera import CAMERA_NAMES, Rig
 from ago_runtime.classes import FREE, OCC3D_CLASSES, OCC3D_ID
 from ago_runtime.errors import AgoInputError
 from ago_runtime.predict import decision
-from ago_runtime.predict.contract import Branch, Identifier
+from ago_runtime.predict.decision import Branch, Identifier
+from ago_runtime.predict.classifier import VoxelClassifier, decide_block
 from ago_runtime.predict.heads import FoldedHeads, HeadWeights
 
 
 def decide_scores(folded, s_main, s_ad, identifier, volumes=False):
-    """The voxel decision of hand-made bias-free phrase scores (P+1, n) of both branches (every voxel)."""
-    z_main = folded.class_scores(s_main.copy(), Branch.MAIN)
-    free = decision.main_free(z_main, folded.num_classes)
-    need = decision.adapted_voxels(free, Identifier(identifier), volumes)
-    z_ad = folded.class_scores(s_ad[:, need].copy(), Branch.ADAPTED) if len(need) else None
-    return decision.decide(z_main, free, z_ad, need, identifier, folded.num_classes, folded.scales, volumes)
+    """The voxel decision of hand-made bias-free phrase scores (P+1, n) of both branches (every voxel), as the
+    slab loop takes it (classifier.decide_block)."""
+    return decide_block(folded, s_main.copy(), lambda need: s_ad[:, need].copy(), Identifier(identifier), volumes)
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_SAMPLE = REPO.parent / "shared" / "data" / "nuscenes-sample"
@@ -136,7 +134,8 @@ def test_folded_heads_match_unfolded_reference():
     emb = rng.standard_normal((P, 24)).astype(np.float32)
     h = rng.standard_normal((1000, 10)).astype(np.float32)
     g = rng.standard_normal((1000, 12)).astype(np.float32)
-    fh = FoldedHeads(w, emb, pc, K)
+    fh = FoldedHeads.fold(w, emb, pc, K)
+    run = VoxelClassifier().classify_hidden
     ref = {}
     for name, x, W, b in (("main", h, w.W_dec, w.b_dec), ("adapted", g, w.W_ad, w.b_ad)):
         s = (x.astype(np.float64) @ W.T.astype(np.float64) + b) @ np.concatenate([emb, w.free_embedding[None]]).T
@@ -146,7 +145,7 @@ def test_folded_heads_match_unfolded_reference():
         p = np.exp(z[:, :K] - z[:, :K].max(1, keepdims=True))
         p /= p.sum(1, keepdims=True)
         ref[name] = (z.argmax(1), -(p * np.log(p)).sum(1), p.max(1))
-    out = fh.run(h, g, "none", chunk=37)
+    out = run(h, g, fh, "none", chunk=37)
     assert np.array_equal(out["label"], ref["main"][0])
     np.testing.assert_allclose(out["entropy"], ref["main"][1], rtol=1e-4, atol=1e-4)
     np.testing.assert_allclose(out["confidence"], ref["main"][2], rtol=1e-4, atol=1e-5)
@@ -155,8 +154,8 @@ def test_folded_heads_match_unfolded_reference():
     # distribution (K classes only) has the lower entropy
     for scales in ((1.0, 1.0), (1.0, 5.0)):
         w.branch_scales = np.array(scales, np.float32)
-        fs = FoldedHeads(w, emb, pc, K)
-        both = fs.run(h, g, "min-entropy", chunk=1000)
+        fs = FoldedHeads.fold(w, emb, pc, K)
+        both = run(h, g, fs, "min-entropy", chunk=1000)
         cls = {}
         for (name, x, W, b), sc in zip((("main", h, w.W_dec, w.b_dec), ("adapted", g, w.W_ad, w.b_ad)), scales):
             s = (x.astype(np.float64) @ W.T.astype(np.float64) + b) @ emb.T.astype(np.float64)
@@ -172,10 +171,10 @@ def test_folded_heads_match_unfolded_reference():
         assert np.array_equal(both["label"][decided], want[decided])
         assert free.any() and (~free).any() and use_ad.any() and (~use_ad & ~free).any()
     w.branch_scales = None
-    conf = fh.run(h, g, "max-conf")
+    conf = run(h, g, fh, "max-conf")
     assert np.all(conf["label"][ref["main"][0] == K] == K)
     # chunking changes nothing but float rounding (BLAS blocks differ with the chunk width)
-    a, b = fh.run(h, g, chunk=7), fh.run(h, g, chunk=100000)
+    a, b = run(h, g, fh, chunk=7), run(h, g, fh, chunk=100000)
     assert np.array_equal(a["label"], b["label"]) and np.array_equal(a["branch"], b["branch"])
     np.testing.assert_allclose(a["entropy"], b["entropy"], rtol=1e-5, atol=1e-6)
 
@@ -267,10 +266,12 @@ def test_adapted_branch_runs_only_where_the_main_branch_sees_matter(bundle_dir, 
             # the full computation: both branches' scores on every voxel, the adapted one used everywhere
             full = {k: [] for k in ("label", "entropy", "confidence", "branch", "unexplained", "occupancy", "need")}
             for _a, _b, h, g in p.encoder.chunks(x, m):
-                z_main = folded.class_scores(p.encoder.scores(folded.A_main_T, h), Branch.MAIN)
+                z_main = decision.class_scores(p.encoder.scores(folded.A[Branch.MAIN], h), folded.c[Branch.MAIN],
+                                               folded.layout)
                 free = decision.main_free(z_main, K)
                 full["need"].append(np.isin(np.arange(len(h)), decision.adapted_voxels(free, ident, volumes)))
-                z_ad = folded.class_scores(p.encoder.scores(folded.A_ad_T, g), Branch.ADAPTED)
+                z_ad = decision.class_scores(p.encoder.scores(folded.A[Branch.ADAPTED], g), folded.c[Branch.ADAPTED],
+                                             folded.layout)
                 d = decision.decide(z_main, free, z_ad, np.arange(len(h)), ident, K, folded.scales, volumes)
                 for k in ("label", "entropy", "confidence", "branch", "unexplained", "occupancy"):
                     full[k].append(getattr(d, k))
@@ -656,7 +657,7 @@ def test_runtime_sessions_run_without_onnxruntime_memory_pattern(bundle_dir, tmp
     """Every graph session of a Predictor runs with the memory pattern off, cached optimised graph or not:
     with it on, the compact planes graph's first real frame after the warm-up ran 1.8x its steady time and
     the peak RSS was 1.5x (benchmarks/results/mem_pattern.md)."""
-    from ago_runtime.predict.contract import Branch
+    from ago_runtime.predict.decision import Branch
     from ago_runtime.predict.predictor import Predictor
 
     monkeypatch.setenv("AGO_CACHE_DIR", str(tmp_path / "cache"))
@@ -748,7 +749,7 @@ def test_unexplained_obstacle_score_on_hand_made_scores():
     z = np.zeros
     w = HeadWeights(z((C, 2), np.float32), z(C, np.float32), z((C, 2), np.float32), z(C, np.float32),
                     z(C, np.float32))
-    fh = FoldedHeads(w, np.eye(K, C, dtype=np.float32), np.arange(K), K)
+    fh = FoldedHeads.fold(w, np.eye(K, C, dtype=np.float32), np.arange(K), K)
     # rows: 3 phrases (one per class) + free; columns: 4 voxels
     main = np.array([[9, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 0], [0, 9, 0, 0]], np.float32)   # col 1: free
     main[:, 2] = [5, 5, 5, 0]        # occupied, classes tied: unexplained
@@ -777,8 +778,8 @@ def test_unexplained_score_sees_reference_classes_and_keeps_the_labels():
     z = np.zeros
     w = HeadWeights(z((C, 2), np.float32), z(C, np.float32), z((C, 2), np.float32), z(C, np.float32),
                     z(C, np.float32))
-    user = FoldedHeads(w, np.eye(2, C, dtype=np.float32), np.arange(2), 2)
-    with_ref = FoldedHeads(w, np.eye(3, C, dtype=np.float32), np.arange(3), 3, reference_classes=1)
+    user = FoldedHeads.fold(w, np.eye(2, C, dtype=np.float32), np.arange(2), 2)
+    with_ref = FoldedHeads.fold(w, np.eye(3, C, dtype=np.float32), np.arange(3), 3, reference_classes=1)
     # rows: user class 0, user class 1, [reference class 2,] free; columns: 3 voxels
     # col 0: user class 0; col 1: only the reference class matches (user-only heads call it free);
     # col 2: free
@@ -793,4 +794,4 @@ def test_unexplained_score_sees_reference_classes_and_keeps_the_labels():
         assert d_ref.occupancy[1] > 0.9 and d_ref.unexplained[1] > 0.9   # with them: occupied, unexplained
         assert d_ref.unexplained[0] < 0.01 and d_ref.occupancy[2] < 0.01
     with pytest.raises(ValueError):
-        FoldedHeads(w, np.eye(2, C, dtype=np.float32), np.arange(2), 2, reference_classes=2)
+        FoldedHeads.fold(w, np.eye(2, C, dtype=np.float32), np.arange(2), 2, reference_classes=2)

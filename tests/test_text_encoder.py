@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from ago_runtime.errors import AgoInputError
+from ago_runtime.predict.contract import TextEncoderSpec, check_bank_fits
 from ago_runtime.vocab.prompts import parse_prompt_file
 from ago_runtime.vocab import text_encoder as te
 from ago_runtime.vocab.tokenizer import WordPieceTokenizer, basic_tokenize
@@ -138,7 +139,7 @@ def test_build_bank_with_torch_and_onnx_agree(torch_encoder, onnx_fp32):
     assert a.encoder_variant == "torch-fp32" and b.encoder_variant == "onnx-fp32"
     assert a.encoder_hash != b.encoder_hash
     assert (a.embeddings * b.embeddings).sum(1).min() > 0.9999
-    b.check_compatible(a.encoder_id, a.dim)   # interchangeable: same id and dim
+    check_bank_fits(b, TextEncoderSpec(a.encoder_id, a.encoder_hash, a.dim))   # interchangeable: same id and dim
 
 
 # ---- where the runtime finds an encoder -----------------------------------------------------

@@ -44,7 +44,8 @@ from ago_runtime.geometry.grid import Grid
 from ago_runtime.geometry.preprocess import Preprocess
 from ago_runtime.paths import inside_root
 from ago_runtime.predict.contract import (BUNDLE_FORMAT, BUNDLE_FORMAT_VERSION, BUNDLE_JSON, BundleContract,  # noqa: F401
-                                          Identifier, check_bank_fits, file_sha256)
+                                          file_sha256)
+from ago_runtime.predict.decision import Identifier
 from ago_runtime.predict.heads import HeadWeights
 from ago_runtime.readers import open_npz, read_json
 
@@ -118,11 +119,6 @@ class Bundle:
     @property
     def trained_classes(self) -> list[str]:
         return self.contract.label_space.class_names
-
-    def check_bank(self, bank, source=None) -> None:
-        """A bank made by another text encoder or of another width than this bundle's, or with more classes
-        than `ago infer` writes: AgoInputError."""
-        check_bank_fits(bank, self.contract.text_encoder, source or self.root)
 
     def identifier_for(self, bank) -> Identifier:
         """The default identifier for `bank` (ago_runtime.predict.heads.default_identifier): the

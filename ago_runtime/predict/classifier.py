@@ -7,8 +7,10 @@ Data flows one way, slab by slab (n voxels of whole x-rows):
     -> z_adapted -> decision.decide -> label, entropy, confidence, branch (+ occupancy, unexplained)
 
 The encoder (ago_runtime.predict.encoder) only runs graphs, the folded heads (ago_runtime.predict.heads)
-only hold the folded bank, and the rule is ago_runtime.predict.decision. The whole grid's features never
-exist at once: memory follows the slab.
+only hold the folded bank (data), and the rule is ago_runtime.predict.decision; this module is the rule's
+only driver in the runtime (`ago infer`, `ago retrieve` through Predictor.predict_hidden, the export's parity
+check; tests/test_architecture.py checks it). The whole grid's features never exist at once: memory follows
+the slab.
 """
 
 from __future__ import annotations
@@ -18,8 +20,8 @@ import time
 import numpy as np
 
 from ago_runtime.predict import decision
-from ago_runtime.predict.contract import Branch, Identifier
-from ago_runtime.predict.heads import FoldedHeads
+from ago_runtime.predict.decision import Branch, Identifier
+from ago_runtime.predict.heads import SCORE_BUDGET_BYTES, FoldedHeads
 
 
 class FrameFeatures:
@@ -52,10 +54,14 @@ class FrameFeatures:
 
 
 class VoxelClassifier:
-    """An encoder's frames -> per-voxel decisions for a folded bank (see the module doc)."""
+    """Hidden features -> per-voxel decisions for a folded bank: the one driver of ago_runtime.predict.decision
+    (see the module doc). `classify` runs an encoder's graphs on a frame, slab by slab (`ago infer`);
+    `classify_hidden` takes the whole grid's h, g already computed (`ago retrieve`, benchmarks); `branch_labels`
+    gives each branch's own argmax on every voxel (the export's parity check). All three decide a block of
+    voxels in `decide_block`."""
 
-    def __init__(self, encoder):
-        self.encoder = encoder
+    def __init__(self, encoder=None):
+        self.encoder = encoder   # a SplitEncoder; None: classify_hidden only
 
     def classify(self, x: np.ndarray, m: np.ndarray, folded: FoldedHeads,
                  identifier: Identifier = Identifier.MIN_ENTROPY, volumes: bool = False,
@@ -69,12 +75,7 @@ class VoxelClassifier:
         identifier = Identifier(identifier)
         enc = self.encoder
         enc.check_folded(folded)
-        n = enc.grid.num_voxels
-        out = {"label": np.empty(n, np.uint8), "entropy": np.empty(n, np.float32),
-               "confidence": np.empty(n, np.float32), "branch": np.empty(n, np.uint8)}
-        if volumes:
-            out["unexplained"] = np.empty(n, np.float32)
-            out["occupancy"] = np.empty(n, np.float32)
+        out = _outputs(enc.grid.num_voxels, volumes)
         t_enc = t_heads = 0.0
         t = time.perf_counter()
         if features is not None:
@@ -84,30 +85,87 @@ class VoxelClassifier:
         elif planes is None:
             planes = enc.plane_maps(x, m)
         row = enc.grid.shape[1] * enc.grid.shape[2]
-        K = folded.num_classes
         for x0, x1 in enc.slabs(enc.slab_rows(folded.num_rows)):
             h = features.hidden_slab(enc, x0, x1) if features is not None else enc.hidden_slab(planes, x0, x1)
             s_main = enc.scores(folded.A[Branch.MAIN], h)
             t2 = time.perf_counter()
-            z_main = folded.class_scores(s_main, Branch.MAIN)
-            free = decision.main_free(z_main, K)
-            need = decision.adapted_voxels(free, identifier, volumes)
-            t3 = time.perf_counter()
-            z_ad = None
-            if len(need):
+            t_adapted = 0.0
+
+            def adapted_scores(need: np.ndarray) -> np.ndarray:
+                nonlocal t_adapted
+                t_a = time.perf_counter()
                 h_need = h if len(need) == len(h) else h[need]      # need is sorted: all = arange(n)
                 s_ad = enc.scores(folded.A[Branch.ADAPTED], enc.adapted_hidden(h_need))
-            t4 = time.perf_counter()
-            if len(need):
-                z_ad = folded.class_scores(s_ad, Branch.ADAPTED)
-            d = decision.decide(z_main, free, z_ad, need, identifier, K, folded.scales, volumes)
-            sl = slice(x0 * row, x1 * row)
-            out["label"][sl], out["entropy"][sl] = d.label, d.entropy
-            out["confidence"][sl], out["branch"][sl] = d.confidence, d.branch
-            if volumes:
-                out["unexplained"][sl], out["occupancy"][sl] = d.unexplained, d.occupancy
+                t_adapted += time.perf_counter() - t_a
+                return s_ad
+
+            d = decide_block(folded, s_main, adapted_scores, identifier, volumes)
+            _store(out, slice(x0 * row, x1 * row), d, volumes)
             t5 = time.perf_counter()
-            t_enc += (t2 - t) + (t4 - t3)
-            t_heads += (t3 - t2) + (t5 - t4)
+            t_enc += (t2 - t) + t_adapted
+            t_heads += (t5 - t2) - t_adapted
             t = t5
         return out, {"encoder": t_enc, "heads": t_heads}
+
+    def classify_hidden(self, h: np.ndarray, g: np.ndarray, folded: FoldedHeads,
+                        identifier: Identifier = Identifier.MIN_ENTROPY, volumes: bool = False,
+                        chunk: int | None = None) -> dict[str, np.ndarray]:
+        """The whole grid's hidden features h (N, Dh), g (N, Da) -> the dict of (N,) arrays `classify` gives,
+        in chunks of `chunk` voxels (default: the score block within SCORE_BUDGET_BYTES, 8192..131072 voxels);
+        the bank products in numpy."""
+        identifier = Identifier(identifier)
+        n = h.shape[0]
+        if g.shape[0] != n:
+            raise ValueError(f"h has {n} voxels but g has {g.shape[0]}")
+        chunk = int(chunk or np.clip(SCORE_BUDGET_BYTES // (4 * folded.num_rows), 8192, 131072))
+        out = _outputs(n, volumes)
+        for start in range(0, n, chunk):
+            sl = slice(start, min(n, start + chunk))
+            g_sl = g[sl]
+            d = decide_block(folded, folded.A[Branch.MAIN] @ h[sl].T,
+                             lambda need: folded.A[Branch.ADAPTED] @ g_sl[need].T, identifier, volumes)
+            _store(out, sl, d, volumes)
+        return out
+
+    def branch_labels(self, x: np.ndarray, m: np.ndarray, folded: FoldedHeads) -> dict[str, np.ndarray]:
+        """Each branch's own label on every voxel, {"main": (N,), "adapted": (N,)}: the argmax of its class
+        scores over [K_all classes + free] (no identifier, no scales), slab by slab."""
+        enc = self.encoder
+        enc.check_folded(folded)
+        out: dict[str, list] = {branch.value: [] for branch in Branch}
+        for _start, _stop, h, g in enc.chunks(x, m):
+            for branch, feats in ((Branch.MAIN, h), (Branch.ADAPTED, g)):
+                z = decision.class_scores(enc.scores(folded.A[branch], feats), folded.c[branch], folded.layout)
+                out[branch.value].append(decision.softmax_stats(z).label)
+        return {k: np.concatenate(v) for k, v in out.items()}
+
+
+def decide_block(folded: FoldedHeads, s_main: np.ndarray, adapted_scores, identifier: Identifier,
+                 volumes: bool) -> decision.Decision:
+    """One block of n voxels: s_main (P+1, n) the main branch's scores A x^T (overwritten); adapted_scores(need)
+    -> the adapted branch's scores (P+1, m) of the voxels `need` (sorted indices), asked for only when some
+    voxel needs them."""
+    K = folded.num_classes
+    z_main = decision.class_scores(s_main, folded.c[Branch.MAIN], folded.layout)
+    free = decision.main_free(z_main, K)
+    need = decision.adapted_voxels(free, identifier, volumes)
+    z_ad = None
+    if len(need):
+        z_ad = decision.class_scores(adapted_scores(need), folded.c[Branch.ADAPTED], folded.layout)
+    return decision.decide(z_main, free, z_ad, need, identifier, K, folded.scales, volumes)
+
+
+def _outputs(n: int, volumes: bool) -> dict[str, np.ndarray]:
+    out = {"label": np.empty(n, np.uint8), "entropy": np.empty(n, np.float32),
+           "confidence": np.empty(n, np.float32), "branch": np.empty(n, np.uint8)}
+    if volumes:
+        out["unexplained"] = np.empty(n, np.float32)
+        out["occupancy"] = np.empty(n, np.float32)
+    return out
+
+
+def _store(out: dict[str, np.ndarray], sl: slice, d: decision.Decision, volumes: bool) -> None:
+    out["label"][sl], out["entropy"][sl] = d.label, d.entropy
+    out["confidence"][sl], out["branch"][sl] = d.confidence, d.branch
+    if volumes:
+        out["unexplained"][sl], out["occupancy"][sl] = d.unexplained, d.occupancy

@@ -31,24 +31,27 @@ import numpy as np
 import typer
 
 from ago_runtime.errors import AgoInputError, one_line_warnings
-from ago_runtime.predict.contract import Identifier
+from ago_runtime.predict.decision import Identifier
 from ago_runtime.providers import Device, Precision
 
 
 def choose_bank(bundle, prompts: Optional[str], bank: Optional[str]):
     """The bank infer / demo / retrieve use, checked against the bundle once: --bank FILE (its text encoder,
-    width and class count: `check_bank_for_bundle`) or a bank the bundle ships; --prompts FILE or a shipped
+    width and class count: `contract.check_bank_fits`, naming the bank file) or a bank the bundle ships; --prompts FILE or a shipped
     name (`parse_prompt_file`'s one lookup, then `load_prompt_bank`: the class count before any encoding,
     the bundle's own bank or the cache, else encoded with the bundle's text encoder); else the bundle's
     default bank."""
-    from ago_runtime.vocab.bank import PromptBank, check_bank_for_bundle, load_prompt_bank
+    from ago_runtime.predict.contract import check_bank_fits
+    from ago_runtime.vocab.bank import PromptBank, load_prompt_bank
     from ago_runtime.vocab.prompts import parse_prompt_file
 
     if prompts and bank:
         raise AgoInputError("--bank", "give --prompts or --bank, not both")
     if bank:
         if Path(bank).is_file():
-            return check_bank_for_bundle(PromptBank.load(bank), bank, bundle)
+            loaded = PromptBank.load(bank)
+            check_bank_fits(loaded, bundle.contract.text_encoder, bank)   # naming the bank: it is what is rebuilt
+            return loaded
         if bank in bundle.banks:
             return bundle.load_bank(bank)
         raise AgoInputError(bank, f"prompt bank file not found (the bundle ships {sorted(bundle.banks)})")
@@ -120,7 +123,7 @@ def prediction_picture(pred, images: dict | None, title: str = "", kind: str = "
     """The PNG of one prediction. kind "full": class BEV, entropy BEV, adapted-branch share, legend and
     the rig's cameras; "bev": the class BEV and the legend only (a few ms)."""
     from ago_runtime.pictures import render
-    from ago_runtime.predict.contract import Identifier
+    from ago_runtime.predict.decision import Identifier
     from ago_runtime.predict.predictor import UNEXPLAINED_THRESHOLD
 
     colors = render.palette_for(pred.class_names)

@@ -21,9 +21,10 @@ the training rig, sha256 entries), so a bundle whose hashes were recomputed afte
 before any work; the graphs' inputs and outputs are the contract's (`planes_signature`, `stage_signature`),
 checked when a graph is opened (`check_graph`, from ago_runtime/predict/encoder.py).
 
-Also here: the identifier names (`Identifier`), the two branches (`Branch`), the compatibility of a
-prompt bank with a bundle (`check_bank_fits`: text encoder id and width, class count) and of a frame's
-cameras with the rig (`RigSpec.check_cameras`).
+Also here: the one check of a prompt bank against a bundle (`check_bank_fits`: text encoder id and width,
+class count; every user of a bank calls it) and of a frame's cameras with the rig (`RigSpec.check_cameras`).
+The identifier names (`Identifier`) and the two branches (`Branch`) are the decision's
+(ago_runtime.predict.decision).
 """
 
 from __future__ import annotations
@@ -31,14 +32,14 @@ from __future__ import annotations
 import math
 import re
 from dataclasses import asdict, dataclass, field
-from enum import Enum
 
 from ago_runtime.classes import OCC3D_NUSCENES, ClassTable, table_from_ref, table_record
 from ago_runtime.errors import AgoInputError
 from ago_runtime.geometry.camera import Rig, check_camera_names
 from ago_runtime.geometry.grid import check_grid_dict
+from ago_runtime.predict.decision import Branch, Identifier
 
-__all__ = ["BUNDLE_FORMAT", "BUNDLE_FORMAT_VERSION", "BUNDLE_JSON", "Identifier", "Branch", "FileEntry",
+__all__ = ["BUNDLE_FORMAT", "BUNDLE_FORMAT_VERSION", "BUNDLE_JSON", "FileEntry",
            "VoxelStageSpec", "CameraSlot", "RigSpec", "TextEncoderSpec", "LabelClass", "LabelSpaceSpec",
            "BundleContract", "TensorSpec", "planes_signature", "planes_width", "stage_signature", "check_graph",
            "check_bank_fits", "file_sha256", "reexport_hint"]
@@ -59,44 +60,6 @@ MAX_EMBED_DIM = 8192            # a text embedding's or a hidden layer's width
 MAX_IMAGE_SIDE = 16384          # a model input image's side (pixels)
 FLOAT_TENSOR = "tensor(float)"  # onnxruntime's name of a float32 graph input / output
 REBUILD_BANK = "rebuild it with `ago prompts build <prompt file> -o BANK`"
-
-
-class _Name(str, Enum):
-    """An enum whose members are their names as strings (`str(m)`, f-strings and JSON give the value)."""
-
-    def __str__(self) -> str:
-        return self.value
-
-    def __format__(self, spec: str) -> str:
-        return format(self.value, spec)
-
-
-class Identifier(_Name):
-    """How a voxel's class is chosen between the two branches (ago_runtime.predict.decision.decide)."""
-
-    MIN_ENTROPY = "min-entropy"   # the branch whose class distribution has the lower entropy
-    MAX_CONF = "max-conf"         # the branch with the higher max probability
-    NONE = "none"                 # the main branch (F_3D) alone
-    ADAPTED = "adapted"           # the adapted branch (F~_3D) on every occupied voxel
-
-    @classmethod
-    def names(cls) -> list[str]:
-        return [i.value for i in cls]
-
-    @classmethod
-    def parse(cls, value, source=None) -> "Identifier":
-        """`value` (an Identifier or its name) -> Identifier; AgoInputError naming `source` otherwise."""
-        try:
-            return cls(value)
-        except ValueError:
-            raise AgoInputError(source, f"must be one of {', '.join(cls.names())}, got {value!r}") from None
-
-
-class Branch(_Name):
-    """The two per-voxel embeddings: F_3D (main, from the decoder's h) and F~_3D (adapted, from the adapter's g)."""
-
-    MAIN = "main"
-    ADAPTED = "adapted"
 
 
 def reexport_hint(version) -> str:
@@ -487,8 +450,10 @@ class BundleContract:
 
 
 def check_bank_fits(bank, text_encoder: TextEncoderSpec, source=None) -> None:
-    """A prompt bank made by another text encoder or of another width than the bundle's, or with more
-    classes than `ago infer` writes: AgoInputError naming `source` (the bank file or the bundle)."""
+    """The one check of a prompt bank against a bundle (its `contract.text_encoder`; `ago export` passes the
+    training bank's before the contract exists): a bank made by another text encoder or of another width, or
+    with more classes than `ago infer` writes, is refused with AgoInputError naming `source` (the bank file,
+    the prompt file, the bundle or the checkpoint)."""
     from ago_runtime.vocab.bank import check_class_count
 
     text_encoder.check_made_by(bank.encoder_id, bank.dim, source, "prompt bank", REBUILD_BANK)

@@ -1,8 +1,11 @@
 """The voxel decision: the one specification, in numpy, of how per-voxel features become a label.
 
-Used by the runtime's slab loop (ago_runtime.predict.classifier.VoxelClassifier, float32), by the export
-parity reference (ago_export/parity.py: the same functions in float64 on the torch model's embeddings) and
-compared against the torch training path (ago_train.model.text_logits; tests/test_decision.py).
+Driven in the runtime by one caller, the slab loop (ago_runtime.predict.classifier.VoxelClassifier, float32:
+`ago infer`, `ago retrieve`, the export's parity check; tests/test_architecture.py checks that nothing else in
+ago_runtime calls it); also by the export parity reference (ago_export/parity.py: the same functions in float64
+on the torch model's embeddings) and compared against the torch training path (ago_train.model.text_logits.decide;
+tests/test_decision.py). The names of a decision live here too: `Identifier` (how a voxel's branch is chosen)
+and `Branch` (main, adapted); the bundle contract and ago_train import them from here.
 
 Inputs: a prompt bank (P phrase embeddings t_p of width C, phrase p belonging to class k(p) of K) and the
 bundle's linear heads (heads.npz, `HeadWeights`): per voxel the main embedding F = h W_dec^T + b_dec
@@ -16,8 +19,9 @@ bundle's linear heads (heads.npz, `HeadWeights`): per voxel the main embedding F
    adapted_mean / adapted_cov; without them sd = 1, m = 0.)
 2. Fold (`fold`): R and o into the linear head, s = A x + c with A = R W, c = R b + o, x = h or g; so a bank
    costs one (P+1) x D product per voxel.
-3. Class scores (`class_scores`): class k scores the max over its phrases' scores; the free row stays.
-   Layout is class-major, z (K+1, n): phrases sorted by class (`PhraseLayout`), the free row last.
+3. Class scores (`class_scores`): class k scores the max over its phrases' scores (the vocabulary's one rule,
+   ago_runtime.vocab.phrase_layout); the free row stays. Layout is class-major, z (K+1, n): phrases sorted by
+   class (`PhraseLayout`), the free row last.
 4. The decision (`main_free`, `decide`), for the K user classes (the first K rows; rows K..K_all-1 are
    reference classes that only the unexplained-obstacle score reads):
      free     = the main branch's argmax over [K classes + free] is free (class max < free score)
@@ -41,11 +45,58 @@ are class-major (rows = classes, columns = voxels).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import Enum
 
 import cv2
 import numpy as np
 
-from ago_runtime.predict.contract import Branch, Identifier
+from ago_runtime.errors import AgoInputError
+from ago_runtime.vocab.phrase_layout import PhraseLayout
+
+
+# ---- names -------------------------------------------------------------------------------------
+class _Name(str, Enum):
+    """An enum whose members are their names as strings (`str(m)`, f-strings and JSON give the value)."""
+
+    def __str__(self) -> str:
+        return self.value
+
+    def __format__(self, spec: str) -> str:
+        return format(self.value, spec)
+
+
+class Identifier(_Name):
+    """How a voxel's class is chosen between the two branches (`decide`)."""
+
+    MIN_ENTROPY = "min-entropy"   # the branch whose class distribution has the lower entropy
+    MAX_CONF = "max-conf"         # the branch with the higher max probability
+    NONE = "none"                 # the main branch (F_3D) alone
+    ADAPTED = "adapted"           # the adapted branch (F~_3D) on every occupied voxel
+
+    @property
+    def reads_adapted(self) -> bool:
+        """Whether this identifier's labels read the adapted branch (every identifier but NONE)."""
+        return self is not Identifier.NONE
+
+    @classmethod
+    def names(cls) -> list[str]:
+        return [i.value for i in cls]
+
+    @classmethod
+    def parse(cls, value, source=None) -> "Identifier":
+        """`value` (an Identifier or its name) -> Identifier; AgoInputError naming `source` otherwise."""
+        try:
+            return cls(value)
+        except ValueError:
+            raise AgoInputError(source, f"must be one of {', '.join(cls.names())}, got {value!r}") from None
+
+
+class Branch(_Name):
+    """The two per-voxel embeddings: F_3D (main, from the decoder's h) and F~_3D (adapted, from the adapter's g)."""
+
+    MAIN = "main"
+    ADAPTED = "adapted"
+
 
 
 # ---- 1-2. score rows and folding --------------------------------------------------------------
@@ -80,52 +131,22 @@ def fold(heads, phrases: np.ndarray, branch: Branch) -> tuple[np.ndarray, np.nda
 
 
 # ---- 3. class scores ----------------------------------------------------------------------------
-class PhraseLayout:
-    """Phrases grouped by class: `order` sorts a bank's phrases by class (stable); `row_starts` (K_all + 1,)
-    are the first rows of each class and of free (the last) in that order."""
-
-    def __init__(self, phrase_class: np.ndarray, num_classes: int):
-        pc = np.asarray(phrase_class, dtype=np.int64)
-        if pc.ndim != 1 or pc.min(initial=0) < 0 or pc.max(initial=0) >= num_classes:
-            raise ValueError("phrase_class must give one class in 0..K-1 per phrase")
-        counts = np.bincount(pc, minlength=num_classes)
-        missing = np.flatnonzero(counts == 0).tolist()
-        if missing:
-            raise ValueError(f"classes {missing} have no phrase")
-        self.order = np.argsort(pc, kind="stable")
-        self.row_starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.intp)
-        self.one_phrase_per_class = bool(np.all(counts == 1))
-
-    @property
-    def num_rows(self) -> int:
-        return int(self.row_starts[-1]) + 1
-
-
 def class_scores(s: np.ndarray, c: np.ndarray, layout: PhraseLayout) -> np.ndarray:
     """(P+1, n) scores without their offset, phrases in layout order, free last (overwritten) + c (P+1, 1)
-    -> (K_all + 1, n) class scores: the max over each class's phrases; the last row is free.
-
-    A loop over classes of row-wise maxima (vectorised over the n voxels); the offset is added in the same
-    pass."""
+    -> (K_all + 1, n) class scores: the max over each class's phrases (`PhraseLayout.class_max`, the one
+    max-over-phrases rule); the last row is free."""
+    s += c
     if layout.one_phrase_per_class:
-        s += c
         return s
-    starts = layout.row_starts
-    ends = np.append(starts[1:], s.shape[0])
-    out = np.empty((len(starts), s.shape[1]), s.dtype)
-    for k, (a, b) in enumerate(zip(starts, ends)):
-        if b - a == 1:
-            np.add(s[a], c[a], out=out[k])
-        else:
-            rows = s[a:b]
-            rows += c[a:b]
-            np.max(rows, axis=0, out=out[k])
+    out = np.empty((layout.num_classes + 1, s.shape[1]), s.dtype)
+    layout.class_max(s[:-1], out=out[:-1])
+    out[-1] = s[-1]
     return out
 
 
 # ---- 4. the decision -----------------------------------------------------------------------------
 @dataclass
-class Softmax:
+class SoftmaxStats:
     """Per voxel of a class-major score block: argmax, entropy (nats) and max probability of its softmax."""
 
     label: np.ndarray       # (n,) intp row index
@@ -133,7 +154,7 @@ class Softmax:
     confidence: np.ndarray  # (n,)
 
 
-def softmax_stats(z: np.ndarray) -> Softmax:
+def softmax_stats(z: np.ndarray) -> SoftmaxStats:
     """(R, n) scores -> argmax, entropy, max probability over the R rows (z is overwritten)."""
     z -= z.max(axis=0)                      # z <= 0, 0 at the argmax
     # argmax = the first row where z == 0 (a backwards loop of row compares beats np.argmax over a short axis)
@@ -144,7 +165,7 @@ def softmax_stats(z: np.ndarray) -> Softmax:
     total = e.sum(axis=0)                   # >= 1
     entropy = np.log(total) - np.einsum("kn,kn->n", e, z, optimize=False) / total   # log Z - sum p z
     np.maximum(entropy, 0.0, out=entropy)
-    return Softmax(label, entropy.astype(z.dtype, copy=False), (1.0 / total).astype(z.dtype, copy=False))
+    return SoftmaxStats(label, entropy.astype(z.dtype, copy=False), (1.0 / total).astype(z.dtype, copy=False))
 
 
 def main_free(z_main: np.ndarray, num_classes: int) -> np.ndarray:
@@ -158,7 +179,7 @@ def adapted_voxels(free: np.ndarray, identifier: Identifier, volumes: bool = Fal
     voxel with volumes (the unexplained-obstacle score reads both branches everywhere)."""
     if volumes:
         return np.arange(len(free))
-    if identifier == Identifier.NONE:
+    if not Identifier(identifier).reads_adapted:
         return np.zeros(0, np.intp)
     return np.flatnonzero(~free)
 

@@ -37,8 +37,8 @@ from ago_runtime.providers import Device, Precision
 from ago_runtime.errors import AgoInputError
 from ago_runtime.geometry.grid import Grid
 from ago_runtime.predict.bank_product import BankProduct
-from ago_runtime.predict.contract import (Branch, VoxelStageSpec, check_graph, planes_signature, planes_width,
-                                          stage_signature)
+from ago_runtime.predict.contract import VoxelStageSpec, check_graph, planes_signature, planes_width, stage_signature
+from ago_runtime.predict.decision import Branch
 from ago_runtime.predict.heads import SCORE_BUDGET_BYTES
 
 PLANE_OUTPUTS = ["plane_xy", "plane_xz", "plane_yz"]
@@ -200,7 +200,7 @@ class SplitEncoder:
         return self.bank_product(bank, x)
 
     def check_folded(self, folded) -> None:
-        if folded.A_main_T.shape[1] != self.widths[Branch.MAIN] or folded.A_ad_T.shape[1] != self.widths[Branch.ADAPTED]:
+        if any(folded.width(branch) != self.widths[branch] for branch in Branch):
             raise AgoInputError(self.planes_path, "folded bank widths do not match the voxel stages' hidden widths")
 
     def chunks(self, images: np.ndarray, ego2img: np.ndarray) -> Iterator[tuple[int, int, np.ndarray, np.ndarray]]:

@@ -3,11 +3,11 @@
 `HeadWeights`: W_dec (C, Dh), b_dec (C,), W_ad (C, Da), b_ad (C,), free_embedding (C,), the identifier's
 branch scales, the adapted branch's standardisation statistics and the free bias.
 
-`FoldedHeads`: a bank folded into both heads (ago_runtime.predict.decision.fold), so that a branch's phrase
+`FoldedHeads`: a bank folded into both heads (ago_runtime.predict.decision.fold), as data: a branch's phrase
 and free scores of hidden features x (n, D) are A x + c, one (P+1) x D product per voxel. Phrases are
-sorted by class (decision.PhraseLayout), so class scores, softmax and argmax are element-wise operations
-over long rows of n voxels. The decision itself (identifier, entropy, free) is
-ago_runtime.predict.decision; the slab loop that feeds it is ago_runtime.predict.classifier.
+sorted by class (PhraseLayout), so class scores, softmax and argmax are element-wise operations over long
+rows of n voxels. The decision itself (identifier, entropy, free) is ago_runtime.predict.decision; its one
+driver, the slab loop, is ago_runtime.predict.classifier.VoxelClassifier.
 
 Also: the default identifier of a bank, unfolded embeddings and cosine similarities (retrieval).
 """
@@ -19,10 +19,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from ago_runtime.predict import decision
-from ago_runtime.predict.contract import Branch, Identifier
+from ago_runtime.predict.decision import Branch, Identifier
+from ago_runtime.vocab.phrase_layout import PhraseLayout
 
 DEFAULT_CHUNK = 16384           # voxels per chunk for the unfolded helpers below
-SCORE_BUDGET_BYTES = 64 << 20   # FoldedHeads: a chunk's (P', n) score block stays under this
+SCORE_BUDGET_BYTES = 64 << 20   # a slab's or chunk's (P', n) score block of a folded bank stays under this
 
 
 def default_identifier(class_names, known, trained_classes,
@@ -83,85 +84,60 @@ class HeadWeights:
         return out
 
 
+@dataclass(eq=False)
 class FoldedHeads:
-    """A bank folded into both heads; `phrase_class` (P,) maps each phrase to its class in 0..K_all-1.
+    """A bank folded into both heads, as data (the slab loop that uses it: ago_runtime.predict.classifier).
 
-    Per branch: A (P+1, D) and c (P+1, 1) float32 with the phrases in class order and free last, so the
-    branch's class scores of features x (n, D) are `class_scores(A x^T, branch)` (K_all + 1, n)."""
+    Per branch: A (P+1, D) and c (P+1, 1), the phrases in class order (`layout`) and free last, so that the
+    branch's class scores of features x (n, D) are decision.class_scores(A x^T, c, layout) (K_all + 1, n).
+    `scales`: the identifier's branch scales. `num_all` = K_all classes, the last `reference_classes` of them
+    not the user's (Predictor.fold_with_reference): they never appear in the labels; they only let the
+    unexplained-obstacle score see what the model takes a voxel to be when no prompt matches it. Labels,
+    entropy and confidence come from the first K = `num_classes` classes + free, exactly as without them.
 
-    def __init__(self, weights: HeadWeights, phrase_embeddings: np.ndarray, phrase_class: np.ndarray,
-                 num_classes: int, reference_classes: int = 0):
-        """`reference_classes` R: the last R of the `num_classes` classes are not the user's but the
-        bundle's own training classes that no user class covers (Predictor.fold_with_reference). They
-        never appear in the labels; they only let the unexplained-obstacle score see what the model
-        takes a voxel to be when no prompt matches it. Labels, entropy and confidence come from the
-        first K = num_classes - R classes + free, exactly as without them."""
+    `FoldedHeads.fold(weights, phrase_embeddings, phrase_class, num_classes, reference_classes)` makes one
+    (float32)."""
+
+    A: dict[Branch, np.ndarray]
+    c: dict[Branch, np.ndarray]
+    layout: PhraseLayout
+    scales: tuple[float, float]
+    num_all: int
+    reference_classes: int = 0
+
+    @classmethod
+    def fold(cls, weights: HeadWeights, phrase_embeddings: np.ndarray, phrase_class: np.ndarray,
+             num_classes: int, reference_classes: int = 0) -> "FoldedHeads":
+        """The bank (P phrase embeddings, `phrase_class` (P,) in 0..num_classes-1) folded into both heads
+        (decision.fold), float32."""
         emb = np.asarray(phrase_embeddings, dtype=np.float32)
         if emb.ndim != 2 or emb.shape[1] != weights.embed_dim:
             raise ValueError(f"bank embeddings {emb.shape} do not match the head width {weights.embed_dim}")
         if np.shape(phrase_class) != (emb.shape[0],):
             raise ValueError("phrase_class must give one class in 0..K-1 per phrase")
-        self.layout = decision.PhraseLayout(phrase_class, num_classes)
+        layout = PhraseLayout(phrase_class, num_classes)
         if not 0 <= int(reference_classes) < int(num_classes):
             raise ValueError("reference_classes must leave at least one user class")
-        self.num_all = int(num_classes)                       # user + reference classes
-        self.reference_classes = int(reference_classes)
-        self.num_classes = self.num_all - self.reference_classes   # K: the user's classes
-        phrases = emb[self.layout.order]
-        self.A, self.c = {}, {}
+        phrases = emb[layout.order]
+        A, c = {}, {}
         for branch in Branch:
-            A, c = decision.fold(weights, phrases, branch)
-            self.A[branch] = np.ascontiguousarray(A, dtype=np.float32)       # (P+1, D)
-            self.c[branch] = c.astype(np.float32)[:, None]                  # (P+1, 1)
-        self.scales = weights.scales
+            A_b, c_b = decision.fold(weights, phrases, branch)
+            A[branch] = np.ascontiguousarray(A_b, dtype=np.float32)       # (P+1, D)
+            c[branch] = c_b.astype(np.float32)[:, None]                   # (P+1, 1)
+        return cls(A, c, layout, weights.scales, int(num_classes), int(reference_classes))
 
     @property
-    def A_main_T(self) -> np.ndarray:
-        return self.A[Branch.MAIN]
-
-    @property
-    def A_ad_T(self) -> np.ndarray:
-        return self.A[Branch.ADAPTED]
+    def num_classes(self) -> int:
+        """K: the user's classes."""
+        return self.num_all - self.reference_classes
 
     @property
     def num_rows(self) -> int:
         return self.layout.num_rows
 
-    def class_scores(self, s: np.ndarray, branch: Branch) -> np.ndarray:
-        """(P+1, n) scores A x^T of a branch (overwritten) -> (K_all + 1, n) class scores, free last."""
-        return decision.class_scores(s, self.c[Branch(branch)], self.layout)
-
-    def classify(self, h: np.ndarray, g: np.ndarray, identifier: Identifier = Identifier.MIN_ENTROPY,
-                 volumes: bool = False) -> decision.Decision:
-        """One block of n voxels from their hidden features h (n, Dh), g (n, Da) (numpy products; the runtime's
-        slab loop runs its products in onnxruntime: ago_runtime.predict.classifier)."""
-        identifier = Identifier(identifier)
-        z_main = self.class_scores(self.A_main_T @ h.T, Branch.MAIN)
-        free = decision.main_free(z_main, self.num_classes)
-        need = decision.adapted_voxels(free, identifier, volumes)
-        z_ad = self.class_scores(self.A_ad_T @ g[need].T, Branch.ADAPTED) if len(need) else None
-        return decision.decide(z_main, free, z_ad, need, identifier, self.num_classes, self.scales, volumes)
-
-    @property
-    def default_chunk(self) -> int:
-        """Voxels per chunk: the (P', n) score block within SCORE_BUDGET_BYTES, 8192..131072 voxels."""
-        return int(np.clip(SCORE_BUDGET_BYTES // (4 * self.num_rows), 8192, 131072))
-
-    def run(self, h: np.ndarray, g: np.ndarray, identifier: Identifier = Identifier.MIN_ENTROPY,
-            chunk: int | None = None) -> dict[str, np.ndarray]:
-        """All N voxels, in chunks -> dict of (N,) arrays: label (uint8), entropy, confidence, branch."""
-        chunk = int(chunk or self.default_chunk)
-        n = h.shape[0]
-        if g.shape[0] != n:
-            raise ValueError(f"h has {n} voxels but g has {g.shape[0]}")
-        out = {"label": np.empty(n, np.uint8), "entropy": np.empty(n, np.float32),
-               "confidence": np.empty(n, np.float32), "branch": np.empty(n, np.uint8)}
-        for start in range(0, n, chunk):
-            sl = slice(start, min(n, start + chunk))
-            d = self.classify(h[sl], g[sl], identifier)
-            out["label"][sl], out["entropy"][sl] = d.label, d.entropy
-            out["confidence"][sl], out["branch"][sl] = d.confidence, d.branch
-        return out
+    def width(self, branch: Branch) -> int:
+        """D of a branch: the width of the hidden features its A takes."""
+        return int(self.A[Branch(branch)].shape[1])
 
 
 def embeddings(x: np.ndarray, W: np.ndarray, b: np.ndarray, chunk: int = DEFAULT_CHUNK) -> np.ndarray:

@@ -9,8 +9,9 @@
 Steps: Preprocess (resize to the model's input size, ImageNet normalisation; intrinsics scaled to
 match) -> the ONNX encoder (onnxruntime; ago_runtime/predict/encoder.py: the TPV planes once, then the
 per-voxel MLPs slab by slab) -> the slab loop (ago_runtime.predict.classifier.VoxelClassifier): the bank
-folded into the linear heads (ago_runtime.predict.heads.FoldedHeads), class scores, and the voxel decision
-(ago_runtime.predict.decision: free, identifier, entropy, label). The whole grid's (N, Dh) and (N, Da)
+folded into the linear heads (ago_runtime.predict.heads.FoldedHeads, data), class scores, and the voxel decision
+(ago_runtime.predict.decision: free, identifier, entropy, label); every prediction, `predict_hidden` included,
+goes through that slab loop. The whole grid's (N, Dh) and (N, Da)
 features never exist at once, so memory follows the slab, not the grid.
 
 Swapping the bank (a new prompt file) changes the classes with no retraining and no re-export:
@@ -38,7 +39,8 @@ from ago_runtime.geometry.camera import Rig
 from ago_runtime.geometry.grid import Grid
 from ago_runtime.predict.bundle import Bundle
 from ago_runtime.predict.classifier import FrameFeatures, VoxelClassifier
-from ago_runtime.predict.contract import Identifier
+from ago_runtime.predict.contract import check_bank_fits
+from ago_runtime.predict.decision import Identifier
 from ago_runtime.predict.encoder import open_encoder
 from ago_runtime.predict.frames import InputFrame
 from ago_runtime.predict.heads import FoldedHeads
@@ -177,9 +179,9 @@ class Predictor:
         """The bank folded into the heads (cached per bank content)."""
         key = bank_key(bank)
         if key not in self._folded:
-            self.bundle.check_bank(bank)
-            self._folded[key] = FoldedHeads(self.bundle.heads, bank.embeddings, bank.phrase_class,
-                                            bank.num_classes)
+            check_bank_fits(bank, self.bundle.contract.text_encoder, self.bundle.root)
+            self._folded[key] = FoldedHeads.fold(self.bundle.heads, bank.embeddings, bank.phrase_class,
+                                                 bank.num_classes)
         return self._folded[key]
 
     def fold_with_reference(self, bank) -> FoldedHeads:
@@ -191,7 +193,7 @@ class Predictor:
         as something no prompt explains. Labels are unchanged (FoldedHeads ignores the reference rows)."""
         key = bank_key(bank) + "+reference"   # the bundle's training bank is fixed: one entry per user bank
         if key not in self._folded:
-            self.bundle.check_bank(bank)
+            check_bank_fits(bank, self.bundle.contract.text_encoder, self.bundle.root)
             train = self.bundle.load_bank()
             covered = {i for ids in bank.occ3d_ids for i in ids}
             user_phrases = set(bank.phrases)
@@ -205,8 +207,8 @@ class Predictor:
             remap = {k: bank.num_classes + i for i, k in enumerate(ref)}
             emb = np.concatenate([bank.embeddings, train.embeddings[keep]])
             pc = np.concatenate([bank.phrase_class, [remap[int(c)] for c in train.phrase_class[keep]]]).astype(np.int64)
-            self._folded[key] = FoldedHeads(self.bundle.heads, emb, pc, bank.num_classes + len(ref),
-                                            reference_classes=len(ref))
+            self._folded[key] = FoldedHeads.fold(self.bundle.heads, emb, pc, bank.num_classes + len(ref),
+                                                 reference_classes=len(ref))
         return self._folded[key]
 
     # ---- encoder ---------------------------------------------------------------------------
@@ -291,11 +293,12 @@ class Predictor:
 
     def predict_hidden(self, h: np.ndarray, g: np.ndarray, bank, identifier: Identifier = Identifier.MIN_ENTROPY,
                        folded: FoldedHeads | None = None) -> Prediction:
-        """Whole-grid hidden features -> Prediction (heads only; benchmarks and tests)."""
+        """Whole-grid hidden features -> Prediction (the slab loop's `classify_hidden`: `ago retrieve`, benchmarks
+        and tests)."""
         folded = folded or self.fold(bank)
         check_class_count(bank.num_classes, None)
         identifier = Identifier(identifier)
-        return self._prediction(folded.run(h, g, identifier), bank, identifier)
+        return self._prediction(self.classifier.classify_hidden(h, g, folded, identifier), bank, identifier)
 
     def _prediction(self, out: dict, bank, identifier: Identifier) -> Prediction:
         shape = self.grid.shape

@@ -3,11 +3,12 @@
 A PromptBank holds embeddings (P, C) float32 of the P phrases of a label space (phrase i belongs
 to class phrase_class[i]), the class names, known set and Occ3D ids, and which encoder (id,
 variant, sha256 of its weights file) and template made them. Class score = max over the class's
-phrases: `class_scores(phrase_scores)`.
+phrases: `class_scores(phrase_scores)` (the rule of ago_runtime.vocab.phrase_layout, as the voxel decision's).
 
 Compatibility rule: a bank fits a model when encoder_id and dim match the model's; the variant
 (torch fp32, ONNX fp32, ONNX int8) does not matter (they agree to cosine >= 0.999, measured in
-docs/prompts.md). Anything else is refused by `check_compatible` with a clear message.
+docs/prompts.md). Anything else is refused, with a clear message, by the one check of a bank against a
+bundle, ago_runtime.predict.contract.check_bank_fits.
 
 File format (np.load(..., allow_pickle=False) only): arrays `embeddings` float32 (P, C),
 `phrases` and `class_names` fixed-width unicode, `phrase_class` int64 (P,), and `meta`, a
@@ -28,6 +29,7 @@ from ago_runtime.atomic import save_npz
 from ago_runtime.classes import OCC3D_NUSCENES, ClassTable, table_from_ref, table_record
 from ago_runtime.errors import AgoInputError
 from ago_runtime.readers import open_npz
+from ago_runtime.vocab.phrase_layout import PhraseLayout
 from ago_runtime.vocab.prompts import LabelSpace, parse_prompt_file
 
 FORMAT_VERSION = 1
@@ -93,10 +95,7 @@ class PromptBank:
             raise AgoInputError(path, f"occ3d_ids {strange[:8]} are not ids of its class table {self.class_table.name}")
         if not np.isfinite(self.embeddings).all():
             raise AgoInputError(path, "embeddings contain NaN or inf")
-        # Segment layout for class_scores: phrases sorted by class (stable), start of each class.
-        self._order = np.argsort(self.phrase_class, kind="stable")
-        self._starts = np.searchsorted(self.phrase_class[self._order], np.arange(k))
-        self._sorted = bool((self._order == np.arange(p)).all())
+        self._layout = PhraseLayout(self.phrase_class, k)   # phrases by class, for class_scores
 
     @property
     def num_classes(self) -> int:
@@ -114,9 +113,10 @@ class PromptBank:
         s = np.asarray(phrase_scores)
         if s.shape[-1] != self.num_phrases:
             raise ValueError(f"last axis has {s.shape[-1]} scores, the bank has {self.num_phrases} phrases")
-        if not self._sorted:
-            s = s[..., self._order]
-        return np.maximum.reduceat(s, self._starts, axis=-1)
+        s = np.moveaxis(s, -1, 0)
+        if not self._layout.in_order:
+            s = s[self._layout.order]
+        return np.moveaxis(self._layout.class_max(s), 0, -1)
 
     def class_similarity(self) -> np.ndarray:
         """(K, K) max cosine over phrase pairs of two classes (diagonal: max over distinct phrases, 1 if one)."""
@@ -128,17 +128,6 @@ class PromptBank:
         single = np.bincount(self.phrase_class, minlength=self.num_classes) == 1
         out[single, single] = 1.0
         return out
-
-    def check_compatible(self, encoder_id: str, dim: int, source: str | Path | None = None) -> None:
-        """Raise AgoInputError unless this bank was made by encoder `encoder_id` of width `dim`.
-
-        `source` names what asks (a model / checkpoint path) for the message.
-        """
-        who = f"{source} expects" if source else "expected"
-        if self.encoder_id != encoder_id or int(self.dim) != int(dim):
-            raise AgoInputError(source, f"prompt bank made by text encoder {self.encoder_id!r} (dim {self.dim}), "
-                                f"{who} {encoder_id!r} (dim {dim}); rebuild it with "
-                                f"`ago prompts build <prompt file> -o BANK` using that encoder")
 
     # ---- files ---------------------------------------------------------------------------
     def meta(self) -> dict:
@@ -208,13 +197,6 @@ def check_class_count(num_classes: int, source) -> None:
     if num_classes > MAX_INFER_CLASSES:
         raise AgoInputError(source, f"{num_classes} classes: `ago infer` predicts at most {MAX_INFER_CLASSES} "
                             "(uint8 semantics with free = K); split the prompt file")
-
-
-def check_bank_for_bundle(bank: PromptBank, bank_path, bundle) -> PromptBank:
-    """`bank` when it can be used with `bundle` (same text encoder id and width, a class count `ago infer`
-    can write); else AgoInputError naming the BANK file (it is the bank that has to be rebuilt)."""
-    bundle.check_bank(bank, bank_path)   # text encoder id and width, class count (ago_runtime.predict.contract)
-    return bank
 
 
 def build_bank(label_space: LabelSpace, encoder, template: str = DEFAULT_TEMPLATE) -> PromptBank:

@@ -53,7 +53,9 @@ def build(prompt_file: str = typer.Argument(..., help="prompt file, or a shipped
         enc = text_encoder_for(encoder)
     bank = build_bank(space, enc, template if template is not None else DEFAULT_TEMPLATE)
     if loaded is not None:
-        loaded.check_bank(bank, prompt_file)   # the class count `ago infer` can write with this bundle
+        from ago_runtime.predict.contract import check_bank_fits
+
+        check_bank_fits(bank, loaded.contract.text_encoder, prompt_file)   # the class count `ago infer` writes
     bank.save(output)
     typer.echo(f"{output}: {bank.num_classes} classes, {bank.num_phrases} phrases, "
                f"{bank.encoder_id} ({bank.encoder_variant}), dim {bank.dim}, template {bank.template!r}")

@@ -31,7 +31,7 @@ import numpy as np
 
 from ago_runtime.atomic import write_json
 from ago_runtime.errors import AgoInputError
-from ago_runtime.predict.contract import Identifier
+from ago_runtime.predict.decision import Identifier
 from ago_runtime.readers import read_json
 
 from . import records

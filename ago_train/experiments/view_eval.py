@@ -6,8 +6,8 @@ classifier baseline) and a few statistics for the figures; running the encoder o
 and scoring every `View` from its output costs one eval instead of five.
 
 A `View` is (prompt file, identifier, closed_set):
-- identifier (ago_runtime.predict.contract.Identifier): NONE (F_3D only), MAX_CONF / MIN_ENTROPY (the
-  open-world identifier between F_3D and the adapted F~_3D, ago_train.model.text_logits.open_world_identify)
+- identifier (ago_runtime.predict.decision.Identifier): NONE (F_3D only), MAX_CONF / MIN_ENTROPY (the
+  open-world identifier between F_3D and the adapted F~_3D, ago_train.model.text_logits.decide)
   or ADAPTED (F~_3D only);
 - closed_set=True drops the phrases of the label space's unknown classes, so they can never be
   predicted: a closed-world classifier over the known classes (the SelfOcc-like baseline);
@@ -40,8 +40,8 @@ from ..checkpoint import checkpoint_camera_names, load_checkpoint
 from ..dataset import FrameList, OccSampleDataset, collate
 from ..evaluate import (_pct, _to_gt_resolution, bank_for, checkpoint_adapted_stats, checkpoint_scales, load_model,
                         scored_subsets, scored_voxels)
-from ..model.text_logits import adapted_logits, class_logits, entropy, open_world_identify
-from ago_runtime.predict.contract import Identifier
+from ..model.text_logits import adapted_logits, class_logits, decide
+from ago_runtime.predict.decision import Identifier
 
 @dataclass(frozen=True)
 class View:
@@ -76,14 +76,6 @@ def _bank(ckpt: dict, prompts: str, closed_set: bool) -> _Bank:
         keep = torch.as_tensor(space.known_mask())[pc]
         text, pc = text[keep], pc[keep]
     return _Bank(space, text.float(), pc.long(), class_text.float())
-
-
-def _labels(main: torch.Tensor, adapted: torch.Tensor | None, identifier: Identifier, K: int,
-            scales: tuple[float, float] = (1.0, 1.0)) -> torch.Tensor:
-    if identifier == Identifier.NONE:
-        return main.argmax(-1)
-    pred, _branch, _h = open_world_identify(main, adapted, identifier, K, *scales)
-    return pred
 
 
 def _decimate(vol: np.ndarray, shape: tuple) -> np.ndarray:
@@ -187,17 +179,17 @@ def evaluate_views(ckpt_path: str | Path, data: str | Path, views: list[View], s
             main = class_logits(out["feat"], b.text, b.phrase_class, K, free, None, free_bias=out.get("free_bias"))[0]
             adapted = (adapted_logits(out["feat_adapted"], b.text, b.phrase_class, K, free, adapted_stats)[0]
                        * v.adapted_scale
-                       if v.identifier != Identifier.NONE or v.name == stats_view else None)
-            labels = on_grid(_labels(main, adapted, v.identifier, K, scales).numpy().astype(np.uint8), K)
+                       if v.identifier.reads_adapted or v.name == stats_view else None)
+            d = decide(main, adapted, v.identifier, K, scales)
+            labels = on_grid(d.label.numpy().astype(np.uint8), K)
             labels = labels.reshape(grid.shape)
             gt = luts[v.name][gt_occ]
             metrics[v.name].update(_to_gt_resolution(labels, gt.shape, str(batch["token"][0])), gt, mask)
             if n_frame < keep_frames:
                 kept[v.name].append((batch["scene"][0], batch["token"][0], labels))
             if v.name == stats_view:
-                # the identifier's class entropies: calibrated, over the K classes
-                h_main = entropy(torch.softmax(scales[0] * main[:, :K], -1)).numpy()
-                h_adap = entropy(torch.softmax(scales[1] * adapted[:, :K], -1)).numpy()
+                # the identifier's class entropies (calibrated, over the K classes), as the decision took them
+                h_main, h_adap = d.entropy_main.numpy(), d.entropy_adapted.numpy()
                 f = torch.nn.functional.normalize(out["feat"][0], dim=-1)
                 fa = torch.nn.functional.normalize(out["feat_adapted"][0], dim=-1)
                 # the decimated mask's voxels (first sub-voxel) are among the decoded ones

@@ -8,15 +8,18 @@ dot product with the learnable free embedding; noise words are negatives seen in
 
 - class_logits(feat (B, N, C), text (P, C), phrase_class (P,), K, free_embedding (C,), noise (Nn, C) | None)
     -> (B, N, K + 1 + Nn)
-- open_world_identify(logits_main, logits_adapted, mode, num_classes, scale_main, scale_adapted)
-    -> (pred, branch, entropy): occupancy from the main branch, class from the trusted branch
+- decide(logits_main, logits_adapted | None, identifier, num_classes, scales)
+    -> Decision (label, branch, entropy, and both branches' entropies): occupancy from the main branch,
+    class from the branch the identifier trusts; the one scorer of the torch side
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 
-from ago_runtime.predict.contract import Identifier
+from ago_runtime.predict.decision import Identifier
 
 NO_PHRASE_SCORE = -1e4  # a class without any phrase scores this (finite, so CE/softmax stay defined)
 
@@ -82,42 +85,66 @@ def entropy(prob: torch.Tensor, dim: int = -1) -> torch.Tensor:
     return -(prob * torch.log(prob.clamp_min(1e-12))).sum(dim)
 
 
-def open_world_identify(logits_main: torch.Tensor, logits_adapted: torch.Tensor,
-                        mode: Identifier = Identifier.MIN_ENTROPY,
-                        num_classes: int | None = None, scale_main: float = 1.0, scale_adapted: float = 1.0
-                        ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Per voxel: free or occupied from the main branch, and the class from the branch it trusts: the torch
-    form of ago_runtime.predict.decision.decide (the specification; tests/test_decision.py compares them).
+def class_probabilities(logits: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
+    """(..., K) class logits -> the identifier's class distribution softmax(scale * logits) (..., K), in the
+    logits' dtype."""
+    return torch.softmax(scale * logits, -1)
 
-    logits_*: (..., K + 1 [+ Nn]) in this module's column order (noise columns are dropped).
+
+@dataclass
+class Decision:
+    """`decide`'s result, per voxel (...): the torch twin of ago_runtime.predict.decision.Decision."""
+
+    label: torch.Tensor                     # int64 in 0..K (K = free)
+    branch: torch.Tensor                    # int64: 1 = adapted (0 for free voxels)
+    entropy: torch.Tensor                   # of the chosen branch's class distribution
+    entropy_main: torch.Tensor              # H(P), every voxel
+    entropy_adapted: torch.Tensor | None    # H(P~), every voxel; None without adapted logits
+
+
+def decide(logits_main: torch.Tensor, logits_adapted: torch.Tensor | None,
+           identifier: Identifier = Identifier.MIN_ENTROPY, num_classes: int | None = None,
+           scales: tuple[float, float] = (1.0, 1.0)) -> Decision:
+    """Per voxel: free or occupied from the main branch, and the class from the branch the identifier
+    trusts: the torch form of ago_runtime.predict.decision.decide (the specification; tests/test_decision.py
+    compares them), and the one scorer of the torch side (`ago eval`, the experiments).
+
+    logits_*: (..., K + 1 [+ Nn]) in this module's column order (noise columns are dropped); logits_adapted
+    may be None for an identifier that does not read it (`Identifier.reads_adapted`: NONE).
     1. Occupancy: the main branch's argmax over [K classes + free] (F_3D is the branch trained on free
        space; F~_3D is aligned only on occupied voxels, so its free column means nothing).
     2. Class of an occupied voxel: P = softmax(scale_main * main[:K]), P~ = softmax(scale_adapted *
        adapted[:K]), both over the K classes (the scales come from ago_train/calibrate.py, fitted on
        known-class training voxels); MIN_ENTROPY takes the branch with the lower entropy (the
        paper's c_v = 1[H(P) <= H(P~)]), MAX_CONF the one with the higher max probability, NONE the
-       main one, ADAPTED the adapted one.
-    Returns pred (...) int64 in 0..K (K = free), branch (...) int64 (1 = adapted; 0 for free voxels) and
-    the chosen branch's class entropy (...).
+       main one, ADAPTED the adapted one. A branch's class is its argmax over the K class logits.
+    Returns both branches' entropies beside the chosen one's (the experiments' statistics read them).
     """
+    try:
+        identifier = Identifier(identifier)
+    except ValueError:
+        raise ValueError(f"unknown open-world mode {identifier!r}; expected one of {', '.join(Identifier.names())}") \
+            from None
+    if logits_adapted is None and identifier.reads_adapted:
+        raise ValueError(f"identifier {identifier} reads the adapted branch: give its logits")
     K = logits_main.shape[-1] - 1 if num_classes is None else num_classes
     occupied = logits_main[..., : K + 1].argmax(-1) != K
-    p_main = torch.softmax(scale_main * logits_main[..., :K].float(), -1)
-    p_adap = torch.softmax(scale_adapted * logits_adapted[..., :K].float(), -1)
-    h_main, h_adap = entropy(p_main), entropy(p_adap)
-    try:
-        mode = Identifier(mode)
-    except ValueError:
-        raise ValueError(f"unknown open-world mode {mode!r}; expected one of {', '.join(Identifier.names())}") from None
-    if mode == Identifier.MIN_ENTROPY:
-        use_adapted = h_adap < h_main
-    elif mode == Identifier.MAX_CONF:
-        use_adapted = p_adap.amax(-1) > p_main.amax(-1)
-    elif mode == Identifier.NONE:
-        use_adapted = torch.zeros_like(h_main, dtype=torch.bool)
-    else:
-        use_adapted = torch.ones_like(h_main, dtype=torch.bool)
-    use_adapted = use_adapted & occupied
-    cls = torch.where(use_adapted, p_adap.argmax(-1), p_main.argmax(-1))
-    pred = torch.where(occupied, cls, torch.full_like(cls, K))
-    return pred, use_adapted.long(), torch.where(use_adapted, h_adap, h_main)
+    p_main = class_probabilities(logits_main[..., :K].float(), scales[0])
+    h_main = entropy(p_main)
+    cls = logits_main[..., :K].argmax(-1)
+    use_adapted = torch.zeros_like(occupied)
+    h_adap = None
+    if logits_adapted is not None:
+        p_adap = class_probabilities(logits_adapted[..., :K].float(), scales[1])
+        h_adap = entropy(p_adap)
+        if identifier == Identifier.MIN_ENTROPY:
+            use_adapted = h_adap < h_main
+        elif identifier == Identifier.MAX_CONF:
+            use_adapted = p_adap.amax(-1) > p_main.amax(-1)
+        elif identifier == Identifier.ADAPTED:
+            use_adapted = torch.ones_like(occupied)
+        use_adapted = use_adapted & occupied
+        cls = torch.where(use_adapted, logits_adapted[..., :K].argmax(-1), cls)
+    label = torch.where(occupied, cls, torch.full_like(cls, K))
+    chosen = h_main if h_adap is None else torch.where(use_adapted, h_adap, h_main)
+    return Decision(label, use_adapted.long(), chosen, h_main, h_adap)
