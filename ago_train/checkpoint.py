@@ -583,10 +583,12 @@ class CheckpointContract:
         check_same_encoder("the checkpoint's prompt bank", self.bank.encoder_id, "this run's prompt bank",
                            bank.encoder_id, source=source)
 
-    def check_resume(self, source, train_config, world_size: int) -> None:
-        """Refuse to resume this checkpoint into a run of `train_config` (a TrainConfig) on `world_size` processes:
-        no training state (an export or a snapshot), other model settings, another schedule, seed or process count."""
+    def check_resume(self, source, train_config, world_size: int, bank: BankRecord) -> None:
+        """Refuse to resume this checkpoint into a run of `train_config` (a TrainConfig) on `world_size` processes
+        with `bank`: no training state (an export or a snapshot), a bank of another text encoder (first: it also
+        changes embed_dim), other model settings, another schedule, seed or process count."""
         _need(self.training is not None, source, "checkpoint has no optimiser state (an export?); cannot resume from it")
+        self.check_same_encoder(source, bank)
         diff = self.config_differences(train_config.model)
         _need(not diff, source, f"cannot resume: model settings differ from this run's ({', '.join(diff[:8])}); use "
                                 "the run's own config or another --out")

@@ -159,12 +159,11 @@ def test_noise_words_record_their_encoder_and_a_mismatch_is_refused(tmp_path, en
     nb = noise.build_noise_bank(encoder, candidates=WORDS[23:], labels=["car"], threshold=1.0)
     assert nb.meta["encoder_id"] == encoder.encoder_id and nb.dim == 24 and len(nb) == len(WORDS) - 23
     nb.save(tmp_path / "clip_noise.npz")
-    bank = {"encoder_id": encoder.encoder_id, "embeddings": torch.zeros(3, 24)}
-    assert len(noise.training_noise_bank(str(tmp_path / "clip_noise.npz"), None, bank)) == len(nb)
+    assert len(noise.training_noise_bank(str(tmp_path / "clip_noise.npz"), None, encoder.encoder_id, 24)) == len(nb)
     noise.NoiseBank(["apple"], np.ones((1, 384), np.float16), {"encoder_id": MINILM_ID}).save(tmp_path / "mini.npz")
     with pytest.raises(AgoInputError, match=f"noise words were made with encoder '{MINILM_ID}' but the prompt bank "
                                             f"with '{encoder.encoder_id}'"):
-        noise.training_noise_bank(str(tmp_path / "mini.npz"), None, bank)
+        noise.training_noise_bank(str(tmp_path / "mini.npz"), None, encoder.encoder_id, 24)
     with pytest.raises(AgoInputError, match="no noise word is left"):   # random weights: every word is "near"
         noise.build_noise_bank(encoder, candidates=WORDS[23:], labels=["car"], threshold=0.5 - 2)
     assert noise.default_noise_bank_path(encoder.encoder_id).name == f"noise_bank-clip_{encoder.encoder_id[5:]}.npz"
