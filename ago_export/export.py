@@ -1,7 +1,7 @@
 """`ago export`: a training checkpoint -> a self-describing, parity-checked bundle folder.
 
-Takes a checkpoint written by ago_train (read by `ago_train.checkpoint.CheckpointContract.load`,
-torch.load(weights_only=True), checked by value). Gives a bundle folder (layout: ago_runtime/predict/bundle.py,
+Takes a checkpoint written by ago_train (read by `ago_train.checkpoint.CheckpointContract.load`: weights
+only, checked by value). Gives a bundle folder (layout: ago_runtime/predict/bundle.py,
 docs/runtime.md):
 
 1. the camera-to-voxel encoder plus the modality adapter's hidden layers as ONNX graphs
