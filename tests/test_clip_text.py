@@ -150,8 +150,6 @@ def test_bad_text_encoder_folders_are_one_line(tmp_path, clip_dir):
 
 
 def test_noise_words_record_their_encoder_and_a_mismatch_is_refused(tmp_path, encoder):
-    import torch
-
     from ago_runtime.errors import AgoInputError
     from ago_runtime.vocab.text_encoder import MINILM_ID
     from ago_train.text import noise
@@ -397,7 +395,7 @@ def test_export_asks_for_the_folder_when_the_recorded_one_is_gone(clip_dir):
     from ago_runtime.vocab.model_folder import clip_encoder_id
 
     bank = PromptBank(np.ones((1, 24), np.float32), ["car"], ["car"], [0], clip_encoder_id(clip_dir), "torch-fp32", "h", 24)
-    for record in ({}, {"text_encoder": "/nowhere/clip"}):
+    for recorded in (None, "/nowhere/clip"):   # CheckpointContract.text_encoder: none, or a folder that is gone
         with pytest.raises(AgoInputError, match=f"trained with the CLIP text encoder {bank.encoder_id}.*give its folder"):
-            clip_folder_for({"train_config": record}, "last.pt", bank, None)
-    assert clip_folder_for({"train_config": {"text_encoder": str(clip_dir)}}, "last.pt", bank, None) == clip_dir
+            clip_folder_for(recorded, "last.pt", bank, None)
+    assert clip_folder_for(str(clip_dir), "last.pt", bank, None) == clip_dir
