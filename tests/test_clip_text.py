@@ -295,12 +295,11 @@ def test_a_new_prompt_file_is_encoded_by_the_bundles_tower_without_torch(chain, 
 
 
 def test_ago_eval_encodes_another_prompt_file_with_the_checkpoints_folder(chain, encoder):
-    import torch
-
     from ago_runtime.vocab.prompts import parse_prompt_file
+    from ago_train.checkpoint import CheckpointContract
     from ago_train.evaluate import bank_for
 
-    ckpt = torch.load(chain / "run" / "last.pt", weights_only=True, map_location="cpu")
+    ckpt = CheckpointContract.load(chain / "run" / "last.pt")
     space = parse_prompt_file(chain / "new.txt")
     emb, pc = bank_for(ckpt, space)
     assert np.allclose(emb.numpy(), encoder.encode(space.phrases), atol=1e-6) and pc.tolist() == [0, 0, 1, 1, 2]
