@@ -8,8 +8,8 @@
 so nobody mistakes a demo model for a real one. Read by `ago_runtime.predict.bundle` (`Bundle.card`,
 `card_line`); the format is in docs/runtime.md.
 
-`make_card(ckpt, checkpoint_path, note=None, extra=None)` fills the card from what the checkpoint
-and its run folder say:
+`make_card(ckpt, checkpoint_path, note=None, extra=None)` fills the card from what the checkpoint (an
+`ago_train.checkpoint.CheckpointContract`) and its run folder say:
 - the checkpoint: step, epoch, train_config (data, pseudo, split, preset name, epochs / max_steps),
   label space (name, classes), the text encoder of its bank (a CLIP tower: what the export says of it);
 - the training data folder named in train_config, when it still exists at export time: synthetic
@@ -96,25 +96,20 @@ def describe_data(data: str | None, split: str | None) -> dict:
     return out
 
 
-def text_encoder_record(ckpt: dict) -> dict | None:
-    """What the checkpoint's bank says of its text encoder: {"id", "variant", "dim"} (None without a bank)."""
-    bank = ckpt.get("bank")
-    if not isinstance(bank, dict) or "encoder_id" not in bank:
-        return None
-    emb = bank.get("embeddings")
-    dim = int(emb.shape[1]) if getattr(emb, "ndim", 0) == 2 else None
-    return {"id": str(bank["encoder_id"]), "variant": str(bank.get("encoder_variant", "")), "dim": dim}
+def text_encoder_record(ckpt) -> dict:
+    """What the checkpoint's bank says of its text encoder: {"id", "variant", "dim"}."""
+    return {"id": ckpt.bank.encoder_id, "variant": ckpt.bank.encoder_variant, "dim": ckpt.bank.dim}
 
 
-def make_card(ckpt: dict, checkpoint_path: str | Path, note: str | None = None, extra: dict | None = None,
+def make_card(ckpt, checkpoint_path: str | Path, note: str | None = None, extra: dict | None = None,
               readout: tuple[list[int], list[int]] | None = None, text_encoder: dict | None = None) -> dict:
     """The card dict for a checkpoint (module docstring). readout: (the bundle's read-out grid shape, the
     model's training grid shape), recorded as "readout" and named in the summary when they differ.
     text_encoder: what the export says of the bundle's text encoder (a CLIP tower: ago_export/text_tower.py);
     default: the checkpoint bank's id, variant and width."""
     checkpoint_path = Path(checkpoint_path)
-    tc = _plain(ckpt.get("train_config") or {})
-    ls = ckpt.get("label_space") or {}
+    tc = _plain(ckpt.train_config or {})   # the run's recorded settings
+    ls = ckpt.label_space
     data = describe_data(tc.get("data"), tc.get("train_split"))
     if tc.get("max_frames") and data.get("frames"):
         data["frames"] = min(int(data["frames"]), int(tc["max_frames"]))
@@ -149,13 +144,12 @@ def make_card(ckpt: dict, checkpoint_path: str | Path, note: str | None = None, 
         "format": CARD_FORMAT, "version": CARD_VERSION,
         "trained_on": data,
         "pseudo_labels": pseudo,
-        "training": {"preset": tc.get("name"), "steps": int(ckpt.get("step", 0) or 0),
-                     "epochs": int(ckpt.get("epoch", 0) or 0), "batch_size": tc.get("batch_size"),
+        "training": {"preset": tc.get("name"), "steps": ckpt.step,
+                     "epochs": ckpt.epoch, "batch_size": tc.get("batch_size"),
                      "init_from": tc.get("init_from"),
                      "last_log": {k: log_last[k] for k in ("step", "loss", "total") if k in log_last}
                      if isinstance(log_last, dict) else None},
-        "label_space": {"name": ls.get("name"), "classes": list(ls.get("class_names") or []),
-                        "known": list(ls.get("known") or [])},
+        "label_space": {"name": ls.name, "classes": list(ls.class_names), "known": list(ls.known)},
         "val_scores": val,
         "text_encoder": text_encoder or text_encoder_record(ckpt),
         "readout": None if readout is None else {"grid": list(readout[0]), "model_grid": list(readout[1])},

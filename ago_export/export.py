@@ -1,7 +1,7 @@
 """`ago export`: a training checkpoint -> a self-describing, parity-checked bundle folder.
 
-Takes a checkpoint written by ago_train (torch.load(weights_only=True); keys "model",
-"model_config", "label_space", "bank", ...). Gives a bundle folder (layout: ago_runtime/predict/bundle.py,
+Takes a checkpoint written by ago_train (read by `ago_train.checkpoint.CheckpointContract.load`: weights
+only, checked by value). Gives a bundle folder (layout: ago_runtime/predict/bundle.py,
 docs/runtime.md):
 
 1. the camera-to-voxel encoder plus the modality adapter's hidden layers as ONNX graphs
@@ -36,7 +36,7 @@ from torch import nn
 
 import ago_runtime
 from ago_runtime.atomic import replace_dir, temp_dir_beside, write_json
-from ago_runtime.vocab.bank import PromptBank, load_prompt_bank
+from ago_runtime.vocab.bank import load_prompt_bank
 from ago_runtime.errors import AgoInputError
 from ago_runtime.formats.calibration import find_camera_images, load_images_folder
 from ago_runtime.geometry.camera import CAMERA_NAMES, Rig
@@ -48,7 +48,7 @@ from ago_runtime.predict.contract import (BUNDLE_FORMAT, BUNDLE_FORMAT_VERSION, 
 from ago_runtime.predict.decision import Identifier
 from ago_runtime.predict.encoder import SplitEncoder, StageGraph
 from ago_runtime.predict.heads import HeadWeights
-from ago_runtime.vocab.prompts import LabelSpace, label_space_from_record, shipped_label_spaces
+from ago_runtime.vocab.prompts import LabelSpace, shipped_label_spaces
 from ago_runtime.vocab.text_encoder import OnnxTextEncoder
 
 from .card import write_card
@@ -62,38 +62,27 @@ DEFAULT_REAL_FRAME = Path(__file__).resolve().parents[2] / "shared" / "data" / "
 
 # ---- model ---------------------------------------------------------------------------------
 def load_model(checkpoint: str | Path):
-    """checkpoint -> (AGOModel in eval mode, the checkpoint dict, ModelConfig)."""
-    from ago_train.checkpoint import load_checkpoint
-    from ago_train.model import ModelConfig
+    """checkpoint -> (AGOModel in eval mode, its CheckpointContract, ModelConfig)."""
+    from ago_train.checkpoint import CheckpointContract
 
-    ckpt = load_checkpoint(checkpoint)
-    try:
-        cfg = ModelConfig.from_dict(dict(ckpt["model_config"]))
-    except (TypeError, AgoInputError) as e:
-        raise AgoInputError(checkpoint, f"bad model_config ({e})") from None
-    model = cfg.build(load_weights=False)   # every weight comes from the checkpoint (no backbone_weights file read)
-    try:
-        model.load_state_dict(ckpt["model"], strict=True)
-    except RuntimeError as e:
-        raise AgoInputError(checkpoint, f"weights do not fit the model config ({str(e).splitlines()[0]})") from None
-    return model.eval(), ckpt, cfg
+    ckpt = CheckpointContract.load(checkpoint)
+    return ckpt.build_model(checkpoint), ckpt, ckpt.model_config   # every weight from the checkpoint
 
 
-def head_weights(model, calibration: dict | None = None) -> HeadWeights:
+def head_weights(model, calibration=None) -> HeadWeights:
     """The linear heads, with the identifier's branch scales from the checkpoint's calibration (1, 1 without)
     and, when the calibration has them, the adapted branch's standardisation statistics."""
     def f(t):
         return t.detach().cpu().numpy().astype(np.float32)
 
-    cal = calibration or {}
-    scales = np.array([cal.get("scale_main", 1.0), cal.get("scale_adapted", 1.0)], np.float32)
+    scales = np.array([1.0, 1.0] if calibration is None else calibration.scales, np.float32)
     heads = HeadWeights(f(model.decoder_out.weight), f(model.decoder_out.bias), f(model.adapter_out.weight),
                         f(model.adapter_out.bias), f(model.free_embedding), scales)
     if getattr(model, "free_bias", None) is not None:
         heads.free_bias = float(model.free_bias.detach())
-    if "adapted_mean" in cal:   # the adapted branch's phrase standardisation (ago_train/calibrate.py)
-        heads.adapted_mean = np.asarray(cal["adapted_mean"], dtype=np.float32)
-        heads.adapted_cov = np.asarray(cal["adapted_cov"], dtype=np.float32)
+    if calibration is not None and calibration.adapted_mean is not None:   # the adapted branch's phrase
+        heads.adapted_mean = calibration.adapted_mean.numpy().astype(np.float32)   # standardisation (calibrate.py)
+        heads.adapted_cov = calibration.adapted_cov.numpy().astype(np.float32)
     return heads
 
 
@@ -155,22 +144,6 @@ def open_split_encoder(root: Path, files: dict[str, str], specs: list[VoxelStage
 
 
 # ---- label space and banks -----------------------------------------------------------------
-def train_bank(ckpt: dict, space: LabelSpace, source) -> PromptBank:
-    b = ckpt["bank"]
-    emb = b["embeddings"].detach().cpu().numpy().astype(np.float32)
-    pc = b["phrase_class"].detach().cpu().numpy().astype(np.int64)
-    phrases = space.phrases
-    if emb.shape[0] != len(phrases) or not np.array_equal(pc, space.phrase_class):
-        raise AgoInputError(source, f"checkpoint bank ({emb.shape[0]} phrases) does not match its label space "
-                            f"({len(phrases)} phrases)")
-    return PromptBank(
-        embeddings=emb, phrases=phrases, class_names=list(space.class_names), phrase_class=pc,
-        encoder_id=str(b["encoder_id"]), encoder_variant=str(b.get("encoder_variant", "checkpoint")),
-        encoder_hash=str(b["encoder_hash"]), dim=int(emb.shape[1]), source_hash=space.sha256,
-        label_space=space.name, known=[c for c in space.class_names if c in space.known],
-        occ3d_ids=[c.occ3d_ids for c in space.classes], class_table=space.class_table)
-
-
 def label_space_spec(space: LabelSpace) -> LabelSpaceSpec:
     return LabelSpaceSpec(space.name, space.sha256,
                           [LabelClass(c.name, [int(i) for i in c.occ3d_ids], c.name in space.known, list(c.phrases))
@@ -256,15 +229,15 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
     """
     checkpoint, out = Path(checkpoint), Path(out)
     model, ckpt, cfg = load_model(checkpoint)
-    space = label_space_from_record(ckpt.get("label_space"), checkpoint)
-    bank = train_bank(ckpt, space, checkpoint)
+    space = ckpt.space
+    bank = ckpt.bank.prompt_bank(space)   # checked against the label space when the checkpoint was read
     clip_folder = None
     if is_clip_bank(bank):   # the tower ships in the bundle: its folder is checked before any work
-        clip_folder = clip_folder_for(ckpt, checkpoint, bank, text_encoder)
+        clip_folder = clip_folder_for(ckpt.text_encoder, checkpoint, bank, text_encoder)
     elif text_encoder is not None:
         raise AgoInputError("--text-encoder", f"{checkpoint} was trained with the text encoder {bank.encoder_id}, "
                             "not a CLIP folder's; leave --text-encoder out")
-    heads = head_weights(model, ckpt.get("calibration"))
+    heads = head_weights(model, ckpt.calibration)
     if heads.embed_dim != bank.dim:
         raise AgoInputError(checkpoint, f"model embedding width {heads.embed_dim} differs from its bank's {bank.dim}")
     model_grid = cfg.grid_obj()
@@ -275,8 +248,8 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
         raise AgoInputError("--readout-grid", f"{'x'.join(map(str, grid.shape))} is coarser than the model's grid "
                             f"{'x'.join(map(str, model_grid.shape))} along an axis (a read-out grid may only be finer)")
     pre = Preprocess(width=cfg.image_width, height=cfg.image_height)
-    if "rig" in ckpt:
-        rig, rig_source = Rig.from_dict(ckpt["rig"]), "checkpoint"
+    if ckpt.rig is not None:
+        rig, rig_source = ckpt.rig, "checkpoint"
     else:
         rig, rig_source = Rig.nuscenes_like(1600, 900), "Rig.nuscenes_like(1600, 900) (checkpoint has no rig)"
     if len(rig.cameras) != cfg.num_cameras:
@@ -357,7 +330,7 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
             hidden_dim=heads.hidden_dim, adapted_dim=heads.adapter_dim, identifier=Identifier.MIN_ENTROPY,
             banks=banks, default_bank="train", bank_notes=bank_notes,
             checkpoint={"path": str(checkpoint), "sha256": file_sha256(checkpoint),
-                        "step": int(ckpt.get("step", 0) or 0), "epoch": int(ckpt.get("epoch", 0) or 0)},
+                        "step": ckpt.step, "epoch": ckpt.epoch},
             model={"config": cfg.to_dict(), "hidden_dim": heads.hidden_dim, "adapter_dim": heads.adapter_dim,
                    "embed_dim": heads.embed_dim, "num_voxels": grid.num_voxels, "opset": OPSET},
             parity=report, ago_version=ago_runtime.__version__,

@@ -1,8 +1,8 @@
 """Random-weight checkpoints in the trainer's format, for tests and benchmarks (needs torch).
 
-`random_checkpoint(path, config)` writes what `ago train` writes (model state_dict, model_config,
-label_space with its prompt text, the label space's bank), with freshly initialised weights and the
-bank encoded by the installed ONNX text encoder. Useful to exercise export and runtime without
+`random_checkpoint(path, config)` writes a model-only `CheckpointContract` as `ago train`'s snapshots do
+(model state_dict, model_config, label_space with its prompt text, the label space's bank; no training
+state), with freshly initialised weights and the bank encoded by the installed ONNX text encoder. Useful to exercise export and runtime without
 training; the predictions are meaningless.
 """
 
@@ -18,8 +18,8 @@ def random_checkpoint(path: str | Path, config="tiny", prompts: str = "cw", seed
     import torch
 
     from ago_runtime.vocab.bank import load_prompt_bank
-    from ago_runtime.vocab.prompts import label_space_record, parse_prompt_file
-    from ago_train.checkpoint import save_checkpoint
+    from ago_runtime.vocab.prompts import parse_prompt_file
+    from ago_train.checkpoint import BankRecord, CheckpointContract, LabelSpaceRecord
     from ago_train.model import ModelConfig
 
     if isinstance(config, str):
@@ -30,13 +30,7 @@ def random_checkpoint(path: str | Path, config="tiny", prompts: str = "cw", seed
     torch.manual_seed(seed)
     model = config.build()
     space = parse_prompt_file(prompts)
-    bank = load_prompt_bank(space)
-    extra = {"rig": rig.to_dict()} if rig is not None else {}
-    return save_checkpoint(path, {
-        **extra,
-        "model": model.state_dict(), "model_config": config.to_dict(), "step": 0, "epoch": 0,
-        "label_space": label_space_record(space, Path(space.source).read_text(encoding="utf-8")),
-        "bank": {"encoder_id": bank.encoder_id, "encoder_hash": bank.encoder_hash,
-                 "embeddings": torch.from_numpy(bank.embeddings), "phrase_class": torch.from_numpy(bank.phrase_class),
-                 "class_names": list(bank.class_names)},
-    })
+    return CheckpointContract(
+        model=model.state_dict(), model_config=config,
+        label_space=LabelSpaceRecord.of_space(space, Path(space.source).read_text(encoding="utf-8")),
+        bank=BankRecord.of_bank(load_prompt_bank(space)), rig=rig).save(path)

@@ -44,12 +44,13 @@ def is_clip_bank(bank: PromptBank) -> bool:
     return bank.encoder_id.startswith("clip:")
 
 
-def clip_folder_for(ckpt: dict, checkpoint, bank: PromptBank, folder: str | Path | None) -> Path:
-    """The CLIP folder to export the tower of: `folder` (--text-encoder) or the checkpoint's train_config
-    text_encoder; checked to be the folder that made the checkpoint's bank."""
+def clip_folder_for(trained_with: str | None, checkpoint, bank: PromptBank, folder: str | Path | None) -> Path:
+    """The CLIP folder to export the tower of: `folder` (--text-encoder) or `trained_with`, the checkpoint's
+    train_config text_encoder (`CheckpointContract.text_encoder`); checked to be the folder that made the
+    checkpoint's bank."""
     option = "--text-encoder"
     if folder is None:
-        folder = (ckpt.get("train_config") or {}).get("text_encoder")
+        folder = trained_with
         option = f"{checkpoint} (train_config text_encoder)"
         if folder is None or not Path(folder).is_dir():
             where = "" if folder is None else f" from {folder}, which is not there"

@@ -140,9 +140,9 @@ def register(app: typer.Typer) -> None:
         from .trainer import recalibrate
 
         cal = recalibrate(run)
-        typer.echo(f"calibrated {run / 'last.pt'}: scale_main {cal['scale_main']:.3f}, scale_adapted "
-                   f"{cal['scale_adapted']:.3f} ({cal.get('adapted_rule', 'nll')}), adapted statistics from "
-                   f"{cal.get('adapted_voxels', 0)} voxels")
+        typer.echo(f"calibrated {run / 'last.pt'}: scale_main {cal.scale_main:.3f}, scale_adapted "
+                   f"{cal.scale_adapted:.3f} ({cal.adapted_rule or 'nll'}), adapted statistics from "
+                   f"{cal.adapted_voxels or 0} voxels")
 
     @app.command("eval")
     def eval_cmd(

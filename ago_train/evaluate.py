@@ -29,9 +29,9 @@ from ago_runtime.formats.datasets import check_label_table
 from ago_runtime.scoring.metric import OccupancyMetric, upsample_nearest
 from ago_runtime.geometry.preprocess import Preprocess
 from ago_runtime.predict.decision import Identifier
-from ago_runtime.vocab.prompts import LabelSpace, label_space_from_record, parse_prompt_file
+from ago_runtime.vocab.prompts import LabelSpace, parse_prompt_file
 
-from .checkpoint import checkpoint_camera_names, load_checkpoint
+from .checkpoint import CheckpointContract
 from .dataset import FrameList, OccSampleDataset, collate
 from .distributed import pick_device
 
@@ -39,52 +39,39 @@ IDENTIFIERS = Identifier.names()   # `ago eval --identifier` choices: those of `
 READOUTS = ("model", "gt")   # the grid the planes are read on (evaluate)
 
 
-def load_model(ckpt: dict, device: torch.device, path: str | Path | None = None):
-    """(ModelConfig, model in eval mode on `device`); AgoInputError naming `path` when the checkpoint's
-    model_config is bad or its weights do not fit it."""
-    from .checkpoint import load_model_weights
-    from .model import ModelConfig
-
-    source = str(path) if path is not None else "checkpoint"
-    if not isinstance(ckpt.get("model_config"), dict):
-        raise AgoInputError(source, "checkpoint has no model_config")
-    cfg = ModelConfig.from_dict(dict(ckpt["model_config"]), source=f"{source} (model_config)")
-    model = cfg.build(load_weights=False)   # every weight comes from the checkpoint (no backbone_weights file read)
-    load_model_weights(model, ckpt, source, what="its own model_config")
-    return cfg, model.to(device).eval()
+def load_model(ckpt: CheckpointContract, device: torch.device, path: str | Path | None = None):
+    """(ModelConfig, model in eval mode on `device`); AgoInputError naming `path` when the checkpoint's weights do
+    not fit its model_config."""
+    model = ckpt.build_model(str(path) if path is not None else "checkpoint")
+    return ckpt.model_config, model.to(device)
 
 
-def checkpoint_label_space(ckpt: dict, source="checkpoint") -> LabelSpace:
-    return label_space_from_record(ckpt.get("label_space"), source)
-
-
-def bank_for(ckpt: dict, label_space: LabelSpace) -> tuple[torch.Tensor, torch.Tensor]:
+def bank_for(ckpt: CheckpointContract, label_space: LabelSpace) -> tuple[torch.Tensor, torch.Tensor]:
     """(P, C) text embeddings and (P,) phrase classes of `label_space`: the checkpoint's own when it
     is the training label space (same phrases), else encoded with the torch MiniLM (same encoder hash), or with the
     CLIP folder the checkpoint was trained with (train_config text_encoder; same encoder id)."""
-    saved = checkpoint_label_space(ckpt)
-    bank = ckpt["bank"]
+    saved, bank = ckpt.space, ckpt.bank
     if saved.phrases == label_space.phrases and saved.class_names == label_space.class_names:
-        return bank["embeddings"].float(), bank["phrase_class"].long()
+        return bank.embeddings.float(), bank.phrase_class.long()
     from ago_runtime.vocab.bank import load_prompt_bank
 
-    folder = (ckpt.get("train_config") or {}).get("text_encoder")
+    folder = ckpt.text_encoder
     if folder is not None:
         from ago_runtime.vocab.model_folder import check_same_encoder
 
         from .text.clip import TorchClipTextEncoder
 
         enc = TorchClipTextEncoder(folder, "the checkpoint's text_encoder")
-        check_same_encoder("the checkpoint's prompt bank", str(bank["encoder_id"]), f"the CLIP folder {folder}",
+        check_same_encoder("the checkpoint's prompt bank", bank.encoder_id, f"the CLIP folder {folder}",
                            enc.encoder_id)
         new = load_prompt_bank(label_space, enc)
         return torch.from_numpy(new.embeddings), torch.from_numpy(new.phrase_class)
     from .text.minilm import TorchMiniLMEncoder
 
     enc = TorchMiniLMEncoder()
-    if enc.weights_hash != bank["encoder_hash"]:
+    if enc.weights_hash != bank.encoder_hash:
         raise AgoInputError(None, f"the installed text encoder ({enc.weights_hash[:12]}) differs from the one "
-                            f"the checkpoint was trained with ({str(bank['encoder_hash'])[:12]})")
+                            f"the checkpoint was trained with ({bank.encoder_hash[:12]})")
     new = load_prompt_bank(label_space, enc)
     return torch.from_numpy(new.embeddings), torch.from_numpy(new.phrase_class)
 
@@ -100,18 +87,6 @@ def default_identifier(label_space: LabelSpace, trained_classes=None) -> Identif
 
 
 @torch.no_grad()
-def checkpoint_scales(ckpt: dict) -> tuple[float, float]:
-    """(scale_main, scale_adapted) of the identifier: the checkpoint's calibration (calibrate.py), else 1."""
-    cal = ckpt.get("calibration") or {}
-    return float(cal.get("scale_main", 1.0)), float(cal.get("scale_adapted", 1.0))
-
-
-def checkpoint_adapted_stats(ckpt: dict) -> dict | None:
-    """The adapted branch's standardisation statistics (calibrate.py) of a checkpoint, or None."""
-    cal = ckpt.get("calibration") or {}
-    return cal if "adapted_mean" in cal else None
-
-
 def predict_labels(model, images: torch.Tensor, ego2img: torch.Tensor, text: torch.Tensor,
                    phrase_class: torch.Tensor, num_classes: int, identifier: Identifier,
                    scales: tuple[float, float] = (1.0, 1.0), adapted_stats: dict | None = None,
@@ -173,11 +148,11 @@ def evaluate(ckpt_path: str | Path, data: str | Path, split: str = "val", prompt
     if identifier is not None:
         identifier = Identifier.parse(identifier, "--identifier")
     dev = pick_device(device)
-    ckpt = load_checkpoint(ckpt_path, map_location="cpu")
+    ckpt = CheckpointContract.load(ckpt_path, map_location="cpu")
     mcfg, model = load_model(ckpt, dev, ckpt_path)
-    label_space = parse_prompt_file(prompts) if prompts else checkpoint_label_space(ckpt, ckpt_path)
+    label_space = parse_prompt_file(prompts) if prompts else ckpt.space
     K = label_space.num_classes
-    identifier = identifier or default_identifier(label_space, checkpoint_label_space(ckpt, ckpt_path).class_names)
+    identifier = identifier or default_identifier(label_space, ckpt.space.class_names)
     text, phrase_class = bank_for(ckpt, label_space)
     text, phrase_class = text.to(dev), phrase_class.to(dev)
 
@@ -194,7 +169,7 @@ def evaluate(ckpt_path: str | Path, data: str | Path, split: str = "val", prompt
     pre = Preprocess(mcfg.image_width, mcfg.image_height)
     dataset = OccSampleDataset(FrameList(ds, indices), None, K, grid, pre,
                                gt_lut=label_space.gt_lut(free_index=K), with_gt=True,
-                               camera_names=checkpoint_camera_names(ckpt, ckpt_path))
+                               camera_names=ckpt.camera_names)
     dataset.rig_of(ds[indices[0]])   # a frame of another rig is refused before any work
     names = list(label_space.class_names) + ["free"]
     metric = OccupancyMetric(names, free_index=K)
@@ -211,8 +186,8 @@ def evaluate(ckpt_path: str | Path, data: str | Path, split: str = "val", prompt
         vol = np.full(int(np.prod(shape)), K, np.uint8)    # unscored voxels: free (the metric skips them)
         if scored.size:
             vol[scored] = predict_labels(model, batch["images"].to(dev), batch["ego2img"].to(dev), text,
-                                         phrase_class, K, identifier, checkpoint_scales(ckpt),
-                                         checkpoint_adapted_stats(ckpt), grid_shape=shape,
+                                         phrase_class, K, identifier, ckpt.scales,
+                                         ckpt.adapted_stats, grid_shape=shape,
                                          voxel_index=torch.from_numpy(scored)[None].to(dev))[0].cpu().numpy()
         vol = _to_gt_resolution(vol.reshape(shape), gt.shape, source)
         metric.update(vol, gt, mask)

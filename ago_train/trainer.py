@@ -32,11 +32,11 @@ from torch.utils.data import DataLoader, DistributedSampler
 from ago_runtime.atomic import write_text
 from ago_runtime.errors import AgoInputError
 from ago_runtime.geometry.preprocess import Preprocess
-from ago_runtime.vocab.prompts import LabelSpace, label_space_record, parse_prompt_file
+from ago_runtime.vocab.prompts import LabelSpace, parse_prompt_file
 
 from . import distributed as D
-from .checkpoint import (check_checkpoint_bank, check_resume_model, load_checkpoint, load_model_weights, plain, rng_state,
-                         save_checkpoint, set_rng_state)
+from .checkpoint import (BankRecord, CalibrationRecord, CheckpointContract, LabelSpaceRecord, TrainingState, plain,
+                         rng_state, set_rng_state)
 from .dataset import FrameList, OccSampleDataset, collate
 from .sources import open_sources
 from .train_config import TrainConfig
@@ -46,10 +46,10 @@ from .train_config import TrainConfig
 _BANKS: dict[str, dict] = {}  # per process: prompt file sha256 -> bank dict (the encoder is frozen)
 
 
-def build_text_bank(label_space: LabelSpace, text_encoder: str | None = None) -> dict:
+def build_text_bank(label_space: LabelSpace, text_encoder: str | None = None) -> BankRecord:
     """The label space's bank from the frozen torch MiniLM, or the text tower of the CLIP folder `text_encoder`
-    (ago_train.text.clip), through ago_runtime.vocab.load_prompt_bank (cached by content hash) -> plain
-    checkpoint 'bank' dict."""
+    (ago_train.text.clip), through ago_runtime.vocab.load_prompt_bank (cached by content hash) -> the checkpoint's
+    BankRecord (a fresh copy of its tensors)."""
     from ago_runtime.vocab.bank import load_prompt_bank
 
     key = (label_space.sha256 or "\n".join(label_space.phrases)) + f"|{text_encoder}"
@@ -62,19 +62,9 @@ def build_text_bank(label_space: LabelSpace, text_encoder: str | None = None) ->
             from .text.minilm import TorchMiniLMEncoder
 
             encoder = TorchMiniLMEncoder()
-        _BANKS[key] = bank_to_dict(load_prompt_bank(label_space, encoder))
-    return {k: (v.clone() if isinstance(v, torch.Tensor) else v) for k, v in _BANKS[key].items()}
-
-
-def bank_to_dict(bank) -> dict:
-    return {
-        "encoder_id": str(bank.encoder_id),
-        "encoder_hash": str(bank.encoder_hash),
-        "encoder_variant": str(getattr(bank, "encoder_variant", "")),
-        "embeddings": torch.as_tensor(np.asarray(bank.embeddings, dtype=np.float32)),
-        "phrase_class": torch.as_tensor(np.asarray(bank.phrase_class, dtype=np.int64)),
-        "class_names": [str(c) for c in bank.class_names],
-    }
+        _BANKS[key] = BankRecord.of_bank(load_prompt_bank(label_space, encoder))
+    b = _BANKS[key]
+    return dataclasses.replace(b, embeddings=b.embeddings.clone(), phrase_class=b.phrase_class.clone())
 
 
 class TrainStep(nn.Module):
@@ -188,7 +178,7 @@ class Trainer:
         # one or several (data, pseudo-labels) sources, checked against the grid, label space and each
         # other's rig before any work (sources.py)
         frames, self.pseudo, first_rig = open_sources(cfg, self.grid, self.label_space, load_images=not use_cache)
-        init = load_checkpoint(cfg.init_from) if cfg.init_from else None   # checked before any work
+        init = CheckpointContract.load(cfg.init_from) if cfg.init_from else None   # checked before any work
         # the rig comes from the data: the model takes as many cameras as the training frames have
         if len(first_rig.cameras) != cfg.model.num_cameras:
             print(f"note: the training data's rig has {len(first_rig.cameras)} camera(s) ({', '.join(first_rig.names)}); "
@@ -201,7 +191,7 @@ class Trainer:
                                         memory_bytes=cfg.item_memory_mb << 20, augment=cfg.augment,
                                         camera_names=first_rig.names)
         # the camera rig of the training data (native image size), for export (a typical rig to trace with)
-        self.rig_record = plain(first_rig.to_dict())
+        self.rig = first_rig
         self.sampler = DistributedSampler(self.dataset, num_replicas=info.world_size, rank=info.rank,
                                           shuffle=True, seed=cfg.seed, drop_last=False)
         self.steps_per_epoch = math.ceil(len(self.sampler) / cfg.batch_size)
@@ -209,9 +199,9 @@ class Trainer:
 
         # frozen text side: the label-space bank (encoded once) and the noise-word bank
         self.bank = build_text_bank(self.label_space, cfg.text_encoder)
-        width = int(self.bank["embeddings"].shape[1])
+        width = self.bank.dim
         if width != cfg.model.embed_dim and cfg.text_encoder is not None:   # the CLIP folder sets the width
-            note = (f"note: the text encoder {self.bank['encoder_id']} gives {width}-d embeddings; model.embed_dim "
+            note = (f"note: the text encoder {self.bank.encoder_id} gives {width}-d embeddings; model.embed_dim "
                     f"{cfg.model.embed_dim} -> {width}" + (f"\n{note}" if note else ""))
             cfg = self.cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, embed_dim=width))
         if width != cfg.model.embed_dim:
@@ -219,7 +209,7 @@ class Trainer:
                                 f"the model's embed_dim is {cfg.model.embed_dim}")
         from .text.noise import training_noise_bank
 
-        self.noise_bank = training_noise_bank(cfg.noise_bank, cfg.text_encoder, self.bank)
+        self.noise_bank = training_noise_bank(cfg.noise_bank, cfg.text_encoder, self.bank.encoder_id, self.bank.dim)
 
         # model, optimiser, schedule; seeded right here so nothing built before (the text encoder
         # draws random initial weights before loading its own) changes the model's initial weights
@@ -227,8 +217,8 @@ class Trainer:
         self.model = cfg.model.build().to(info.device)
         self.model.train()  # the backbone's BatchNorm layers stay in eval mode (backbone._FrozenBNMixin)
         if init is not None:
-            check_checkpoint_bank(init, cfg.init_from, self.bank)
-            load_model_weights(self.model, init, cfg.init_from, cfg.model.to_dict(), what="this run's model (init_from)")
+            init.check_same_encoder(cfg.init_from, self.bank)
+            init.load_weights(self.model, cfg.init_from, cfg.model, what="this run's model (init_from)")
         if self.model.free_bias is not None and not cfg.init_from:   # a resumed run loads its own below
             with torch.no_grad():
                 self.model.free_bias.fill_(self._free_prior_logit())
@@ -254,7 +244,7 @@ class Trainer:
                 emb = pseudo.meta["embedder"]
                 check_features_fit_bank(f"the pseudo-labels' voxel embeddings ({emb.get('name')})",
                                         emb.get("encoder_id"), emb.get("channels"), "the text bank",
-                                        self.bank["encoder_id"], self.bank["embeddings"].shape[1],
+                                        self.bank.encoder_id, self.bank.dim,
                                         pseudo.root / "meta.json")
         if note and info.is_main and not self.quiet:   # after init_from / resume checks: an error stays one line
             print(note, file=sys.stderr, flush=True)
@@ -266,8 +256,8 @@ class Trainer:
                 find_unused_parameters=getattr(cfg.loss, "variant", "ago") != "ago")
         else:
             self.ddp = self.step_module
-        self.text = self.bank["embeddings"].to(info.device)
-        self.phrase_class = self.bank["phrase_class"].to(info.device)
+        self.text = self.bank.embeddings.to(info.device)
+        self.phrase_class = self.bank.phrase_class.to(info.device)
         self.align_center = self._align_center() if cfg.loss.align_center and cfg.loss.uses_align else None
         self.class_weight = self._class_weight() if cfg.loss.class_balance > 0 and cfg.loss.uses_grounding else None
 
@@ -339,72 +329,47 @@ class Trainer:
 
     def _load_resume(self) -> None:
         path = self.out / "last.pt"
-        ckpt = load_checkpoint(path, map_location=self.info.device)
-        if ckpt.get("optimizer") is None:
-            raise AgoInputError(path, "checkpoint has no optimiser state (an export?); cannot resume from it")
-        check_checkpoint_bank(ckpt, path, self.bank)   # first: another text encoder also changes embed_dim
-        check_resume_model(ckpt, path, self.cfg.model.to_dict())
-        saved = ckpt["train_config"]
-        for key in ("epochs", "batch_size", "seed", "max_steps"):
-            if saved.get(key) != getattr(self.cfg, key):
-                raise AgoInputError(path, f"cannot resume: {key} was {saved.get(key)!r}, now {getattr(self.cfg, key)!r}")
-        if int(ckpt.get("world_size", 1)) != self.info.world_size:
-            raise AgoInputError(path, f"cannot resume: the run used {ckpt.get('world_size')} processes, "
-                                f"now {self.info.world_size}")
-        self.model.load_state_dict(ckpt["model"])
-        self.optimizer.load_state_dict(ckpt["optimizer"])
-        self.scheduler.load_state_dict(ckpt["scheduler"])
-        self.step = int(ckpt["step"])
-        rng = ckpt["rng"]
-        if isinstance(rng, list):  # one state per rank
-            rng = rng[self.info.rank]
-        set_rng_state(rng)
+        ckpt = CheckpointContract.load(path, map_location=self.info.device)
+        ckpt.check_resume(path, self.cfg, self.info.world_size, self.bank)
+        self.model.load_state_dict(ckpt.model)
+        self.optimizer.load_state_dict(ckpt.training.optimizer)
+        self.scheduler.load_state_dict(ckpt.training.scheduler)
+        self.step = ckpt.step
+        set_rng_state(ckpt.training.rng_of_rank(self.info.rank))
 
     # -------------------------------------------------------------------------------------------
-    def checkpoint_payload(self, epoch: int) -> dict:
+    def checkpoint_contract(self, epoch: int) -> CheckpointContract:
+        """This step's checkpoint (collective in DDP: every rank's RNG state, so a resumed run continues exactly)."""
         cfg = self.cfg
         rng = rng_state()
-        if self.info.distributed:  # every rank's RNG state, so a resumed DDP run continues exactly
+        if self.info.distributed:
             gathered = [None] * self.info.world_size
             torch.distributed.all_gather_object(gathered, rng)
             rng = gathered
-        return {
-            "model": self.model.state_dict(),
-            "optimizer": self.optimizer.state_dict(),
-            "scheduler": plain(self.scheduler.state_dict()),
-            "step": int(self.step),
-            "epoch": int(epoch),
-            "total_steps": int(self.total_steps),
-            "world_size": int(self.info.world_size),
-            "rng": rng,
-            "model_config": plain(cfg.model.to_dict()),
-            "train_config": plain(cfg.to_dict()),
-            "loss_config": plain(cfg.to_dict()["loss"]),
-            "label_space": label_space_record(self.label_space, Path(self.prompt_path).read_text(encoding="utf-8")),
-            "bank": self.bank,
-            "preprocess": plain(self.preprocess.to_dict()),
-            "rig": self.rig_record,
-            "align_center": self.align_center.cpu() if self.align_center is not None else None,
-            "calibration": getattr(self, "calibration", None),
-        }
+        return CheckpointContract(
+            model=self.model.state_dict(), model_config=cfg.model,
+            label_space=LabelSpaceRecord.of_space(self.label_space, Path(self.prompt_path).read_text(encoding="utf-8")),
+            bank=self.bank, step=int(self.step), epoch=int(epoch),
+            training=TrainingState(self.optimizer.state_dict(), self.scheduler.state_dict(), rng),
+            total_steps=int(self.total_steps), world_size=int(self.info.world_size), train_config=plain(cfg.to_dict()),
+            rig=self.rig, align_center=self.align_center.cpu() if self.align_center is not None else None,
+            calibration=getattr(self, "calibration", None))
 
     def snapshot_path(self, step: int) -> Path:
         return self.out / "snapshots" / f"step_{step:06d}.pt"
 
     def save_snapshot(self, epoch: int) -> None:
         """A model-only checkpoint of this step (no optimiser, scheduler or RNG): evaluable and exportable."""
-        payload = self.checkpoint_payload(epoch)
+        contract = self.checkpoint_contract(epoch)
         if self.info.is_main:
-            for key in ("optimizer", "scheduler", "rng"):
-                payload[key] = None
-            save_checkpoint(self.snapshot_path(self.step), payload)
+            dataclasses.replace(contract, training=None).save(self.snapshot_path(self.step))
         D.barrier(self.info)
 
     def save(self, epoch: int) -> Path | None:
-        payload = self.checkpoint_payload(epoch)  # collective in DDP: every rank takes part
+        contract = self.checkpoint_contract(epoch)  # collective in DDP: every rank takes part
         path = None
         if self.info.is_main:
-            path = save_checkpoint(self.out / "last.pt", payload)
+            path = contract.save(self.out / "last.pt")
         D.barrier(self.info)
         return path
 
@@ -514,7 +479,7 @@ class Trainer:
             # the identifier's per-branch logit scales, from known-class training voxels (calibrate.py)
             from .calibrate import fit_scales
 
-            self.calibration = fit_scales(self)
+            self.calibration = CalibrationRecord.from_payload(fit_scales(self), "calibration", self.cfg.model.embed_dim)
         last = self.save(self.step // self.steps_per_epoch if self.steps_per_epoch else 0)
         return {"step": self.step, "losses": losses, "last": str(last) if last else None,
                 "total_steps": self.total_steps, "steps_per_epoch": self.steps_per_epoch}
@@ -556,7 +521,7 @@ def train(cfg: TrainConfig, resume: bool = False, quiet: bool = False) -> dict:
         D.cleanup(info)
 
 
-def recalibrate(run_dir) -> dict:
+def recalibrate(run_dir) -> CalibrationRecord:
     """Re-fit the calibration of a finished run's `<run>/last.pt` on its training frames and rewrite the
     checkpoint (atomically; the weights, optimiser and step are kept): `ago calibrate RUN`. For runs made
     before a calibration change (e.g. the adapted branch's standardisation statistics)."""
@@ -574,6 +539,6 @@ def recalibrate(run_dir) -> dict:
     if trainer.step < trainer.total_steps:
         raise AgoInputError(run / "last.pt", f"the run stopped at step {trainer.step} of {trainer.total_steps}; "
                             "finish it with `ago train --resume` (which calibrates at the end)")
-    trainer.calibration = fit_scales(trainer)
+    trainer.calibration = CalibrationRecord.from_payload(fit_scales(trainer), "calibration", trainer.cfg.model.embed_dim)
     trainer.save(trainer.step // trainer.steps_per_epoch if trainer.steps_per_epoch else 0)
     return trainer.calibration

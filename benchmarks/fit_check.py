@@ -69,18 +69,18 @@ def grid_diagnostics(ckpt: Path, data: Path, device: str) -> dict:
     """Mean over the training frames of the whole-grid feature spread and free share of F_3D."""
     import torch
 
-    from ago_train.checkpoint import load_checkpoint
+    from ago_train.checkpoint import CheckpointContract
     from ago_train.dataset import FrameList, OccSampleDataset
-    from ago_train.evaluate import bank_for, checkpoint_label_space, load_model
+    from ago_train.evaluate import bank_for, load_model
     from ago_train.fit_diagnostics import feature_spread, free_share
     from ago_train.model.text_logits import class_logits
     from ago_train.sources import open_split
     from ago_runtime.geometry.preprocess import Preprocess
 
     dev = torch.device(device)
-    state = load_checkpoint(ckpt, map_location="cpu")
+    state = CheckpointContract.load(ckpt, map_location="cpu")
     mcfg, model = load_model(state, dev, ckpt)
-    space = checkpoint_label_space(state)
+    space = state.space
     text, phrase_class = (t.to(dev) for t in bank_for(state, space))
     ds, indices = open_split(data, None, "train")
     items = OccSampleDataset(FrameList(ds, indices), None, space.num_classes, mcfg.grid_obj(),

@@ -41,18 +41,18 @@ VIEWS = ("none", "min-entropy", "adapted", "oracle", "oracle occupancy")
 def score_run(ckpt_path: Path, data: str, prompts: str, max_frames: int | None) -> dict:
     from ago_runtime.geometry.preprocess import Preprocess
     from ago_runtime.scoring.metric import OccupancyMetric
-    from ago_train.checkpoint import load_checkpoint
+    from ago_train.checkpoint import CheckpointContract
     from ago_train.dataset import FrameList, OccSampleDataset, collate
-    from ago_train.evaluate import (_to_gt_resolution, checkpoint_adapted_stats, checkpoint_scales, load_model)
+    from ago_train.evaluate import _to_gt_resolution, load_model
     from ago_train.experiments.view_eval import _bank
     from ago_train.model.text_logits import adapted_logits, class_logits, decide
     from ago_train.sources import open_split
     from ago_runtime.progress import track
 
-    ckpt = load_checkpoint(ckpt_path, map_location="cpu")
+    ckpt = CheckpointContract.load(ckpt_path, map_location="cpu")
     mcfg, model = load_model(ckpt, torch.device("cpu"), ckpt_path)
-    scales = checkpoint_scales(ckpt)
-    stats = checkpoint_adapted_stats(ckpt)
+    scales = ckpt.scales
+    stats = ckpt.adapted_stats
     bank = _bank(ckpt, prompts, False)
     space, K = bank.space, bank.space.num_classes
     unknown = np.array([c not in space.known for c in space.class_names])
@@ -115,15 +115,15 @@ def training_occupancy(ckpt_path: Path, data: str, pseudo: str, frames: int) -> 
     """Share of labelled / hit-but-unlabelled / free pseudo-label voxels of training frames called occupied."""
     from ago_runtime.classes import FREE, OCCUPIED_UNLABELLED
     from ago_runtime.geometry.preprocess import Preprocess
-    from ago_train.checkpoint import load_checkpoint
+    from ago_train.checkpoint import CheckpointContract
     from ago_train.dataset import FrameList, OccSampleDataset, PseudoLabelSet, collate
-    from ago_train.evaluate import bank_for, checkpoint_label_space, load_model
+    from ago_train.evaluate import bank_for, load_model
     from ago_train.model.text_logits import class_logits
     from ago_train.sources import open_split
 
-    ckpt = load_checkpoint(ckpt_path, map_location="cpu")
+    ckpt = CheckpointContract.load(ckpt_path, map_location="cpu")
     mcfg, model = load_model(ckpt, torch.device("cpu"), ckpt_path)
-    space = checkpoint_label_space(ckpt)
+    space = ckpt.space
     K = space.num_classes
     text, pc = bank_for(ckpt, space)
     ds, idx = open_split(data, None, "train")

@@ -12,6 +12,7 @@ because those come from click's exception classes, which typer >= 0.26 vendors a
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
 import json
 import os
@@ -159,33 +160,30 @@ def w(tmp_path_factory):
     x.bad_npz.write_bytes(b"PK\x03\x04 this is no zip")
 
     pytest.importorskip("torch")
-    import torch
 
     from ago_export.export import export_bundle
     from ago_export.testing import random_checkpoint
     from ago_runtime.vocab.bank import PromptBank
-    from ago_train.checkpoint import save_checkpoint
+    from ago_train.checkpoint import CheckpointContract, TrainingState, rng_state
     from ago_train.model import ModelConfig
     from ago_train.text.noise import NoiseBank
 
     x.ckpt = random_checkpoint(root / "tiny.pt", "tiny", prompts="cw", seed=1)
     x.bundle = root / "bundle"
     export_bundle(x.ckpt, x.bundle, bank_prompts=[], real_frame=False, log=lambda s: None)
-    ck = torch.load(x.ckpt, weights_only=True)
 
     other = ModelConfig.preset("tiny")
     other.pretrained, other.hidden_dim = False, 24
     x.other_size = random_checkpoint(root / "other_size.pt", other, prompts="cw", seed=2)
     x.mismatched = root / "mismatched.pt"       # weights of the tiny model, model_config of another size
-    save_checkpoint(x.mismatched, {**{k: v for k, v in ck.items() if k not in ("format", "version")},
-                                   "model_config": other.to_dict()})
+    tiny = CheckpointContract.load(x.ckpt)
+    dataclasses.replace(tiny, model_config=other).save(x.mismatched)
     x.raw_pickle = root / "raw.pt"
     x.raw_pickle.write_bytes(pickle.dumps({"model": [1, 2, 3]}))
     x.resume_run = root / "resume_run"          # a run folder whose last.pt has the tiny model's size
-    save_checkpoint(x.resume_run / "last.pt", {**{k: v for k, v in ck.items() if k not in ("format", "version")},
-                                               "optimizer": {"state": {}, "param_groups": []}, "scheduler": {},
-                                               "train_config": {"epochs": 1, "batch_size": 1, "seed": 0,
-                                                                "max_steps": 4}, "rng": {}, "step": 1})
+    dataclasses.replace(tiny, training=TrainingState({"state": {}, "param_groups": []}, {}, rng_state()), step=1,
+                        train_config={"epochs": 1, "batch_size": 1, "seed": 0, "max_steps": 4}
+                        ).save(x.resume_run / "last.pt")
     x.noise = NoiseBank(["alpha", "beta", "gamma"], np.eye(3, 384, dtype=np.float16)).save(root / "noise.npz")
     x.broken_pseudo = shutil.copytree(x.pseudo, root / "broken_pseudo")
     victim = next(x.broken_pseudo.glob("*/*/labels.npz"))
@@ -568,7 +566,10 @@ def test_bundle_card_line_and_default_bundle_without_card(w):
 
 def test_card_from_a_training_run(tmp_path):
     """make_card reads the run: synthetic data, frames of the split, steps, eval-val/metrics.json, a note."""
+    pytest.importorskip("torch")
     from ago_export.card import make_card
+    from ago_export.testing import random_checkpoint
+    from ago_train.checkpoint import CheckpointContract
 
     data = tmp_path / "data"
     (data / "v1.0-trainval").mkdir(parents=True)
@@ -584,9 +585,10 @@ def test_card_from_a_training_run(tmp_path):
     run = tmp_path / "run"
     (run / "eval-val").mkdir(parents=True)
     (run / "eval-val" / "metrics.json").write_text(json.dumps({"mIoU": 7.84, "split": "val", "frames": 2}))
-    ckpt = {"step": 384, "epoch": 3, "train_config": {"data": str(data), "train_split": "train", "val_split": "val",
-                                                      "name": "cpu", "pseudo": str(tmp_path / "none")},
-            "label_space": {"name": "cw", "class_names": ["car", "road"]}}
+    ckpt = dataclasses.replace(
+        CheckpointContract.load(random_checkpoint(tmp_path / "r.pt", "tiny", prompts="cw")), step=384, epoch=3,
+        train_config={"data": str(data), "train_split": "train", "val_split": "val", "name": "cpu",
+                      "pseudo": str(tmp_path / "none")})
     card = make_card(ckpt, run / "last.pt", note="demo only", extra={"val_scores": {"mIoU": 8.0}})
     assert card["trained_on"]["kind"] == "synthetic" and card["trained_on"]["frames"] == 3
     assert card["trained_on"]["image_size"] == [352, 198]   # the first camera record's, not the LiDAR's

@@ -150,8 +150,6 @@ def test_bad_text_encoder_folders_are_one_line(tmp_path, clip_dir):
 
 
 def test_noise_words_record_their_encoder_and_a_mismatch_is_refused(tmp_path, encoder):
-    import torch
-
     from ago_runtime.errors import AgoInputError
     from ago_runtime.vocab.text_encoder import MINILM_ID
     from ago_train.text import noise
@@ -159,12 +157,11 @@ def test_noise_words_record_their_encoder_and_a_mismatch_is_refused(tmp_path, en
     nb = noise.build_noise_bank(encoder, candidates=WORDS[23:], labels=["car"], threshold=1.0)
     assert nb.meta["encoder_id"] == encoder.encoder_id and nb.dim == 24 and len(nb) == len(WORDS) - 23
     nb.save(tmp_path / "clip_noise.npz")
-    bank = {"encoder_id": encoder.encoder_id, "embeddings": torch.zeros(3, 24)}
-    assert len(noise.training_noise_bank(str(tmp_path / "clip_noise.npz"), None, bank)) == len(nb)
+    assert len(noise.training_noise_bank(str(tmp_path / "clip_noise.npz"), None, encoder.encoder_id, 24)) == len(nb)
     noise.NoiseBank(["apple"], np.ones((1, 384), np.float16), {"encoder_id": MINILM_ID}).save(tmp_path / "mini.npz")
     with pytest.raises(AgoInputError, match=f"noise words were made with encoder '{MINILM_ID}' but the prompt bank "
                                             f"with '{encoder.encoder_id}'"):
-        noise.training_noise_bank(str(tmp_path / "mini.npz"), None, bank)
+        noise.training_noise_bank(str(tmp_path / "mini.npz"), None, encoder.encoder_id, 24)
     with pytest.raises(AgoInputError, match="no noise word is left"):   # random weights: every word is "near"
         noise.build_noise_bank(encoder, candidates=WORDS[23:], labels=["car"], threshold=0.5 - 2)
     assert noise.default_noise_bank_path(encoder.encoder_id).name == f"noise_bank-clip_{encoder.encoder_id[5:]}.npz"
@@ -298,12 +295,11 @@ def test_a_new_prompt_file_is_encoded_by_the_bundles_tower_without_torch(chain, 
 
 
 def test_ago_eval_encodes_another_prompt_file_with_the_checkpoints_folder(chain, encoder):
-    import torch
-
     from ago_runtime.vocab.prompts import parse_prompt_file
+    from ago_train.checkpoint import CheckpointContract
     from ago_train.evaluate import bank_for
 
-    ckpt = torch.load(chain / "run" / "last.pt", weights_only=True, map_location="cpu")
+    ckpt = CheckpointContract.load(chain / "run" / "last.pt")
     space = parse_prompt_file(chain / "new.txt")
     emb, pc = bank_for(ckpt, space)
     assert np.allclose(emb.numpy(), encoder.encode(space.phrases), atol=1e-6) and pc.tolist() == [0, 0, 1, 1, 2]
@@ -398,7 +394,7 @@ def test_export_asks_for_the_folder_when_the_recorded_one_is_gone(clip_dir):
     from ago_runtime.vocab.model_folder import clip_encoder_id
 
     bank = PromptBank(np.ones((1, 24), np.float32), ["car"], ["car"], [0], clip_encoder_id(clip_dir), "torch-fp32", "h", 24)
-    for record in ({}, {"text_encoder": "/nowhere/clip"}):
+    for recorded in (None, "/nowhere/clip"):   # CheckpointContract.text_encoder: none, or a folder that is gone
         with pytest.raises(AgoInputError, match=f"trained with the CLIP text encoder {bank.encoder_id}.*give its folder"):
-            clip_folder_for({"train_config": record}, "last.pt", bank, None)
-    assert clip_folder_for({"train_config": {"text_encoder": str(clip_dir)}}, "last.pt", bank, None) == clip_dir
+            clip_folder_for(recorded, "last.pt", bank, None)
+    assert clip_folder_for(str(clip_dir), "last.pt", bank, None) == clip_dir

@@ -179,13 +179,13 @@ def test_the_checkpoint_and_the_bundle_carry_the_table(chain):
     import torch
 
     from ago_runtime.predict.bundle import Bundle
-    from ago_runtime.vocab.prompts import label_space_from_record
+    from ago_train.checkpoint import LabelSpaceRecord
 
     ckpt = torch.load(chain / "run" / "last.pt", weights_only=True, map_location="cpu")
     assert ckpt["label_space"]["class_table"]["name"] == "my_table"
     (chain / "prompts" / "my_table.json").rename(chain / "prompts" / "moved.json")   # the record needs no file
     try:
-        space = label_space_from_record(ckpt["label_space"], "last.pt")
+        space = LabelSpaceRecord.from_payload(ckpt["label_space"], "last.pt").space
     finally:
         (chain / "prompts" / "moved.json").rename(chain / "prompts" / "my_table.json")
     assert space.class_table == ClassTable.from_dict(MY_TABLE) and space.class_names == NAMES

@@ -369,16 +369,16 @@ def test_deeper_model_exports_and_keeps_parity(tmp_path):
 def test_free_bias_is_exported_and_applied(tmp_path, bias):
     """A model with a learnt free bias (ModelConfig.free_bias): the bundle carries it, the runtime adds it to
     the free score, and its labels equal torch's (class_logits with the bias) on a random frame."""
-    from ago_train.checkpoint import load_checkpoint, save_checkpoint
+    from ago_train.checkpoint import CheckpointContract
     from ago_train.model import ModelConfig
     from ago_train.model.text_logits import class_logits
 
     cfg = ModelConfig.preset("tiny")
     cfg.pretrained, cfg.free_bias = False, True
     ckpt = random_checkpoint(tmp_path / "fb.pt", cfg, prompts="cw", seed=5)
-    state = load_checkpoint(ckpt)
-    state["model"]["free_bias"] = torch.tensor(bias)
-    save_checkpoint(ckpt, state)
+    state = CheckpointContract.load(ckpt)
+    state.model["free_bias"] = torch.tensor(bias)
+    state.save(ckpt)
     export_bundle(ckpt, tmp_path / "b", bank_prompts=[], real_frame=False, log=lambda s: None)
     b = Bundle.load(tmp_path / "b")
     assert b.heads.free_bias == pytest.approx(bias)

@@ -111,10 +111,10 @@ def front_run(tmp_path_factory):
 
 
 def test_a_front_camera_rig_trains_and_records_its_rig(front_run):
-    from ago_train.checkpoint import checkpoint_camera_names, load_checkpoint
+    from ago_train.checkpoint import CheckpointContract
 
-    ckpt = load_checkpoint(front_run["run"] / "last.pt")
-    assert ckpt["model_config"]["num_cameras"] == 1 and checkpoint_camera_names(ckpt) == ["FRONT"]
+    ckpt = CheckpointContract.load(front_run["run"] / "last.pt")
+    assert ckpt.model_config.num_cameras == 1 and ckpt.camera_names == ["FRONT"]
     assert "model.num_cameras 6 -> 1" in front_run["train_log"]
     bundle = front_run["root"] / "bundle"
     out = _ago("export", front_run["run"] / "last.pt", "-o", bundle)

@@ -132,16 +132,19 @@ def test_target_mapping_and_collate():
 
 
 def test_checkpoint_refuses_objects_and_rng_roundtrip(tmp_path):
-    from ago_train.checkpoint import rng_state, save_checkpoint, set_rng_state
+    import dataclasses
 
+    from ago_export.testing import random_checkpoint
+    from ago_train.checkpoint import CheckpointContract, TrainingState, rng_state, set_rng_state
+
+    ckpt = CheckpointContract.load(random_checkpoint(tmp_path / "m.pt", "tiny"))
     with pytest.raises(TypeError):
-        save_checkpoint(tmp_path / "x.pt", {"bad": object()})
+        dataclasses.replace(ckpt, train_config={"bad": object()}).save(tmp_path / "x.pt")
     assert not (tmp_path / "x.pt").exists()
     state = rng_state()
     a = (torch.rand(3), np.random.rand(3), random.random())
-    save_checkpoint(tmp_path / "r.pt", {"rng": state})
-    loaded = torch.load(tmp_path / "r.pt", weights_only=True)
-    set_rng_state(loaded["rng"])
+    dataclasses.replace(ckpt, training=TrainingState({"state": {}, "param_groups": []}, {}, state)).save(tmp_path / "r.pt")
+    set_rng_state(CheckpointContract.load(tmp_path / "r.pt").training.rng_of_rank(0))
     b = (torch.rand(3), np.random.rand(3), random.random())
     assert torch.equal(a[0], b[0]) and np.array_equal(a[1], b[1]) and a[2] == b[2]
 
@@ -213,7 +216,7 @@ def test_bad_inputs_raise_ago_input_error(tiny_data, tmp_path):
 def test_overfit_one_frame_then_eval(tiny_data, tmp_path):
     """A short run lowers the loss; 100 steps on one frame fit its pseudo-labels (mIoU > 0.7); eval writes files."""
     from ago_runtime.scoring.metric import OccupancyMetric
-    from ago_train.checkpoint import load_checkpoint
+    from ago_train.checkpoint import CheckpointContract
     from ago_train.dataset import IGNORE_INDEX, pseudo_to_target
     from ago_train.evaluate import evaluate, load_model, predict_labels
     from ago_train.trainer import Trainer
@@ -227,12 +230,12 @@ def test_overfit_one_frame_then_eval(tiny_data, tmp_path):
     assert np.mean(losses[-10:]) < 0.5 * np.mean(losses[:5]), losses[::10]
 
     # fit: predictions vs the frame's own pseudo-labels on the model grid
-    ckpt = load_checkpoint(r["last"])
+    ckpt = CheckpointContract.load(r["last"])
     mcfg, model = load_model(ckpt, torch.device("cpu"))
     item = t.dataset[0]
     K = t.label_space.num_classes
-    pred = predict_labels(model, item["images"][None], item["ego2img"][None], ckpt["bank"]["embeddings"],
-                          ckpt["bank"]["phrase_class"], K, "none")[0].numpy()
+    pred = predict_labels(model, item["images"][None], item["ego2img"][None], ckpt.bank.embeddings,
+                          ckpt.bank.phrase_class, K, "none")[0].numpy()
     target = pseudo_to_target(item["semantics"].numpy(), K)
     keep = target != IGNORE_INDEX
     m = OccupancyMetric(list(t.label_space.class_names) + ["free"], free_index=K)
@@ -321,7 +324,7 @@ def test_overfit_three_frames_with_the_stratified_sample(tiny_data, tmp_path):
     a model that fills the grid, as the old priority sample taught, fails the last bound."""
     from ago_runtime.classes import OCCUPIED_UNLABELLED
     from ago_runtime.scoring.metric import OccupancyMetric
-    from ago_train.checkpoint import load_checkpoint
+    from ago_train.checkpoint import CheckpointContract
     from ago_train.dataset import IGNORE_INDEX, pseudo_to_target
     from ago_train.evaluate import load_model, predict_labels
     from ago_train.trainer import Trainer
@@ -333,7 +336,7 @@ def test_overfit_three_frames_with_the_stratified_sample(tiny_data, tmp_path):
     t = Trainer(cfg, quiet=True)
     r = t.run()
     assert np.mean(r["losses"][-10:]) < 0.5 * np.mean(r["losses"][:5])
-    ckpt = load_checkpoint(r["last"])
+    ckpt = CheckpointContract.load(r["last"])
     _, model = load_model(ckpt, torch.device("cpu"))
     K = t.label_space.num_classes
     m = OccupancyMetric(list(t.label_space.class_names) + ["free"], free_index=K)
@@ -341,8 +344,8 @@ def test_overfit_three_frames_with_the_stratified_sample(tiny_data, tmp_path):
     for i in range(3):
         item = t.dataset[i]
         sem = item["semantics"].numpy()
-        pred = predict_labels(model, item["images"][None], item["ego2img"][None], ckpt["bank"]["embeddings"],
-                              ckpt["bank"]["phrase_class"], K, "none")[0].numpy()
+        pred = predict_labels(model, item["images"][None], item["ego2img"][None], ckpt.bank.embeddings,
+                              ckpt.bank.phrase_class, K, "none")[0].numpy()
         target = pseudo_to_target(np.where(sem == OCCUPIED_UNLABELLED, 255, sem), K)
         keep = target != IGNORE_INDEX
         m.update(pred[keep], target[keep])

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from ago_runtime.classes import (FREE, IGNORE, NUM_SEMANTIC, OCC3D_CLASSES, OCC3D_NUSCENES, SHIPPED_TABLES, ClassTable,
-                                 load_class_table, name_key, shipped_name, table_from_ref, table_record)
+                                 load_class_table, name_key, shipped_name)
 from ago_runtime.errors import AgoInputError, AgoNote
 
 PROMPTS_DIR = Path(__file__).resolve().parents[2] / "prompts"
@@ -229,7 +229,7 @@ def _default_max_tokens() -> int:
 def parse_prompt_text(text: str | bytes, name: str | None = None, source: str | Path | None = None,
                       max_tokens: int | None = None, table: ClassTable | None = None) -> LabelSpace:
     """Parse prompt-file content (see the module docstring). `source` names it in errors. `table`: the class table
-    its `@table:` line stands for, as recorded beside the text (a checkpoint's, `label_space_from_record`), used
+    its `@table:` line stands for, as recorded beside the text (a checkpoint's: `ago_train.checkpoint.LabelSpaceRecord`), used
     instead of reading the table file again."""
     recorded = table
     where = str(source) if source is not None else "<prompt text>"
@@ -377,28 +377,6 @@ def resolve_prompt_file(name_or_path: str | Path, option: str | None = None) -> 
     why = "" if p.suffix == "" and p.parent.parts[:1] != ("prompts",) else "no such file here; "
     warnings.warn(f"{option + ' ' if option else ''}{value}: {why}using the shipped {candidate}", AgoNote, stacklevel=3)
     return candidate
-
-
-def label_space_record(space: LabelSpace, prompt_text: str) -> dict:
-    """What a checkpoint records of its label space: the prompt text, its classes and, when not Occ3D-nuScenes,
-    its class table (a shipped name or the table itself: `classes.table_record`), so that the label space can be
-    rebuilt without the prompt file or its table file (`label_space_from_record`)."""
-    rec = {"name": space.name, "prompt_file": str(space.source) if space.source is not None else None,
-           "prompt_text": prompt_text, "class_names": list(space.class_names),
-           "num_classes": int(space.num_classes), "known": sorted(space.known), **table_record(space.class_table)}
-    return rec
-
-
-def label_space_from_record(rec: dict, source) -> LabelSpace:
-    """The label space a checkpoint recorded (`label_space_record`); AgoInputError naming `source` when it is
-    incomplete or its class names disagree with its prompt text."""
-    if not isinstance(rec, dict) or not isinstance(rec.get("prompt_text"), str):
-        raise AgoInputError(source, "checkpoint label_space has no prompt_text")
-    table = table_from_ref(rec["class_table"], f"{source} (label_space.class_table)") if "class_table" in rec else None
-    space = parse_prompt_text(rec["prompt_text"], name=rec.get("name"), source=f"{source} (label_space)", table=table)
-    if list(space.class_names) != list(rec.get("class_names", space.class_names)):
-        raise AgoInputError(source, "checkpoint label_space class names disagree with its prompt text")
-    return space
 
 
 def parse_prompt_file(path: str | Path, max_tokens: int | None = None, option: str | None = None) -> LabelSpace:

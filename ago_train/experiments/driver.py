@@ -224,7 +224,7 @@ class ExperimentRunner:
         metric = OccupancyMetric()
         space = parse_prompt_file("cw")
         bank = build_text_bank(space)
-        emb, pc = np.asarray(bank["embeddings"], np.float32), np.asarray(bank["phrase_class"])
+        emb, pc = bank.embeddings.numpy().astype(np.float32), bank.phrase_class.numpy()
         text = np.stack([emb[pc == k].mean(0) for k in range(space.num_classes)])
         text /= np.linalg.norm(text, axis=1, keepdims=True)
         K = space.num_classes

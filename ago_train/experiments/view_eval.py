@@ -36,10 +36,9 @@ from ago_runtime.scoring.metric import OccupancyMetric
 from ago_runtime.geometry.preprocess import Preprocess
 from ago_runtime.vocab.prompts import LabelSpace, parse_prompt_file
 
-from ..checkpoint import checkpoint_camera_names, load_checkpoint
+from ..checkpoint import CheckpointContract
 from ..dataset import FrameList, OccSampleDataset, collate
-from ..evaluate import (_pct, _to_gt_resolution, bank_for, checkpoint_adapted_stats, checkpoint_scales, load_model,
-                        scored_subsets, scored_voxels)
+from ..evaluate import _pct, _to_gt_resolution, bank_for, load_model, scored_subsets, scored_voxels
 from ..model.text_logits import adapted_logits, class_logits, decide
 from ago_runtime.predict.decision import Identifier
 
@@ -66,7 +65,7 @@ class _Bank:
     class_text: torch.Tensor     # (K, C) normalised mean phrase embedding per class
 
 
-def _bank(ckpt: dict, prompts: str, closed_set: bool) -> _Bank:
+def _bank(ckpt: CheckpointContract, prompts: str, closed_set: bool) -> _Bank:
     space = parse_prompt_file(prompts)
     text, pc = bank_for(ckpt, space)
     K = space.num_classes
@@ -128,10 +127,10 @@ def evaluate_views(ckpt_path: str | Path, data: str | Path, views: list[View], s
     from ..sources import open_split
 
     dev = torch.device("cpu")
-    ckpt = load_checkpoint(ckpt_path, map_location="cpu")
+    ckpt = CheckpointContract.load(ckpt_path, map_location="cpu")
     mcfg, model = load_model(ckpt, dev, ckpt_path)
-    scales = checkpoint_scales(ckpt)
-    adapted_stats = checkpoint_adapted_stats(ckpt)
+    scales = ckpt.scales
+    adapted_stats = ckpt.adapted_stats
     banks = {v.name: _bank(ckpt, v.prompts, v.closed_set) for v in views}
     ds, indices = open_split(data, gts, split)
     if max_frames is not None:
@@ -141,7 +140,7 @@ def evaluate_views(ckpt_path: str | Path, data: str | Path, views: list[View], s
     # GT is loaded once (in the Occ3D ids) and mapped into each view's label space here
     dataset = OccSampleDataset(FrameList(ds, indices), None, 17, grid, pre, gt_lut=np.arange(256, dtype=np.uint8),
                                with_gt=True,
-                               camera_names=checkpoint_camera_names(ckpt, ckpt_path))
+                               camera_names=ckpt.camera_names)
     dataset.rig_of(ds[indices[0]])   # a frame of another rig is refused before any work
     metrics = {v.name: OccupancyMetric(list(banks[v.name].space.class_names) + ["free"],
                                        free_index=banks[v.name].space.num_classes) for v in views}

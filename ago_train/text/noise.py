@@ -223,16 +223,16 @@ def ensure_noise_bank(path: str | Path | None = None, force: bool = False, encod
     return path
 
 
-def training_noise_bank(path: str | None, text_encoder: str | None, bank: dict) -> NoiseBank:
+def training_noise_bank(path: str | None, text_encoder: str | None, encoder_id: str, width: int) -> NoiseBank:
     """The noise bank a training run samples from: `path` (the config's noise_bank) when given, else the cached one of
     the run's text encoder (`text_encoder`: a CLIP folder, None = MiniLM), built when missing. Refused with one line
-    naming both when its encoder or width is not the prompt bank's (`bank`: the checkpoint bank dict)."""
+    naming both when its encoder or width is not the prompt bank's (`encoder_id`, `width`: its encoder and width)."""
     from ago_runtime.vocab.model_folder import check_same_encoder, clip_encoder_id
 
     if path is None:
-        encoder_id = clip_encoder_id(text_encoder) if text_encoder is not None else MINILM_ID
-        path = default_noise_bank_path(encoder_id)
-        if not _up_to_date(path, encoder_id):
+        run_encoder = clip_encoder_id(text_encoder) if text_encoder is not None else MINILM_ID
+        path = default_noise_bank_path(run_encoder)
+        if not _up_to_date(path, run_encoder):
             encoder = None
             if text_encoder is not None:
                 from .clip import TorchClipTextEncoder
@@ -241,8 +241,7 @@ def training_noise_bank(path: str | None, text_encoder: str | None, bank: dict) 
             ensure_noise_bank(path, encoder=encoder)
     nb = NoiseBank.load(path)
     check_same_encoder("the noise words", str(nb.meta.get("encoder_id", MINILM_ID)), "the prompt bank",
-                       str(bank["encoder_id"]), source=path)
-    width = int(bank["embeddings"].shape[1])
+                       str(encoder_id), source=path)
     if nb.dim != width:
         raise AgoInputError(path, f"noise words are {nb.dim}-d, the prompt bank's embeddings {width}-d")
     return nb
