@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ago_runtime.predict import decision
-from ago_runtime.predict.contract import Branch, Identifier
+from ago_runtime.predict.contract import HEADS_NPZ, Branch, Identifier
 
 DEFAULT_CHUNK = 16384           # voxels per chunk for the unfolded helpers below
 SCORE_BUDGET_BYTES = 64 << 20   # FoldedHeads: a chunk's (P', n) score block stays under this
@@ -38,7 +38,7 @@ def default_identifier(class_names, known, trained_classes,
 
 @dataclass
 class HeadWeights:
-    """The linear heads of one bundle (heads.npz)."""
+    """The linear heads of one bundle (heads.npz, whose arrays the contract declares: HEADS_NPZ)."""
 
     W_dec: np.ndarray          # (C, Dh)
     b_dec: np.ndarray          # (C,)
@@ -52,8 +52,6 @@ class HeadWeights:
     adapted_cov: np.ndarray | None = None
     # added to the main branch's free score, F_3D . free_embedding + free_bias (ModelConfig.free_bias; 0 = none)
     free_bias: float = 0.0
-
-    KEYS = ("W_dec", "b_dec", "W_ad", "b_ad", "free_embedding")   # required; the fields above after it optional
 
     @property
     def scales(self) -> tuple[float, float]:
@@ -70,17 +68,22 @@ class HeadWeights:
         return int(self.W_dec.shape[1])
 
     @property
-    def adapter_dim(self) -> int:
+    def adapted_dim(self) -> int:
         return int(self.W_ad.shape[1])
 
     def to_arrays(self) -> dict[str, np.ndarray]:
-        out = {k: np.asarray(getattr(self, k), dtype=np.float32) for k in self.KEYS}
-        out["branch_scales"] = np.asarray(self.scales, dtype=np.float32)
-        out["free_bias"] = np.asarray([self.free_bias], dtype=np.float32)
-        if self.adapted_mean is not None:
-            out["adapted_mean"] = np.asarray(self.adapted_mean, dtype=np.float32)
-            out["adapted_cov"] = np.asarray(self.adapted_cov, dtype=np.float32)
-        return out
+        """heads.npz's arrays: exactly the names the contract declares (HEADS_NPZ), the optional pair when set."""
+        values = {"branch_scales": self.scales, "free_bias": [self.free_bias]}
+        names = HEADS_NPZ.names if self.adapted_mean is not None else HEADS_NPZ.required
+        return {k: np.asarray(values[k] if k in values else getattr(self, k), dtype=np.float32) for k in names}
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray]) -> "HeadWeights":
+        """The inverse of to_arrays (Bundle.load has checked the names and shapes against HEADS_NPZ)."""
+        w = cls(*(arrays[k] for k in ("W_dec", "b_dec", "W_ad", "b_ad", "free_embedding")),
+                branch_scales=arrays["branch_scales"], free_bias=float(arrays["free_bias"].reshape(-1)[0]))
+        w.adapted_mean, w.adapted_cov = arrays.get("adapted_mean"), arrays.get("adapted_cov")
+        return w
 
 
 class FoldedHeads:
