@@ -666,6 +666,8 @@ class BundleContract:
                 variants=variants, ago_version=_need(meta, "ago_version", str, "bundle"),
                 created_utc=_need(meta, "created_utc", str, "bundle"),
                 rig_source=_need(meta, "rig_source", str, "bundle"), format_version=version)
+        except AgoInputError:   # a by-value check that names its field already
+            raise
         except (KeyError, TypeError, ValueError, AttributeError) as e:
             raise AgoInputError(source, f"bundle metadata incomplete or malformed ({e.__class__.__name__}: {e})") from None
         contract.check_values(source)
