@@ -69,9 +69,7 @@ class FileRef:
 class Bundle:
     root: Path
     contract: BundleContract
-    grid: Grid
-    preprocess: Preprocess
-    rig: Rig                       # the training rig's calibration at native image size (fallback calibration)
+    rig: Rig                       # the training rig's calibration, in the model's camera order (fallback calibration)
     heads: HeadWeights
     banks: dict[str, Path] = field(default_factory=dict)
     card: BundleCard | None = None   # card.json (what the model was trained on), None when the bundle has none
@@ -80,6 +78,14 @@ class Bundle:
     def meta(self) -> dict:
         """bundle.json's content (the contract as a dict)."""
         return self.contract.to_dict()
+
+    @property
+    def grid(self) -> Grid:
+        return self.contract.grid
+
+    @property
+    def preprocess(self) -> Preprocess:
+        return self.contract.preprocess
 
     @property
     def label_space(self):
@@ -168,7 +174,7 @@ class Bundle:
         heads = load_heads(root / contract.files[BundleContract.HEADS].path, contract.head_widths)
         banks = {name: root / contract.files[key].path for name, key in contract.banks.items()}
         card = read_card(root / CARD_FILE) if (root / CARD_FILE).is_file() else None
-        bundle = cls(root, contract, contract.grid, contract.preprocess, rig, heads, banks, card)
+        bundle = cls(root, contract, rig, heads, banks, card)
         if "train" in banks:   # the label space bundle.json states is the training bank's
             names = bundle.load_bank("train").class_names
             if names != bundle.trained_classes:
