@@ -120,6 +120,7 @@ def test_heads_npz_holds_exactly_the_declared_arrays(exported, tmp_path):
     with np.load(exported["bundle"] / "heads.npz") as z:
         written = sorted(z.files)
     assert written == sorted(HEADS_NPZ.required)          # a checkpoint without calibration: no standardisation
+    assert sorted(f.name for f in fields(HeadWeights)) == sorted(HEADS_NPZ.names)   # one name per array and field
     rng = np.random.default_rng(0)
     w = b.heads
     w.adapted_mean = rng.standard_normal(w.embed_dim).astype(np.float32)

@@ -38,7 +38,8 @@ def default_identifier(class_names, known, trained_classes,
 
 @dataclass
 class HeadWeights:
-    """The linear heads of one bundle (heads.npz, whose arrays the contract declares: HEADS_NPZ)."""
+    """The linear heads of one bundle (heads.npz, whose arrays the contract declares: HEADS_NPZ; each field is the
+    array of its name)."""
 
     W_dec: np.ndarray          # (C, Dh)
     b_dec: np.ndarray          # (C,)
@@ -80,10 +81,9 @@ class HeadWeights:
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray]) -> "HeadWeights":
         """The inverse of to_arrays (Bundle.load has checked the names and shapes against HEADS_NPZ)."""
-        w = cls(*(arrays[k] for k in ("W_dec", "b_dec", "W_ad", "b_ad", "free_embedding")),
-                branch_scales=arrays["branch_scales"], free_bias=float(arrays["free_bias"].reshape(-1)[0]))
-        w.adapted_mean, w.adapted_cov = arrays.get("adapted_mean"), arrays.get("adapted_cov")
-        return w
+        values = {k: arrays[k] for k in HEADS_NPZ.names if k in arrays}   # each array is the field of its name
+        values["free_bias"] = float(values["free_bias"].reshape(-1)[0])
+        return cls(**values)
 
 
 class FoldedHeads:
