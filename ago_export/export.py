@@ -151,9 +151,10 @@ def export_onnx(model: nn.Module, out_dir: Path, cfg, grid_shape: tuple[int, int
 def open_split_encoder(root: Path, files: dict[str, str], specs: list[VoxelStageSpec], grid: Grid, heads: HeadWeights,
                        variant: VariantSpec | None = None) -> SplitEncoder:
     """The encoder of a bundle folder being written (parity checks): its float32 graphs, or `variant`'s."""
-    key = (lambda k: k) if variant is None else variant.graphs.__getitem__
-    stages = [StageGraph(s, root / files[key(s.file)]) for s in specs]
-    return SplitEncoder(root / files[key(BundleContract.PLANES)], stages, grid, heads.hidden_dim, heads.adapted_dim)
+    keys = [BundleContract.PLANES] + [s.file for s in specs]
+    graphs = dict(zip(keys, keys)) if variant is None else variant.graphs   # float32 graph key -> the graph to open
+    stages = [StageGraph(s, root / files[graphs[s.file]]) for s in specs]
+    return SplitEncoder(root / files[graphs[BundleContract.PLANES]], stages, grid, heads.hidden_dim, heads.adapted_dim)
 
 
 def _parity(model, encoder, heads, bank, x, m, tolerance: Tolerance, frame_name: str, checkpoint, what: str,
