@@ -18,6 +18,7 @@ import numpy as np
 from ago_runtime.errors import AgoInputError
 from ago_runtime.geometry.camera import Rig
 from ago_runtime.geometry.preprocess import Preprocess
+from ago_runtime.predict.contract import PLANES_INPUTS
 
 OPTION = "--calibration-data"
 MAX_CALIBRATION_FRAMES = 64   # the most frames a calibration reads (each is one run of the planes graph)
@@ -77,7 +78,7 @@ def planes_feeds(frames: list[tuple[dict[str, np.ndarray], Rig, str]], pre: Prep
     feeds = []
     for images, rig, name in frames:
         try:
-            feeds.append({"images": pre.images(images, rig, name)[None], "ego2img": pre.ego2img(rig)[None]})
+            feeds.append(dict(zip(PLANES_INPUTS, (pre.images(images, rig, name)[None], pre.ego2img(rig)[None]))))
         except AgoInputError as e:
             raise AgoInputError(OPTION, str(e)) from None
     return feeds

@@ -5,8 +5,8 @@
     bundle: trained on the SYNTHETIC world of `ago synth` (128 frames, 10 scenes), 384 steps, label
     space cw (17 classes), val mIoU 7.84 % - not a nuScenes model
 
-so nobody mistakes a demo model for a real one. Read by `ago_runtime.predict.bundle` (`Bundle.card`,
-`card_line`); the format is in docs/runtime.md.
+so nobody mistakes a demo model for a real one. The card's schema is ago_runtime/predict/card.py (`BundleCard`:
+written here through `write_card_file`, read by `Bundle.load` through `read_card`); the format is in docs/runtime.md.
 
 `make_card(ckpt, checkpoint_path, note=None, extra=None)` fills the card from what the checkpoint (an
 `ago_train.checkpoint.CheckpointContract`) and its run folder say:
@@ -27,13 +27,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from ago_runtime.atomic import write_json
 from ago_runtime.errors import AgoInputError
+from ago_runtime.predict.card import CARD_FILE, CARD_FORMAT, CARD_VERSION, BundleCard, write_card_file
 from ago_runtime.readers import read_json
-
-CARD_FILE = "card.json"
-CARD_FORMAT = "ago-bundle-card"
-CARD_VERSION = 1
 
 
 def _plain(obj):
@@ -213,6 +209,8 @@ def summary(card: dict) -> str:
 def read_card_options(note: str | None, card_json: str | Path | None) -> dict:
     """`ago export --card-note TEXT --card-json FILE` -> {"note", "extra"} (the JSON file: an object)."""
     extra = read_json(card_json, missing="card JSON file not found", expect=dict) if card_json else None
+    if extra is not None:
+        BundleCard.check_extra(extra, card_json)   # only what the card declares (before the export runs)
     if note is not None and ("\n" in note or not note.strip()):
         raise AgoInputError("--card-note", "must be one non-empty line")
     return {"note": note, "extra": extra}
@@ -222,7 +220,5 @@ def write_card(bundle_dir: str | Path, ckpt: dict, checkpoint_path: str | Path, 
                extra: dict | None = None, readout: tuple[list[int], list[int]] | None = None,
                text_encoder: dict | None = None) -> Path:
     """Write `card.json` into a bundle folder (the export's temporary folder); gives its path."""
-    path = Path(bundle_dir) / CARD_FILE
-    write_json(path, make_card(ckpt, checkpoint_path, note=note, extra=extra, readout=readout,
-                               text_encoder=text_encoder))
-    return path
+    return write_card_file(Path(bundle_dir) / CARD_FILE, make_card(ckpt, checkpoint_path, note=note, extra=extra,
+                                                                   readout=readout, text_encoder=text_encoder))

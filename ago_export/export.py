@@ -5,18 +5,22 @@ only, checked by value). Gives a bundle folder (layout: ago_runtime/predict/bund
 docs/runtime.md):
 
 1. the camera-to-voxel encoder plus the modality adapter's hidden layers as ONNX graphs
-   (bundle format 4, ago_runtime/predict/encoder.py; the traced modules are ago_export/graphs.py):
+   (bundle format 5, ago_runtime/predict/encoder.py; the traced modules are ago_export/graphs.py):
    `planes.onnx` (images (1,6,3,H,W) + ego2img (1,6,4,4) -> the three TPV planes at the grid's
    resolution, times the decoder's first linear layer, channels last) and `voxels_<i>.onnx`, the
    per-voxel MLP's remaining linear layers, one graph per layer (the runtime applies the softplus
    activations between them and computes the bank products itself), so the runtime streams slabs and
-   never holds the grid's features at once; key metadata also in metadata_props;
-2. the linear heads (`heads.npz`) and the learnt free embedding, for bank folding at run time;
+   never holds the grid's features at once; their input and output names are the contract's
+   (ago_runtime/predict/contract.py PLANES_INPUTS ...); bundle.json is the one record of what they are
+   (no ONNX metadata_props: nothing read them, and a second copy of the grid or text encoder could only drift);
+2. the linear heads (`heads.npz`, exactly the arrays contract.HEADS_NPZ declares) and the learnt free embedding,
+   for bank folding at run time;
 3. banks: "train" (the label-space embeddings saved in the checkpoint) and one per shipped prompt
    file the installed text encoder could build; a checkpoint trained with a CLIP folder's text tower ships
    that tower (text_encoder.onnx + tokenizer, parity-checked: ago_export/text_tower.py), which builds them;
 4. checks: onnx.checker, then parity ORT vs torch on one frame (a real nuScenes keyframe when one
-   is found, else a synthetic frame): ago_export.parity; optional int8 copy, parity-checked too.
+   is found, else a synthetic frame): ago_export.parity; optional int8 copy (the contract's "int8" variant),
+   parity-checked too.
 
 Everything is written into a temporary folder next to the target and renamed into place only when
 every check passed; a failed check raises AgoInputError (the CLI exits 2) and writes nothing.
@@ -25,7 +29,6 @@ every check passed; a failed check raises AgoInputError (the CLI exits 2) and wr
 from __future__ import annotations
 
 import datetime as _dt
-import json
 import shutil
 import warnings
 from pathlib import Path
@@ -42,11 +45,13 @@ from ago_runtime.formats.calibration import find_camera_images, load_images_fold
 from ago_runtime.geometry.camera import CAMERA_NAMES, Rig
 from ago_runtime.geometry.grid import Grid
 from ago_runtime.geometry.preprocess import Preprocess
-from ago_runtime.predict.contract import (BUNDLE_FORMAT, BUNDLE_FORMAT_VERSION, BUNDLE_JSON, BundleContract,
-                                          CameraSlot, FileEntry, LabelClass, LabelSpaceSpec, RigSpec,
-                                          TextEncoderSpec, VoxelStageSpec, check_bank_fits, file_sha256)
+from ago_runtime.predict.contract import (BUNDLE_JSON, PLANES_INPUTS, PLANES_OUTPUTS, STAGE_INPUT, STAGE_OUTPUT,
+                                          BundleContract, CameraSlot, CheckpointRecord, FileEntry, LabelClass,
+                                          LabelSpaceSpec, ModelRecord, ParityCheck, ParityReport, RigSpec,
+                                          TextEncoderSpec, TowerParity, VariantSpec, VoxelStageSpec, check_bank_fits,
+                                          file_sha256, record_from_dict, record_to_dict)
 from ago_runtime.predict.decision import Identifier
-from ago_runtime.predict.encoder import SplitEncoder, StageGraph
+from ago_runtime.predict.encoder import INT8, SplitEncoder, StageGraph
 from ago_runtime.predict.heads import HeadWeights
 from ago_runtime.vocab.prompts import LabelSpace, shipped_label_spaces
 from ago_runtime.vocab.text_encoder import OnnxTextEncoder
@@ -86,14 +91,11 @@ def head_weights(model, calibration=None) -> HeadWeights:
     return heads
 
 
-def _finish_onnx(path: Path, metadata: dict[str, str], doc: str) -> None:
+def _finish_onnx(path: Path, doc: str) -> None:
     import onnx
 
     proto = onnx.load(str(path))
-    del proto.metadata_props[:]
-    for k, v in metadata.items():
-        entry = proto.metadata_props.add()
-        entry.key, entry.value = k, v
+    del proto.metadata_props[:]   # bundle.json says what each graph is (module docstring)
     proto.producer_name = "ago export"
     proto.doc_string = doc
     onnx.save(proto, str(path))
@@ -103,44 +105,59 @@ def _finish_onnx(path: Path, metadata: dict[str, str], doc: str) -> None:
         raise AgoInputError(path, f"onnx.checker refused the exported graph: {str(e).splitlines()[0]}") from None
 
 
-def export_onnx(model: nn.Module, out_dir: Path, cfg, metadata: dict[str, str],
-                grid_shape: tuple[int, int, int] | None = None,
+def export_onnx(model: nn.Module, out_dir: Path, cfg, grid_shape: tuple[int, int, int] | None = None,
                 static_sampling: bool = False) -> tuple[dict[str, str], list[VoxelStageSpec]]:
     """Write planes.onnx and voxels_<i>.onnx (ago_export.graphs) into out_dir; returns ({key: file}, the
     voxel stages' contract entries, each with its file key). grid_shape: the read-out grid planes.onnx
     upsamples to (default the model's). static_sampling: see ago_export.graphs.ExportTPV."""
     images = torch.zeros(1, cfg.num_cameras, 3, cfg.image_height, cfg.image_width)
     ego2img = torch.eye(4).expand(1, cfg.num_cameras, 4, 4).contiguous()
-    files, specs = {"planes": "planes.onnx"}, []
+    planes = BundleContract.PLANES
+    files, specs = {planes: f"{planes}.onnx"}, []
     with warnings.catch_warnings(), torch.no_grad():
         warnings.simplefilter("ignore")
-        torch.onnx.export(PlanesGraph(model, grid_shape, static_sampling).eval(), (images, ego2img), str(out_dir / "planes.onnx"), dynamo=False,
-                          opset_version=OPSET, input_names=["images", "ego2img"],
-                          output_names=["plane_xy", "plane_xz", "plane_yz"], do_constant_folding=True)
+        torch.onnx.export(PlanesGraph(model, grid_shape, static_sampling).eval(), (images, ego2img), str(out_dir / files[planes]), dynamo=False,
+                          opset_version=OPSET, input_names=list(PLANES_INPUTS),
+                          output_names=list(PLANES_OUTPUTS), do_constant_folding=True)
         for i, stage in enumerate(voxel_stages(model)):
             key = f"voxels_{i}"
             torch.onnx.export(VoxelStageGraph(stage).eval(), (torch.zeros(2, stage.linear.in_features),),
                               str(out_dir / f"{key}.onnx"), dynamo=False, opset_version=OPSET,
-                              input_names=["x"], output_names=["y"],
-                              dynamic_axes={"x": {0: "voxels"}, "y": {0: "voxels"}}, do_constant_folding=True)
+                              input_names=[STAGE_INPUT], output_names=[STAGE_OUTPUT],
+                              dynamic_axes={STAGE_INPUT: {0: "voxels"}, STAGE_OUTPUT: {0: "voxels"}},
+                              do_constant_folding=True)
             files[key] = f"{key}.onnx"
             specs.append(stage.spec(key))
-    _finish_onnx(out_dir / "planes.onnx", {**metadata, "ago.graph": "planes"},
+    _finish_onnx(out_dir / files[planes],
                  "ago camera-to-TPV encoder: images (1,6,3,H,W) + ego2img (1,6,4,4) -> plane_xy (X,Y,Dh), "
                  "plane_xz (X,Z,Dh), plane_yz (Y,Z,Dh): the TPV planes at the grid resolution times the decoder's "
                  "first linear layer (its bias in plane_xy), channels last")
     for spec in specs:
-        _finish_onnx(out_dir / files[spec.file], {**metadata, "ago.graph": spec.file,
-                                                  "ago.voxel_stage": json.dumps(spec.to_dict())},
+        _finish_onnx(out_dir / files[spec.file],
                      "ago per-voxel MLP stage: x (n, d_in) -> y = x W^T + b (n, d_out), the next pre-activation")
     return files, specs
 
 
 def open_split_encoder(root: Path, files: dict[str, str], specs: list[VoxelStageSpec], grid: Grid, heads: HeadWeights,
-                       suffix: str = "") -> SplitEncoder:
-    """The encoder of a bundle folder being written (parity checks)."""
-    stages = [StageGraph(s, root / files[s.file + suffix]) for s in specs]
-    return SplitEncoder(root / files["planes" + suffix], stages, grid, heads.hidden_dim, heads.adapter_dim)
+                       variant: VariantSpec | None = None) -> SplitEncoder:
+    """The encoder of a bundle folder being written (parity checks): its float32 graphs, or `variant`'s."""
+    keys = [BundleContract.PLANES] + [s.file for s in specs]
+    graphs = dict(zip(keys, keys)) if variant is None else variant.graphs   # float32 graph key -> the graph to open
+    stages = [StageGraph(s, root / files[graphs[s.file]]) for s in specs]
+    return SplitEncoder(root / files[graphs[BundleContract.PLANES]], stages, grid, heads.hidden_dim, heads.adapted_dim)
+
+
+def _parity(model, encoder, heads, bank, x, m, tolerance: Tolerance, frame_name: str, checkpoint, what: str,
+            log) -> ParityCheck:
+    """One parity check of the graphs `what` ("fp32", a variant) (ago_export.parity.check_parity) as the contract's
+    record, logged; a failed one is refused naming the checkpoint."""
+    check = record_from_dict(ParityCheck, check_parity(model, encoder, heads, bank, x, m, tolerance, frame_name),
+                             f"{what} parity")
+    line = describe(record_to_dict(check))
+    log(f"parity {what}: {line}")
+    if not check.ok:
+        raise AgoInputError(checkpoint, f"{what} parity check failed on {frame_name}: {line}")
+    return check
 
 
 # ---- label space and banks -----------------------------------------------------------------
@@ -209,7 +226,7 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
     """Write a bundle for `checkpoint` at `out`; returns bundle.json's content.
 
     parity=False skips the ORT-vs-torch check (benchmarks only; not offered by the CLI);
-    bundle.json then records "parity": {"skipped": true}.
+    bundle.json then records a parity report with "skipped": true.
 
     bank_prompts: prompt files (paths or shipped names) to pre-build banks for; None = every
     shipped prompt file (skipped with a note when no text encoder is installed).
@@ -261,17 +278,10 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
         log(f"note: using parity frame {frame_name} (--parity-frame DIR chooses one, --no-real-frame a synthetic one)")
     tmp = temp_dir_beside(out)   # removes the temp folders of killed exports first
     try:
-        metadata = {
-            "ago.format": BUNDLE_FORMAT, "ago.format_version": str(BUNDLE_FORMAT_VERSION),
-            "ago.version": ago_runtime.__version__, "ago.grid": json.dumps(grid.to_dict()),
-            "ago.preprocess": json.dumps(pre.to_dict()), "ago.text_encoder": json.dumps(vars(encoder_spec)),
-            "ago.class_names": json.dumps(list(space.class_names)), "ago.label_space": space.name,
-            "ago.outputs": "planes: the TPV planes at the grid (times the decoder's first linear); voxels_<i>: one layer "
-                           "of the per-voxel MLP (y = x W^T + b)",
-        }
         log(f"exporting the encoder to ONNX (opset {OPSET}) ...")
-        files, stages = export_onnx(model, tmp, cfg, metadata, grid.shape, static_sampling)
-        np.savez(tmp / "heads.npz", **heads.to_arrays())
+        files, stages = export_onnx(model, tmp, cfg, grid.shape, static_sampling)
+        files[BundleContract.HEADS] = "heads.npz"
+        np.savez(tmp / files[BundleContract.HEADS], **heads.to_arrays())
         tower, bank_encoder = None, None
         if clip_folder is not None:
             tower = export_text_tower(clip_folder, tmp, bank, int8, checkpoint, log)
@@ -295,48 +305,41 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
 
         x = pre.images(images, frame_rig, frame_name)[None]
         m = pre.ego2img(frame_rig)[None]
-        report: dict = {} if tower is None else {"text_encoder": tower["parity"]}
+        report = ParityReport(skipped=not parity, fp32=None, text_encoder=None if tower is None else
+                              record_from_dict(TowerParity, tower["parity"], "text tower parity"))
         if parity:
             log("checking parity onnxruntime vs torch ...")
-            report["fp32"] = check_parity(model, open_split_encoder(tmp, files, stages, grid, heads), heads, bank,
-                                          x, m, tolerance, frame_name)
-            log(f"parity fp32: {describe(report['fp32'])}")
-            if not report["fp32"]["ok"]:
-                raise AgoInputError(checkpoint, f"export parity check failed on {frame_name}: {describe(report['fp32'])}")
-        else:
-            report["skipped"] = True
-        files["heads"] = "heads.npz"
+            report.fp32 = _parity(model, open_split_encoder(tmp, files, stages, grid, heads), heads, bank, x, m,
+                                  tolerance, frame_name, checkpoint, "fp32", log)
+        variants = {}
         if int8:
             from .quantize import quantize_encoder
 
             log("quantising the encoder to int8 ...")
-            for key in ["planes"] + [st.file for st in stages]:
-                quantize_encoder(tmp / files[key], tmp / f"{key}.int8.onnx")
-                files[f"{key}_int8"] = f"{key}.int8.onnx"
+            variant = VariantSpec(INT8, "dynamic", {}, None)
+            for key in [BundleContract.PLANES] + [st.file for st in stages]:
+                variant.graphs[key] = f"{key}_{INT8}"
+                files[variant.graphs[key]] = f"{key}.{INT8}.onnx"
+                quantize_encoder(tmp / files[key], tmp / files[variant.graphs[key]])
             if parity:
-                report["int8"] = check_parity(model, open_split_encoder(tmp, files, stages, grid, heads, "_int8"),
-                                              heads, bank, x, m, int8_tolerance, frame_name)
-                log(f"parity int8: {describe(report['int8'])}")
-                if not report["int8"]["ok"]:
-                    raise AgoInputError(checkpoint, f"int8 parity check failed on {frame_name}: "
-                                        f"{describe(report['int8'])}")
+                variant.parity = _parity(model, open_split_encoder(tmp, files, stages, grid, heads, variant), heads,
+                                         bank, x, m, int8_tolerance, frame_name, checkpoint, INT8, log)
+            variants[INT8] = variant
         file_entries = {k: FileEntry.of(tmp, v) for k, v in files.items()}
-        file_entries.update({f"bank/{k}": FileEntry.of(tmp, v) for k, v in banks.items()})
+        file_entries.update({BundleContract.bank_key(k): FileEntry.of(tmp, v) for k, v in banks.items()})
         contract = BundleContract(
-            grid=grid.to_dict(), model_grid=model_grid.to_dict(), preprocess=pre.to_dict(),
+            grid=grid, model_grid=model_grid, preprocess=pre,
             rig=RigSpec([CameraSlot(c.name, w, h) for c, (w, h) in zip(rig, pre.camera_sizes(rig))]),
-            training_rig=rig.to_dict(), rig_source=rig_source, label_space=label_space_spec(space),
+            training_rig=rig, rig_source=rig_source, label_space=label_space_spec(space),
             text_encoder=encoder_spec, files=file_entries, voxel_stages=stages,
-            hidden_dim=heads.hidden_dim, adapted_dim=heads.adapter_dim, identifier=Identifier.MIN_ENTROPY,
-            banks=banks, default_bank="train", bank_notes=bank_notes,
-            checkpoint={"path": str(checkpoint), "sha256": file_sha256(checkpoint),
-                        "step": ckpt.step, "epoch": ckpt.epoch},
-            model={"config": cfg.to_dict(), "hidden_dim": heads.hidden_dim, "adapter_dim": heads.adapter_dim,
-                   "embed_dim": heads.embed_dim, "num_voxels": grid.num_voxels, "opset": OPSET},
+            hidden_dim=heads.hidden_dim, adapted_dim=heads.adapted_dim, identifier=Identifier.MIN_ENTROPY,
+            banks={k: BundleContract.bank_key(k) for k in banks}, default_bank="train", bank_notes=bank_notes,
+            checkpoint=CheckpointRecord(str(checkpoint), file_sha256(checkpoint), ckpt.step, ckpt.epoch),
+            model=ModelRecord(cfg.to_dict(), OPSET), variants=variants,
             parity=report, ago_version=ago_runtime.__version__,
             created_utc=_dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
-        contract.check_stages()
         meta = contract.to_dict()
+        BundleContract.from_dict(meta, tmp / BUNDLE_JSON)   # what is written is what Bundle.load reads
         write_card(tmp, ckpt, checkpoint, readout=(list(grid.shape), list(model_grid.shape)),
                    text_encoder=None if tower is None else tower["card"], **(card or {}))   # card.json: what it was trained on (ago_export/card.py)
         write_json(tmp / BUNDLE_JSON, meta)

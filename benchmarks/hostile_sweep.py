@@ -260,7 +260,8 @@ def bundle_cases(x) -> list:
         m["label_space"]["classes"] = m["label_space"]["classes"][:2]
 
     def classes_many(m, d):
-        m["label_space"]["classes"] = [{"name": f"c{i}", "occ3d_ids": [], "known": True} for i in range(100000)]
+        m["label_space"]["classes"] = [{"name": f"c{i}", "table_ids": [], "known": True, "phrases": []}
+                                       for i in range(100000)]
 
     def dim_lie(m, d):
         m["text_encoder"]["dim"] = 7

@@ -79,22 +79,23 @@ def main() -> None:
     med = {k: (statistics.median(a for a, _ in v), statistics.median(b for _, b in v)) for k, v in times.items()}
     miou = {k: m.miou() * 100 for k, m in metrics.items()}
     geo = {k: m.geometry_iou() * 100 for k, m in metrics.items()}
+    int8_parity = fp32.bundle.contract.variants["int8"].parity if "int8" in fp32.bundle.contract.variants else None
     L = [f"# int8 vs fp32 bundle\n",
          f"Command: `python -m benchmarks.int8_eval --bundle {args.bundle} --data {args.data} --split {args.split}`; "
          f"{len(indices)} frames; load average {load_start} -> {load_end}.  ",
-         f"Bundle checkpoint: {fp32.bundle.meta['checkpoint']['path']} (step {fp32.bundle.meta['checkpoint']['step']}); "
-         f"export parity: {fp32.bundle.meta['parity'].get('int8', {}).get('frame', '-')}.\n",
+         f"Bundle checkpoint: {fp32.bundle.contract.checkpoint.path} (step {fp32.bundle.contract.checkpoint.step}); "
+         f"export parity: {int8_parity.frame if int8_parity else '-'}.\n",
          "| encoder | mIoU % | geometry IoU % | label agreement with fp32 | frame s (median, wall) | frame CPU s |",
          "|---|---|---|---|---|---|",
          f"| fp32 | {miou['fp32']:.2f} | {geo['fp32']:.2f} | 1 | {med['fp32'][0]:.3f} | {med['fp32'][1]:.3f} |",
          f"| int8 | {miou['int8']:.2f} | {geo['int8']:.2f} | {agree / n_vox:.4%} | {med['int8'][0]:.3f} | {med['int8'][1]:.3f} |",
          f"\nmIoU change int8 - fp32: {miou['int8'] - miou['fp32']:+.2f} points; speed fp32 / int8: "
          f"{med['fp32'][0] / med['int8'][0]:.2f}x (wall), {med['fp32'][1] / med['int8'][1]:.2f}x (CPU).  "]
-    p = fp32.bundle.meta["parity"].get("int8")
+    p = int8_parity
     if p:
-        L.append(f"Export parity of int8 vs torch: argmax agreement main {p['agreement_main']:.4%}, adapted "
-                 f"{p['agreement_adapted']:.4%}, identifier {p['agreement_identifier']:.4%}; rel err F "
-                 f"{p['rel_err_feat']:.2e}, F~ {p['rel_err_feat_adapted']:.2e}.")
+        L.append(f"Export parity of int8 vs torch: argmax agreement main {p.agreement_main:.4%}, adapted "
+                 f"{p.agreement_adapted:.4%}, identifier {p.agreement_identifier:.4%}; rel err F "
+                 f"{p.rel_err_feat:.2e}, F~ {p.rel_err_feat_adapted:.2e}.")
     text = "\n".join(L) + "\n"
     if args.out:
         from ago_runtime.atomic import write_text

@@ -70,17 +70,22 @@ def early_convs(planes: Path) -> list[str]:
 
 
 def variant_bundle(src: Path, dst: Path, planes: Path, stages: dict[str, Path]) -> Path:
-    """A copy of bundle `src` at `dst` whose int8 files (planes_int8, voxels_<i>_int8) are the given files."""
+    """A copy of bundle `src` at `dst` whose "int8" variant (bundle.json "variants") is the given files."""
     from ago_runtime.atomic import write_json
     from ago_runtime.predict.bundle import BUNDLE_JSON, Bundle
-    from ago_runtime.predict.contract import FileEntry
+    from ago_runtime.predict.contract import FileEntry, VariantSpec
 
     shutil.copytree(src, dst, ignore=shutil.ignore_patterns("*.int8.onnx"))
     contract = Bundle.load(src).contract
-    contract.files = {k: v for k, v in contract.files.items() if not k.endswith("_int8")}
-    for key, path in [("planes", planes), *stages.items()]:
+    old = contract.variants.pop("int8", None)
+    for key in (old.graphs.values() if old else []):
+        contract.files.pop(key)
+    variant = VariantSpec("int8", "benchmark", {}, None)
+    for key, path in [(contract.PLANES, planes), *stages.items()]:
         shutil.copyfile(path, dst / f"{key}.int8.onnx")
-        contract.files[f"{key}_int8"] = FileEntry.of(dst, f"{key}.int8.onnx")
+        variant.graphs[key] = f"{key}_int8"
+        contract.files[variant.graphs[key]] = FileEntry.of(dst, f"{key}.int8.onnx")
+    contract.variants["int8"] = variant
     write_json(dst / BUNDLE_JSON, contract.to_dict())
     return dst
 

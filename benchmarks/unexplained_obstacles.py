@@ -90,7 +90,7 @@ def main(argv=None) -> dict:
 
 Command: `{cmd}`
 
-Bundle `{args.bundle}` ({predictor.bundle.card.get('note', '') if predictor.bundle.card else ''}), prompt file
+Bundle `{args.bundle}` ({(predictor.bundle.card.note or '') if predictor.bundle.card else ''}), prompt file
 `{args.prompts}` ({bank.num_classes} classes), {len(indices)} frames of `{args.data}` split `{args.split}`.
 Score per voxel: 1 - the largest probability a prompted class gets (max over the two branches), in
 softmaxes over the prompted classes plus the bundle's training classes no prompt covers (reference

@@ -9,11 +9,14 @@ import pytest
 import torch
 
 from ago_runtime.errors import AgoInputError
-from ago_runtime.predict.bundle import _load_heads
+from ago_runtime.predict.bundle import load_heads
 from ago_runtime.predict.decision import phrase_standardisation as numpy_standardisation
 from ago_runtime.predict.decision import Branch, class_scores, softmax_stats
 from ago_runtime.predict.heads import FoldedHeads, HeadWeights
 from ago_train.model.text_logits import adapted_logits, phrase_standardisation
+
+
+WIDTHS = {"C": 16, "Dh": 10, "Da": 12}   # _heads' widths, as BundleContract.head_widths gives them
 
 
 def _heads(rng, C=16, Dh=10, Da=12):
@@ -90,14 +93,14 @@ def test_bundle_heads_refuse_bad_statistics(tmp_path):
     w.adapted_mean, w.adapted_cov = _stats(rng)
     good = tmp_path / "heads.npz"
     np.savez(good, **w.to_arrays())
-    back = _load_heads(good, 16)
+    back = load_heads(good, WIDTHS)
     np.testing.assert_array_equal(back.adapted_cov, w.adapted_cov)
     arrays = w.to_arrays()
     for damage in ({"adapted_cov": arrays["adapted_cov"][:3]}, {"adapted_mean": np.full(16, np.nan, np.float32)}):
         bad = tmp_path / "bad.npz"
         np.savez(bad, **{**arrays, **damage})
         with pytest.raises(AgoInputError, match="adapted"):
-            _load_heads(bad, 16)
+            load_heads(bad, WIDTHS)
 
 
 def test_export_parity_reference_standardises_like_the_runtime():

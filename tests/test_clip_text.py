@@ -270,9 +270,9 @@ def test_the_bundle_ships_the_tower_and_its_card_names_it(chain, clip_dir):
     cid = clip_encoder_id(clip_dir)
     assert (b.contract.text_encoder.id, b.contract.text_encoder.dim) == (cid, 24)
     assert {"text_encoder", "text_encoder_sidecar", "text_encoder_tokenizer"} <= set(b.contract.files)
-    parity = b.contract.parity["text_encoder"]
-    assert parity["fp32"]["ok"] and parity["shipped"] == "onnx-fp32"
-    assert parity["fp32"]["transformers"]["min_cosine"] >= 1 - 1e-5 and parity["fp32"]["bank"]["min_cosine"] >= 1 - 1e-5
+    parity = b.contract.parity.text_encoder
+    assert parity.fp32.ok and parity.shipped == "onnx-fp32"
+    assert parity.fp32.transformers.min_cosine >= 1 - 1e-5 and parity.fp32.bank.min_cosine >= 1 - 1e-5
     card = json.loads((chain / "bundle" / "card.json").read_text())
     assert card["text_encoder"]["kind"] == "clip" and card["text_encoder"]["id"] == cid
     assert f"text encoder CLIP text tower {cid} (24-d)" in card["summary"]

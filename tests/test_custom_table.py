@@ -146,9 +146,9 @@ def test_the_bundle_contract_records_a_custom_table_and_checks_ids_against_it():
     assert d["table"]["name"] == "my_table" and LabelSpaceSpec.from_dict(d).table == table
     waymo = LabelSpaceSpec("w", "0" * 64, [LabelClass("vehicle", [1], True, ["car"])], OCC3D_WAYMO).to_dict()
     assert waymo["table"] == "occ3d_waymo"
-    assert "table" not in LabelSpaceSpec("n", "0" * 64, [LabelClass("car", [4], True, ["car"])]).to_dict()
+    assert LabelSpaceSpec("n", "0" * 64, [LabelClass("car", [4], True, ["car"])]).to_dict()["table"] == "occ3d_nuscenes"
     with pytest.raises(ValueError, match="outside class table my_table"):
-        LabelSpaceSpec.from_dict(dict(d, classes=[{"name": "vehicle", "occ3d_ids": [4]}]))
+        LabelSpaceSpec.from_dict(dict(d, classes=[{"name": "vehicle", "table_ids": [4], "known": True, "phrases": []}]))
     with pytest.raises(ValueError, match="not a shipped one"):
         LabelSpaceSpec.from_dict(dict(d, table="kitti"))
 

@@ -1,14 +1,11 @@
 """The voxel decision has one specification (ago_runtime/predict/decision.py): the torch path of training and
 evaluation, the runtime's slab loop and the export parity reference agree with it; the bundle contract
 (ago_runtime/predict/contract.py) reads back what it writes, refuses old formats with the re-export command
-and frames whose cameras are not the rig's; the migrated default bundle labels like the format-3 one."""
+and frames whose cameras are not the rig's."""
 from __future__ import annotations
 
 import json
 import re
-import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -151,16 +148,16 @@ def test_contract_round_trip_and_types():
     assert c.to_dict() == meta                                   # what is read is what is written, field for field
     assert json.loads(json.dumps(c.to_dict())) == meta
     assert c.identifier is Identifier.MIN_ENTROPY and isinstance(c.identifier, Identifier)
-    assert [s.branch for s in c.voxel_stages] == [Branch.ADAPTED] and c.format_version == 4
+    assert [s.branch for s in c.voxel_stages] == [Branch.ADAPTED] and c.format_version == 5
     assert c.rig.names == ["CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT", "CAM_BACK", "CAM_BACK_LEFT",
                            "CAM_BACK_RIGHT"]
     assert f"{Identifier.MAX_CONF}" == str(Identifier.MAX_CONF) == "max-conf"
 
 
 @pytest.mark.parametrize("change,words", [
-    (lambda m: m.update(format_version=3), "re-export the checkpoint: `ago export CKPT -o BUNDLE_DIR`"),
+    (lambda m: m.update(format_version=4), "re-export the checkpoint: `ago export CKPT -o BUNDLE_DIR`"),
     (lambda m: m.update(format_version=2), "bundle format version 2 is no longer read"),
-    (lambda m: m.update(format_version=5), "newer than this ago reads"),
+    (lambda m: m.update(format_version=6), "newer than this ago reads"),
     (lambda m: m.pop("rig"), "lacks 'rig'"),
     (lambda m: m["voxel_stages"][0].update(branch="sideways"), "sideways"),
     (lambda m: m["voxel_stages"][0].update(input_dim=7), "takes width 7"),
@@ -218,45 +215,3 @@ def test_frame_with_other_cameras_is_refused_naming_the_camera():
         prepare_inputs(b, missing, rig, "frame7")
     x, m = prepare_inputs(b, images, rig, "frame7")
     assert x.shape[1] == len(b.contract.rig.cameras) == m.shape[1]
-
-
-# ---- the migrated default bundle ------------------------------------------------------------------
-def _format3_checkout(tmp: Path) -> Path | None:
-    """The repository as of the commit before the default bundle became format 4 (git archive), or None."""
-    try:
-        gone = subprocess.run(["git", "log", "-n1", "--format=%H", "--", "ago_runtime/assets/default_bundle/voxels_1.onnx"],
-                              cwd=REPO, capture_output=True, text=True, check=True).stdout.strip()
-        if not gone:
-            return None
-        archive = subprocess.run(["git", "archive", f"{gone}^", "ago_runtime"], cwd=REPO, capture_output=True,
-                                 check=True).stdout
-    except (OSError, subprocess.CalledProcessError):
-        return None
-    tmp.mkdir(parents=True, exist_ok=True)
-    subprocess.run(["tar", "-x", "-C", str(tmp)], input=archive, check=True)
-    return tmp
-
-
-def test_migrated_default_bundle_labels_like_the_format3_bundle(tmp_path):
-    """scripts/migrate_bundle_v3.py on the format-3 default bundle (from git history) gives the shipped bundle's
-    graphs, and its labels on the demo frame equal the old bundle's under the old runtime, for every identifier."""
-    pytest.importorskip("onnx")
-    old = _format3_checkout(tmp_path / "v3")
-    if old is None:
-        pytest.skip("needs the git history of the format-3 default bundle")
-    sys.path.insert(0, str(REPO / "scripts"))
-    try:
-        import migrate_bundle_v3 as mig
-    finally:
-        sys.path.remove(str(REPO / "scripts"))
-    new = tmp_path / "new"
-    new.mkdir()
-    mig.migrate(old / "ago_runtime" / "assets" / "default_bundle", new)
-    shipped = _meta()
-    made = json.loads((new / "bundle.json").read_text())
-    for key in ("files", "voxel_stages", "rig", "training_rig", "hidden_dim", "adapted_dim", "label_space"):
-        assert made[key] == shipped[key], key
-    lines = mig.compare_labels(old / "ago_runtime" / "assets" / "default_bundle", DEFAULT_BUNDLE, old,
-                               tmp_path / "old_runtime")
-    assert len(lines) == len(Identifier) and all(re.match(r"\S+: (\d+)/\1 voxels", ln) for ln in lines)
-    shutil.rmtree(tmp_path / "old_runtime", ignore_errors=True)

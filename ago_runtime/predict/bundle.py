@@ -2,32 +2,33 @@
 
 A bundle is self-describing: bundle.json (its schema is ago_runtime/predict/contract.py, `BundleContract`)
 carries the grid, the label space the model was trained with, the text encoder its banks must come from,
-the preprocessing, the camera rig, and the sha256 of every file. Layout (format 4):
+the preprocessing, the camera rig, and the sha256 of every file. Layout (format 5):
 
     bundle_dir/
-      bundle.json        the contract (format_version 4)
+      bundle.json        the contract (format_version 5)
       planes.onnx        images (1,V,3,H,W) f32 + ego2img (1,V,4,4) f32 -> plane_xy (X,Y,Dh),
                          plane_xz (X,Z,Dh), plane_yz (Y,Z,Dh): the TPV planes at the grid's resolution
                          times the decoder's first linear layer, channels last
       voxels_<i>.onnx    the per-voxel MLP after the planes, one graph per linear layer: x (n, d) -> y = x W^T + b
                          (contract "voxel_stages"; ago_runtime/predict/encoder.py)
-      planes.int8.onnx, voxels_<i>.int8.onnx   optional: dynamically quantised (`ago export --int8`)
-      heads.npz          W_dec (C,Dh), b_dec (C,), W_ad (C,Da), b_ad (C,), free_embedding (C,),
-                         branch_scales (2,) the identifier's logit scales (main, adapted; absent = 1, 1),
-                         free_bias (1,) added to the main branch's free score (absent = 0),
-                         adapted_mean (C,), adapted_cov (C,C) optional: the adapted branch's standardisation
+      planes.int8.onnx, voxels_<i>.int8.onnx   optional: the "int8" variant (contract "variants"; `ago export --int8`)
+      heads.npz          the arrays contract.HEADS_NPZ declares: W_dec (C,Dh), b_dec (C,), W_ad (C,Da), b_ad (C,),
+                         free_embedding (C,), branch_scales (2,) the identifier's logit scales (main, adapted),
+                         free_bias (1,) added to the main branch's free score, and optionally together
+                         adapted_mean (C,), adapted_cov (C,C): the adapted branch's standardisation
       banks/<name>.npz   prompt banks (ago_runtime.vocab.bank.PromptBank files); "train" = the
                          training label space's embeddings stored in the checkpoint
-      card.json          optional (ago_export/card.py): what the model was trained on
+      card.json          optional (ago_runtime/predict/card.py, written by ago_export/card.py): what the model
+                         was trained on
       text_encoder.onnx, text_encoder.json, text_encoder.tokenizer.json
                          optional: the CLIP text tower the model was trained with (ago_export/text_tower.py),
                          its sidecar and tokenizer; `bundle_text_encoder` encodes new prompts with it
 
 `Bundle.load(dir)` refuses (AgoInputError naming the file) a missing folder or file, another format
 version (older ones with the `ago export` command that re-exports them), a file whose sha256 or size
-differs from bundle.json, heads of the wrong shapes or widths or holding NaN / inf, and any field of
-bundle.json out of its range (`BundleContract.check_values`); each graph's inputs and outputs are checked
-against the contract when it is opened (`contract.check_graph`).
+differs from bundle.json, heads.npz arrays the contract does not declare, of other shapes than the bundle's
+widths, or holding NaN / inf, and any field of bundle.json out of its range (`BundleContract.check_values`);
+each graph's inputs and outputs are checked against the contract when it is opened (`contract.check_graph`).
 """
 
 from __future__ import annotations
@@ -43,13 +44,13 @@ from ago_runtime.geometry.camera import Rig
 from ago_runtime.geometry.grid import Grid
 from ago_runtime.geometry.preprocess import Preprocess
 from ago_runtime.paths import inside_root
-from ago_runtime.predict.contract import (BUNDLE_FORMAT, BUNDLE_FORMAT_VERSION, BUNDLE_JSON, BundleContract,  # noqa: F401
-                                          file_sha256)
+from ago_runtime.predict.card import CARD_FILE, BundleCard, read_card
+from ago_runtime.predict.contract import (BUNDLE_FORMAT, BUNDLE_FORMAT_VERSION, BUNDLE_JSON,  # noqa: F401
+                                          HEADS_NPZ, BundleContract, file_sha256)
 from ago_runtime.predict.decision import Identifier
 from ago_runtime.predict.heads import HeadWeights
 from ago_runtime.readers import open_npz, read_json
 
-CARD_FILE = "card.json"          # written by ago_export/card.py
 ENV_BUNDLE = "AGO_BUNDLE"
 DEFAULT_BUNDLE_DIR = Path(__file__).resolve().parents[1] / "assets" / "default_bundle"
 DEMO_FRAME_DIR = Path(__file__).resolve().parents[1] / "assets" / "demo_frame"
@@ -69,17 +70,23 @@ class FileRef:
 class Bundle:
     root: Path
     contract: BundleContract
-    grid: Grid
-    preprocess: Preprocess
-    rig: Rig                       # the training rig's calibration at native image size (fallback calibration)
+    rig: Rig                       # the training rig's calibration, in the model's camera order (fallback calibration)
     heads: HeadWeights
     banks: dict[str, Path] = field(default_factory=dict)
-    card: dict | None = None       # card.json (what the model was trained on), None when the bundle has none
+    card: BundleCard | None = None   # card.json (what the model was trained on), None when the bundle has none
 
     @property
     def meta(self) -> dict:
         """bundle.json's content (the contract as a dict)."""
         return self.contract.to_dict()
+
+    @property
+    def grid(self) -> Grid:
+        return self.contract.grid
+
+    @property
+    def preprocess(self) -> Preprocess:
+        return self.contract.preprocess
 
     @property
     def label_space(self):
@@ -94,18 +101,17 @@ class Bundle:
         entry = self.contract.files[key]
         return FileRef(self.root / entry.path, entry.sha256)   # paths checked under the root by Bundle.load
 
-    def encoder_graphs(self, int8: bool = False):
-        """-> (planes FileRef, [StageGraph, ...]) of the float32 graphs, or the quantised ones with int8."""
+    def encoder_graphs(self, variant: str | None = None):
+        """-> (planes FileRef, [StageGraph, ...]) of the float32 graphs, or of a variant's (contract "variants",
+        e.g. "int8")."""
         from ago_runtime.predict.encoder import StageGraph
 
-        suffix = "_int8" if int8 else ""
-        if int8 and BundleContract.PLANES + suffix not in self.contract.files:
-            raise AgoInputError(self.root, "bundle has no int8 encoder (export with `ago export --int8`)")
+        planes, stage_keys = self.contract.graph_keys(variant, self.root)
         stages = []
-        for st in self.contract.voxel_stages:
-            ref = self.file(st.file + suffix)
+        for st, key in zip(self.contract.voxel_stages, stage_keys):
+            ref = self.file(key)
             stages.append(StageGraph(st, ref.path, ref.sha256))
-        return self.file(BundleContract.PLANES + suffix), stages
+        return self.file(planes), stages
 
     @property
     def default_bank(self) -> str:
@@ -151,9 +157,7 @@ class Bundle:
         meta_path = root / BUNDLE_JSON
         meta = read_json(meta_path, missing="not an ago bundle (no bundle.json)")
         contract = BundleContract.from_dict(meta, meta_path)   # every field checked by value (check_values)
-        grid = Grid.from_dict(contract.grid)
-        pre = Preprocess.from_dict(contract.preprocess)
-        rig = Rig.from_dict(contract.training_rig).ordered_as(contract.rig.names, meta_path)
+        rig = contract.training_rig.ordered_as(contract.rig.names, meta_path)
         for key, entry in contract.files.items():
             p = inside_root(root, entry.path, meta_path, f"bundle file {key!r}")
             if not p.is_file():
@@ -163,14 +167,10 @@ class Bundle:
                                     "(truncated or replaced; re-export the bundle)")
             if verify_hashes and file_sha256(p) != entry.sha256:
                 raise AgoInputError(p, "sha256 differs from bundle.json (corrupt or replaced; re-export the bundle)")
-        heads = _load_heads(root / contract.files[BundleContract.HEADS].path, contract.text_encoder.dim)
-        banks = {name: inside_root(root, rel, meta_path, f"bank {name!r}") for name, rel in contract.banks.items()}
-        for name, p in banks.items():
-            if not p.is_file():
-                raise AgoInputError(p, f"bundle bank {name!r} is missing")
-        card = read_json(root / CARD_FILE, expect=dict) if (root / CARD_FILE).is_file() else None
-        bundle = cls(root, contract, grid, pre, rig, heads, banks, card)
-        check_heads_fit_contract(bundle)
+        heads = load_heads(root / contract.files[BundleContract.HEADS].path, contract.head_widths)
+        banks = {name: root / contract.files[key].path for name, key in contract.banks.items()}
+        card = read_card(root / CARD_FILE) if (root / CARD_FILE).is_file() else None
+        bundle = cls(root, contract, rig, heads, banks, card)
         if "train" in banks:   # the label space bundle.json states is the training bank's
             names = bundle.load_bank("train").class_names
             if names != bundle.trained_classes:
@@ -179,37 +179,25 @@ class Bundle:
         return bundle
 
 
-def _load_heads(path: Path, dim: int) -> HeadWeights:
+def load_heads(path: Path, widths: dict[str, int]) -> HeadWeights:
+    """heads.npz -> HeadWeights: exactly the arrays HEADS_NPZ declares, each of its shape in the bundle's `widths`
+    (BundleContract.head_widths), finite, branch scales > 0 and variances >= 0; else AgoInputError(path, ...)."""
     with open_npz(path, "heads .npz") as z:
-        arrays = {k: np.asarray(z[k], dtype=np.float32) for k in HeadWeights.KEYS}
-        scales = np.asarray(z["branch_scales"], dtype=np.float32) if "branch_scales" in z.files else None
-        stats = {k: np.asarray(z[k], dtype=np.float32) for k in ("adapted_mean", "adapted_cov") if k in z.files}
-        free_bias = np.asarray(z["free_bias"], dtype=np.float32) if "free_bias" in z.files else None
-    w = HeadWeights(**arrays)
-    C = dim
-    ok = (w.W_dec.ndim == 2 and w.W_dec.shape[0] == C and w.b_dec.shape == (C,) and w.W_ad.ndim == 2
-          and w.W_ad.shape[0] == C and w.b_ad.shape == (C,) and w.free_embedding.shape == (C,))
-    if not ok:
-        raise AgoInputError(path, f"head shapes {[a.shape for a in arrays.values()]} do not fit embedding width {C}")
-    if not all(np.isfinite(a).all() for a in arrays.values()):
-        raise AgoInputError(path, "head weights contain NaN or inf")
-    if scales is not None:
-        if scales.shape != (2,) or not np.all(np.isfinite(scales)) or not np.all(scales > 0):
-            raise AgoInputError(path, f"branch_scales must be two positive numbers, got {scales.tolist()}")
-        w.branch_scales = scales
-    if free_bias is not None:
-        if free_bias.size != 1 or not np.isfinite(free_bias).all():
-            raise AgoInputError(path, f"free_bias must be one finite number, got shape {free_bias.shape}")
-        w.free_bias = float(free_bias.reshape(-1)[0])
-    if stats:
-        m, S = stats.get("adapted_mean"), stats.get("adapted_cov")
-        if m is None or S is None or m.shape != (C,) or S.shape != (C, C):
-            raise AgoInputError(path, f"adapted_mean and adapted_cov must be ({C},) and ({C}, {C}), got "
-                                f"{None if m is None else m.shape} and {None if S is None else S.shape}")
-        if not (np.isfinite(m).all() and np.isfinite(S).all() and np.all(np.diag(S) >= 0)):
-            raise AgoInputError(path, "adapted_mean / adapted_cov contain NaN, inf or a negative variance")
-        w.adapted_mean, w.adapted_cov = m, S
-    return w
+        HEADS_NPZ.check_names(z.files, path)
+        arrays = {k: np.asarray(z[k], dtype=np.float32) for k in z.files}
+    for k, a in arrays.items():
+        want = HEADS_NPZ.shape(k, widths)
+        if a.shape != want:
+            raise AgoInputError(path, f"{k} has shape {a.shape}, the bundle's widths (embedding C {widths['C']}, "
+                                f"hidden Dh {widths['Dh']}, adapted Da {widths['Da']}) make it {want} (mixed files "
+                                "from two exports? re-export the bundle)")
+        if not np.isfinite(a).all():
+            raise AgoInputError(path, f"head weights contain NaN or inf ({k})")
+    if not np.all(arrays["branch_scales"] > 0):
+        raise AgoInputError(path, f"branch_scales must be two positive numbers, got {arrays['branch_scales'].tolist()}")
+    if "adapted_cov" in arrays and not np.all(np.diag(arrays["adapted_cov"]) >= 0):
+        raise AgoInputError(path, "adapted_cov has a negative variance")
+    return HeadWeights.from_arrays(arrays)
 
 
 def resolve_bundle(path: str | Path | None = None) -> Path:
@@ -226,21 +214,10 @@ def resolve_bundle(path: str | Path | None = None) -> Path:
 
 def card_line(bundle: Bundle) -> str:
     """One line saying what the bundle's model was trained on (its card's summary), for `ago infer` / `ago demo`."""
-    if bundle.card and bundle.card.get("summary"):
-        return f"bundle: {' '.join(str(bundle.card['summary']).split())}"
-    step = bundle.contract.checkpoint.get("step")
-    known = f" (checkpoint step {step}, label space {bundle.label_space.name})" if step is not None else ""
+    if bundle.card and bundle.card.summary:
+        return f"bundle: {' '.join(bundle.card.summary.split())}"
+    known = f" (checkpoint step {bundle.contract.checkpoint.step}, label space {bundle.label_space.name})"
     if bundle.root.resolve() == DEFAULT_BUNDLE_DIR:
         return ("bundle: the shipped default bundle has no bundle card" + known + "; it is the small demo model "
                 "scripts/make_default_bundle.sh trains on the SYNTHETIC world - not a nuScenes model")
     return f"bundle: {bundle.root} has no bundle card (card.json){known}: what it was trained on is not recorded"
-
-
-def check_heads_fit_contract(bundle: Bundle) -> None:
-    """Refuse, naming heads.npz, heads whose hidden widths differ from the bundle's (h: Dh, g: Da)."""
-    dh, da = bundle.contract.hidden_dim, bundle.contract.adapted_dim
-    h = bundle.heads
-    if (h.W_dec.shape[1], h.W_ad.shape[1]) != (dh, da):
-        path = bundle.file(BundleContract.HEADS).path
-        raise AgoInputError(path, f"heads take hidden widths Dh {h.W_dec.shape[1]}, Da {h.W_ad.shape[1]} but the "
-                            f"voxel stages give Dh {dh}, Da {da} (mixed files from two exports? re-export the bundle)")

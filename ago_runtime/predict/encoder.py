@@ -1,6 +1,6 @@
 """The bundle's camera-to-voxel encoder, run slab by slab (onnxruntime + numpy/OpenCV; no torch).
 
-Bundle format 4 (ago_runtime/predict/contract.py):
+Bundle format 5 (ago_runtime/predict/contract.py):
 
 - `planes.onnx` runs once per frame,
       images (1,V,3,H,W) + ego2img (1,V,4,4) -> plane_xy (X,Y,Dh), plane_xz (X,Z,Dh), plane_yz (Y,Z,Dh)
@@ -37,11 +37,12 @@ from ago_runtime.providers import Device, Precision
 from ago_runtime.errors import AgoInputError
 from ago_runtime.geometry.grid import Grid
 from ago_runtime.predict.bank_product import BankProduct
-from ago_runtime.predict.contract import VoxelStageSpec, check_graph, planes_signature, planes_width, stage_signature
+from ago_runtime.predict.contract import (PLANES_INPUTS, PLANES_OUTPUTS, STAGE_INPUT, STAGE_OUTPUT, VoxelStageSpec,
+                                          check_graph, planes_signature, planes_width, stage_signature)
 from ago_runtime.predict.decision import Branch
 from ago_runtime.predict.heads import SCORE_BUDGET_BYTES
 
-PLANE_OUTPUTS = ["plane_xy", "plane_xz", "plane_yz"]
+INT8 = "int8"         # the variant `--int8` picks (bundle.json "variants")
 SLAB_VOXELS = 4096    # target voxels per slab (whole x-rows of Y*Z voxels)
 
 
@@ -103,7 +104,7 @@ class SplitEncoder:
     inputs when opened; image_input: (cameras, height, width) of planes.onnx's images input, when known.
     Every graph's inputs and outputs are checked against the contract's signatures when it is opened."""
 
-    PLANES = PLANE_OUTPUTS
+    PLANES = list(PLANES_OUTPUTS)
 
     def __init__(self, planes_path: Path, stages: list[StageGraph], grid: Grid, hidden_dim: int, adapted_dim: int,
                  threads: int | None = None, slab_voxels: int = SLAB_VOXELS, sha256: str | None = None,
@@ -155,7 +156,7 @@ class SplitEncoder:
         shape = [d if isinstance(d, int) else 1 for d in self.planes.get_inputs()[0].shape]
         ego2img = np.tile(np.eye(4, dtype=np.float32), (1, shape[1], 1, 1))
         ego2img[..., 2, 3] = 10.0                     # points in front of every camera: real sampling work
-        planes = self.planes.run(self.PLANES, {"images": np.zeros(shape, np.float32), "ego2img": ego2img})
+        planes = self.planes.run(self.PLANES, dict(zip(PLANES_INPUTS, (np.zeros(shape, np.float32), ego2img))))
         rows = min(self.slab, planes[0].shape[0])
         h = self.hidden_slab(planes, 0, rows)
         self.scores(np.zeros((phrases, h.shape[1]), np.float32), h)
@@ -163,7 +164,7 @@ class SplitEncoder:
         self.scores(np.zeros((phrases, g.shape[1]), np.float32), g)
 
     def plane_maps(self, images: np.ndarray, ego2img: np.ndarray) -> list[np.ndarray]:
-        xy, xz, yz = self.planes.run(self.PLANES, {"images": images, "ego2img": ego2img})
+        xy, xz, yz = self.planes.run(self.PLANES, dict(zip(PLANES_INPUTS, (images, ego2img))))
         X, Y, Z = self.grid.shape
         D = xy.shape[-1]
         if xy.shape != (X, Y, D) or xz.shape != (X, Z, D) or yz.shape != (Y, Z, D):
@@ -174,7 +175,7 @@ class SplitEncoder:
     def _run(self, branch: Branch, x: np.ndarray) -> np.ndarray:
         """The branch's stages on x: each y = x W^T + b (onnxruntime), then softplus when the stage has it."""
         for sess, softplus in self.sessions[branch]:
-            (x,) = sess.run(["y"], {"x": x})
+            (x,) = sess.run([STAGE_OUTPUT], {STAGE_INPUT: x})
             if softplus:
                 x = self.softplus(x)
         return x
@@ -220,13 +221,13 @@ class SplitEncoder:
 def open_encoder(bundle, int8: bool = False, threads: int | None = None, slab_voxels: int = SLAB_VOXELS,
                  warm_up: bool = True, device: Device = Device.CPU,
                  precision: Precision = Precision.FP32) -> "SplitEncoder":
-    """The encoder of a loaded `Bundle`; int8 picks the quantised graphs (CPU only: their integer MatMuls
-    are onnxruntime CPU kernels); device/precision: the execution provider of the graphs
+    """The encoder of a loaded `Bundle`; int8 picks the bundle's "int8" variant (contract "variants"; CPU only:
+    their integer MatMuls are onnxruntime CPU kernels); device/precision: the execution provider of the graphs
     (ago_runtime/providers.py); warm_up: see SplitEncoder."""
     if int8 and device is not Device.CPU:
         raise AgoInputError("--int8", f"the int8 graphs run on the CPU only, not --device {device.value} "
                             "(for a faster accelerator frame use --precision fp16 with tensorrt or openvino)")
-    planes, stages = bundle.encoder_graphs(int8)
+    planes, stages = bundle.encoder_graphs(INT8 if int8 else None)
     c = bundle.contract
     return SplitEncoder(planes.path, stages, bundle.grid, c.hidden_dim, c.adapted_dim, threads, slab_voxels,
                         sha256=planes.sha256, warm_up=warm_up, device=device, precision=precision,

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ago_runtime.predict import decision
+from ago_runtime.predict.contract import HEADS_NPZ
 from ago_runtime.predict.decision import Branch, Identifier
 from ago_runtime.vocab.phrase_layout import PhraseLayout
 
@@ -39,7 +40,8 @@ def default_identifier(class_names, known, trained_classes,
 
 @dataclass
 class HeadWeights:
-    """The linear heads of one bundle (heads.npz)."""
+    """The linear heads of one bundle (heads.npz, whose arrays the contract declares: HEADS_NPZ; each field is the
+    array of its name)."""
 
     W_dec: np.ndarray          # (C, Dh)
     b_dec: np.ndarray          # (C,)
@@ -53,8 +55,6 @@ class HeadWeights:
     adapted_cov: np.ndarray | None = None
     # added to the main branch's free score, F_3D . free_embedding + free_bias (ModelConfig.free_bias; 0 = none)
     free_bias: float = 0.0
-
-    KEYS = ("W_dec", "b_dec", "W_ad", "b_ad", "free_embedding")   # required; the fields above after it optional
 
     @property
     def scales(self) -> tuple[float, float]:
@@ -71,17 +71,21 @@ class HeadWeights:
         return int(self.W_dec.shape[1])
 
     @property
-    def adapter_dim(self) -> int:
+    def adapted_dim(self) -> int:
         return int(self.W_ad.shape[1])
 
     def to_arrays(self) -> dict[str, np.ndarray]:
-        out = {k: np.asarray(getattr(self, k), dtype=np.float32) for k in self.KEYS}
-        out["branch_scales"] = np.asarray(self.scales, dtype=np.float32)
-        out["free_bias"] = np.asarray([self.free_bias], dtype=np.float32)
-        if self.adapted_mean is not None:
-            out["adapted_mean"] = np.asarray(self.adapted_mean, dtype=np.float32)
-            out["adapted_cov"] = np.asarray(self.adapted_cov, dtype=np.float32)
-        return out
+        """heads.npz's arrays: exactly the names the contract declares (HEADS_NPZ), the optional pair when set."""
+        values = {"branch_scales": self.scales, "free_bias": [self.free_bias]}
+        names = HEADS_NPZ.names if self.adapted_mean is not None else HEADS_NPZ.required
+        return {k: np.asarray(values[k] if k in values else getattr(self, k), dtype=np.float32) for k in names}
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray]) -> "HeadWeights":
+        """The inverse of to_arrays (Bundle.load has checked the names and shapes against HEADS_NPZ)."""
+        values = {k: arrays[k] for k in HEADS_NPZ.names if k in arrays}   # each array is the field of its name
+        values["free_bias"] = float(values["free_bias"].reshape(-1)[0])
+        return cls(**values)
 
 
 @dataclass(eq=False)
