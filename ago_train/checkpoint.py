@@ -27,6 +27,8 @@ read (a newer one: "upgrade ago"), a key outside the layout, and any value out o
 
 from __future__ import annotations
 
+import dataclasses
+
 import math
 import random
 from dataclasses import dataclass, field, fields
@@ -459,6 +461,11 @@ class CheckpointContract:
             "calibration": None if self.calibration is None else self.calibration.to_payload(),
         }
         return {k: v for k, v in payload.items() if v is not None}
+
+    def model_only(self) -> "CheckpointContract":
+        """This checkpoint without its training state (optimiser, scheduler, RNG): what a snapshot holds, and what
+        is kept of a finished run to export it again (models/default/checkpoint.pt)."""
+        return dataclasses.replace(self, training=None)
 
     def save(self, path: str | Path) -> Path:
         """Write atomically (temp file + rename); refuses values weights_only could not load (TypeError)."""

@@ -362,7 +362,7 @@ class Trainer:
         """A model-only checkpoint of this step (no optimiser, scheduler or RNG): evaluable and exportable."""
         contract = self.checkpoint_contract(epoch)
         if self.info.is_main:
-            dataclasses.replace(contract, training=None).save(self.snapshot_path(self.step))
+            contract.model_only().save(self.snapshot_path(self.step))
         D.barrier(self.info)
 
     def save(self, epoch: int) -> Path | None:

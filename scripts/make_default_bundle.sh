@@ -3,9 +3,12 @@
 # script with its defaults):
 #
 #   synthetic city -> pseudo-labels (simulated segmenter + embedder) -> train (cpu preset, 100x100x8)
-#   -> ago eval (val split, read out on the GT's 200x200x16) -> ago export (read out on 200x200x16,
-#   parity-checked, with its bundle card)
+#   -> the model kept (last.pt without optimiser state; models/default/) -> ago eval (val split, read out on
+#   the GT's 200x200x16) -> ago export (read out on 200x200x16, parity-checked, with its bundle card)
 #   -> ago_runtime/assets/default_bundle/ + assets/demo_frame/
+#
+# After a bundle format change, scripts/export_default_bundle.sh exports the shipped bundle again from the kept
+# models/default/checkpoint.pt (no training).
 #
 # Another rig (issue 38): RIG=front|waymo LAYOUT=nuscenes (ago synth --rig/--layout) trains the same recipe on that
 # rig's cameras; set the model's canvas to the rig's aspect with MODEL_SIZE=WxH (e.g. 384x256 for Waymo's 3:2
@@ -65,21 +68,31 @@ $AGO train --config "$PRESET" --data "$WORK/synth" --pseudo "$WORK/pseudo" --pro
     --set max_steps="$STEPS" --set ckpt_every=250 --set "snapshot_steps=$SNAPSHOTS" "${MODEL_SET[@]}" $RESUME
 stamp
 
-echo "== 4/6 evaluate on the val split (the bundle card reports it)"
-READOUT_EVAL="model"; READOUT_EXPORT=()
-[ -n "$READOUT_GRID" ] && { READOUT_EVAL="gt"; READOUT_EXPORT=(--readout-grid "$READOUT_GRID"); }
-$AGO eval --ckpt "$WORK/train/last.pt" --data "$WORK/synth" --split val --out "$WORK/train/eval-val" \
+echo "== 4/6 the model kept: last.pt without its optimiser state -> $WORK/model (evaluated on the val split there)"
+# $WORK/model is what the repository keeps (models/default/): the checkpoint the shipped bundle is exported
+# from, the run's log and config, and the val scores the bundle card reports; scripts/export_default_bundle.sh
+# exports the shipped bundle again from it after a bundle format change, with no training.
+READOUT_EVAL="model"
+[ -n "$READOUT_GRID" ] && READOUT_EVAL="gt"
+mkdir -p "$WORK/model"
+python -c 'import sys; from ago_train.checkpoint import CheckpointContract as C; C.load(sys.argv[1]).model_only().save(sys.argv[2])' \
+    "$WORK/train/last.pt" "$WORK/model/checkpoint.pt"
+cp "$WORK/train/log.jsonl" "$WORK/train/config.json" "$WORK/model/"
+$AGO eval --ckpt "$WORK/model/checkpoint.pt" --data "$WORK/synth" --split val --out "$WORK/model/eval-val" \
     --readout "$READOUT_EVAL"
 stamp
 
 echo "== 5/6 export (parity-checked on the real nuScenes keyframe when ../shared is present)"
-$AGO export "$WORK/train/last.pt" -o "$WORK/bundle" "${READOUT_EXPORT[@]}" \
-    --card-note "a demonstration model trained by scripts/make_default_bundle.sh on the SYNTHETIC world only"
+READOUT_GRID="$READOUT_GRID" bash "$REPO/scripts/export_default_bundle.sh" "$WORK/model" "$WORK/bundle"
 stamp
 
 if [ "$INSTALL" != 1 ]; then echo "done: bundle in $WORK/bundle (INSTALL=0: not copied into the package)"; exit 0; fi
-echo "== 6/6 copy into $ASSETS"
-mkdir -p "$ASSETS"
+echo "== 6/6 copy into $ASSETS, keep the model in $REPO/models/default"
+mkdir -p "$ASSETS" "$REPO/models"
+rm -rf "$REPO/models/default.new" && mkdir -p "$REPO/models/default.new/eval-val"
+cp "$WORK/model/checkpoint.pt" "$WORK/model/log.jsonl" "$WORK/model/config.json" "$REPO/models/default.new/"
+cp "$WORK/model/eval-val/metrics.json" "$REPO/models/default.new/eval-val/"
+rm -rf "$REPO/models/default" && mv "$REPO/models/default.new" "$REPO/models/default"
 rm -rf "$ASSETS/default_bundle.new" && cp -r "$WORK/bundle" "$ASSETS/default_bundle.new"
 rm -rf "$ASSETS/default_bundle" && mv "$ASSETS/default_bundle.new" "$ASSETS/default_bundle"
 
