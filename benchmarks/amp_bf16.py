@@ -60,7 +60,7 @@ def main(argv=None) -> None:
             t0 = time.perf_counter()
             out = t.train_step(batch)
             dt = time.perf_counter() - t0
-            losses[name].append(float(out["total"]))
+            losses[name].append(float(out["total"].detach()))
             if i >= args.warmup:
                 step_s[name].append(dt + fetch)
                 cpu_s[name].append(time.process_time() - c0)
