@@ -5,7 +5,9 @@ imports only onnxruntime, ago_runtime.errors and ago_runtime.providers).
 - `open_session(path, threads, sha256, device)`: an onnxruntime session, on the CPU by default; with the
   file's sha256 the optimised CPU graph is saved under `ago_cache_dir()/ort/` (keyed by graph, onnxruntime
   version, provider and CPU) by the first session and loaded with graph optimisation off by later ones,
-  which then open several times faster; another device: `open_device_session`;
+  which then open several times faster; another device: `open_device_session` (onnxruntime's CUDA and
+  TensorRT providers) or, for `--device openvino`, ago_runtime.openvino_session (its compiled graphs cached
+  under `ago_cache_dir()/openvino/`);
 - `session_options(threads, optimize)`: the runtime's options (idle worker threads do not spin; no memory pattern).
 """
 
@@ -81,7 +83,7 @@ def _create(path: Path, so: ort.SessionOptions, providers=("CPUExecutionProvider
 
 def open_device_session(path: Path, threads: int | None, sha256: str | None, device: Device,
                         precision: Precision = Precision.FP32) -> ort.InferenceSession:
-    """A session on an accelerator (`--device cuda|tensorrt|openvino`). onnxruntime optimises the graph for
+    """An onnxruntime session on an accelerator (`--device cuda|tensorrt`). onnxruntime optimises the graph for
     that provider in memory each time (an optimised graph saved for one provider may hold nodes only it
     runs); TensorRT keeps the engines it builds under ago_cache_dir()/trt/<graph>-<precision>/. Refused,
     naming what to install, when the provider is missing or onnxruntime starts another one."""
@@ -91,17 +93,23 @@ def open_device_session(path: Path, threads: int | None, sha256: str | None, dev
         engines = ago_cache_dir() / "trt" / f"{sha256[:32]}-{provider_tag(device, precision)}"
         engines.mkdir(parents=True, exist_ok=True)
     sess = _create(path, session_options(threads), provider_list(device, precision, engines))
-    check_session(sess, device, path, precision)
+    check_session(sess, device, path)
     return sess
 
 
 def open_session(path: Path, threads: int | None, sha256: str | None = None, device: Device = Device.CPU,
-                 precision: Precision = Precision.FP32) -> ort.InferenceSession:
+                 precision: Precision = Precision.FP32):
     """An onnxruntime session of `path`. With the graph's sha256 (from bundle.json, already checked by
     Bundle.load) the optimised graph is cached: read when present (optimisation off), else written
     while this session is made (written to a temporary name, then renamed). A cache file that
     onnxruntime cannot read is removed and remade. AGO_NO_ORT_CACHE=1 disables the cache.
-    device: not the CPU -> open_device_session."""
+    device: openvino -> an OpenVinoSession (the same interface), another accelerator -> open_device_session."""
+    if device is Device.OPENVINO:
+        from ago_runtime.openvino_session import open_openvino_session
+
+        check_device(device, precision)
+        cache = None if os.environ.get(ENV_NO_ORT_CACHE) == "1" else ago_cache_dir() / "openvino"
+        return open_openvino_session(path, threads, precision, cache)
     if device is not Device.CPU:
         return open_device_session(path, threads, sha256, device, precision)
     if not sha256 or os.environ.get(ENV_NO_ORT_CACHE) == "1":

@@ -9,7 +9,7 @@ file, or "--set" when the value came from the command line) and the key:
   None or >= 1; 0 <= warmup_max_fraction <= 1; 0 <= color_jitter < 1; min_lr <= lr; warmup_steps >= 0;
 - voxel_sampling one of losses.sampling.SAMPLING_RULES, 0 < occupied_share < 1, feature_cache a non-empty
   string, snapshot_steps None or a list of steps >= 1, model.frozen_stages 0..3;
-- device: auto, cpu, cuda or cuda:N (`check_device`);
+- device: auto, cpu, cuda or cuda:N (`check_device`); amp one of ago_train.amp.AMP_MODES;
 - model: every size (widths, layer and point counts, image size) an integer from 1 to its bound
   (`_model_bound`), model.grid by ago_runtime.geometry.grid.check_grid_dict.
 """
@@ -153,6 +153,10 @@ def check_train_config(cfg, source=None):
                                            or not all(_is_int(s) and s >= 1 for s in cfg.snapshot_steps)):
         raise AgoInputError(source, f"snapshot_steps must be a list of step numbers >= 1 or null, got {cfg.snapshot_steps!r}")
     check_device(cfg.device, f"{source} (device)")
+    from .amp import AMP_MODES
+
+    if cfg.amp not in AMP_MODES:
+        raise AgoInputError(source, f"amp must be one of {list(AMP_MODES)}, got {cfg.amp!r}")
     check_model_config(cfg.model, source)
     if not _is_int(cfg.model.frozen_stages) or not 0 <= cfg.model.frozen_stages <= 3:
         raise AgoInputError(source, f"model.frozen_stages must be an integer 0..3, got {cfg.model.frozen_stages!r}")

@@ -84,6 +84,8 @@ class TrainConfig:
     warmup_max_fraction: float = 0.05
     min_lr: float = 1e-6
     grad_clip: float = 35.0           # max gradient norm (0 = off)
+    amp: str = "none"                 # mixed precision: "none" | "bf16" (the forward under torch.autocast in
+                                      # bfloat16, the losses in float32; ago_train/amp.py)
     noise_words: int = 100            # noise-word prompts sampled per step (negatives)
     noise_bank: str | None = None     # .npz noise bank; None = the bundled/default one
     seed: int = 0

@@ -70,11 +70,12 @@ def build_text_bank(label_space: LabelSpace, text_encoder: str | None = None) ->
 class TrainStep(nn.Module):
     """The model plus its losses in one module, so DDP sees every parameter used inside forward."""
 
-    def __init__(self, model: nn.Module, loss_cfg, num_classes: int):
+    def __init__(self, model: nn.Module, loss_cfg, num_classes: int, amp: str = "none"):
         super().__init__()
         self.model = model
         self.loss_cfg = loss_cfg
         self.num_classes = int(num_classes)
+        self.amp = amp          # "bf16": the model's forward under autocast, the losses in float32 (ago_train/amp.py)
 
     def forward(self, batch: dict, text: torch.Tensor, phrase_class: torch.Tensor,
                 noise: torch.Tensor | None, voxel_index: torch.Tensor | None = None,
@@ -82,13 +83,16 @@ class TrainStep(nn.Module):
                 diagnose: bool = False) -> dict:
         """The loss parts; with `diagnose`, also "feat_spread" and "free_share" of the voxels the losses
         saw (ago_train/fit_diagnostics.py; no gradients)."""
+        from .amp import forward_autocast, outputs_to_float
         from .losses import BankTensors, compute_losses
 
         prefix = None
         if "prefix" in batch:  # cached frozen backbone maps (B, V, C, H, W) float16 -> (B*V, C, H, W) float32
             prefix = [p.reshape(-1, *p.shape[2:]).float() for p in batch["prefix"]]
         # F~_3D only where the alignment loss reads it (compute_losses runs the adapter on those rows)
-        outputs = self.model(batch.get("images"), batch["ego2img"], voxel_index, prefix, adapted=False)
+        with forward_autocast(self.amp, batch["ego2img"].device.type):
+            outputs = self.model(batch.get("images"), batch["ego2img"], voxel_index, prefix, adapted=False)
+        outputs = outputs_to_float(outputs)
         bank = BankTensors(text, phrase_class, self.num_classes, noise)
         losses = compute_losses(outputs, batch, bank, self.loss_cfg, sample_weight=voxel_weight,
                                 adapter=self.model.adapt, class_weight=class_weight)
@@ -224,7 +228,7 @@ class Trainer:
                 self.model.free_bias.fill_(self._free_prior_logit())
         if use_cache:  # after init_from: the cache is keyed by the frozen weights the run really uses
             self.dataset.feature_cache = self._feature_cache()
-        self.step_module = TrainStep(self.model, cfg.loss, K).to(info.device)
+        self.step_module = TrainStep(self.model, cfg.loss, K, cfg.amp).to(info.device)
         # fused AdamW: the same update, one kernel per group of tensors
         fused = torch.device(info.device).type in ("cpu", "cuda")
         self.optimizer = torch.optim.AdamW(parameter_groups(self.model, cfg), lr=cfg.lr,

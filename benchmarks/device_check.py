@@ -14,14 +14,11 @@ silently. Every device runs in its own child process (peak RSS per child). On a 
 registry, carry the wheel: `pip download --no-deps 'onnxruntime-gpu>=1.17,<1.33' -d wheels/` here, then
 `pip uninstall -y onnxruntime && pip install wheels/onnxruntime_gpu-*.whl` there.
 
-OpenVINO on this CPU, beside the CPU build in one run: onnxruntime-openvino replaces the `onnxruntime` module, so
-it lives in an environment of its own, and `--python openvino=ENV/bin/python` runs that device's children there
-(with this repository on PYTHONPATH):
-
-    python -m venv /tmp/ov && /tmp/ov/bin/pip install 'onnxruntime-openvino>=1.17,<1.33' 'numpy<2.5' \
-        'opencv-python-headless<5.2' 'typer<0.30'
-    python -m benchmarks.device_check --devices cpu:fp32,openvino:fp32,openvino:fp16 --paper-scale \
-        --python openvino=/tmp/ov/bin/python --rounds 2 --out benchmarks/results/openvino_cpu.md
+OpenVINO on this CPU: `--device openvino` is the OpenVINO runtime (the `openvino` extra, beside onnxruntime), so
+its children run in this environment (`--devices cpu:fp32,openvino:fp32,openvino:bf16`); bf16 against fp32 over a
+town of frames: benchmarks/bf16_openvino.py. `--python DEVICE=ENV/bin/python` runs a device's children in another
+environment (with this repository on PYTHONPATH), e.g. onnxruntime-gpu kept apart from the CPU build.
+benchmarks/results/openvino_cpu.md was measured through the earlier onnxruntime-openvino route (its own venv).
 """
 
 from __future__ import annotations

@@ -8,17 +8,20 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 
-# An accelerator for `ago infer --device ...` (after a normal setup): onnxruntime's GPU or OpenVINO build
-# replaces the CPU build (the three ship the same `onnxruntime` module, so only one may be installed).
-# The range is the one the CPU build is tested in (pyproject.toml). cuda also serves --device tensorrt
-# when TensorRT 10's libraries are on LD_LIBRARY_PATH.
+# An accelerator for `ago infer --device ...` (after a normal setup). cuda: onnxruntime's GPU build replaces
+# the CPU build (both ship the same `onnxruntime` module, so only one may be installed; the range is the one
+# the CPU build is tested in, pyproject.toml); it also serves --device tensorrt when TensorRT 10's libraries
+# are on LD_LIBRARY_PATH. openvino: the OpenVINO runtime (the `openvino` extra) beside onnxruntime.
 if [ "${1:-}" = "--device" ]; then
   case "${2:-}" in
     cuda) ORT_BUILD="onnxruntime-gpu>=1.17,<1.33" ;;
-    openvino) ORT_BUILD="onnxruntime-openvino>=1.17,<1.33" ;;
+    openvino)
+      $PY -m pip install -q "openvino>=2026.4,<2026.5"
+      $PY -c "import openvino as o; print('openvino', o.__version__, 'devices:', ', '.join(o.Core().available_devices))"
+      exit 0 ;;
     *) echo "error: --device: expected cuda or openvino, got '${2:-}'" >&2; exit 2 ;;
   esac
-  $PY -m pip uninstall -q -y onnxruntime onnxruntime-gpu onnxruntime-openvino || true
+  $PY -m pip uninstall -q -y onnxruntime onnxruntime-gpu || true
   $PY -m pip install -q "$ORT_BUILD"
   $PY -c "import onnxruntime as o; print('onnxruntime', o.__version__, 'providers:', ', '.join(o.get_available_providers()))"
   exit 0

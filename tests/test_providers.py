@@ -4,7 +4,7 @@ that replace a silent fall-back to the CPU. Runs on the CPU: the providers a GPU
 import pytest
 
 from ago_runtime.errors import AgoInputError
-from ago_runtime.providers import (Device, Precision, check_device, check_session, parse_device,
+from ago_runtime.providers import (Device, Precision, check_device, check_session, openvino_target, parse_device,
                                    parse_precision, provider_list, provider_tag)
 
 CPU_ONLY = ["AzureExecutionProvider", "CPUExecutionProvider"]
@@ -22,7 +22,7 @@ def test_parse_names_and_refuses_typos():
 
 def test_cpu_build_refuses_cuda_naming_what_to_install():
     check_device(Device.CPU, available=CPU_ONLY)
-    for device in (Device.CUDA, Device.TENSORRT, Device.OPENVINO):
+    for device in (Device.CUDA, Device.TENSORRT):
         with pytest.raises(AgoInputError) as e:
             check_device(device, available=CPU_ONLY)
         message = str(e.value)
@@ -30,19 +30,21 @@ def test_cpu_build_refuses_cuda_naming_what_to_install():
         assert "scripts/setup.sh --device" in message
 
 
-def test_gpu_build_takes_cuda_and_tensorrt_but_not_openvino():
+def test_gpu_build_takes_cuda_and_tensorrt():
     check_device(Device.CUDA, available=GPU_BUILD)
     check_device(Device.TENSORRT, Precision.FP16, available=GPU_BUILD)
-    with pytest.raises(AgoInputError, match="OpenVINOExecutionProvider"):
-        check_device(Device.OPENVINO, available=GPU_BUILD)
     with pytest.raises(AgoInputError, match="CUDA provider beside it"):
         check_device(Device.TENSORRT, available=["TensorrtExecutionProvider", "CPUExecutionProvider"])
 
 
-def test_fp16_only_where_a_provider_makes_it():
+def test_fp16_and_bf16_only_where_a_runtime_makes_them():
     for device in (Device.CPU, Device.CUDA):
         with pytest.raises(AgoInputError, match="--precision: fp16 runs through TensorRT or OpenVINO"):
             check_device(device, Precision.FP16, available=GPU_BUILD)
+    for device in (Device.CPU, Device.CUDA, Device.TENSORRT):
+        with pytest.raises(AgoInputError, match="--precision: bf16 runs through OpenVINO on a CPU with avx512_bf16 "
+                                                "or amx_bf16, not " + device.value):
+            check_device(device, Precision.BF16, available=GPU_BUILD)
 
 
 def test_provider_lists():
@@ -69,19 +71,13 @@ def test_a_session_that_fell_back_to_the_cpu_is_refused():
         check_session(_Session(["CPUExecutionProvider"]), Device.CUDA, "planes.onnx")
 
 
-def test_openvino_runs_fp32_on_its_cpu_device_and_fp16_on_its_gpu_device():
-    # OpenVINO's CPU device does not start with FP16 (measured with onnxruntime-openvino 1.24.1: onnxruntime then
-    # quietly makes a CPU session), so fp16 asks for its GPU device, and a fall-back says so
-    (name, options), = provider_list(Device.OPENVINO)
-    assert name == "OpenVINOExecutionProvider" and options == {"device_type": "CPU", "precision": "FP32"}
-    (_, options), = provider_list(Device.OPENVINO, Precision.FP16)
-    assert options == {"device_type": "GPU", "precision": "FP16"}
-    check_session(_Session(["OpenVINOExecutionProvider", "CPUExecutionProvider"]), Device.OPENVINO, "planes.onnx",
-                  Precision.FP16)
-    with pytest.raises(AgoInputError, match=r"^planes.onnx: .*OpenVINO's GPU device.*use --precision fp32$"):
-        check_session(_Session(["CPUExecutionProvider"]), Device.OPENVINO, "planes.onnx", Precision.FP16)
-    with pytest.raises(AgoInputError, match=r"check the libraries it needs: bash scripts/setup.sh --device openvino"):
-        check_session(_Session(["CPUExecutionProvider"]), Device.OPENVINO, "planes.onnx")
+def test_openvino_always_states_its_precision():
+    # on a CPU with bf16 units OpenVINO's CPU device runs bf16 unless told otherwise: fp32 must ask for f32
+    assert openvino_target(Precision.FP32) == ("CPU", {"INFERENCE_PRECISION_HINT": "f32", "PERFORMANCE_HINT": "LATENCY"})
+    assert openvino_target(Precision.BF16)[1]["INFERENCE_PRECISION_HINT"] == "bf16"
+    assert openvino_target(Precision.FP16) == ("GPU", {"INFERENCE_PRECISION_HINT": "f16"})
+    with pytest.raises(ValueError):
+        provider_list(Device.OPENVINO)        # not an onnxruntime provider: ago_runtime/openvino_session.py
 
 
 def _ago(args) -> tuple[int, str]:

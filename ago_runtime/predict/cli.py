@@ -282,7 +282,7 @@ def register(app: typer.Typer) -> None:
                                             "dataset's frames (N machines, no coordination; ago_runtime/shards.py)"),
         device: Device = typer.Option(Device.CPU, "--device", help="where the encoder graphs run (an onnxruntime "
                                       "build with that provider: scripts/setup.sh --device; the heads stay on the CPU)"),
-        precision: Precision = typer.Option(Precision.FP32, "--precision", help="fp16 with --device tensorrt|openvino"),
+        precision: Precision = typer.Option(Precision.FP32, "--precision", help="fp16 with --device tensorrt|openvino; bf16 with --device openvino (a CPU with avx512_bf16 or amx_bf16)"),
         html: bool = typer.Option(False, "--html", help="also write <name>.html beside the PNG: the prediction in 3-D "
                                   "(one self-contained file, no network needed; docs/metric_and_pictures.md)"),
     ) -> None:
@@ -298,7 +298,7 @@ def register(app: typer.Typer) -> None:
         prompts: Optional[str] = typer.Option(None, "--prompts", help="prompt file (default: the bundle's classes)"),
         device: Device = typer.Option(Device.CPU, "--device", help="where the encoder graphs run (an onnxruntime "
                                       "build with that provider: scripts/setup.sh --device; the heads stay on the CPU)"),
-        precision: Precision = typer.Option(Precision.FP32, "--precision", help="fp16 with --device tensorrt|openvino"),
+        precision: Precision = typer.Option(Precision.FP32, "--precision", help="fp16 with --device tensorrt|openvino; bf16 with --device openvino (a CPU with avx512_bf16 or amx_bf16)"),
         html: bool = typer.Option(False, "--html", help="also write <name>.html beside the PNG: the prediction in 3-D "
                                   "(one self-contained file, no network needed; docs/metric_and_pictures.md)"),
     ) -> None:
@@ -322,7 +322,7 @@ def register(app: typer.Typer) -> None:
         out: Path = typer.Option(Path("ago_retrieve"), "--out", "-o", help="output folder"),
         device: Device = typer.Option(Device.CPU, "--device", help="where the encoder graphs run (an onnxruntime "
                                       "build with that provider: scripts/setup.sh --device; the heads stay on the CPU)"),
-        precision: Precision = typer.Option(Precision.FP32, "--precision", help="fp16 with --device tensorrt|openvino"),
+        precision: Precision = typer.Option(Precision.FP32, "--precision", help="fp16 with --device tensorrt|openvino; bf16 with --device openvino (a CPU with avx512_bf16 or amx_bf16)"),
         html: bool = typer.Option(False, "--html", help="also write the .html beside the PNG: the similarity in 3-D "
                                   "as heat colours with a threshold slider (one self-contained file)"),
     ) -> None:
