@@ -37,6 +37,7 @@ from . import distributed as D
 from .checkpoint import (check_checkpoint_bank, check_resume_model, load_checkpoint, load_model_weights, plain, rng_state,
                          save_checkpoint, set_rng_state)
 from .dataset import FrameList, OccSampleDataset, collate
+from .quant import load_model_state, model_state
 from .sources import open_sources
 from .train_config import TrainConfig
 
@@ -222,7 +223,16 @@ class Trainer:
                 self.model.free_bias.fill_(self._free_prior_logit())
         if use_cache:  # after init_from: the cache is keyed by the frozen weights the run really uses
             self.dataset.feature_cache = self._feature_cache()
-        self.step_module = TrainStep(self.model, cfg.loss, K).to(info.device)
+        self.init_calibration = init.get("calibration") if init is not None else None
+        if cfg.quant == "int8":   # quantisation-aware fine-tuning, distilled from init_from's fp32 model (quant.py)
+            from .quant import DistillStep, attach_fake_quant
+
+            teacher = cfg.model.build(load_weights=False).to(info.device)
+            load_model_weights(teacher, init, cfg.init_from, cfg.model.to_dict(), what="the teacher (init_from)")
+            attach_fake_quant(self.model)
+            self.step_module = DistillStep(self.model, teacher, K).to(info.device)
+        else:
+            self.step_module = TrainStep(self.model, cfg.loss, K).to(info.device)
         # fused AdamW: the same update, one kernel per group of tensors
         fused = torch.device(info.device).type in ("cpu", "cuda")
         self.optimizer = torch.optim.AdamW(parameter_groups(self.model, cfg), lr=cfg.lr,
@@ -339,7 +349,7 @@ class Trainer:
         if int(ckpt.get("world_size", 1)) != self.info.world_size:
             raise AgoInputError(path, f"cannot resume: the run used {ckpt.get('world_size')} processes, "
                                 f"now {self.info.world_size}")
-        self.model.load_state_dict(ckpt["model"])
+        load_model_state(self.model, ckpt["model"])   # with fake int8 attached too (quant.py)
         self.optimizer.load_state_dict(ckpt["optimizer"])
         self.scheduler.load_state_dict(ckpt["scheduler"])
         self.step = int(ckpt["step"])
@@ -357,7 +367,7 @@ class Trainer:
             torch.distributed.all_gather_object(gathered, rng)
             rng = gathered
         return {
-            "model": self.model.state_dict(),
+            "model": model_state(self.model),   # the plain weights' names, with or without fake int8 (quant.py)
             "optimizer": self.optimizer.state_dict(),
             "scheduler": plain(self.scheduler.state_dict()),
             "step": int(self.step),
@@ -498,7 +508,9 @@ class Trainer:
                         self.save(epoch)
         finally:
             progress.close()
-        if self.step >= self.total_steps and self.info.is_main:
+        if self.step >= self.total_steps and self.info.is_main and self.cfg.quant != "none":
+            self.calibration = self.init_calibration   # the teacher's: the run reproduces its model (quant.py)
+        elif self.step >= self.total_steps and self.info.is_main:
             # the identifier's per-branch logit scales, from known-class training voxels (calibrate.py)
             from .calibrate import fit_scales
 
