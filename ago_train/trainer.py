@@ -223,9 +223,10 @@ class Trainer:
                 self.model.free_bias.fill_(self._free_prior_logit())
         if use_cache:  # after init_from: the cache is keyed by the frozen weights the run really uses
             self.dataset.feature_cache = self._feature_cache()
-        self.init_calibration = init.get("calibration") if init is not None else None
         if cfg.quant == "int8":   # quantisation-aware fine-tuning, distilled from init_from's fp32 model (quant.py)
             from .quant import DistillStep, attach_fake_quant
+
+            self.calibration = init.get("calibration")   # the teacher's, in every checkpoint: the run reproduces it
 
             teacher = cfg.model.build(load_weights=False).to(info.device)
             load_model_weights(teacher, init, cfg.init_from, cfg.model.to_dict(), what="the teacher (init_from)")
@@ -508,9 +509,7 @@ class Trainer:
                         self.save(epoch)
         finally:
             progress.close()
-        if self.step >= self.total_steps and self.info.is_main and self.cfg.quant != "none":
-            self.calibration = self.init_calibration   # the teacher's: the run reproduces its model (quant.py)
-        elif self.step >= self.total_steps and self.info.is_main:
+        if self.step >= self.total_steps and self.info.is_main and self.cfg.quant == "none":
             # the identifier's per-branch logit scales, from known-class training voxels (calibrate.py)
             from .calibrate import fit_scales
 

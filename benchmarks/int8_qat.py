@@ -1,6 +1,6 @@
 """fp32 vs post-training int8 (PTQ) vs quantisation-aware fine-tuned int8 (QAT), side by side on fresh towns (issue 52).
 
-Takes the fp32 checkpoint and the QAT checkpoint made from it (`ago train --config RUN/config.json --set
+Takes the fp32 checkpoint and the QAT checkpoint made from it (or the bundles `ago export --int8` made of them) (`ago train --config RUN/config.json --set
 quant=int8 --set init_from=FP32.pt ...`, ago_train/quant.py) and fresh towns (`ago synth` with seeds no
 training used). Exports, in a temporary folder, both checkpoints with `ago export --int8` (the same recipe:
 planes graph static QDQ calibrated on 16 frames of the checkpoint's training split, voxel stages dynamic;
@@ -77,6 +77,7 @@ def run(args) -> str:
     from ago_runtime.classes import FREE, IGNORE
     from ago_runtime.formats.nuscenes import NuScenesDataset
     from ago_runtime.geometry.grid import Grid
+    from ago_runtime.predict.bundle import Bundle
     from ago_runtime.predict.predictor import Predictor
     from ago_runtime.scoring.metric import OccupancyMetric, to_gt_resolution
 
@@ -88,6 +89,9 @@ def run(args) -> str:
         os.environ["AGO_CACHE_DIR"] = str(tmp / "cache")   # every variant starts from an empty ORT cache
         bundles, parity = {}, {}
         for name, ckpt in (("fp32", args.fp32), ("qat", args.qat)):
+            if ckpt.is_dir():   # a bundle `ago export --int8` made already
+                bundles[name], parity[name] = ckpt, Bundle.load(ckpt).contract.parity
+                continue
             t = time.perf_counter()
             meta = export_bundle(ckpt, tmp / name, int8=True, bank_prompts=[],
                                  readout_grid=readout, log=lambda s: print(s, flush=True),
@@ -191,10 +195,10 @@ def report(args, towns, planes_t, frame_t, parity, started, load_start, load_end
     for v in ("ptq", "qat"):
         c = total[v]
         worst = max((t["miou"][v] - t["miou"]["fp32"] for t in towns), key=abs)
-        checks = [c[0] / c[1] >= TARGETS["all"], c[2] / c[3] >= TARGETS["occupied"],
+        checks = [c[0] / c[1] >= TARGETS["all"], c[2] / max(c[3], 1) >= TARGETS["occupied"],
                   abs(worst) <= TARGETS["miou_points"], pl["fp32"] / pl[v] >= TARGETS["planes"],
                   fr["fp32"] / fr[v] >= TARGETS["frame"]]
-        vals = [f"{c[0] / c[1]:.4%}", f"{c[2] / c[3]:.4%}", f"{worst:+.2f}", f"{pl['fp32'] / pl[v]:.2f}x",
+        vals = [f"{c[0] / c[1]:.4%}", f"{c[2] / max(c[3], 1):.4%}", f"{worst:+.2f}", f"{pl['fp32'] / pl[v]:.2f}x",
                 f"{fr['fp32'] / fr[v]:.2f}x"]
         L.append(f"| {v} | " + " | ".join(f"{s} ({'met' if ok else 'MISSED'})" for s, ok in zip(vals, checks)) + " |")
     L += ["", f"Speed (first town's first frame, median of {args.reps} alternating rounds, wall s): " + "; ".join(
@@ -204,8 +208,10 @@ def report(args, towns, planes_t, frame_t, parity, started, load_start, load_end
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--fp32", type=Path, required=True, help="the fp32 checkpoint (`ago train`)")
-    ap.add_argument("--qat", type=Path, required=True, help="its QAT fine-tune (`--set quant=int8`)")
+    ap.add_argument("--fp32", type=Path, required=True,
+                    help="the fp32 checkpoint (`ago train`), or its bundle made by `ago export --int8`")
+    ap.add_argument("--qat", type=Path, required=True,
+                    help="its QAT fine-tune (`--set quant=int8`), or its bundle made by `ago export --int8`")
     ap.add_argument("--towns", nargs="+", required=True, help="fresh towns (`ago synth`, seeds no training used)")
     ap.add_argument("--frames", type=int, default=3, help="keyframes scored per town")
     ap.add_argument("--reps", type=int, default=7)
