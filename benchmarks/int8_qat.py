@@ -1,7 +1,8 @@
 """fp32 vs post-training int8 (PTQ) vs quantisation-aware fine-tuned int8 (QAT), side by side on fresh towns (issue 52).
 
-Takes the fp32 checkpoint and the QAT checkpoint made from it (or the bundles `ago export --int8` made of them) (`ago train --config RUN/config.json --set
-quant=int8 --set init_from=FP32.pt ...`, ago_train/quant.py) and fresh towns (`ago synth` with seeds no
+Takes the fp32 checkpoint and the QAT checkpoint made from it (`ago train --config RUN/config.json --set
+quant=int8 --set init_from=FP32.pt ...`, ago_train/quant.py), or the bundles `ago export --int8` made of them,
+and fresh towns (`ago synth` with seeds no
 training used). Exports, in a temporary folder, both checkpoints with `ago export --int8` (the same recipe:
 planes graph static QDQ calibrated on 16 frames of the checkpoint's training split, voxel stages dynamic;
 read out on --readout-grid), then runs, in one process:

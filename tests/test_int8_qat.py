@@ -111,9 +111,9 @@ def test_short_qat_run_then_int8_export(town, tmp_path):
     """`ago train --set quant=int8 --set init_from=FP32` runs (distillation losses logged, the teacher's
     calibration kept, a plain checkpoint), and `ago export --int8` of it calibrates on its training frames."""
     qat = tmp_path / "qat"
-    r = _ago("train", "--config", "tiny", "--data", str(town["data"]), "--pseudo", str(town["pseudo"]), "--out", str(qat),
-             "--set", "train_split=all", "--set", "device=cpu", "--set", "quant=int8", "--set", f"init_from={town['fp32']}",
-             "--set", "lr=1e-4", "--set", "log_every=1")
+    r = _ago("train", "--config", "tiny", "--data", str(town["data"]), "--pseudo", str(town["pseudo"]),
+             "--out", str(qat), "--set", "train_split=all", "--set", "device=cpu", "--set", "quant=int8",
+             "--set", f"init_from={town['fp32']}", "--set", "lr=1e-4", "--set", "log_every=1")
     assert r.returncode == 0, r.stderr
     logs = [json.loads(ln) for ln in (qat / "log.jsonl").read_text().splitlines()]
     assert logs and all(np.isfinite(rec["distill_main"]) and rec["distill_main"] >= 0 for rec in logs)
