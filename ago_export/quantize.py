@@ -9,9 +9,9 @@
   per-channel weights. The activation ranges are the min/max seen on the calibration frames (or their
   percentiles). GridSample, the attention MatMuls/Gemms and everything else stay float32.
 - `quantize_int8_graphs`: the bundle's int8 variant, what `ago export --int8` writes: planes.onnx static QDQ
-  (calibrated on frames of the checkpoint's training split only) and every voxel stage dynamic. On a model
-  fine-tuned with fake int8 (`ago train --set quant=int8`, ago_train/quant.py) its labels stay close to the
-  fp32 model's; post-training only, they do not (benchmarks/results/int8_qat.md, int8_static.md).
+  (calibrated on frames of the checkpoint's training split only) and every voxel stage dynamic. The same
+  recipe serves a model fine-tuned with fake int8 first (`ago train --set quant=int8`, ago_train/quant.py);
+  how many labels each keeps: benchmarks/results/int8_qat.md.
 
 Settings (onnxruntime's guidance for x86 CPUs, in quantize_static's docstring): QDQ format; activations
 uint8 (asymmetric), weights int8 (symmetric), per channel; reduce_range off (full 8-bit weights, right on
