@@ -22,6 +22,8 @@ from ago_runtime.predict.contract import PLANES_INPUTS
 
 OPTION = "--calibration-data"
 MAX_CALIBRATION_FRAMES = 64   # the most frames a calibration reads (each is one run of the planes graph)
+CALIBRATION_FRAMES = 16       # what `ago export --int8` reads (5 and 25 frames gave the same labels:
+                              # benchmarks/results/int8_static.md, sweep)
 
 
 def spread(count: int, max_frames: int) -> list[int]:

@@ -1,4 +1,4 @@
-"""`ago export model.ckpt -o BUNDLE [--int8] [--parity-frame DIR | --no-real-frame] [--card-note TEXT]
+"""`ago export model.ckpt -o BUNDLE [--int8 [--calibration-data DIR]] [--parity-frame DIR | --no-real-frame] [--card-note TEXT]
 [--card-json FILE] [--readout-grid XxYxZ] [--text-encoder DIR]` (needs torch; a CLIP text tower needs the vlm extra)."""
 
 from __future__ import annotations
@@ -14,7 +14,12 @@ def register(app: typer.Typer) -> None:
     def export_cmd(
         checkpoint: Path = typer.Argument(..., help="checkpoint written by `ago train` (.pt)"),
         out: Path = typer.Option(Path("ago_bundle"), "-o", "--out", help="bundle folder to write"),
-        int8: bool = typer.Option(False, "--int8", help="also write a dynamically quantised int8 encoder"),
+        int8: bool = typer.Option(False, "--int8", help="also write the int8 variant: planes graph static QDQ "
+                                  "(calibrated on training frames), voxel stages dynamic; docs/runtime.md"),
+        calibration_data: Optional[Path] = typer.Option(
+            None, "--calibration-data",
+            help="with --int8: the dataset whose train split calibrates the int8 planes graph (default: the "
+                 "checkpoint's training data)"),
         parity_frame: Optional[Path] = typer.Option(
             None, "--parity-frame",
             help="frame for the ORT-vs-torch parity check: an images folder (CAM_*.jpg + calib.json), a "
@@ -67,6 +72,8 @@ def register(app: typer.Typer) -> None:
         if parity_frame is not None and not parity_frame.is_dir():   # before any export work
             raise AgoInputError("--parity-frame", f"{parity_frame}: folder not found (an images folder, a folder "
                                 "with mmdet3d_info.pkl, or a dataset root)")
+        if calibration_data is not None and not int8:
+            raise AgoInputError("--calibration-data", "calibrates the int8 graphs; give --int8 too")
         if bank and train_bank_only:
             raise AgoInputError("--bank-prompts", "and --train-bank-only contradict each other; give one")
         for name in bank or []:   # every prompt file named must exist and parse, before the export
@@ -82,4 +89,4 @@ def register(app: typer.Typer) -> None:
         export_bundle(checkpoint, out, int8=int8, parity_frame_dir=parity_frame,
                       real_frame=not no_real_frame, bank_prompts=prompts,
                       log=lambda s: typer.echo(s, err=True), card=card, readout_grid=readout,
-                      static_sampling=static_sampling, text_encoder=text_encoder)
+                      static_sampling=static_sampling, text_encoder=text_encoder, calibration_data=calibration_data)

@@ -209,6 +209,28 @@ def parity_frame(spec: str | Path | None, real_frame: bool, rig: Rig) -> tuple[d
     return images, frame_rig, str(spec)
 
 
+def int8_calibration_frames(ckpt, calibration_data: str | Path | None, rig: Rig, log=print) -> list:
+    """The static int8 graph's calibration frames: CALIBRATION_FRAMES frames of the training split (the
+    checkpoint's train_config train_split, else "train") of `calibration_data`, default the checkpoint's
+    training data (train_config data, or its first source's). Training frames only: the frames a model is
+    scored on never set its ranges. One AgoInputError naming --calibration-data when there are none."""
+    from .calibration_frames import CALIBRATION_FRAMES, OPTION, read_frames
+
+    tc = ckpt.train_config if isinstance(ckpt.train_config, dict) else {}
+    first = (tc.get("sources") or [{}])[0] if isinstance(tc.get("sources"), list) else {}
+    split = str(first.get("split") or tc.get("train_split") or "train")
+    source = calibration_data or first.get("data") or tc.get("data")
+    if source is None:
+        raise AgoInputError(OPTION, "the checkpoint records no training data; --int8 needs --calibration-data DIR "
+                            "(the dataset the model was trained on: its train split calibrates the int8 graph)")
+    if calibration_data is None and not Path(source).is_dir():
+        raise AgoInputError(OPTION, f"the checkpoint's training data {source} is not here; --int8 needs "
+                            "--calibration-data DIR (the dataset the model was trained on)")
+    frames = read_frames(source, CALIBRATION_FRAMES, rig, split=split)
+    log(f"note: int8 calibration: {len(frames)} frames of split {split!r} of {source}")
+    return frames
+
+
 # ---- the bundle ----------------------------------------------------------------------------
 def _replace_dir(tmp: Path, out: Path) -> None:
     """Move the finished temp folder onto `out` (an existing bundle there is replaced; never missing)."""
@@ -222,7 +244,7 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
                   bank_prompts: list[str] | None = None, tolerance: Tolerance = FP32_TOLERANCE,
                   int8_tolerance: Tolerance = INT8_TOLERANCE, log=print, parity: bool = True,
                   card: dict | None = None, readout_grid: Grid | None = None, static_sampling: bool = False,
-                  text_encoder: str | Path | None = None) -> dict:
+                  text_encoder: str | Path | None = None, calibration_data: str | Path | None = None) -> dict:
     """Write a bundle for `checkpoint` at `out`; returns bundle.json's content.
 
     parity=False skips the ORT-vs-torch check (benchmarks only; not offered by the CLI);
@@ -243,6 +265,10 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
 
     text_encoder (`ago export --text-encoder DIR`): the CLIP folder of a checkpoint trained with one (default: its
     train_config text_encoder); its text tower ships in the bundle (ago_export/text_tower.py).
+
+    int8 (`ago export --int8`): also the int8 variant (ago_export.quantize.quantize_int8_graphs), its planes graph
+    calibrated on frames of the training split of `calibration_data` (`--calibration-data DIR`; default the
+    checkpoint's training data), parity-checked with the int8 tolerance.
     """
     checkpoint, out = Path(checkpoint), Path(out)
     model, ckpt, cfg = load_model(checkpoint)
@@ -273,6 +299,7 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
         raise AgoInputError(checkpoint, f"the model takes {cfg.num_cameras} cameras, its rig has {len(rig.cameras)}")
     encoder_spec = TextEncoderSpec(bank.encoder_id, bank.encoder_hash, int(bank.dim), bank.encoder_variant)
     images, frame_rig, frame_name = parity_frame(parity_frame_dir, real_frame, rig)   # checked before any work
+    calibration = int8_calibration_frames(ckpt, calibration_data, rig, log) if int8 else []
     frame_rig = frame_rig.ordered_as(rig.names, frame_name)
     if parity_frame_dir is None:
         log(f"note: using parity frame {frame_name} (--parity-frame DIR chooses one, --no-real-frame a synthetic one)")
@@ -313,14 +340,14 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
                                   tolerance, frame_name, checkpoint, "fp32", log)
         variants = {}
         if int8:
-            from .quantize import quantize_encoder
+            from .calibration_frames import planes_feeds
+            from .quantize import quantize_int8_graphs
 
-            log("quantising the encoder to int8 ...")
-            variant = VariantSpec(INT8, "dynamic", {}, None)
-            for key in [BundleContract.PLANES] + [st.file for st in stages]:
-                variant.graphs[key] = f"{key}_{INT8}"
-                files[variant.graphs[key]] = f"{key}.{INT8}.onnx"
-                quantize_encoder(tmp / files[key], tmp / files[variant.graphs[key]])
+            log(f"quantising the encoder to int8 (planes static QDQ, calibrated on {len(calibration)} training "
+                "frames; voxel stages dynamic) ...")
+            files.update(quantize_int8_graphs(tmp, files, [st.file for st in stages], planes_feeds(calibration, pre)))
+            variant = VariantSpec(INT8, "static-qdq", {k: f"{k}_{INT8}" for k in [BundleContract.PLANES] +
+                                                       [st.file for st in stages]}, None)
             if parity:
                 variant.parity = _parity(model, open_split_encoder(tmp, files, stages, grid, heads, variant), heads,
                                          bank, x, m, int8_tolerance, frame_name, checkpoint, INT8, log)

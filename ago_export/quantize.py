@@ -2,14 +2,16 @@
 
 - `quantize_encoder` (dynamic, onnxruntime.quantization.quantize_dynamic): takes an fp32 ONNX file; writes
   one whose MatMul/Gemm weights are int8 (activations are quantised on the fly per batch). Convolutions and
-  GridSample stay float32. What `ago export --int8` writes.
+  GridSample stay float32. Used for the voxel stages (one Gemm each).
 - `quantize_planes_static` (static, onnxruntime.quantization.quantize_static): takes planes.onnx and
   calibration feeds (real preprocessed frames, ago_export.calibration_frames); writes a QDQ graph whose
   convolutions (the image backbone, the FPN and the TPV convolutions) run on int8 activations and int8
   per-channel weights. The activation ranges are the min/max seen on the calibration frames (or their
-  percentiles). GridSample, the attention MatMuls/Gemms and everything else stay float32. Not used by
-  `ago export`: its labels agree with fp32 on fewer voxels than fp32 parity demands
-  (benchmarks/results/int8_static.md); benchmarks/int8_static.py measures it.
+  percentiles). GridSample, the attention MatMuls/Gemms and everything else stay float32.
+- `quantize_int8_graphs`: the bundle's int8 variant, what `ago export --int8` writes: planes.onnx static QDQ
+  (calibrated on frames of the checkpoint's training split only) and every voxel stage dynamic. The same
+  recipe serves a model fine-tuned with fake int8 first (`ago train --set quant=int8`, ago_train/quant.py);
+  how many labels each keeps: benchmarks/results/int8_qat.md.
 
 Settings (onnxruntime's guidance for x86 CPUs, in quantize_static's docstring): QDQ format; activations
 uint8 (asymmetric), weights int8 (symmetric), per channel; reduce_range off (full 8-bit weights, right on
@@ -125,6 +127,20 @@ def quantize_planes_static(fp32_path: str | Path, out_path: str | Path, feeds: l
                         op_types_to_quantize=STATIC_OP_TYPES, nodes_to_exclude=list(keep_float or []),
                         calibration_cache_path=cache)
     return Path(out_path)
+
+
+def quantize_int8_graphs(folder: str | Path, files: dict[str, str], stage_keys: list[str],
+                         feeds: list[dict[str, np.ndarray]]) -> dict[str, str]:
+    """Write the int8 variant of a bundle's graphs into `folder` -> {"<key>_int8": file name} for the bundle's
+    file table. files: the bundle's {key: file name} ("planes" and each of stage_keys); feeds: the planes
+    graph's calibration feeds (ago_export.calibration_frames.planes_feeds of training frames)."""
+    folder = Path(folder)
+    out = {"planes_int8": "planes.int8.onnx"}
+    quantize_planes_static(folder / files["planes"], folder / out["planes_int8"], feeds)
+    for key in stage_keys:
+        out[f"{key}_int8"] = f"{key}.int8.onnx"
+        quantize_encoder(folder / files[key], folder / out[f"{key}_int8"])
+    return out
 
 
 def _write_fixed_ranges(graph_path: Path, cache: Path, value_range: tuple[float, float]) -> None:

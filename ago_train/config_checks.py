@@ -8,7 +8,8 @@ file, or "--set" when the value came from the command line) and the key:
   num_workers, seed >= 0; epochs, batch_size, log_every, ckpt_every >= 1; max_steps, max_frames
   None or >= 1; 0 <= warmup_max_fraction <= 1; 0 <= color_jitter < 1; min_lr <= lr; warmup_steps >= 0;
 - voxel_sampling one of losses.sampling.SAMPLING_RULES, 0 < occupied_share < 1, feature_cache a non-empty
-  string, snapshot_steps None or a list of steps >= 1, model.frozen_stages 0..3;
+  string, snapshot_steps None or a list of steps >= 1, model.frozen_stages 0..3; quant one of
+  quant.QUANT_MODES, and anything but "none" needs init_from;
 - device: auto, cpu, cuda or cuda:N (`check_device`); amp one of ago_train.amp.AMP_MODES;
 - model: every size (widths, layer and point counts, image size) an integer from 1 to its bound
   (`_model_bound`), model.grid by ago_runtime.geometry.grid.check_grid_dict.
@@ -147,6 +148,13 @@ def check_train_config(cfg, source=None):
 
     if cfg.augment not in AUGMENTATIONS:
         raise AgoInputError(source, f"augment must be one of {list(AUGMENTATIONS)}, got {cfg.augment!r}")
+    from .quant import QUANT_MODES
+
+    if cfg.quant not in QUANT_MODES:
+        raise AgoInputError(source, f"quant must be one of {list(QUANT_MODES)}, got {cfg.quant!r}")
+    if cfg.quant != "none" and not cfg.init_from:
+        raise AgoInputError(source, f"quant={cfg.quant} fine-tunes a trained model: set init_from=CHECKPOINT "
+                            "(its fp32 model is the teacher)")
     if not isinstance(cfg.feature_cache, str) or not cfg.feature_cache:
         raise AgoInputError(source, f"feature_cache must be \"off\", \"auto\" or a folder, got {cfg.feature_cache!r}")
     if cfg.snapshot_steps is not None and (not isinstance(cfg.snapshot_steps, (list, tuple))

@@ -63,6 +63,8 @@ class TrainConfig:
     model: ModelConfig = field(default_factory=lambda: ModelConfig.preset("cpu"))
     loss: LossConfig = field(default_factory=LossConfig)
     init_from: str | None = None      # checkpoint whose model weights start this run (fine-tuning)
+    quant: str = "none"               # "int8": quantisation-aware fine-tuning of init_from's model (fake int8 on
+                                      # the convolutions, distilled from init_from's fp32 model; ago_train/quant.py)
     train_voxels: int = 0             # voxel heads + losses on a sample of this many voxels per frame
                                       # (ago_train.losses.sampling; 0 = the whole grid)
     voxel_sampling: str = "stratified"  # "stratified" (occupied/free strata + importance weights) | "priority"
@@ -212,9 +214,10 @@ class TrainConfig:
     # ---------------------------------------------------------------------------------------
     def uses_feature_cache(self) -> bool:
         """True when training reads the frozen backbone maps from the cache instead of the images:
-        `feature_cache` is not "off", the backbone has frozen stages and no colour jitter changes the images."""
+        `feature_cache` is not "off", the backbone has frozen stages and no colour jitter changes the images (nor
+        fake int8, `quant`, the frozen stages' outputs)."""
         return (self.feature_cache not in ("off", "", None) and self.model.frozen_stages > 0
-                and self.model.backbone != "tiny_cnn" and self.color_jitter == 0)
+                and self.model.backbone != "tiny_cnn" and self.color_jitter == 0 and self.quant == "none")
 
     def prompt_path(self) -> Path:
         return resolve_prompt_file(self.prompts)

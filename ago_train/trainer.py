@@ -38,6 +38,7 @@ from . import distributed as D
 from .checkpoint import (BankRecord, CalibrationRecord, CheckpointContract, LabelSpaceRecord, TrainingState, plain,
                          rng_state, set_rng_state)
 from .dataset import FrameList, OccSampleDataset, collate
+from .quant import load_model_state, model_state
 from .sources import open_sources
 from .train_config import TrainConfig
 
@@ -228,7 +229,17 @@ class Trainer:
                 self.model.free_bias.fill_(self._free_prior_logit())
         if use_cache:  # after init_from: the cache is keyed by the frozen weights the run really uses
             self.dataset.feature_cache = self._feature_cache()
-        self.step_module = TrainStep(self.model, cfg.loss, K, cfg.amp).to(info.device)
+        if cfg.quant == "int8":   # quantisation-aware fine-tuning, distilled from init_from's fp32 model (quant.py)
+            from .quant import DistillStep, attach_fake_quant
+
+            self.calibration = init.calibration   # the teacher's, in every checkpoint: the run reproduces it
+
+            teacher = cfg.model.build(load_weights=False).to(info.device)
+            init.load_weights(teacher, cfg.init_from, cfg.model, what="the teacher (init_from)")
+            attach_fake_quant(self.model)
+            self.step_module = DistillStep(self.model, teacher, K).to(info.device)
+        else:
+            self.step_module = TrainStep(self.model, cfg.loss, K, cfg.amp).to(info.device)
         # fused AdamW: the same update, one kernel per group of tensors
         fused = torch.device(info.device).type in ("cpu", "cuda")
         self.optimizer = torch.optim.AdamW(parameter_groups(self.model, cfg), lr=cfg.lr,
@@ -335,7 +346,7 @@ class Trainer:
         path = self.out / "last.pt"
         ckpt = CheckpointContract.load(path, map_location=self.info.device)
         ckpt.check_resume(path, self.cfg, self.info.world_size, self.bank)
-        self.model.load_state_dict(ckpt.model)
+        load_model_state(self.model, ckpt.model)   # with fake int8 attached too (quant.py)
         self.optimizer.load_state_dict(ckpt.training.optimizer)
         self.scheduler.load_state_dict(ckpt.training.scheduler)
         self.step = ckpt.step
@@ -351,7 +362,8 @@ class Trainer:
             torch.distributed.all_gather_object(gathered, rng)
             rng = gathered
         return CheckpointContract(
-            model=self.model.state_dict(), model_config=cfg.model,
+            model=model_state(self.model),   # the plain weights' names, with or without fake int8 (quant.py)
+            model_config=cfg.model,
             label_space=LabelSpaceRecord.of_space(self.label_space, Path(self.prompt_path).read_text(encoding="utf-8")),
             bank=self.bank, step=int(self.step), epoch=int(epoch),
             training=TrainingState(self.optimizer.state_dict(), self.scheduler.state_dict(), rng),
@@ -479,7 +491,7 @@ class Trainer:
                         self.save(epoch)
         finally:
             progress.close()
-        if self.step >= self.total_steps and self.info.is_main:
+        if self.step >= self.total_steps and self.info.is_main and self.cfg.quant == "none":
             # the identifier's per-branch logit scales, from known-class training voxels (calibrate.py)
             from .calibrate import fit_scales
 

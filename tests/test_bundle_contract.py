@@ -107,11 +107,11 @@ def test_format_4_is_refused_with_the_reexport_command(exported):
 
 
 def test_model_record_reads_back_as_the_training_config(exported):
-    from ago_train.checkpoint import load_checkpoint
+    from ago_train.checkpoint import CheckpointContract
     from ago_train.model import ModelConfig
 
     c = BundleContract.from_dict(exported["meta"], "bundle.json")
-    assert ModelConfig.from_dict(dict(c.model.config)) == ModelConfig.from_dict(dict(load_checkpoint(exported["ckpt"])["model_config"]))
+    assert ModelConfig.from_dict(dict(c.model.config)) == CheckpointContract.load(exported["ckpt"]).model_config
     assert c.model.opset == 17
 
 

@@ -464,7 +464,8 @@ class ParityReport:
 class VariantSpec:
     """The graphs at another precision ("int8": `ago export --int8`): `graphs` maps each float32 graph's key in
     `files` (planes, then every voxel stage's) to this variant's graph's key; `method` says how it was made
-    ("dynamic": MatMul / Gemm weights quantised, ago_export/quantize.py); `parity` its check against torch."""
+    ("static-qdq": the planes graph static QDQ, per-channel weights, activations calibrated on training frames;
+    the voxel stages dynamic; ago_export/quantize.py); `parity` its check against torch."""
 
     precision: str
     method: str
