@@ -130,7 +130,7 @@ class DistillStep(nn.Module):
 
     def forward(self, batch: dict, text: torch.Tensor, phrase_class: torch.Tensor, noise, voxel_index=None,
                 voxel_weight=None, class_weight=None, diagnose: bool = False) -> dict:
-        from .model.scoring import class_logits
+        from .model.text_logits import class_logits
 
         def logits(model, feat, out):
             return class_logits(feat, text, phrase_class, self.num_classes, out["free_embedding"],
