@@ -1,0 +1,171 @@
+"""A bundle on synthetic towns it never saw, beside predictors that look at no image.
+
+    python -m benchmarks.default_bundle_towns --towns T101 T202 T303 T404 --prior-data TRAIN_TOWN \
+        [--bundle DIR] [--out benchmarks/results/default_bundle_towns.md]
+
+Each town (made by `ago synth` with a seed no training used, fixed before any run) is run through the torch-free
+runtime as a user would (`ago infer --images TOWN --picture none`, then `ago metric --gt TOWN/gts`), and scored
+beside three predictors that never look at an image, on the same GT frames and camera masks with the same
+metric (ago_runtime.scoring.metric.OccupancyMetric):
+
+- all free: every voxel free;
+- ground slab: every voxel whose centre is below z = 0.2 m (ego frame) driveable surface, the rest free;
+- scene prior: each voxel's most frequent GT label over the TRAINING town's train split
+  (ago_runtime.scoring.lidar_agreement.TrainingPrior), i.e. the average street the model was trained in.
+
+If one of them comes close to the bundle, the metric or the model is wrong. The results file records the
+command, the bundle's checkpoint sha256 and training settings (its card), the towns, the CPU and the commit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+SLAB_TOP_M = 0.2
+
+
+def run_ago(*args: str) -> str:
+    r = subprocess.run([sys.executable, "-m", "ago_runtime", *args], capture_output=True, text=True,
+                       env={**os.environ, "AGO_NO_PROGRESS": "1"})
+    if r.returncode != 0:
+        raise SystemExit(f"ago {' '.join(args)} failed: {r.stderr.strip().splitlines()[-1:]}")
+    return r.stdout
+
+
+def gt_frames(town: Path, split: str | None = None):
+    """(token, OccLabels) of a town's GT folder, optionally only the keyframes of `split` (splits.json)."""
+    from ago_runtime.formats.occ3d_waymo import load_ground_truth
+    from ago_runtime.scoring.cli import find_gt_files
+
+    keep = None
+    if split is not None:
+        scenes = set(json.loads((town / "splits.json").read_text())[split])
+        keep = lambda scene: scene in scenes   # noqa: E731
+    for token, (scene, path) in sorted(find_gt_files(town / "gts").items()):
+        if keep is None or keep(scene):
+            yield token, load_ground_truth(path)[0]
+
+
+def slab_labels(shape, range_min, voxel_size, ground_id: int, free_id: int) -> np.ndarray:
+    z = range_min[2] + voxel_size[2] * (np.arange(shape[2]) + 0.5)
+    out = np.full(tuple(shape), free_id, np.uint8)
+    out[:, :, z < SLAB_TOP_M] = ground_id
+    return out
+
+
+def cpu_line() -> str:
+    try:
+        out = subprocess.run(["lscpu"], capture_output=True, text=True).stdout
+    except OSError:
+        return platform.processor()
+    model = next((ln.split(":", 1)[1].strip() for ln in out.splitlines() if ln.startswith("Model name")), "?")
+    flags = next((ln.split(":", 1)[1].split() for ln in out.splitlines() if ln.startswith("Flags")), [])
+    keep = [f for f in flags if f.startswith(("avx512", "amx")) or f in ("avx2", "fma", "avx_vnni")]
+    return f"{model}, {os.cpu_count()} CPUs; flags: {' '.join(keep)}"
+
+
+def main(argv=None) -> dict:
+    from ago_runtime.classes import OCC3D_NUSCENES
+    from ago_runtime.geometry.grid import Grid
+    from ago_runtime.predict.bundle import Bundle, resolve_bundle
+    from ago_runtime.scoring.lidar_agreement import TrainingPrior
+    from ago_runtime.scoring.metric import OccupancyMetric
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--towns", nargs="+", required=True, help="datasets made by `ago synth` with unused seeds")
+    ap.add_argument("--prior-data", required=True, help="the training town (its train split's GT makes the prior)")
+    ap.add_argument("--bundle", default=None, help="default: the shipped default bundle")
+    ap.add_argument("--prompts", default=str(REPO / "prompts/cw.txt"))
+    ap.add_argument("--out", default=str(REPO / "benchmarks/results/default_bundle_towns.md"))
+    args = ap.parse_args(argv)
+    bundle_dir = resolve_bundle(args.bundle)
+    bundle = Bundle.load(bundle_dir)
+    table = OCC3D_NUSCENES
+    names = list(table.label_names)
+    free_id, ground_id = table.free_index, names.index("driveable_surface")
+
+    prior = None
+    for _, labels in gt_frames(Path(args.prior_data), "train"):
+        if prior is None:
+            prior = TrainingPrior(names[:free_id], free_id, labels.shape)
+        prior.add(labels.semantics)
+    prior_labels = prior.labels().astype(np.uint8)
+
+    rows, started = [], time.time()
+    for town in map(Path, args.towns):
+        with tempfile.TemporaryDirectory(prefix="ago-towns-") as tmp:
+            pred, js = Path(tmp) / "pred", Path(tmp) / "metric.json"
+            infer = ["infer", "--images", str(town), "--prompts", args.prompts, "--out", str(pred), "--picture", "none",
+                     "--bundle", str(bundle_dir)]
+            run_ago(*infer)
+            run_ago("metric", "--pred", str(pred), "--gt", str(town / "gts"), "--json", str(js))
+            m = json.loads(js.read_text())
+        base = {k: OccupancyMetric(table=table) for k in ("all free", "ground slab", "scene prior")}
+        for _, labels in gt_frames(town):
+            grid = Grid.with_shape(labels.shape)
+            mask = labels.mask_camera.astype(bool)
+            base["all free"].update(np.full(labels.shape, free_id, np.uint8), labels.semantics, mask)
+            base["ground slab"].update(slab_labels(labels.shape, grid.range_min, grid.voxel_size, ground_id, free_id),
+                                       labels.semantics, mask)
+            base["scene prior"].update(prior_labels, labels.semantics, mask)
+        scores = {"bundle": (m["mIoU"], m["geometry_IoU"])}
+        scores.update({k: (100 * v.miou(), 100 * v.geometry_iou()) for k, v in base.items()})
+        rows.append((town, m["frames"], scores, {c: m["iou"].get(c) for c in names[:free_id]}))
+
+    cmd = "python -m benchmarks.default_bundle_towns " + " ".join(argv if argv is not None else sys.argv[1:])
+    from ago_runtime.predict.bundle import card_line
+
+    ckpt = bundle.contract.checkpoint
+    commit = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"], capture_output=True,
+                            text=True).stdout.strip()
+    fmt = lambda v: "nan" if v is None or v != v else f"{v:.2f}"   # noqa: E731
+    lines = [
+        "# The default bundle on towns it never saw, beside predictors that look at no image", "",
+        f"Command: `{cmd}` ({time.time() - started:.0f} s; commit {commit}; {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}).",
+        f"Bundle: `{bundle_dir}` exported from checkpoint sha256 `{ckpt.sha256}` (step {ckpt.step}); "
+        f"{card_line(bundle)}.",
+        f"Scene prior: each voxel's most frequent GT label over the {prior.frames} train-split keyframes of "
+        f"`{args.prior_data}`. Every score over the GT camera mask, Occ3D metric at the GT's 200x200x16.",
+        f"CPU: {cpu_line()}.", "",
+        "| town | frames | bundle mIoU | geometry IoU | all free mIoU / geom | ground slab mIoU / geom | scene prior mIoU / geom |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for town, frames, s, _ in rows:
+        lines.append(f"| {town.name} | {frames} | **{fmt(s['bundle'][0])}** | **{fmt(s['bundle'][1])}** | "
+                     + " | ".join(f"{fmt(s[k][0])} / {fmt(s[k][1])}" for k in ("all free", "ground slab", "scene prior"))
+                     + " |")
+    mean = lambda k, i: float(np.mean([r[2][k][i] for r in rows]))   # noqa: E731
+    lines.append(f"| mean | | **{mean('bundle', 0):.2f}** | **{mean('bundle', 1):.2f}** | "
+                 + " | ".join(f"{mean(k, 0):.2f} / {mean(k, 1):.2f}" for k in ("all free", "ground slab", "scene prior"))
+                 + " |")
+    lines += ["", "Per-class IoU of the bundle:", "",
+              "| town | " + " | ".join(names[:free_id]) + " |", "|---|" + "---:|" * free_id]
+    for town, _, _, iou in rows:
+        lines.append(f"| {town.name} | " + " | ".join(fmt(iou[c]) for c in names[:free_id]) + " |")
+    best = max(("all free", "ground slab", "scene prior"), key=lambda k: mean(k, 0))
+    lines += ["", f"Best no-image predictor by mean mIoU: {best} ({mean(best, 0):.2f} against the bundle's "
+              f"{mean('bundle', 0):.2f}); by geometry IoU: "
+              f"{max(('all free', 'ground slab', 'scene prior'), key=lambda k: mean(k, 1))} "
+              f"({max(mean(k, 1) for k in ('all free', 'ground slab', 'scene prior')):.2f} against "
+              f"{mean('bundle', 1):.2f})."]
+    text = "\n".join(lines) + "\n"
+    from ago_runtime.atomic import write_text
+
+    write_text(args.out, text)
+    print(text)
+    return {"rows": [(str(t), s) for t, _, s, _ in rows]}
+
+
+if __name__ == "__main__":
+    main()
