@@ -7,6 +7,8 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import subprocess
+import sys
 from dataclasses import fields
 from pathlib import Path
 
@@ -18,6 +20,7 @@ from ago_runtime.predict.card import BundleCard, read_card
 from ago_runtime.predict.contract import (BUNDLE_JSON, HEADS_NPZ, PLANES_INPUTS, PLANES_OUTPUTS, STAGE_INPUT,
                                           STAGE_OUTPUT, BundleContract, FileEntry, file_sha256)
 
+REPO = Path(__file__).resolve().parents[1]
 torch = pytest.importorskip("torch")
 onnx = pytest.importorskip("onnx")
 
@@ -33,7 +36,12 @@ def exported(tmp_path_factory):
     os.environ["AGO_CACHE_DIR"] = str(root / "cache")
     ckpt = random_checkpoint(root / "tiny.pt", "tiny", prompts="cw", seed=3)
     bundle = root / "bundle"
-    export_bundle(ckpt, bundle, int8=True, bank_prompts=[], real_frame=False, log=lambda s: None)
+    town = root / "town"   # the int8 graph's calibration frames (a random checkpoint records no training data)
+    subprocess.run([sys.executable, "-m", "ago_runtime.cli", "synth", "--out", str(town), "--scenes", "1", "--frames",
+                    "2", "--image-size", "192x128", "--grid", "20x20x4", "--seed", "5", "--val-fraction", "0"],
+                   check=True, capture_output=True, env=dict(os.environ, AGO_NO_PROGRESS="1", PYTHONPATH=str(REPO)))
+    export_bundle(ckpt, bundle, int8=True, bank_prompts=[], real_frame=False, log=lambda s: None,
+                  calibration_data=town)
     return {"root": root, "ckpt": ckpt, "bundle": bundle, "meta": json.loads((bundle / BUNDLE_JSON).read_text())}
 
 

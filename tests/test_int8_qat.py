@@ -127,7 +127,8 @@ def test_short_qat_run_then_int8_export(town, tmp_path):
     assert r.returncode == 0, r.stderr
     assert f"2 frames of split 'all' of {town['data']}" in r.stderr       # the run's own training frames
     meta = json.loads((bundle / "bundle.json").read_text())
-    assert meta["parity"]["int8"]["ok"] and {"planes_int8", "voxels_0_int8"} <= set(meta["files"])
+    int8 = meta["variants"]["int8"]
+    assert int8["parity"]["ok"] and int8["method"] == "static-qdq" and set(int8["graphs"].values()) <= set(meta["files"])
 
 
 def test_int8_export_is_qdq_and_agrees_with_fp32(town, tmp_path):
