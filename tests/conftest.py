@@ -33,3 +33,32 @@ def occ3d_sample_labels() -> Path:
     if not files:
         pytest.skip("no Occ3D labels.npz under ../shared")
     return files[0]
+
+
+def ago_in_process(args) -> tuple[int, str]:
+    """`ago ARGS` run in this process (ago_runtime.cli.run) -> (exit code, what it wrote to stderr)."""
+    import contextlib
+    import io
+
+    from ago_runtime.cli import run
+
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        try:
+            code = run([str(a) for a in args])
+        except SystemExit as e:
+            code = e.code
+    return code, err.getvalue()
+
+
+def tiny_town(out: Path, seed: int = 5) -> Path:
+    """A 2-frame synthetic town at 192x128 with a 20x20x4 grid (`ago synth` in a subprocess of this tree): e.g. the
+    calibration frames of an int8 export of a random checkpoint, which records no training data."""
+    import os
+    import subprocess
+    import sys
+
+    subprocess.run([sys.executable, "-m", "ago_runtime.cli", "synth", "--out", str(out), "--scenes", "1", "--frames",
+                    "2", "--image-size", "192x128", "--grid", "20x20x4", "--seed", str(seed), "--val-fraction", "0"],
+                   check=True, capture_output=True, env=dict(os.environ, AGO_NO_PROGRESS="1", PYTHONPATH=str(REPO)))
+    return out

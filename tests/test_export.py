@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import tiny_town
 
 from ago_runtime.geometry.camera import CAMERA_NAMES, Rig
 
@@ -34,10 +35,7 @@ def env(tmp_path_factory):
     os.environ["AGO_CACHE_DIR"] = str(root / "cache")
     ckpt = random_checkpoint(root / "tiny.pt", "tiny", prompts="cw", seed=0)
     bundle = root / "bundle"
-    town = root / "town"   # the int8 graph's calibration frames (a random checkpoint records no training data)
-    subprocess.run([sys.executable, "-m", "ago_runtime.cli", "synth", "--out", str(town), "--scenes", "1", "--frames",
-                    "2", "--image-size", "192x128", "--grid", "20x20x4", "--seed", "5", "--val-fraction", "0"],
-                   check=True, capture_output=True, env=dict(os.environ, AGO_NO_PROGRESS="1", PYTHONPATH=str(REPO)))
+    town = tiny_town(root / "town")   # the int8 graph's calibration frames (a random checkpoint records none)
     meta = export_bundle(ckpt, bundle, int8=True, bank_prompts=["ow"], log=lambda s: None, calibration_data=town)
     return {"root": root, "ckpt": ckpt, "bundle": bundle, "meta": meta}
 

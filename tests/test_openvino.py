@@ -4,8 +4,6 @@ fp32 must give onnxruntime's labels; bf16 is refused with one line where the CPU
 openvino package is missing (the flag reader is replaced here, so this runs on any CPU), and runs where both are
 there. Tests that open sessions skip without the openvino package (the `openvino` extra)."""
 
-import contextlib
-import io
 import os
 
 import numpy as np
@@ -16,16 +14,9 @@ from ago_runtime import providers
 from ago_runtime.providers import Device, Precision, check_device
 
 
-def _ago(args) -> tuple[int, str]:
-    from ago_runtime.cli import run
+from conftest import ago_in_process  # noqa: E402
 
-    err = io.StringIO()
-    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
-        try:
-            code = run([str(a) for a in args])
-        except SystemExit as e:
-            code = e.code
-    return code, err.getvalue()
+_ago = ago_in_process
 
 
 def test_bf16_is_refused_with_one_line_on_a_cpu_without_bf16_units(monkeypatch, tmp_path):

@@ -80,19 +80,9 @@ def test_openvino_always_states_its_precision():
         provider_list(Device.OPENVINO)        # not an onnxruntime provider: ago_runtime/openvino_session.py
 
 
-def _ago(args) -> tuple[int, str]:
-    import contextlib
-    import io
+from conftest import ago_in_process  # noqa: E402
 
-    from ago_runtime.cli import run
-
-    err = io.StringIO()
-    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
-        try:
-            code = run([str(a) for a in args])
-        except SystemExit as e:
-            code = e.code
-    return code, err.getvalue()
+_ago = ago_in_process
 
 
 def test_infer_refuses_a_missing_provider_before_any_work(tmp_path):
