@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -65,12 +64,9 @@ def slab_labels(shape, range_min, voxel_size, ground_id: int, free_id: int) -> n
 
 
 def cpu_line() -> str:
-    try:
-        out = subprocess.run(["lscpu"], capture_output=True, text=True).stdout
-    except OSError:
-        return platform.processor()
-    model = next((ln.split(":", 1)[1].strip() for ln in out.splitlines() if ln.startswith("Model name")), "?")
-    flags = next((ln.split(":", 1)[1].split() for ln in out.splitlines() if ln.startswith("Flags")), [])
+    from benchmarks.machine import cpu_model_and_flags
+
+    model, flags = cpu_model_and_flags()
     keep = [f for f in flags if f.startswith(("avx512", "amx")) or f in ("avx2", "fma", "avx_vnni")]
     return f"{model}, {os.cpu_count()} CPUs; flags: {' '.join(keep)}"
 

@@ -108,9 +108,10 @@ def label_agreement(a: Path, b: Path) -> tuple[float, int]:
 
 def machine() -> tuple[str, str]:
     """(CPU model, its flags) from lscpu."""
-    text = subprocess.run(["lscpu"], capture_output=True, text=True).stdout
-    fields = dict(ln.split(":", 1) for ln in text.splitlines() if ":" in ln)
-    return fields.get("Model name", "?").strip(), fields.get("Flags", "?").strip()
+    from benchmarks.machine import cpu_model_and_flags
+
+    model, flags = cpu_model_and_flags()
+    return model, " ".join(flags) or "?"
 
 
 def git_commit(tree: Path) -> str:

@@ -46,9 +46,9 @@ CPU_FLAGS = ("avx2", "avx512f", "avx512_vnni", "avx_vnni", "avx512_bf16", "amx_b
 
 def cpu_record() -> tuple[str, str]:
     """(CPU model name, the int8/bf16-relevant flags it has) from lscpu."""
-    out = subprocess.run(["lscpu"], capture_output=True, text=True).stdout
-    model = next((ln.split(":", 1)[1].strip() for ln in out.splitlines() if ln.startswith("Model name")), "?")
-    flags = next((ln.split(":", 1)[1].split() for ln in out.splitlines() if ln.startswith("Flags")), [])
+    from benchmarks.machine import cpu_model_and_flags
+
+    model, flags = cpu_model_and_flags()
     return model, " ".join(f for f in CPU_FLAGS if f in flags)
 
 
@@ -67,11 +67,10 @@ def agreement(a: np.ndarray, ref: np.ndarray, free: int) -> tuple[int, int, int,
 
 
 def slab_labels(grid, class_names: list[str], free: int) -> np.ndarray:
-    """The ground-slab predictor: driveable surface below z = 0.2 m (ego frame), free elsewhere."""
-    z = grid.range_min[2] + grid.voxel_size[2] * (np.arange(grid.shape[2]) + 0.5)
-    out = np.full(tuple(grid.shape), free, np.uint8)
-    out[:, :, z < 0.2] = class_names.index("driveable_surface")
-    return out
+    """The ground-slab predictor (benchmarks.default_bundle_towns.slab_labels) in the bundle's label space."""
+    from benchmarks.default_bundle_towns import slab_labels as slab
+
+    return slab(grid.shape, grid.range_min, grid.voxel_size, class_names.index("driveable_surface"), free)
 
 
 def run(args) -> str:
