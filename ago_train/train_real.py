@@ -10,7 +10,7 @@ each timed and printed, each reusing what an earlier (interrupted) run left afte
             its split.json records the same source and settings.
 2. town     `ago synth`: a small synthetic town on the same six-camera rig -> OUT/work/town (reused when
             town.json records the same settings and the town's splits.json is there).
-3. pseudo   `ago pseudo-labels`: the town's (simulated segmenter, all frames), the real train frames' and the
+3. pseudo   `ago pseudo-labels` on the preset model's grid: the town's (simulated segmenter, all frames), the real train frames' and the
             real val frames' (the dataset's 3D boxes + LiDAR ground, `--segmenter boxes`); the verb resumes.
 4. train    `ago train --config cpu` from both sources at once (`sources`): the ImageNet backbone frozen
             (its maps cached), the real and the synthetic frames weighted to half of the steps each, mirror and
@@ -180,14 +180,19 @@ def train_real(dataroot: str | Path, out: str | Path, recipe: RealRecipe | None 
         write_json(work / "town.json", asked)
         done("town", t0)
 
-    # 3. pseudo-labels (the verb skips the frames already written and checks its folder's settings)
+    # 3. pseudo-labels on the preset model's grid (the verb skips the frames already written and checks its
+    # folder's settings)
+    from .model import ModelConfig
+
+    grid = "x".join(map(str, ModelConfig.preset(r.preset).grid_obj().shape))
+    record["grid"] = grid
     t0 = stage(3, "pseudo", "pseudo-labels: town (simulated segmenter), real train + val (dataset boxes + LiDAR ground)")
     run_verb("pseudo", ["pseudo-labels", "--data", town, "--out", work / "town-pseudo", "--prompts", "cw", "--grid",
-                    "100x100x8", "--split", "all", "--segmenter", "sim", "--embedder", "none", "--keyframes", 10,
+                    grid, "--split", "all", "--segmenter", "sim", "--embedder", "none", "--keyframes", 10,
                     "--jobs", r.jobs], work, say)
     for part in ("train", "val"):
         run_verb("pseudo", ["pseudo-labels", "--data", real, "--out", work / f"real-pseudo-{part}", "--prompts", "cw",
-                        "--grid", "100x100x8", "--split", part, "--segmenter", "boxes", "--embedder", "none",
+                        "--grid", grid, "--split", part, "--segmenter", "boxes", "--embedder", "none",
                         "--keyframes", r.keyframes, "--jobs", r.jobs], work, say)
     done("pseudo", t0)
 

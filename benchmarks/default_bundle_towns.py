@@ -13,8 +13,10 @@ metric (ago_runtime.scoring.metric.OccupancyMetric):
 - scene prior: each voxel's most frequent GT label over the TRAINING town's train split
   (ago_runtime.scoring.lidar_agreement.TrainingPrior), i.e. the average street the model was trained in.
 
-If one of them comes close to the bundle, the metric or the model is wrong. The results file records the
-command, the bundle's checkpoint sha256 and training settings (its card), the towns, the CPU and the commit.
+If one of them comes close to the bundle, the metric or the model is wrong. Geometry is also broken down by
+height (one row per z layer of the GT grid: the share of the visible occupied GT voxels in it, and the bundle's
+precision and recall of occupancy there), which says where the wrong occupied voxels lie. The results file records
+the command, the bundle's checkpoint sha256 and training settings (its card), the towns, the CPU and the commit.
 """
 
 from __future__ import annotations
@@ -63,6 +65,28 @@ def slab_labels(shape, range_min, voxel_size, ground_id: int, free_id: int) -> n
     return out
 
 
+def layer_counts(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray, free_id: int) -> np.ndarray:
+    """(3, Z) true positives, false positives, false negatives of occupancy (label != free) per z layer, over `mask`."""
+    po, go = (pred != free_id) & mask, (gt != free_id) & mask
+    return np.stack([(po & go).sum((0, 1)), (po & ~go).sum((0, 1)), (~po & go).sum((0, 1))]).astype(np.int64)
+
+
+def height_table(counts: np.ndarray, range_min_z: float, voxel_z: float) -> list[str]:
+    """Markdown rows of the per-layer occupancy breakdown (layers with no GT or predicted occupied voxel skipped)."""
+    tp, fp, fn = counts
+    gt_total = max(int((tp + fn).sum()), 1)
+    pct = lambda a, b: f"{100 * a / b:.1f}" if b else "n/a"   # noqa: E731
+    rows = ["| z layer | z (m) | share of occupied GT | precision | recall | false positives | false negatives |",
+            "|---:|---|---:|---:|---:|---:|---:|"]
+    for k in range(counts.shape[1]):
+        if tp[k] + fp[k] + fn[k] == 0:
+            continue
+        lo = range_min_z + k * voxel_z
+        rows.append(f"| {k} | {lo:.1f} .. {lo + voxel_z:.1f} | {pct(tp[k] + fn[k], gt_total)} | {pct(tp[k], tp[k] + fp[k])} | "
+                    f"{pct(tp[k], tp[k] + fn[k])} | {fp[k]} | {fn[k]} |")
+    return rows
+
+
 def cpu_line() -> str:
     from benchmarks.machine import cpu_model_and_flags
 
@@ -99,6 +123,7 @@ def main(argv=None) -> dict:
     prior_labels = prior.labels().astype(np.uint8)
 
     rows, started = [], time.time()
+    heights, height_grid = None, None
     for town in map(Path, args.towns):
         with tempfile.TemporaryDirectory(prefix="ago-towns-") as tmp:
             pred, js = Path(tmp) / "pred", Path(tmp) / "metric.json"
@@ -107,6 +132,12 @@ def main(argv=None) -> dict:
             run_ago(*infer)
             run_ago("metric", "--pred", str(pred), "--gt", str(town / "gts"), "--json", str(js))
             m = json.loads(js.read_text())
+            for token, labels in gt_frames(town):
+                with np.load(pred / f"{token}.npz") as z:
+                    semantics = z["semantics"]
+                counts = layer_counts(semantics, labels.semantics, labels.mask_camera.astype(bool), free_id)
+                heights = counts if heights is None else heights + counts
+                height_grid = Grid.with_shape(labels.shape)
         base = {k: OccupancyMetric(table=table) for k in ("all free", "ground slab", "scene prior")}
         for _, labels in gt_frames(town):
             grid = Grid.with_shape(labels.shape)
@@ -149,6 +180,8 @@ def main(argv=None) -> dict:
               "| town | " + " | ".join(names[:free_id]) + " |", "|---|" + "---:|" * free_id]
     for town, _, _, iou in rows:
         lines.append(f"| {town.name} | " + " | ".join(fmt(iou[c]) for c in names[:free_id]) + " |")
+    lines += ["", "Where the bundle's occupancy is right and wrong, by height (all towns together; over the GT camera "
+              "mask):", "", *height_table(heights, float(height_grid.range_min[2]), float(height_grid.voxel_size[2]))]
     best = max(("all free", "ground slab", "scene prior"), key=lambda k: mean(k, 0))
     lines += ["", f"Best no-image predictor by mean mIoU: {best} ({mean(best, 0):.2f} against the bundle's "
               f"{mean('bundle', 0):.2f}); by geometry IoU: "

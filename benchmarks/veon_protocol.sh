@@ -12,7 +12,7 @@ AGO="python -m ago_runtime"
 export AGO_NO_PROGRESS="${AGO_NO_PROGRESS:-1}"
 [ -f "$WORK/synth/splits.json" ] || { rm -rf "$WORK/synth"; $AGO synth --out "$WORK/synth" --scenes 12 --frames 16 \
     --seed 11 --image-size 704x396 --grid 200x200x16 --jobs 2; }
-$AGO pseudo-labels --data "$WORK/synth" --out "$WORK/pseudo" --prompts cw --grid 100x100x8 --split train \
+$AGO pseudo-labels --data "$WORK/synth" --out "$WORK/pseudo" --prompts cw --grid 100x100x16 --split train \
     --segmenter sim --embedder sim --keyframes 10 --interval 1
 for split in 0_17 9_8 13_4; do
   PSEUDO="$WORK/pseudo"

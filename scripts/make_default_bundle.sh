@@ -2,7 +2,7 @@
 # Build the default bundle and demo frame that `ago demo` uses (the shipped ones were made by this
 # script with its defaults):
 #
-#   synthetic city -> pseudo-labels (simulated segmenter + embedder) -> train (cpu preset, 100x100x8)
+#   synthetic city -> pseudo-labels (simulated segmenter + embedder) -> train (cpu preset, 100x100x16)
 #   -> the model kept (last.pt without optimiser state; models/default/) -> ago eval (val split, read out on
 #   the GT's 200x200x16) -> ago export (read out on 200x200x16, parity-checked, with its bundle card)
 #   -> ago_runtime/assets/default_bundle/ + assets/demo_frame/
@@ -33,7 +33,7 @@ SNAPSHOTS="${SNAPSHOTS:-[250,500,1000,2000,3000,4000]}"
 IMAGE_SIZE="${IMAGE_SIZE:-352x198}"
 PROMPTS="${PROMPTS:-cw}"
 PRESET="${PRESET:-cpu}"
-GRID="${GRID:-100x100x8}"
+GRID="${GRID:-100x100x16}"   # the cpu preset's grid (0.8 x 0.8 x 0.4 m)
 # the grid the bundle predicts on: the model's TPV planes read at Occ3D's 0.4 m voxel centres (the
 # synthetic GT's grid; `ago eval --readout gt`, docs/training.md). READOUT_GRID= (empty) keeps the model grid.
 READOUT_GRID="${READOUT_GRID-200x200x16}"

@@ -48,7 +48,7 @@ def test_config_round_trip_and_validation():
         cfg.validate()
         assert ModelConfig.from_dict(cfg.to_dict()) == cfg
     assert ModelConfig.preset("full").grid_obj().shape == (200, 200, 16)
-    assert ModelConfig().grid_obj().shape == (100, 100, 8)
+    assert ModelConfig().grid_obj().shape == (100, 100, 16)
     with pytest.raises(AgoInputError):
         ModelConfig.from_dict({**ModelConfig().to_dict(), "backbone": "vgg"})
     with pytest.raises(AgoInputError):
@@ -128,7 +128,7 @@ def test_cpu_preset_shapes():
     images, ego2img = _inputs(cfg)
     with torch.no_grad():
         h, g = model.forward_hidden(images, ego2img)
-    assert h.shape == (1, 100 * 100 * 8, cfg.hidden_dim) and g.shape == (1, 80000, cfg.adapter_hidden)
+    assert h.shape == (1, 100 * 100 * 16, cfg.hidden_dim) and g.shape == (1, 160000, cfg.adapter_hidden)
     assert torch.isfinite(h).all() and torch.isfinite(g).all()
 
 

@@ -31,6 +31,7 @@ import numpy as np
 
 from ago_runtime.atomic import write_json
 from ago_runtime.errors import AgoInputError
+from ago_runtime.geometry.grid import Grid
 from ago_runtime.predict.decision import Identifier
 from ago_runtime.readers import read_json
 
@@ -306,7 +307,8 @@ class ExperimentRunner:
         ow_loss = p.ow_loss if spec.setting in ("ow", "fewshot") else {}
         loss = LossConfig(**{**cfg.loss.to_dict(), **ow_loss, **dict(spec.loss)})
         rig_model = p.waymo.model if spec.dataset == "waymo" else {}   # the Waymo rig's canvas
-        model = ModelConfig.from_dict({**cfg.model.to_dict(), **rig_model, **dict(spec.model)})
+        grid = Grid.parse(p.pseudo_grid, "pseudo_grid").to_dict()   # the model trains on its pseudo-labels' grid
+        model = ModelConfig.from_dict({**cfg.model.to_dict(), "grid": grid, **rig_model, **dict(spec.model)})
         changes = dict(data=str(self.data_of(spec.dataset)), pseudo=str(self.pseudo(spec.space, spec.dataset)),
                        prompts=spec.prompts,
                        out=str(self.run_dir(spec.name)), train_split=p.train_split, loss=loss, model=model,

@@ -5,7 +5,8 @@ Gives: `build()` -> `AGOModel`.
 
 Presets (`ModelConfig.preset(name)`):
 - "tiny": tests only (tiny CNN backbone, 20 x 20 x 4 grid, 96 x 64 images, small widths);
-- "cpu":  the default (EfficientNet-Lite0 ImageNet backbone, 100 x 100 x 8 grid of 0.8 m voxels,
+- "cpu":  the default (EfficientNet-Lite0 ImageNet backbone, 100 x 100 x 16 grid of 0.8 x 0.8 m voxels
+          0.4 m tall - Occ3D's height resolution, so the ground lies in one layer as in the GT -,
           352 x 192 images, a TPV at half the grid's x/y resolution);
 - "full": paper-like (200 x 200 x 16 Occ3D grid, 1600 x 928 images, wider TPV and decoder).
 
@@ -27,8 +28,11 @@ RESNETS = ("resnet50", "resnet101")   # weights only from the user's file: backb
 TPV_LAYOUTS = ("canvas", "reference")   # ago_train/model/tpv_canvas.py, tpv.py
 
 
+CPU_GRID_SHAPE = (100, 100, 16)   # the cpu preset's grid (0.8 x 0.8 x 0.4 m); `ago pseudo-labels --grid` default
+
+
 def _default_grid() -> dict:
-    return Grid.with_shape((100, 100, 8)).to_dict()
+    return Grid.with_shape(CPU_GRID_SHAPE).to_dict()
 
 
 @dataclass

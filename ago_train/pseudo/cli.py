@@ -24,6 +24,7 @@ import numpy as np
 import typer
 
 from ago_train.vlm.loading import TorchDevice
+from ago_train.model.config import CPU_GRID_SHAPE
 
 
 class Segmenter(str, Enum):
@@ -303,7 +304,8 @@ def register(app: typer.Typer) -> None:
                                                     + ". Default: files when there are feature maps (--feats, or "
                                                     "<data>/feats), else none."),
         feats: Path = typer.Option(None, "--feats", help="Feature-map folder for --embedder files (default <data>/feats)."),
-        grid: str = typer.Option("100x100x8", "--grid", help="Voxel counts XxYxZ over the Occ3D range."),
+        grid: str = typer.Option("x".join(map(str, CPU_GRID_SHAPE)), "--grid", help="Voxel counts XxYxZ over the "
+                                "Occ3D range (default: the cpu preset model's grid)."),
         keyframes: int = typer.Option(10, "--keyframes", min=1, help="KEYFRAMES superimposed per sample, the "
                                       "sample's own included, each labelled with its own images (paper: 30)."),
         interval: int = typer.Option(1, "--interval", min=1, help="Keyframe stride between them (paper: 2)."),
