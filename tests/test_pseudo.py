@@ -20,7 +20,7 @@ from ago_train.pseudo.backends import FileImageEmbedder, FileSegmenter
 from ago_train.pseudo.generate import (PseudoLabelConfig, PseudoLabelDir, build_sample, generate,
                                        load_pseudo_labels, load_voxel_embeds)
 from ago_train.pseudo.lift import assign_cameras, lift_labels, sample_bilinear
-from ago_train.pseudo.raycast import traverse
+from ago_train.pseudo.raycast import GrazingRule, grazing_stops, occupied_keys, traverse
 from ago_train.pseudo.simulated import (SimEmbedderConfig, SimSegmenterConfig, SimulatedImageEmbedder,
                                         SimulatedSegmenter, similarity_stats)
 from ago_train.pseudo.voting import FeatureMean, vote
@@ -186,6 +186,63 @@ def test_raycast_matches_dense_sampling():
     # first entry into the end voxel): require near-identity
     assert (crossed != ref).sum() <= 0.01 * ref.sum() + 3
     assert ref.sum() > 80
+
+
+def test_raycast_default_output_unchanged():
+    """traverse without stops gives what it gave before --carve existed (sha256 recorded at commit 4796eb0)."""
+    import hashlib
+
+    rng = np.random.default_rng(11)
+    grid = Grid((-10.0, -10.0, -1.0), (10.0, 10.0, 2.2), (0.8, 0.8, 0.4))
+    origin = np.array([0.3, -0.2, 1.8])
+    ends = np.concatenate([rng.uniform([-14, -14, -1.5], [14, 14, 3.0], size=(400, 3)),
+                           np.c_[rng.uniform(-9, 9, (200, 2)), rng.uniform(-0.1, 0.1, 200)]])
+    crossed = traverse(origin[None], ends, grid)
+    assert int(crossed.sum()) == 2769
+    assert hashlib.sha256(np.packbits(crossed).tobytes()).hexdigest() == \
+        "1169c74f4d230d60b9c592d86b682beabdb74db5f717c43804bcfb68f62cef39"
+    assert np.array_equal(traverse(origin[None], ends, grid, t_stop=np.ones(len(ends))), crossed)
+
+
+# a strip 40 m long, ground layer z index 1 (-0.2..0.2 m) as in Occ3D, LiDAR at 1.7 m (z index 5)
+STRIP = Grid((0.0, 0.0, -0.6), (40.0, 0.8, 2.6), (0.8, 0.8, 0.4))
+SENSOR = np.array([0.4, 0.4, 1.7])
+
+
+def carved(ends: np.ndarray, rule: GrazingRule | None, hits: np.ndarray | None = None) -> np.ndarray:
+    """(X, Z) voxels the rays SENSOR -> ends carve under `rule` (None: all), the column test over `hits`."""
+    stops = None
+    if rule is not None:
+        stops = grazing_stops(SENSOR, ends, STRIP, rule, occupied_keys(ends if hits is None else hits, STRIP))
+    return traverse(SENSOR[None], ends, STRIP, stops).reshape(STRIP.shape)[:, 0, :]
+
+
+def test_grazing_ray_leaves_the_ground_layer_before_its_hit_uncarved():
+    ground_hit = np.array([[36.2, 0.4, 0.0]])                 # x voxel 45, ground layer z 1
+    all_rule = carved(ground_hit, None)
+    assert all_rule[40:45, 1].all()                            # today: 4 m of ground layer carved before the hit
+    grazing = carved(ground_hit, GrazingRule())
+    assert not grazing[:, 1].any()                             # the rule: none of it
+    assert not grazing[45:, :].any() and not all_rule[45:, :].any()
+    # the air higher up along the same ray is still carved, down to half a voxel above the ground layer
+    high = all_rule & (np.arange(STRIP.shape[2]) >= 3)[None, :]
+    assert high.any() and np.array_equal(grazing & high, high)
+    assert grazing.sum() < all_rule.sum()
+
+
+def test_rays_to_walls_still_carve_the_air_in_front():
+    wall = np.stack([np.full(6, 20.2), np.full(6, 0.4), np.arange(6) * 0.4], axis=1)   # 0.0 .. 2.0 m, x voxel 25
+    level = np.array([[20.2, 0.4, 1.7]])
+    for rule in (None, GrazingRule()):
+        c = carved(level, rule, wall)
+        assert c[:25, 5].all() and c.sum() == 25               # the level ray: every voxel before the wall
+    down = np.array([[20.2, 0.4, 1.2]])                        # a ray descending to the wall's side
+    assert np.array_equal(carved(down, GrazingRule(), wall), carved(down, None))
+    # without the column test the same ray stops short (its hit is taken for a ground-like surface)
+    assert carved(down, GrazingRule(column=False), wall).sum() < carved(down, None).sum()
+    # a ray to the wall's base: the ground layer in front of it stays uncarved under the rule, not under all
+    base = np.array([[20.2, 0.4, 0.1]])
+    assert carved(base, None)[:25, 1].any() and not carved(base, GrazingRule(), wall)[:, 1].any()
 
 
 def test_vote_majority_per_voxel():
@@ -483,6 +540,36 @@ def test_generate_writes_the_contract_and_resumes(tmp_path, cw):
     with pytest.raises(AgoInputError, match="other settings"):
         generate(ds, [0], tmp_path / "out", cw, seg, emb, PseudoLabelConfig(grid=grid, num_keyframes=3),
                  progress=False)
+
+
+def test_carve_rule_is_recorded_and_checked_on_resume(tmp_path, cw):
+    grid = Grid.with_shape((20, 20, 4))
+    wall = wall_points(10.3, np.arange(-3.0, 3.01, 0.3), np.arange(0.2, 2.5, 0.3))
+    ds = ListDataset([make_frame(ego_to_lidar(wall), token="tok0", extras=sim_frame().extras)])
+    seg = SimulatedSegmenter(cw)
+    out = tmp_path / "out"
+    generate(ds, [0], out, cw, seg, None, PseudoLabelConfig(grid=grid), progress=False)
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["carve"] == "all" and meta["config"]["carve"] is None
+    with pytest.raises(AgoInputError, match="config differ"):
+        generate(ds, [0], out, cw, seg, None, PseudoLabelConfig(grid=grid, carve=GrazingRule()), progress=False)
+    # a folder from before --carve (no carve recorded) resumes as `all`
+    del meta["carve"], meta["config"]["carve"]
+    (out / "meta.json").write_text(json.dumps(meta))
+    assert generate(ds, [0], out, cw, seg, None, PseudoLabelConfig(grid=grid), progress=False)["skipped"] == 1
+    graz = tmp_path / "grazing"
+    generate(ds, [0], graz, cw, seg, None, PseudoLabelConfig(grid=grid, carve=GrazingRule()), progress=False)
+    meta = json.loads((graz / "meta.json").read_text())
+    assert meta["carve"] == "grazing" and meta["config"]["carve"] == {"margin": 0.5, "column": True}
+
+
+def test_cli_refuses_grazing_without_rays(tmp_path):
+    from conftest import ago_in_process
+
+    code, err = ago_in_process(["pseudo-labels", "--data", tmp_path, "--out", tmp_path / "p", "--carve", "grazing",
+                                "--no-raycast"])
+    assert code == 2 and "--carve" in err and "--no-raycast" in err
+    assert not (tmp_path / "p").exists()
 
 
 def test_voxel_feature_sums_equal_per_point_sampling():

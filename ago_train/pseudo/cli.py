@@ -45,12 +45,23 @@ class Embedder(str, Enum):
     NONE = "none"
 
 
+class Carve(str, Enum):
+    """`ago pseudo-labels --carve`: which voxels a LiDAR ray calls free."""
+
+    ALL = "all"
+    GRAZING = "grazing"
+
+
 # what each choice does, printed in --help (a KeyError at import if a choice has none)
 SEGMENTER_HELP = {Segmenter.FILES: "label maps, docs/vlm_files.md",
                   Segmenter.GROUNDED_SAM: "GroundingDINO + SAM from --detector / --sam, on the fly",
                   Segmenter.SIM: "SIMULATED, `ago synth` data only",
                   Segmenter.BOXES: "painted from the dataset's 3D boxes and LiDAR ground: not a VLM; "
                                    "ago_train/pseudo/boxes.py"}
+CARVE_HELP = {Carve.ALL: "every voxel a ray crosses before its hit voxel; the default",
+              Carve.GRAZING: "a ray descending to its hit stops half a voxel height above the lowest hit voxel of "
+                             "the hit's column, so rays grazing far ground do not call it free; "
+                             "ago_train/pseudo/raycast.py"}
 EMBEDDER_HELP = {Embedder.FILES: "feature maps, docs/vlm_files.md", Embedder.MASKCLIP: "--clip, on the fly",
                  Embedder.SIM: "SIMULATED", Embedder.NONE: "no features: training will not align the adapter"}
 
@@ -316,6 +327,7 @@ def register(app: typer.Typer) -> None:
         split: str = typer.Option(None, "--split", help="train, val, ... (scenes from splits.json) or all. "
                                   "Default: train when splits.json exists, else all."),
         raycast: bool = typer.Option(True, "--raycast/--no-raycast", help="Free space from LiDAR rays (else: every empty voxel is free)."),
+        carve: Carve = typer.Option(Carve.ALL, "--carve", help="With --raycast: " + choices_help(Carve, CARVE_HELP) + "."),
         seed: int = typer.Option(0, "--seed", min=0, help="Seed of the simulated backends."),
         limit: int = typer.Option(0, "--limit", min=0, help="Only the first N samples of the split (0 = all)."),
         jobs: int = typer.Option(1, "--jobs", min=1, max=64, help="Worker processes labelling scenes in parallel "
@@ -346,11 +358,14 @@ def register(app: typer.Typer) -> None:
         from ago_runtime.outputs import check_output_dir
 
         from .generate import PseudoLabelConfig, generate
+        from .raycast import GrazingRule
 
         from ago_runtime.errors import AgoInputError
         from ago_runtime.shards import parse_shard, shard_indices
 
         check_output_dir(out, "--out")
+        if carve is Carve.GRAZING and not raycast:
+            raise AgoInputError("--carve", "--carve grazing is a ray-casting rule; --no-raycast casts no rays")
         if write_masks is not None:
             check_output_dir(write_masks, "--write-masks")
         shard_kn = parse_shard(shard)
@@ -397,7 +412,7 @@ def register(app: typer.Typer) -> None:
         for n in notes:
             typer.echo(f"note: using {n}")
         config = PseudoLabelConfig(grid=pgrid, num_keyframes=keyframes, interval=interval, nonkey_sweeps=nonkey,
-                                   raycast=raycast)
+                                   raycast=raycast, carve=GrazingRule() if carve is Carve.GRAZING else None)
         command = "ago " + " ".join(shlex.quote(a) for a in sys.argv[1:])
         result = generate(ds, indices, out, space, seg, emb, config, command=command, jobs=jobs)
         remade = f", {result['remade']} damaged ones remade" if result.get("remade") else ""

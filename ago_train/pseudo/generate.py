@@ -44,7 +44,7 @@ from ago_runtime.progress import track
 from .aggregate import EGO_BOX, LiftedFrame, attach_features, frames_to_aggregate, lift_frame_and_sweeps, warp_to
 from .backends import embedder_encoder_id
 from .lift import feature_sums_per_voxel
-from .raycast import traverse, unique_rays
+from .raycast import GrazingRule, grazing_stops, occupied_keys, traverse, unique_rays
 from .voting import FeatureMean, vote
 
 FORMAT_VERSION = 1
@@ -61,12 +61,20 @@ class PseudoLabelConfig:
     embed_all_frames: bool = False  # E_3D from every aggregated frame (default: the keyframe's own images)
     dedupe_rays: bool = True   # one ray per (sweep, hit voxel)
     ego_box: tuple | None = EGO_BOX
+    carve: GrazingRule | None = None   # CLI --carve: None = `all` (every ray carves up to its hit voxel);
+                                       # a GrazingRule = `grazing` (raycast.py: rays grazing the ground stop short)
 
     def to_dict(self) -> dict:
         d = asdict(self)
         d["grid"] = self.grid.to_dict()
         d["ego_box"] = None if self.ego_box is None else [list(map(float, c)) for c in self.ego_box]
+        d["carve"] = None if self.carve is None else self.carve.to_dict()
         return d
+
+    @property
+    def carve_name(self) -> str:
+        """The --carve choice these settings are: all or grazing."""
+        return "all" if self.carve is None else "grazing"
 
 
 @dataclass
@@ -111,6 +119,7 @@ def build_sample(key: Frame, lifted: list[LiftedFrame], num_classes: int, config
     vox_parts, lab_parts = [], []
     fmean = FeatureMean()
     n_points = n_labelled = rays = 0
+    ray_sets, columns = [], []   # (origin, ends) per sweep; occupied lattice keys per sweep (--carve grazing)
     for f_i, lf in enumerate(lifted):
         pts, origin = warp_to(lf, key.ego2global)
         idx, inside = grid.points_to_index(pts)
@@ -124,12 +133,20 @@ def build_sample(key: Frame, lifted: list[LiftedFrame], num_classes: int, config
         if config.raycast:
             ends = unique_rays(origin, pts, grid) if config.dedupe_rays else pts
             rays += len(ends)
-            crossed |= traverse(origin[None], ends, grid)
+            if config.carve is None:
+                crossed |= traverse(origin[None], ends, grid)
+            else:   # the stops need every sweep's hits first (a wall's other hits may come from another sweep)
+                ray_sets.append((origin, ends))
+                columns.append(occupied_keys(pts, grid))
         if lf.feature_maps is not None and (config.embed_all_frames or f_i == 0):
             for ci, fmap in enumerate(lf.feature_maps):
                 sel = np.flatnonzero(inside & (lf.cam_idx == ci))
                 if fmap is not None and sel.size:
                     fmean.add_sums(*feature_sums_per_voxel(flat[sel], lf.uv[sel], fmap, lf.image_sizes[ci]))
+    if ray_sets:
+        occupied = np.unique(np.concatenate(columns))
+        for origin, ends in ray_sets:
+            crossed |= traverse(origin[None], ends, grid, grazing_stops(origin, ends, grid, config.carve, occupied))
     voxels, labels = vote(np.concatenate(vox_parts), np.concatenate(lab_parts), num_classes)
     sem = np.full(V, IGNORE, dtype=np.uint8)
     if config.raycast:
@@ -196,9 +213,10 @@ class PseudoLabelDir:
 
     meta keys: format_version, label_space {name, classes, sha256, prompt_file[, class_table]}, grid (Grid.to_dict),
     segmenter {name, config}, embedder {name, config} or null, num_keyframes, interval, nonkey_sweeps,
-    raycast, config (PseudoLabelConfig), free_index 17, ignore_index 255, created_by. (Folders written
-    before non-key sweeps were read say `num_sweeps` for num_keyframes and have no nonkey_sweeps (= 0);
-    they are read and resumed as such.)
+    raycast, carve (all | grazing; its rule in config.carve), config (PseudoLabelConfig), free_index 17,
+    ignore_index 255, created_by. (Folders written before non-key sweeps were read say `num_sweeps` for
+    num_keyframes and have no nonkey_sweeps (= 0); folders from before --carve have no carve (= all); they
+    are read and resumed as such.)
     """
 
     def __init__(self, out_dir: str | Path):
@@ -334,6 +352,7 @@ def make_meta(label_space, segmenter, embedder, config: PseudoLabelConfig, comma
         "interval": config.interval,
         "nonkey_sweeps": config.nonkey_sweeps,
         "raycast": config.raycast,
+        "carve": config.carve_name,
         "config": config.to_dict(),
         "free_index": FREE,
         "ignore_index": IGNORE,
@@ -349,6 +368,7 @@ def _differences(a: dict, b: dict) -> list[str]:
             if "num_sweeps" in c and "num_keyframes" not in c:
                 c["num_keyframes"] = c.pop("num_sweeps")
             c.setdefault("nonkey_sweeps", 0)
+            c.setdefault("carve", None)           # folders from before --carve: every ray carved to its hit
         if m.get("label_space"):
             m["label_space"].pop("prompt_file", None)
         if m.get("embedder"):
