@@ -1,7 +1,7 @@
 """Far ground in the pseudo-labels: which voxels each ray-casting rule (`ago pseudo-labels --carve`) calls free.
 
     python -m benchmarks.pseudo_far_ground --data TOWN [--scenes 3] [--work /tmp/pseudo_far_ground] \
-        [--out benchmarks/results/pseudo_far_ground.md]
+        [--reference PSEUDO_DIR] [--out benchmarks/results/pseudo_far_ground.md]
 
 Makes the pseudo-labels of the first --scenes scenes of TOWN's train split (an `ago synth` town with GT) with each
 rule, through the verb's own `generate` and the settings of scripts/make_default_bundle.sh (simulated segmenter,
@@ -17,6 +17,9 @@ seed 0, 10 keyframes, interval 1, the cpu grid 100x100x16; no embedder: the labe
   unknown; the share of the GT-free voxels called free / unknown / occupied (the cost side: free space a rule no
   longer asserts); and of the voxels called free, the share the GT calls occupied (the wrong free labels
   training learns from).
+
+With --reference (a folder `ago pseudo-labels` made of TOWN with those settings before --carve existed, e.g.
+scripts/make_default_bundle.sh's), the `all` labels are compared byte for byte with its files of the same keyframes.
 
 Besides the rules, candidates of the grazing rule (raycast.GrazingRule margin / reach) are measured, and two
 predictors that look at no image: all free, and the ground slab (every voxel centred below z = 0.2 m driveable
@@ -196,6 +199,30 @@ def score_references(data: Path, split: str, scenes: set[str], grid) -> dict:
     return out
 
 
+def compare_with_reference(mine: Path, reference: Path) -> str:
+    """'N of N keyframes identical' between two pseudo-label folders' labels.npz arrays (mine's keyframes)."""
+    from ago_train.pseudo.generate import PseudoLabelDir
+
+    a, b = PseudoLabelDir(mine), PseudoLabelDir(reference)
+    samples = a.samples()
+    same = sum(all(np.array_equal(x, y) for x, y in zip(a.labels(*st), b.labels(*st))) for st in samples
+               if b.has(*st))
+    there = sum(b.has(*st) for st in samples)
+    return f"{same} of {there} keyframes identical (of {len(samples)} made; {reference})"
+
+
+def summary_lines(results: dict) -> list[str]:
+    """Per band, the GT ground called free and the GT-free called free, `all` beside `grazing`."""
+    out = []
+    for b, (lo, hi) in enumerate(BANDS):
+        a, g = results["all"]["bands"][b], results["grazing"]["bands"][b]
+        out.append(f"- {lo:.0f}-{hi:.0f} m: GT ground called free {pct(a['ground->free'])} % (all) -> "
+                   f"{pct(g['ground->free'])} % (grazing); GT free called free {pct(a['free->free'])} % -> "
+                   f"{pct(g['free->free'])} %; of the voxels called free, GT-occupied {pct(a['wrong_free'])} % -> "
+                   f"{pct(g['wrong_free'])} %")
+    return out
+
+
 def pct(x: float) -> str:
     return f"{100 * x:.1f}"
 
@@ -213,7 +240,10 @@ def render(command: str, settings: dict, results: dict, about: dict) -> str:
              "- scored against the GT (Occ3D 200x200x16, mask_camera): pseudo-labels upsampled (2, 2, 1); "
              "in the metric unknown (255) counts as free (benchmarks.learning_curve.pseudo_ceiling), so geometry IoU "
              "and mIoU cannot differ between rules (they only move voxels between free and unknown); the band "
-             "tables show what they do", ""]
+             "tables show what they do",
+             f"- CPU: {settings['cpu']}",
+             f"- `all` against the reference folder: {settings['reference']}", "",
+             "## Summary: `--carve all` -> `--carve grazing`", ""] + summary_lines(results) + [""]
     lines += ["## Metric (unknown as free) and time", "",
               "| predictor | what | geometry IoU | mIoU | occupancy ratio | seconds to make |", "|---|---|---|---|---|---|"]
     for name, r in results.items():
@@ -246,6 +276,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--data", required=True, type=Path)
     ap.add_argument("--scenes", type=int, default=3, help="the first N scenes of the train split")
     ap.add_argument("--work", type=Path, default=Path("/tmp/pseudo_far_ground"))
+    ap.add_argument("--reference", type=Path, help="a pseudo-label folder of TOWN made before --carve: the `all` "
+                    "labels must equal its files")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "pseudo_far_ground.md")
     args = ap.parse_args(argv)
     from ago_runtime.formats.datasets import open_dataset
@@ -256,6 +288,8 @@ def main(argv=None) -> dict:
     train = ds.split("train")
     scenes = list(dict.fromkeys(ds.scene_of(i) for i in train))[:args.scenes]
     indices = [i for i in train if ds.scene_of(i) in scenes]
+    from benchmarks.machine import cpu_model_and_flags
+
     results, about = {}, {}
     for name, rule, what in variants():
         folder = args.work / name.replace(" ", "_").replace(",", "").replace(".", "")
@@ -273,7 +307,8 @@ def main(argv=None) -> dict:
     dirty = subprocess.run(["git", "-C", str(REPO), "status", "--porcelain", "--untracked-files=no"],
                            capture_output=True, text=True).stdout.strip()
     settings = {"commit": commit + (" (with uncommitted changes)" if dirty else ""), "data": str(args.data),
-                "scenes": scenes, "frames": len(indices), "work": str(args.work), "uptime_start": uptime_start,
+                "scenes": scenes, "cpu": cpu_model_and_flags()[0],
+                "reference": compare_with_reference(args.work / "all", args.reference) if args.reference else "not given", "frames": len(indices), "work": str(args.work), "uptime_start": uptime_start,
                 "uptime_end": subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()}
     command = "python -m benchmarks.pseudo_far_ground " + " ".join(argv if argv is not None else sys.argv[1:])
     write_text(args.out, render(command, settings, results, about))
