@@ -551,7 +551,7 @@ def test_carve_rule_is_recorded_and_checked_on_resume(tmp_path, cw):
     generate(ds, [0], out, cw, seg, None, PseudoLabelConfig(grid=grid), progress=False)
     meta = json.loads((out / "meta.json").read_text())
     assert meta["carve"] == "all" and meta["config"]["carve"] is None
-    with pytest.raises(AgoInputError, match="config differ"):
+    with pytest.raises(AgoInputError, match="carve, config differ"):
         generate(ds, [0], out, cw, seg, None, PseudoLabelConfig(grid=grid, carve=GrazingRule()), progress=False)
     # a folder from before --carve (no carve recorded) resumes as `all`
     del meta["carve"], meta["config"]["carve"]

@@ -333,7 +333,7 @@ def _zip_members_problem(path: Path, keys) -> str | None:
 # ------------------------------------------------------------------------------------------------
 # Driver
 # ------------------------------------------------------------------------------------------------
-_COMPARED = ("format_version", "label_space", "grid", "segmenter", "embedder", "config")
+_COMPARED = ("format_version", "label_space", "grid", "segmenter", "embedder", "carve", "config")
 
 
 def make_meta(label_space, segmenter, embedder, config: PseudoLabelConfig, command: str = "") -> dict:
@@ -363,6 +363,7 @@ def make_meta(label_space, segmenter, embedder, config: PseudoLabelConfig, comma
 def _differences(a: dict, b: dict) -> list[str]:
     def strip(m: dict) -> dict:
         m = json.loads(json.dumps({k: m.get(k) for k in _COMPARED}))
+        m["carve"] = m["carve"] or "all"            # folders from before --carve
         if isinstance(m.get("config"), dict):   # folders from before non-key sweeps: same meaning, older names
             c = m["config"]
             if "num_sweeps" in c and "num_keyframes" not in c:
