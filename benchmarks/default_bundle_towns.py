@@ -71,6 +71,14 @@ def layer_counts(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray, free_id: in
     return np.stack([(po & go).sum((0, 1)), (po & ~go).sum((0, 1)), (~po & go).sum((0, 1))]).astype(np.int64)
 
 
+def above_ground_iou(counts: np.ndarray, range_min_z: float, voxel_z: float) -> float:
+    """Occupancy IoU (%) over the layers whose centre is above the slab's top (SLAB_TOP_M): the geometry a flat
+    ground predictor gets nothing of. NaN when those layers hold no occupied voxel in GT or prediction."""
+    centres = range_min_z + voxel_z * (np.arange(counts.shape[1]) + 0.5)
+    tp, fp, fn = counts[:, centres > SLAB_TOP_M].sum(1)
+    return float(100 * tp / (tp + fp + fn)) if tp + fp + fn else float("nan")
+
+
 def height_table(counts: np.ndarray, range_min_z: float, voxel_z: float) -> list[str]:
     """Markdown rows of the per-layer occupancy breakdown (layers with no GT or predicted occupied voxel skipped)."""
     tp, fp, fn = counts
@@ -132,22 +140,26 @@ def main(argv=None) -> dict:
             run_ago(*infer)
             run_ago("metric", "--pred", str(pred), "--gt", str(town / "gts"), "--json", str(js))
             m = json.loads(js.read_text())
+            base = {k: OccupancyMetric(table=table) for k in ("all free", "ground slab", "scene prior")}
+            layers = {k: 0 for k in ("bundle", *base)}
             for token, labels in gt_frames(town):
+                grid = Grid.with_shape(labels.shape)
+                mask = labels.mask_camera.astype(bool)
                 with np.load(pred / f"{token}.npz") as z:
                     semantics = z["semantics"]
-                counts = layer_counts(semantics, labels.semantics, labels.mask_camera.astype(bool), free_id)
-                heights = counts if heights is None else heights + counts
-                height_grid = Grid.with_shape(labels.shape)
-        base = {k: OccupancyMetric(table=table) for k in ("all free", "ground slab", "scene prior")}
-        for _, labels in gt_frames(town):
-            grid = Grid.with_shape(labels.shape)
-            mask = labels.mask_camera.astype(bool)
-            base["all free"].update(np.full(labels.shape, free_id, np.uint8), labels.semantics, mask)
-            base["ground slab"].update(slab_labels(labels.shape, grid.range_min, grid.voxel_size, ground_id, free_id),
-                                       labels.semantics, mask)
-            base["scene prior"].update(prior_labels, labels.semantics, mask)
-        scores = {"bundle": (m["mIoU"], m["geometry_IoU"])}
-        scores.update({k: (100 * v.miou(), 100 * v.geometry_iou()) for k, v in base.items()})
+                preds = {"bundle": semantics, "all free": np.full(labels.shape, free_id, np.uint8),
+                         "ground slab": slab_labels(labels.shape, grid.range_min, grid.voxel_size, ground_id, free_id),
+                         "scene prior": prior_labels}
+                for k, v in preds.items():
+                    layers[k] = layers[k] + layer_counts(v, labels.semantics, mask, free_id)
+                    if k in base:
+                        base[k].update(v, labels.semantics, mask)
+                height_grid = grid
+        heights = layers["bundle"] if heights is None else heights + layers["bundle"]
+        zmin, dz = float(height_grid.range_min[2]), float(height_grid.voxel_size[2])
+        scores = {"bundle": (m["mIoU"], m["geometry_IoU"], above_ground_iou(layers["bundle"], zmin, dz))}
+        scores.update({k: (100 * v.miou(), 100 * v.geometry_iou(), above_ground_iou(layers[k], zmin, dz))
+                       for k, v in base.items()})
         rows.append((town, m["frames"], scores, {c: m["iou"].get(c) for c in names[:free_id]}))
 
     cmd = "python -m benchmarks.default_bundle_towns " + " ".join(argv if argv is not None else sys.argv[1:])
@@ -165,29 +177,29 @@ def main(argv=None) -> dict:
         f"Scene prior: each voxel's most frequent GT label over the {prior.frames} train-split keyframes of "
         f"`{args.prior_data}`. Every score over the GT camera mask, Occ3D metric at the GT's 200x200x16.",
         f"CPU: {cpu_line()}.", "",
-        "| town | frames | bundle mIoU | geometry IoU | all free mIoU / geom | ground slab mIoU / geom | scene prior mIoU / geom |",
-        "|---|---:|---:|---:|---:|---:|---:|",
+        f"Each cell: mIoU / geometry IoU / geometry IoU above the ground (occupancy IoU over the layers whose centre "
+        f"is above z = {SLAB_TOP_M} m, where the slab has nothing).", "",
+        "| town | frames | bundle | all free | ground slab | scene prior |",
+        "|---|---:|---:|---:|---:|---:|",
     ]
+    keys = ("all free", "ground slab", "scene prior")
+    cell = lambda v: " / ".join(fmt(x) for x in v)   # noqa: E731
     for town, frames, s, _ in rows:
-        lines.append(f"| {town.name} | {frames} | **{fmt(s['bundle'][0])}** | **{fmt(s['bundle'][1])}** | "
-                     + " | ".join(f"{fmt(s[k][0])} / {fmt(s[k][1])}" for k in ("all free", "ground slab", "scene prior"))
+        lines.append(f"| {town.name} | {frames} | **{cell(s['bundle'])}** | " + " | ".join(cell(s[k]) for k in keys)
                      + " |")
-    mean = lambda k, i: float(np.mean([r[2][k][i] for r in rows]))   # noqa: E731
-    lines.append(f"| mean | | **{mean('bundle', 0):.2f}** | **{mean('bundle', 1):.2f}** | "
-                 + " | ".join(f"{mean(k, 0):.2f} / {mean(k, 1):.2f}" for k in ("all free", "ground slab", "scene prior"))
-                 + " |")
+    mean = lambda k, i: float(np.nanmean([r[2][k][i] for r in rows]))   # noqa: E731
+    lines.append("| mean | | **" + cell([mean("bundle", i) for i in range(3)]) + "** | "
+                 + " | ".join(cell([mean(k, i) for i in range(3)]) for k in keys) + " |")
     lines += ["", "Per-class IoU of the bundle:", "",
               "| town | " + " | ".join(names[:free_id]) + " |", "|---|" + "---:|" * free_id]
     for town, _, _, iou in rows:
         lines.append(f"| {town.name} | " + " | ".join(fmt(iou[c]) for c in names[:free_id]) + " |")
     lines += ["", "Where the bundle's occupancy is right and wrong, by height (all towns together; over the GT camera "
               "mask):", "", *height_table(heights, float(height_grid.range_min[2]), float(height_grid.voxel_size[2]))]
-    best = max(("all free", "ground slab", "scene prior"), key=lambda k: mean(k, 0))
-    lines += ["", f"Best no-image predictor by mean mIoU: {best} ({mean(best, 0):.2f} against the bundle's "
-              f"{mean('bundle', 0):.2f}); by geometry IoU: "
-              f"{max(('all free', 'ground slab', 'scene prior'), key=lambda k: mean(k, 1))} "
-              f"({max(mean(k, 1) for k in ('all free', 'ground slab', 'scene prior')):.2f} against "
-              f"{mean('bundle', 1):.2f})."]
+    best = [max(keys, key=lambda k: np.nan_to_num(mean(k, i), nan=-1.0)) for i in range(3)]
+    lines += ["", "Best no-image predictor, by mean: " + "; ".join(
+        f"{what}: {b} ({mean(b, i):.2f} against the bundle's {mean('bundle', i):.2f})"
+        for i, (what, b) in enumerate(zip(("mIoU", "geometry IoU", "geometry IoU above the ground"), best))) + "."]
     text = "\n".join(lines) + "\n"
     from ago_runtime.atomic import write_text
 

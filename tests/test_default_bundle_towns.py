@@ -32,3 +32,12 @@ def test_height_table_reports_share_precision_recall_and_skips_empty_layers():
 def test_slab_is_below_its_top_only():
     out = slab_labels((2, 2, 16), np.array([-40.0, -40.0, -1.0]), np.array([0.4, 0.4, 0.4]), 11, FREE)
     assert (out[:, :, :3] == 11).all() and (out[:, :, 3:] == FREE).all()   # centres -0.8, -0.4, 0.0 < 0.2
+
+
+def test_above_ground_iou_ignores_the_layers_a_slab_covers():
+    from benchmarks.default_bundle_towns import above_ground_iou
+
+    # layers centred at -0.8, -0.4, 0.0 (slab) and 0.4, 0.8 (above): only the last two count
+    counts = np.array([[50, 50, 50, 3, 1], [0, 0, 9, 1, 1], [0, 0, 9, 2, 0]])
+    assert above_ground_iou(counts, -1.0, 0.4) == 100 * 4 / (4 + 2 + 2)
+    assert np.isnan(above_ground_iou(np.zeros((3, 5), int), -1.0, 0.4))

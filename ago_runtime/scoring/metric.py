@@ -21,7 +21,7 @@ its IoU is 0/0 = NaN (never 1) and `nanmean` leaves it out of every mean; the of
 only predicted (false positives) scores 0 too.
 
 Resolution: evaluation always happens at the GT resolution. A prediction made on a coarser grid
-(e.g. 100 x 100 x 8) must first be brought up with `upsample_nearest(pred, (2, 2, 2))`.
+(e.g. 100 x 100 x 16) must first be brought up with `upsample_nearest(pred, (2, 2, 1))`.
 """
 
 from __future__ import annotations
