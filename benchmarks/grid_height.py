@@ -1,13 +1,15 @@
 """The cpu recipe on a 0.8 m tall grid (100x100x8) against a 0.4 m tall one (100x100x16), side by side.
 
-    python -m benchmarks.grid_height --data TOWN --pseudo8 P8 --pseudo16 P16 --work DIR [--steps 1000] \
-        [--out benchmarks/results/grid_height.md]
+    python -m benchmarks.grid_height --data TOWN --pseudo8 P8 --pseudo16 P16 [--pseudo16-grazing P16G] \
+        --work DIR [--steps 1000] [--out benchmarks/results/grid_height.md]
 
 P8 / P16 are `ago pseudo-labels --data TOWN --prompts cw --split train --segmenter sim --embedder sim
 --keyframes 10 --interval 1 --grid 100x100x8 | 100x100x16` of the same town. Each arm is `ago train --config cpu`
 (the trainer's own loop and schedule) for --steps steps with snapshots at a quarter, half and the end, the model
 grid set to its pseudo-labels' grid and nothing else changed; each snapshot is scored on the town's val split by
 `ago eval --readout gt` (TPV planes read at the GT's 200x200x16 voxel centres, the way the default bundle ships).
+P16G (optional third arm): the same as P16 with `--carve grazing` (rays descending to the ground stop before
+skimming it: far ground is left unknown instead of carved free; benchmarks/results/pseudo_far_ground.md).
 Resumes: a finished arm's run and scores are reused (the same commands and settings).
 
 Why: on the Occ3D range (z from -1.0 m) a 0.8 m layer spans z -0.2 .. 0.6 m, so a 0.8 m model puts the road in
@@ -80,6 +82,7 @@ def main(argv=None) -> None:
     ap.add_argument("--data", required=True)
     ap.add_argument("--pseudo8", required=True)
     ap.add_argument("--pseudo16", required=True)
+    ap.add_argument("--pseudo16-grazing", default=None)
     ap.add_argument("--work", required=True)
     ap.add_argument("--steps", type=int, default=1000)
     ap.add_argument("--out", default=str(REPO / "benchmarks/results/grid_height.md"))
@@ -89,6 +92,10 @@ def main(argv=None) -> None:
     started = time.time()
     arms = {"z16": arm("z16", "100x100x16", args.data, args.pseudo16, work, args.steps),
             "z8": arm("z8", "100x100x8", args.data, args.pseudo8, work, args.steps)}
+    arm_names = [("z8", "100x100x8 (0.8 m tall)"), ("z16", "100x100x16 (0.4 m tall)")]
+    if args.pseudo16_grazing:
+        arms["z16g"] = arm("z16g", "100x100x16", args.data, args.pseudo16_grazing, work, args.steps)
+        arm_names.append(("z16g", "100x100x16, pseudo-labels `--carve grazing`"))
     commit = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"], capture_output=True,
                             text=True).stdout.strip()
     cmd = "python -m benchmarks.grid_height " + " ".join(argv if argv is not None else sys.argv[1:])
@@ -102,7 +109,7 @@ def main(argv=None) -> None:
              "200x200x16). Ratio: predicted occupied / GT occupied voxels.",
              f"CPU: {cpu_line()} (the machine was shared with other work: step times are not a speed comparison).",
              "", "| model grid | step | val mIoU | val geometry IoU | occupancy ratio |", "|---|---:|---:|---:|---:|"]
-    for name, shape in (("z8", "100x100x8 (0.8 m tall)"), ("z16", "100x100x16 (0.4 m tall)")):
+    for name, shape in arm_names:
         for st, s in sorted(arms[name].items()):
             lines.append(f"| {shape} | {st} | {s['mIoU']:.2f} | {s['geometry_IoU']:.2f} | {s['ratio']:.2f} |")
     from ago_runtime.atomic import write_text
