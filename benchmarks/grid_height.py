@@ -75,6 +75,32 @@ def _median_step(run: Path) -> float | None:
     return t[len(t) // 2] if t else None
 
 
+def no_image_baselines(data: str) -> dict[str, tuple[float, float]]:
+    """(mIoU, geometry IoU) in % of the ground slab and the scene prior on the town's val split (same metric, mask)."""
+    import numpy as np
+
+    from ago_runtime.classes import OCC3D_NUSCENES
+    from ago_runtime.geometry.grid import Grid
+    from ago_runtime.scoring.lidar_agreement import TrainingPrior
+    from ago_runtime.scoring.metric import OccupancyMetric
+    from benchmarks.default_bundle_towns import gt_frames, slab_labels
+
+    table = OCC3D_NUSCENES
+    names, free = list(table.label_names), table.free_index
+    prior = None
+    for _, labels in gt_frames(Path(data), "train"):
+        prior = prior or TrainingPrior(names[:free], free, labels.shape)
+        prior.add(labels.semantics)
+    prior_labels = prior.labels().astype(np.uint8)
+    metrics = {k: OccupancyMetric(table=table) for k in ("ground slab", "scene prior")}
+    for _, labels in gt_frames(Path(data), "val"):
+        grid, mask = Grid.with_shape(labels.shape), labels.mask_camera.astype(bool)
+        slab = slab_labels(labels.shape, grid.range_min, grid.voxel_size, names.index("driveable_surface"), free)
+        metrics["ground slab"].update(slab, labels.semantics, mask)
+        metrics["scene prior"].update(prior_labels, labels.semantics, mask)
+    return {k: (100 * m.miou(), 100 * m.geometry_iou()) for k, m in metrics.items()}
+
+
 def main(argv=None) -> None:
     from benchmarks.default_bundle_towns import cpu_line
 
@@ -112,6 +138,9 @@ def main(argv=None) -> None:
     for name, shape in arm_names:
         for st, s in sorted(arms[name].items()):
             lines.append(f"| {shape} | {st} | {s['mIoU']:.2f} | {s['geometry_IoU']:.2f} | {s['ratio']:.2f} |")
+    for name, (miou, geom) in no_image_baselines(args.data).items():
+        what = "below z = 0.2 m" if name == "ground slab" else "each voxel's most frequent GT label of the train split"
+        lines.append(f"| {name} (no image: {what}) | | {miou:.2f} | {geom:.2f} | |")
     from ago_runtime.atomic import write_text
 
     write_text(args.out, "\n".join(lines) + "\n")
