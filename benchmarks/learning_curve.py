@@ -144,8 +144,8 @@ Command: `{cmd}`
 
 Run: preset `{cfg.get('name')}`, {cfg.get('train_voxels')} sampled voxels per step ({cfg.get('voxel_sampling', 'priority')}),
 frozen backbone stages {cfg['model'].get('frozen_stages')}, lr {cfg.get('lr')}, data `{cfg.get('data')}`, pseudo-labels `{cfg.get('pseudo')}`.
-Scores: Occ3D metric over the GT camera mask at the GT resolution (200x200x16; the model's 100x100x8 is
-upsampled); occupancy ratio = predicted occupied / GT occupied voxels in the camera mask.
+Scores: Occ3D metric over the GT camera mask at the GT resolution (200x200x16; the model's {'x'.join(map(str, cfg['model']['grid']['shape']))} is
+repeated up to it, `ago eval --readout model`); occupancy ratio = predicted occupied / GT occupied voxels in the camera mask.
 
 {chr(10).join(lines)}
 
