@@ -19,6 +19,8 @@ import typer
 
 from ago_runtime.predict.decision import Identifier
 
+from .pseudo.cli import Carve
+
 
 class OpenWorldStage(str, Enum):
     """`ago open-world --stage`."""
@@ -114,6 +116,8 @@ def register(app: typer.Typer) -> None:
         town_frames: int = typer.Option(8, "--town-frames", min=2, help="synthetic town: keyframes per scene"),
         preset: str = typer.Option("cpu", "--preset", help="training preset (cpu; full on a GPU)"),
         jobs: int = typer.Option(2, "--jobs", min=1, help="worker processes for synth and pseudo-labels"),
+        carve: Carve = typer.Option(Carve.ALL, "--carve", help="pseudo-labels' free-space rule (`ago pseudo-labels "
+                                    "--carve`): all or grazing"),
     ):
         """A nuScenes dataroot -> OUT/bundle: time split, synthetic town, pseudo-labels, mixed training, length
         chosen on a val block, export (docs/training.md, "Training on your own data"); resumes."""
@@ -126,7 +130,7 @@ def register(app: typer.Typer) -> None:
         from .train_real import RealRecipe, train_real
 
         train_real(dataroot, out, RealRecipe(max_scenes=max_scenes, steps=steps, town_scenes=town_scenes,
-                                             town_frames=town_frames, preset=preset, jobs=jobs),
+                                             town_frames=town_frames, preset=preset, jobs=jobs, carve=carve.value),
                    say=lambda s: typer.echo(s))
 
     @app.command("calibrate")

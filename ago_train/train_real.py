@@ -59,6 +59,7 @@ class RealRecipe:
     preset: str = "cpu"
     readout_grid: str = "200x200x16"
     jobs: int = 2
+    carve: str = "all"           # pseudo-labels' free-space rule (`ago pseudo-labels --carve`: all | grazing)
 
 
 STAGE_NAMES = ("split", "town", "pseudo", "train", "select", "export")
@@ -188,11 +189,11 @@ def train_real(dataroot: str | Path, out: str | Path, recipe: RealRecipe | None 
     record["grid"] = grid
     t0 = stage(3, "pseudo", "pseudo-labels: town (simulated segmenter), real train + val (dataset boxes + LiDAR ground)")
     run_verb("pseudo", ["pseudo-labels", "--data", town, "--out", work / "town-pseudo", "--prompts", "cw", "--grid",
-                    grid, "--split", "all", "--segmenter", "sim", "--embedder", "none", "--keyframes", 10,
+                    grid, "--carve", r.carve, "--split", "all", "--segmenter", "sim", "--embedder", "none", "--keyframes", 10,
                     "--jobs", r.jobs], work, say)
     for part in ("train", "val"):
         run_verb("pseudo", ["pseudo-labels", "--data", real, "--out", work / f"real-pseudo-{part}", "--prompts", "cw",
-                        "--grid", grid, "--split", part, "--segmenter", "boxes", "--embedder", "none",
+                        "--grid", grid, "--carve", r.carve, "--split", part, "--segmenter", "boxes", "--embedder", "none",
                         "--keyframes", r.keyframes, "--jobs", r.jobs], work, say)
     done("pseudo", t0)
 

@@ -216,6 +216,33 @@ def test_train_real_reuses_finished_stages_after_checking(tmp_path):
     assert [c[1] for c in calls].count("synth") == 1                # another town: made again
 
 
+def test_train_real_pseudo_labels_on_the_preset_grid_with_the_carve_rule(tmp_path):
+    """The pseudo-labels stage runs on the preset model's grid with the recipe's --carve (default all)."""
+    from ago_train.model import ModelConfig
+    from ago_train.time_split import time_split
+    from ago_train.train_real import RealRecipe, train_real
+
+    src = shared_path("nuscenes-scene")
+    pseudo_calls = []
+
+    def fake(name, args, work, say):
+        a = [str(x) for x in args]
+        if args[0] == "synth":
+            time_split(src, a[a.index("--out") + 1])
+        elif args[0] == "pseudo-labels":
+            pseudo_calls.append(a)
+            raise SystemExit("stop after the pseudo-labels stage")
+
+    for carve in ("all", "grazing"):
+        pseudo_calls.clear()
+        with pytest.raises(SystemExit):
+            train_real(src, tmp_path / carve, RealRecipe(town_scenes=2, town_frames=2, carve=carve),
+                       say=lambda s: None, run_verb=fake)
+        a = pseudo_calls[0]
+        assert a[a.index("--carve") + 1] == carve
+        assert a[a.index("--grid") + 1] == "x".join(map(str, ModelConfig.preset("cpu").grid_obj().shape))
+
+
 def test_train_real_bad_dataroot_is_one_line_and_writes_nothing(tmp_path):
     env = dict(os.environ, AGO_NO_PROGRESS="1", PYTHONPATH=str(REPO))
     for root, words in ((tmp_path / "missing", "dataroot not found"), (tmp_path, "no v1.0-* table folder")):
