@@ -65,6 +65,18 @@ def slab_labels(shape, range_min, voxel_size, ground_id: int, free_id: int) -> n
     return out
 
 
+def scene_prior(train_town: Path, names: list[str], free_id: int):
+    """(labels, frames): each voxel's most frequent GT label over the train split of `train_town` (uint8)."""
+    from ago_runtime.scoring.lidar_agreement import TrainingPrior
+
+    prior = None
+    for _, labels in gt_frames(train_town, "train"):
+        if prior is None:
+            prior = TrainingPrior(names[:free_id], free_id, labels.shape)
+        prior.add(labels.semantics)
+    return prior.labels().astype(np.uint8), prior.frames
+
+
 def layer_counts(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray, free_id: int) -> np.ndarray:
     """(3, Z) true positives, false positives, false negatives of occupancy (label != free) per z layer, over `mask`."""
     po, go = (pred != free_id) & mask, (gt != free_id) & mask
@@ -107,7 +119,6 @@ def main(argv=None) -> dict:
     from ago_runtime.classes import OCC3D_NUSCENES
     from ago_runtime.geometry.grid import Grid
     from ago_runtime.predict.bundle import Bundle, resolve_bundle
-    from ago_runtime.scoring.lidar_agreement import TrainingPrior
     from ago_runtime.scoring.metric import OccupancyMetric
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -123,12 +134,7 @@ def main(argv=None) -> dict:
     names = list(table.label_names)
     free_id, ground_id = table.free_index, names.index("driveable_surface")
 
-    prior = None
-    for _, labels in gt_frames(Path(args.prior_data), "train"):
-        if prior is None:
-            prior = TrainingPrior(names[:free_id], free_id, labels.shape)
-        prior.add(labels.semantics)
-    prior_labels = prior.labels().astype(np.uint8)
+    prior_labels, prior_frames = scene_prior(Path(args.prior_data), names, free_id)
 
     rows, started = [], time.time()
     heights, height_grid = None, None
@@ -174,7 +180,7 @@ def main(argv=None) -> dict:
         f"Command: `{cmd}` ({time.time() - started:.0f} s; commit {commit}; {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}).",
         f"Bundle: `{bundle_dir}` exported from checkpoint sha256 `{ckpt.sha256}` (step {ckpt.step}); "
         f"{card_line(bundle)}.",
-        f"Scene prior: each voxel's most frequent GT label over the {prior.frames} train-split keyframes of "
+        f"Scene prior: each voxel's most frequent GT label over the {prior_frames} train-split keyframes of "
         f"`{args.prior_data}`. Every score over the GT camera mask, Occ3D metric at the GT's 200x200x16.",
         f"CPU: {cpu_line()}.", "",
         f"Each cell: mIoU / geometry IoU / geometry IoU above the ground (occupancy IoU over the layers whose centre "

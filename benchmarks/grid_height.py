@@ -28,7 +28,8 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-GRIDS = {"100x100x8": [0.8, 0.8, 0.8], "100x100x16": [0.8, 0.8, 0.4]}
+
+from benchmarks.learning_curve import occupancy_ratio  # noqa: E402  (predicted / GT occupied voxels)
 
 
 def run_ago(*args: str, log: Path) -> None:
@@ -40,8 +41,10 @@ def run_ago(*args: str, log: Path) -> None:
 
 
 def grid_json(shape: str) -> str:
-    return json.dumps({"range_min": [-40.0, -40.0, -1.0], "range_max": [40.0, 40.0, 5.4], "voxel_size": GRIDS[shape],
-                       "shape": [int(n) for n in shape.split("x")]})
+    """`--set model.grid=` value of an XxYxZ grid over the Occ3D range."""
+    from ago_runtime.geometry.grid import Grid
+
+    return json.dumps(Grid.parse(shape).to_dict())
 
 
 def arm(name: str, shape: str, data: str, pseudo: str, work: Path, steps: int) -> dict[int, dict]:
@@ -60,11 +63,7 @@ def arm(name: str, shape: str, data: str, pseudo: str, work: Path, steps: int) -
             run_ago("eval", "--ckpt", run / "snapshots" / f"step_{st:06d}.pt", "--data", data, "--split", "val",
                     "--out", ev, "--readout", "gt", log=work / f"eval_{name}_{st}.log")
         m = json.loads((ev / "metrics.json").read_text())
-        conf = m["metric"]["confusion"]
-        free = m["metric"]["free_index"]
-        gt_occ = sum(sum(row) for i, row in enumerate(conf) if i != free)
-        pred_occ = sum(row[j] for row in conf for j in range(len(row)) if j != free)
-        scores[st] = {"mIoU": m["mIoU"], "geometry_IoU": m["geometry_IoU"], "ratio": pred_occ / max(gt_occ, 1),
+        scores[st] = {"mIoU": m["mIoU"], "geometry_IoU": m["geometry_IoU"], "ratio": occupancy_ratio(m["metric"]),
                       "sec_per_step": _median_step(run)}
     return scores
 
@@ -77,21 +76,14 @@ def _median_step(run: Path) -> float | None:
 
 def no_image_baselines(data: str) -> dict[str, tuple[float, float]]:
     """(mIoU, geometry IoU) in % of the ground slab and the scene prior on the town's val split (same metric, mask)."""
-    import numpy as np
-
     from ago_runtime.classes import OCC3D_NUSCENES
     from ago_runtime.geometry.grid import Grid
-    from ago_runtime.scoring.lidar_agreement import TrainingPrior
     from ago_runtime.scoring.metric import OccupancyMetric
-    from benchmarks.default_bundle_towns import gt_frames, slab_labels
+    from benchmarks.default_bundle_towns import gt_frames, scene_prior, slab_labels
 
     table = OCC3D_NUSCENES
     names, free = list(table.label_names), table.free_index
-    prior = None
-    for _, labels in gt_frames(Path(data), "train"):
-        prior = prior or TrainingPrior(names[:free], free, labels.shape)
-        prior.add(labels.semantics)
-    prior_labels = prior.labels().astype(np.uint8)
+    prior_labels, _ = scene_prior(Path(data), names, free)
     metrics = {k: OccupancyMetric(table=table) for k in ("ground slab", "scene prior")}
     for _, labels in gt_frames(Path(data), "val"):
         grid, mask = Grid.with_shape(labels.shape), labels.mask_camera.astype(bool)

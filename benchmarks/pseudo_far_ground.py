@@ -64,9 +64,8 @@ def variants():
 def make(data: Path, out: Path, indices: list[int], rule) -> dict:
     """Pseudo-labels of `indices` with the carving `rule` into `out` (resumable: the verb's generate)."""
     from ago_runtime.formats.datasets import open_dataset
-    from ago_train.pseudo.cli import build_backends
+    from ago_train.pseudo.cli import build_backends, parse_grid
     from ago_train.pseudo.generate import PseudoLabelConfig, generate
-    from ago_train.pseudo.cli import parse_grid
 
     space, seg, _ = build_backends("cw", "sim", None, "none", None, 0, data)
     ds = open_dataset(data, load_images=False, load_extras=True)
@@ -102,13 +101,13 @@ class BandCounts:
 
     def update(self, pred: np.ndarray, hit_unlabelled: np.ndarray, gt: np.ndarray, mask: np.ndarray,
                band: np.ndarray) -> None:
-        """pred: label-space indices, 17 free, 255 unknown; hit_unlabelled: 255 voxels the LiDAR hit; gt: the GT
+        """pred: label-space indices, free_idx free, 255 unknown; hit_unlabelled: 255 voxels the LiDAR hit; gt: the GT
         in label-space indices (free = free_idx, 255 = a class the space lacks); all at the GT's shape."""
         gt_ground = np.isin(gt, self.ground_idx) & mask
         gt_free = (gt == self.free_idx) & mask
         gt_occ = (gt != self.free_idx) & (gt != 255) & mask
         p_ground = np.isin(pred, self.ground_idx)
-        p_free = pred == 17
+        p_free = pred == self.free_idx
         p_unl = (pred == 255) & hit_unlabelled
         p_unknown = (pred == 255) & ~hit_unlabelled
         p_class = ~p_ground & ~p_free & (pred != 255)
@@ -191,7 +190,7 @@ def score_references(data: Path, split: str, scenes: set[str], grid) -> dict:
             mask = gt.mask_camera.astype(bool)
             m.update(pred, g, mask)
             band = band_of(shape, grid) if band is None else band
-            counts.update(np.where(pred == K, 17, pred), np.zeros(shape, bool), g, mask, band)
+            counts.update(pred, np.zeros(shape, bool), g, mask, band)
             n += 1
         s = m.summary()
         out[name] = {"metric": {"mIoU": s["mIoU"], "geometry_IoU": s["geometry_IoU"],
