@@ -20,6 +20,9 @@ import typer
 from ago_runtime.predict.decision import Identifier
 
 from .pseudo.cli import Carve
+from .train_real import RealRecipe
+
+REAL = RealRecipe()   # `ago train-real`'s option defaults are the recipe's
 
 
 class OpenWorldStage(str, Enum):
@@ -110,13 +113,13 @@ def register(app: typer.Typer) -> None:
     def train_real_cmd(
         dataroot: Path = typer.Argument(..., help="a nuScenes dataroot (official, or a trimmed extract)"),
         out: Path = typer.Argument(..., help="output folder: OUT/bundle, OUT/train_real.json, OUT/work"),
-        max_scenes: int = typer.Option(3, "--max-scenes", min=1, help="real scenes used at most (evenly spaced)"),
-        steps: int = typer.Option(2000, "--steps", min=1, help="training steps (the val block picks a snapshot)"),
-        town_scenes: int = typer.Option(8, "--town-scenes", min=2, help="synthetic town mixed in: scenes"),
-        town_frames: int = typer.Option(8, "--town-frames", min=2, help="synthetic town: keyframes per scene"),
-        preset: str = typer.Option("cpu", "--preset", help="training preset (cpu; full on a GPU)"),
-        jobs: int = typer.Option(2, "--jobs", min=1, help="worker processes for synth and pseudo-labels"),
-        carve: Carve = typer.Option(Carve.ALL, "--carve", help="pseudo-labels' free-space rule (`ago pseudo-labels "
+        max_scenes: int = typer.Option(REAL.max_scenes, "--max-scenes", min=1, help="real scenes used at most (evenly spaced)"),
+        steps: int = typer.Option(REAL.steps, "--steps", min=1, help="training steps (the val block picks a snapshot)"),
+        town_scenes: int = typer.Option(REAL.town_scenes, "--town-scenes", min=2, help="synthetic town mixed in: scenes"),
+        town_frames: int = typer.Option(REAL.town_frames, "--town-frames", min=2, help="synthetic town: keyframes per scene"),
+        preset: str = typer.Option(REAL.preset, "--preset", help="training preset (cpu; full on a GPU)"),
+        jobs: int = typer.Option(REAL.jobs, "--jobs", min=1, help="worker processes for synth and pseudo-labels"),
+        carve: Carve = typer.Option(Carve(REAL.carve), "--carve", help="pseudo-labels' free-space rule (`ago pseudo-labels "
                                     "--carve`): all or grazing"),
     ):
         """A nuScenes dataroot -> OUT/bundle: time split, synthetic town, pseudo-labels, mixed training, length

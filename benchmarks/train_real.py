@@ -149,6 +149,8 @@ def main(argv=None) -> None:
              f"`python benchmarks/train_real.py {' '.join(shlex.quote(a) for a in (argv or sys.argv[1:]))}` "
              f"({time.strftime('%Y-%m-%d')}, commit {commit}; `ago metric` from "
              f"{args.metric_path or 'this checkout'}).", "",
+             f"Settings the run trained with (`train_real.json` recipe; each an `ago train-real` option or default): "
+             f"`{json.dumps(rec['recipe'], sort_keys=True)}`.", "",
              f"Machine: {model}, 2 cores shared with five other engineers' work; load average at the start "
              f"{load[0]}, at the end {load[1]}.", "",
              "### Stage times of the run", "", "| stage | wall (s) | note |", "|---|---:|---|",

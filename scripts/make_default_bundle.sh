@@ -2,7 +2,7 @@
 # Build the default bundle and demo frame that `ago demo` uses (the shipped ones were made by this
 # script with its defaults):
 #
-#   synthetic city -> pseudo-labels (simulated segmenter + embedder) -> train (cpu preset, 100x100x16)
+#   synthetic city -> pseudo-labels (simulated segmenter + embedder, --carve grazing) -> train (cpu preset, 100x100x16)
 #   -> the model kept (last.pt without optimiser state; models/default/) -> ago eval (val split, read out on
 #   the GT's 200x200x16) -> ago export (read out on 200x200x16, parity-checked, with its bundle card)
 #   -> ago_runtime/assets/default_bundle/ + assets/demo_frame/
@@ -34,6 +34,8 @@ IMAGE_SIZE="${IMAGE_SIZE:-352x198}"
 PROMPTS="${PROMPTS:-cw}"
 PRESET="${PRESET:-cpu}"
 GRID="${GRID:-100x100x16}"   # the cpu preset's grid (0.8 x 0.8 x 0.4 m)
+# the pseudo-labels' free-space rule (`ago pseudo-labels --carve`): grazing keeps far ground from being carved free
+CARVE="${CARVE:-grazing}"
 # the grid the bundle predicts on: the model's TPV planes read at Occ3D's 0.4 m voxel centres (the
 # synthetic GT's grid; `ago eval --readout gt`, docs/training.md). READOUT_GRID= (empty) keeps the model grid.
 READOUT_GRID="${READOUT_GRID-200x200x16}"
@@ -56,8 +58,8 @@ echo "== 1/6 synthetic data ($SCENES scenes x $FRAMES frames, seed 0) -> $WORK/s
     --frames "$FRAMES" --seed 0 --image-size "$IMAGE_SIZE" --grid 200x200x16 --jobs "$JOBS" --rig "$RIG" --layout "$LAYOUT"; }
 stamp
 
-echo "== 2/6 pseudo-labels ($PROMPTS, grid $GRID, train split) -> $WORK/pseudo"
-$AGO pseudo-labels --data "$WORK/synth" --out "$WORK/pseudo" --prompts "$PROMPTS" --grid "$GRID" --split train \
+echo "== 2/6 pseudo-labels ($PROMPTS, grid $GRID, --carve $CARVE, train split) -> $WORK/pseudo"
+$AGO pseudo-labels --data "$WORK/synth" --out "$WORK/pseudo" --prompts "$PROMPTS" --grid "$GRID" --carve "$CARVE" --split train \
     --segmenter sim --embedder sim --keyframes 10 --interval 1 --jobs "$JOBS"
 stamp
 

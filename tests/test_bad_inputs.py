@@ -554,6 +554,12 @@ def test_export_cleans_temp_folders_of_killed_exports(w, tmp_path):
     assert atomic._exchange(tmp_path / "nope-a", tmp_path / "nope-b") is False
 
 
+def test_pseudo_labels_default_carve_is_grazing(w):
+    """`ago pseudo-labels` without --carve casts rays under the grazing rule, and records it."""
+    meta = json.loads((w.pseudo / "meta.json").read_text())
+    assert meta["carve"] == "grazing" and meta["config"]["carve"] == {"margin": 0.5, "column": True}
+
+
 def test_bundle_card_line_and_default_bundle_without_card(w):
     from ago_runtime.predict.bundle import DEFAULT_BUNDLE_DIR, Bundle, card_line
 

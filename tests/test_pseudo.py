@@ -570,6 +570,9 @@ def test_cli_refuses_grazing_without_rays(tmp_path):
                                 "--no-raycast"])
     assert code == 2 and "--carve" in err and "--no-raycast" in err
     assert not (tmp_path / "p").exists()
+    # without --carve, --no-raycast is not refused for it (the default grazing rule applies to rays only)
+    code, err = ago_in_process(["pseudo-labels", "--data", tmp_path, "--out", tmp_path / "p", "--no-raycast"])
+    assert code == 2 and "--carve" not in err
 
 
 def test_voxel_feature_sums_equal_per_point_sampling():

@@ -217,7 +217,7 @@ def test_train_real_reuses_finished_stages_after_checking(tmp_path):
 
 
 def test_train_real_pseudo_labels_on_the_preset_grid_with_the_carve_rule(tmp_path):
-    """The pseudo-labels stage runs on the preset model's grid with the recipe's --carve (default all)."""
+    """The pseudo-labels stage runs on the preset model's grid with the recipe's --carve (default grazing)."""
     from ago_train.model import ModelConfig
     from ago_train.time_split import time_split
     from ago_train.train_real import RealRecipe, train_real
@@ -233,13 +233,13 @@ def test_train_real_pseudo_labels_on_the_preset_grid_with_the_carve_rule(tmp_pat
             pseudo_calls.append(a)
             raise SystemExit("stop after the pseudo-labels stage")
 
-    for carve in ("all", "grazing"):
+    for carve in (None, "all", "grazing"):
         pseudo_calls.clear()
+        recipe = RealRecipe(town_scenes=2, town_frames=2, **({} if carve is None else {"carve": carve}))
         with pytest.raises(SystemExit):
-            train_real(src, tmp_path / carve, RealRecipe(town_scenes=2, town_frames=2, carve=carve),
-                       say=lambda s: None, run_verb=fake)
+            train_real(src, tmp_path / str(carve), recipe, say=lambda s: None, run_verb=fake)
         a = pseudo_calls[0]
-        assert a[a.index("--carve") + 1] == carve
+        assert a[a.index("--carve") + 1] == (carve or "grazing")
         assert a[a.index("--grid") + 1] == "x".join(map(str, ModelConfig.preset("cpu").grid_obj().shape))
 
 

@@ -58,9 +58,9 @@ SEGMENTER_HELP = {Segmenter.FILES: "label maps, docs/vlm_files.md",
                   Segmenter.SIM: "SIMULATED, `ago synth` data only",
                   Segmenter.BOXES: "painted from the dataset's 3D boxes and LiDAR ground: not a VLM; "
                                    "ago_train/pseudo/boxes.py"}
-CARVE_HELP = {Carve.ALL: "every voxel a ray crosses before its hit voxel; the default",
+CARVE_HELP = {Carve.ALL: "every voxel a ray crosses before its hit voxel",
               Carve.GRAZING: "a ray descending to its hit stops half a voxel height above the lowest hit voxel of "
-                             "the hit's column, so rays grazing far ground do not call it free; "
+                             "the hit's column, so rays grazing far ground do not call it free; the default; "
                              "ago_train/pseudo/raycast.py"}
 EMBEDDER_HELP = {Embedder.FILES: "feature maps, docs/vlm_files.md", Embedder.MASKCLIP: "--clip, on the fly",
                  Embedder.SIM: "SIMULATED", Embedder.NONE: "no features: training will not align the adapter"}
@@ -327,7 +327,7 @@ def register(app: typer.Typer) -> None:
         split: str = typer.Option(None, "--split", help="train, val, ... (scenes from splits.json) or all. "
                                   "Default: train when splits.json exists, else all."),
         raycast: bool = typer.Option(True, "--raycast/--no-raycast", help="Free space from LiDAR rays (else: every empty voxel is free)."),
-        carve: Carve = typer.Option(Carve.ALL, "--carve", help="With --raycast: " + choices_help(Carve, CARVE_HELP) + "."),
+        carve: Carve = typer.Option(None, "--carve", help="With --raycast: " + choices_help(Carve, CARVE_HELP) + "."),
         seed: int = typer.Option(0, "--seed", min=0, help="Seed of the simulated backends."),
         limit: int = typer.Option(0, "--limit", min=0, help="Only the first N samples of the split (0 = all)."),
         jobs: int = typer.Option(1, "--jobs", min=1, max=64, help="Worker processes labelling scenes in parallel "
@@ -364,8 +364,10 @@ def register(app: typer.Typer) -> None:
         from ago_runtime.shards import parse_shard, shard_indices
 
         check_output_dir(out, "--out")
-        if carve is Carve.GRAZING and not raycast:
-            raise AgoInputError("--carve", "--carve grazing is a ray-casting rule; --no-raycast casts no rays")
+        if carve is not None and not raycast:
+            raise AgoInputError("--carve", f"--carve {carve.value} is a ray-casting rule; --no-raycast casts no rays")
+        if carve is None:   # the default: grazing (benchmarks/results/grid_height.md, pseudo_far_ground.md)
+            carve = Carve.GRAZING if raycast else Carve.ALL
         if write_masks is not None:
             check_output_dir(write_masks, "--write-masks")
         shard_kn = parse_shard(shard)
