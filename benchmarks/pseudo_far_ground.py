@@ -52,7 +52,7 @@ def variants():
     """(name, GrazingRule or None, what it is): the two --carve choices first, then candidates of the grazing rule."""
     from ago_train.pseudo.raycast import GrazingRule
 
-    return [("all", None, "`--carve all` (default): every voxel a ray crosses before its hit voxel"),
+    return [("all", None, "`--carve all` (the default before 2026-12-06): every voxel a ray crosses before its hit voxel"),
             ("grazing", GrazingRule(), "`--carve grazing`: stop 0.5 voxel height above the top of the hit's foot "
                                        "(the lowest hit voxel of its column)"),
             ("foot + 0", GrazingRule(margin=0.0), "stop at the top of the foot voxel"),

@@ -203,8 +203,8 @@ class ExperimentRunner:
                 continue
             split = "all" if space == "cw" else p.train_split   # cw pseudo-labels on val too: their own mIoU
             self._ago("pseudo-labels", "--data", str(data), "--out", str(out), "--prompts", PROMPTS[dataset][space],
-                      "--segmenter", "sim", "--embedder", "sim", "--grid", p.pseudo_grid, "--keyframes", str(p.sweeps),
-                      "--interval", str(p.interval), "--split", split, "--jobs", jobs)
+                      "--segmenter", "sim", "--embedder", "sim", "--grid", p.pseudo_grid, "--carve", p.pseudo_carve,
+                      "--keyframes", str(p.sweeps), "--interval", str(p.interval), "--split", split, "--jobs", jobs)
             write_json(done, {"split": split})
 
     def ensure_data_scores(self) -> dict:

@@ -106,6 +106,7 @@ class ExperimentProfile:
     synth: dict = field(default_factory=lambda: {"scenes": 12, "frames": 12, "image-size": "704x396",
                                                  "grid": "200x200x16", "seed": 0, "val-fraction": 0.25})
     pseudo_grid: str = "100x100x8"            # the model's grid too (the runs of the committed tables used 0.8 m)
+    pseudo_carve: str = "all"                 # `ago pseudo-labels --carve` (the committed tables' runs used all)
     sweeps: int = 10                 # keyframes superimposed per pseudo-label sample (`ago pseudo-labels --keyframes`)
     interval: int = 1
     pseudo: dict = field(default_factory=lambda: {"cw": "pseudo_cw", "ow_pretrain": "pseudo_ow_pretrain",

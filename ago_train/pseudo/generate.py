@@ -62,7 +62,8 @@ class PseudoLabelConfig:
     dedupe_rays: bool = True   # one ray per (sweep, hit voxel)
     ego_box: tuple | None = EGO_BOX
     carve: GrazingRule | None = None   # CLI --carve: None = `all` (every ray carves up to its hit voxel);
-                                       # a GrazingRule = `grazing` (raycast.py: rays grazing the ground stop short)
+                                       # a GrazingRule = `grazing` (raycast.py: rays grazing the ground stop short),
+                                       # the CLI's default; None here keeps the library benchmarks' committed tables
 
     def to_dict(self) -> dict:
         d = asdict(self)
