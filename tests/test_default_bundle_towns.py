@@ -1,5 +1,7 @@
 """The per-height geometry breakdown of benchmarks/default_bundle_towns.py (where wrong occupied voxels lie)."""
 
+from pathlib import Path
+
 import numpy as np
 
 from benchmarks.default_bundle_towns import height_table, layer_counts, slab_labels
@@ -41,3 +43,21 @@ def test_above_ground_iou_ignores_the_layers_a_slab_covers():
     counts = np.array([[50, 50, 50, 3, 1], [0, 0, 9, 1, 1], [0, 0, 9, 2, 0]])
     assert above_ground_iou(counts, -1.0, 0.4) == 100 * 4 / (4 + 2 + 2)
     assert np.isnan(above_ground_iou(np.zeros((3, 5), int), -1.0, 0.4))
+
+
+def test_free_bias_copy_loads_and_raises_only_the_free_bias(tmp_path):
+    """benchmarks.free_bias_sweep's bundle copy: it passes the bundle's own file checks (sha256 updated) and differs
+    from the shipped bundle in free_bias alone, by delta."""
+    from ago_runtime.predict.bundle import Bundle, resolve_bundle
+    from benchmarks.free_bias_sweep import biased_copy
+
+    src = Path(resolve_bundle(None))
+    dst = biased_copy(src, tmp_path / "b", 1.5)
+    Bundle.load(dst)   # refuses a file whose sha256 differs from bundle.json
+    with np.load(src / "heads.npz") as a, np.load(dst / "heads.npz") as b:
+        assert a.files == b.files
+        for k in a.files:
+            if k == "free_bias":
+                np.testing.assert_allclose(b[k], a[k] + 1.5)
+            else:
+                assert np.array_equal(a[k], b[k])
