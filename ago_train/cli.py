@@ -130,7 +130,7 @@ def register(app: typer.Typer) -> None:
         from ago_runtime.outputs import check_output_dir
 
         check_output_dir(out, "OUT")
-        from .train_real import RealRecipe, train_real
+        from .train_real import train_real
 
         train_real(dataroot, out, RealRecipe(max_scenes=max_scenes, steps=steps, town_scenes=town_scenes,
                                              town_frames=town_frames, preset=preset, jobs=jobs, carve=carve.value),

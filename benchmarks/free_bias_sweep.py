@@ -13,7 +13,6 @@ their scores to choose.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import shutil
 import subprocess
@@ -36,10 +35,10 @@ def biased_copy(src: Path, dst: Path, delta: float) -> Path:
         arrays = {k: z[k] for k in z.files}
     arrays["free_bias"] = (arrays["free_bias"] + np.float32(delta)).astype(arrays["free_bias"].dtype)
     np.savez(dst / "heads.npz", **arrays)
+    from ago_runtime.predict.contract import file_sha256
+
     meta = json.loads((dst / "bundle.json").read_text())
-    entry = next(v for v in meta["files"].values() if v["path"] == "heads.npz")
-    entry["sha256"] = hashlib.sha256((dst / "heads.npz").read_bytes()).hexdigest()
-    entry["size"] = (dst / "heads.npz").stat().st_size
+    meta["files"]["heads"].update(sha256=file_sha256(dst / "heads.npz"), size=(dst / "heads.npz").stat().st_size)
     (dst / "bundle.json").write_text(json.dumps(meta, indent=1))
     return dst
 
