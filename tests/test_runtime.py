@@ -126,6 +126,53 @@ def test_softplus_matches_the_exact_function():
     assert np.array_equal(two.reshape(-1), got)
 
 
+def test_softplus_of_the_plane_sum_from_the_planes_exponentials():
+    """The product form log(1 + E_xy E_xz E_yz) gives softplus(xy + xz + yz) to float32 rounding, over the whole
+    range it is used in; a frame outside that range (or with a NaN) takes the direct form."""
+    from ago_runtime.predict.encoder import EXP_RANGE, PlaneMaps, softplus_of_sum_
+
+    rng = np.random.default_rng(1)
+    X, Y, Z, D = 3, 5, 4, 6
+    for spread in (1.0, 8.0, EXP_RANGE / 3):                 # the last reaches a = +-EXP_RANGE
+        planes = [rng.uniform(-spread, spread, s).astype(np.float32) for s in ((X, Y, D), (X, Z, D), (Y, Z, D))]
+        pm = PlaneMaps(planes)
+        assert pm.exps is not None and isinstance(pm, tuple) and all(a is b for a, b in zip(pm, planes))
+        a = (planes[0][:, :, None].astype(np.float64) + planes[1][:, None] + planes[2][None])
+        want = np.logaddexp(0.0, a)
+        got = np.empty((X, Y, Z, D), np.float32)
+        softplus_of_sum_(pm.exps, 0, X, slice(None), got)
+        tol = 1e-6 + 4 * np.finfo(np.float32).eps * np.abs(want)
+        assert np.all(np.abs(got - want) <= tol), float(np.abs(got - want).max())
+        part = np.empty((1, 2, Z, D), np.float32)                # one x row, some y: the same values
+        softplus_of_sum_(pm.exps, 1, 2, slice(2, 4), part)
+        assert np.array_equal(part, got[1:2, 2:4])
+    big = [p.copy() for p in planes]
+    big[0][0, 0, 0] = EXP_RANGE                                  # the sum could pass EXP_RANGE: no exps
+    assert PlaneMaps(big).exps is None
+    nan = [p.copy() for p in planes]
+    nan[2][0, 0, 0] = np.nan
+    assert PlaneMaps(nan).exps is None
+
+
+def test_hidden_slab_product_form_matches_the_direct_form(tmp_path):
+    """The encoder's first activation from PlaneMaps (product form, split over threads by x rows or by y) equals
+    the direct form (softplus of the plane sum) within float32 rounding, for any slab."""
+    from ago_runtime.predict.encoder import PlaneMaps, SplitEncoder, Softplus
+
+    rng = np.random.default_rng(2)
+    X, Y, Z, D = 7, 9, 3, 8
+    planes = [rng.normal(0, 3, s).astype(np.float32) for s in ((X, Y, D), (X, Z, D), (Y, Z, D))]
+    pm = PlaneMaps(planes)
+    enc = SplitEncoder.__new__(SplitEncoder)                     # only the numpy part: no graphs
+    for threads in (1, 2, 3):
+        enc.softplus = Softplus(threads)
+        for x0, x1 in ((0, 1), (2, 5), (0, X)):
+            direct = enc.first_activation(list(planes), x0, x1)
+            product = enc.first_activation(pm, x0, x1)
+            assert product.shape == direct.shape == ((x1 - x0) * Y * Z, D)
+            assert np.allclose(product, direct, rtol=4e-7, atol=2e-6)
+
+
 def test_folded_heads_match_unfolded_reference():
     rng = np.random.default_rng(0)
     w = _random_heads(rng)

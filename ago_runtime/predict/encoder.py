@@ -7,8 +7,11 @@ Bundle format 5 (ago_runtime/predict/contract.py):
   (the three TPV planes at the grid's resolution, already multiplied by the decoder's first linear
   layer, channels last);
 - per slab of x rows [x0, x1) (n = (x1-x0)*Y*Z voxels in C order over [x, y, z], so slabs follow each
-  other in the flat order): a = plane_xy[x, y] + plane_xz[x, z] + plane_yz[y, z] (numpy broadcasting),
-  x = softplus(a), then the voxel stages `voxels_<i>.onnx`, each y = x W^T + b (the softplus between
+  other in the flat order): a = plane_xy[x, y] + plane_xz[x, z] + plane_yz[y, z], x = softplus(a), computed
+  as x = log(1 + E_xy[x, y] * E_xz[x, z] * E_yz[y, z]) from the planes' exponentials, taken once a frame
+  (`PlaneMaps`; e^a is the product of the three, so the per-voxel work is two products, an add and a log
+  instead of two sums, a clamp, an exp, an add, a log and a max); a frame whose planes could overflow or
+  underflow that product takes the direct form, softplus(a) (`softplus_`). Then the voxel stages `voxels_<i>.onnx`, each y = x W^T + b (the softplus between
   layers runs here in numpy + OpenCV). The decoder's stages (branch "main") give h (`hidden_slab`, every
   voxel); the adapter's stages (branch "adapted") give g from h (`adapted_hidden`, for any subset of voxels).
 - the folded bank's products s = A x^T run in ago_runtime.predict.bank_product (`scores`).
@@ -96,6 +99,37 @@ class Softplus:
         return x
 
 
+EXP_RANGE = 80.0   # |a| bound under which e^a and every partial product of the three exponentials is a normal float32
+
+
+class PlaneMaps(tuple):
+    """A frame's three planes (plane_xy, plane_xz, plane_yz), a tuple, with `exps`: their exponentials
+    (float32, same shapes), or None when the product form of the plane sum's softplus is not safe on this
+    frame (some a could leave [-EXP_RANGE, EXP_RANGE], or a plane holds a NaN or an infinity)."""
+
+    exps: tuple[np.ndarray, np.ndarray, np.ndarray] | None
+
+    def __new__(cls, planes):
+        self = super().__new__(cls, planes)
+        high = sum(float(np.maximum(0.0, p.max())) for p in self)    # np.maximum: a NaN stays NaN,
+        low = sum(float(np.minimum(0.0, p.min())) for p in self)     # and the test below fails on it
+        safe = high <= EXP_RANGE and low >= -EXP_RANGE
+        self.exps = tuple(cv2.exp(p.reshape(-1, p.shape[-1])).reshape(p.shape) for p in self) if safe else None
+        return self
+
+
+def softplus_of_sum_(exps, x0: int, x1: int, ys: slice, out: np.ndarray) -> None:
+    """out (x1-x0, len(ys), Z, D) <- softplus(plane_xy[x, y] + plane_xz[x, z] + plane_yz[y, z]) for x in [x0, x1),
+    y in ys, as log(1 + E_xy E_xz E_yz) from the planes' exponentials `exps` (PlaneMaps.exps); out is
+    C-contiguous."""
+    e_xy, e_xz, e_yz = exps
+    np.multiply(e_xy[x0:x1, ys, None, :], e_xz[x0:x1, None, :, :], out=out)
+    out *= e_yz[ys]
+    out += 1.0
+    flat = out.reshape(-1, out.shape[-1])
+    cv2.log(flat, flat)
+
+
 class SplitEncoder:
     """Planes once per frame, then the per-voxel MLP slab by slab (see the module doc).
 
@@ -156,7 +190,8 @@ class SplitEncoder:
         shape = [d if isinstance(d, int) else 1 for d in self.planes.get_inputs()[0].shape]
         ego2img = np.tile(np.eye(4, dtype=np.float32), (1, shape[1], 1, 1))
         ego2img[..., 2, 3] = 10.0                     # points in front of every camera: real sampling work
-        planes = self.planes.run(self.PLANES, dict(zip(PLANES_INPUTS, (np.zeros(shape, np.float32), ego2img))))
+        planes = PlaneMaps(self.planes.run(self.PLANES, dict(zip(PLANES_INPUTS, (np.zeros(shape, np.float32),
+                                                                            ego2img)))))
         rows = min(self.slab, planes[0].shape[0])
         h = self.hidden_slab(planes, 0, rows)
         self.scores(np.zeros((phrases, h.shape[1]), np.float32), h)
@@ -170,7 +205,7 @@ class SplitEncoder:
         if xy.shape != (X, Y, D) or xz.shape != (X, Z, D) or yz.shape != (Y, Z, D):
             raise AgoInputError(self.planes_path, f"planes {xy.shape}, {xz.shape}, {yz.shape} do not fit the "
                                 f"bundle grid {X}x{Y}x{Z}")
-        return [np.ascontiguousarray(xy), np.ascontiguousarray(xz), np.ascontiguousarray(yz)]
+        return PlaneMaps([np.ascontiguousarray(xy), np.ascontiguousarray(xz), np.ascontiguousarray(yz)])
 
     def _run(self, branch: Branch, x: np.ndarray) -> np.ndarray:
         """The branch's stages on x: each y = x W^T + b (onnxruntime), then softplus when the stage has it."""
@@ -181,16 +216,38 @@ class SplitEncoder:
         return x
 
     def hidden_slab(self, planes, x0: int, x1: int) -> np.ndarray:
-        """h (n, Dh) of the slab of x rows [x0, x1) (n = (x1-x0)*Y*Z voxels, C order over [x, y, z])."""
-        xy, xz, yz = planes
-        a = xy[x0:x1, :, None, :] + xz[x0:x1, None, :, :]
-        a += yz
-        h = self._run(Branch.MAIN, self.softplus(a.reshape(-1, a.shape[-1])))
+        """h (n, Dh) of the slab of x rows [x0, x1) (n = (x1-x0)*Y*Z voxels, C order over [x, y, z]).
+        planes: `plane_maps`'s PlaneMaps (the product form when its exps are there), or any three arrays
+        (the direct form)."""
+        h = self._run(Branch.MAIN, self.first_activation(planes, x0, x1))
         n = (x1 - x0) * self.grid.shape[1] * self.grid.shape[2]
         if h.shape != (n, self.hidden_dim):
             raise AgoInputError(self.planes_path, f"planes and decoder stages give h {h.shape} for a slab of {n} "
                                 f"voxels; bundle.json says width {self.hidden_dim}")
         return h
+
+    def first_activation(self, planes, x0: int, x1: int) -> np.ndarray:
+        """softplus(a) (n, Dh) of the slab's plane sums a (see the module doc), split over the threads."""
+        xy, xz, yz = planes
+        exps = getattr(planes, "exps", None)
+        if exps is None:                                   # the direct form
+            a = xy[x0:x1, :, None, :] + xz[x0:x1, None, :, :]
+            a += yz
+            return self.softplus(a.reshape(-1, a.shape[-1]))
+        Y, Z, D = yz.shape
+        out = np.empty((x1 - x0, Y, Z, D), np.float32)
+        pool = self.softplus.pool
+        if pool is None:
+            softplus_of_sum_(exps, x0, x1, slice(None), out)
+        elif x1 - x0 >= 2:                                 # whole x rows per thread (contiguous parts)
+            cuts = np.linspace(x0, x1, min(self.softplus.threads, x1 - x0) + 1).astype(int)
+            list(pool.map(lambda ab: softplus_of_sum_(exps, ab[0], ab[1], slice(None), out[ab[0] - x0:ab[1] - x0]),
+                          zip(cuts[:-1], cuts[1:])))
+        else:                                              # one x row: split it by y
+            cuts = np.linspace(0, Y, min(self.softplus.threads, Y) + 1).astype(int)
+            list(pool.map(lambda ab: softplus_of_sum_(exps, x0, x1, slice(ab[0], ab[1]), out[:, ab[0]:ab[1]]),
+                          zip(cuts[:-1], cuts[1:])))
+        return out.reshape(-1, D)
 
     def adapted_hidden(self, h: np.ndarray) -> np.ndarray:
         """g (m, Da) of any m voxels from their h (m, Dh): the adapter's stages (decoder_out folded in)."""
