@@ -1,7 +1,7 @@
 """The runtime at the paper's scale on this CPU (issue 39): the `full` preset (1600x928 input, 200x200x16 grid,
 the preset's widths) through the runtime, this tree against a baseline commit, side by side in one run.
 
-    python -m benchmarks.paper_scale [--baseline a2187f0] [--reps 3] [--rounds 2] [--profile]
+    python -m benchmarks.paper_scale [--baseline a2187f0] [--reps 3] [--rounds 2] [--profile] [--int8]
         # writes benchmarks/results/paper_scale.md (+ .json)
 
 The weights are random (the full preset's TPV encoder and heads; the EfficientNet-Lite0 backbone without its
@@ -16,6 +16,12 @@ and the labels, compared voxel by voxel (argmax agreement). The frame is the rea
 FLOP bound: matmul + conv FLOPs of one frame (torch's flop counter on the exported modules) / the best fp32
 GFLOP/s onnxruntime reaches here (runtime_speed.py's MatMul/Conv probe). --profile adds onnxruntime's
 per-operator split of the planes graph (new side).
+--int8 adds a third side: this tree's bundle with an int8 variant (`Predictor(bundle, int8=True)`, what `ago infer
+--int8` runs): the planes graph static QDQ (benchmarks.int8_static's recipe) and every voxel stage dynamic int8.
+Its activation ranges are fixed (benchmarks.int8_static.UNCALIBRATED_RANGE), not calibrated: onnxruntime's
+calibrator does not fit this machine's memory at this scale (benchmarks/results/int8_static_paper.md), and the int8
+kernels' speed does not depend on the range values. So its label agreement with fp32 is that of an uncalibrated
+random-weight model: a check that it runs end to end, not a measure of int8 accuracy.
 """
 
 from __future__ import annotations
@@ -23,6 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -104,14 +111,31 @@ def child_export(ckpt: str, out: str) -> dict:
     return {"export_s": time.perf_counter() - t, "export_rss_mib": peak_rss_mib()}
 
 
-def child_frame(bundle: str, reps: int, cache: str, labels_out: str, profile: str) -> dict:
+def child_int8(bundle: str, out: str) -> dict:
+    """A copy of `bundle` at `out` with an int8 variant: planes static QDQ with fixed ranges, stages dynamic."""
+    from ago_export.quantize import quantize_encoder, quantize_planes_static
+    from ago_runtime.predict.bundle import Bundle
+    from benchmarks.int8_static import UNCALIBRATED_RANGE, variant_bundle
+
+    planes, stages = Bundle.load(bundle).encoder_graphs()
+    t = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="ago-paper-int8-") as tmp:
+        q_planes = quantize_planes_static(planes.path, Path(tmp) / "planes.onnx", [],
+                                          uncalibrated_range=UNCALIBRATED_RANGE)
+        q_stages = {st.spec.file: quantize_encoder(st.path, Path(tmp) / f"{st.spec.file}.onnx") for st in stages}
+        variant_bundle(Path(bundle), Path(out), q_planes, q_stages)
+    return {"quantise_s": time.perf_counter() - t, "quantise_rss_mib": peak_rss_mib(),
+            "range": list(UNCALIBRATED_RANGE)}
+
+
+def child_frame(bundle: str, reps: int, cache: str, labels_out: str, profile: str, int8: str = "") -> dict:
     os.environ["AGO_CACHE_DIR"] = cache
     import numpy as np
     import onnxruntime as ort
 
     from ago_runtime.predict.predictor import Predictor
 
-    p, x, m, bank, pred, record = predictor_frames(lambda: Predictor(bundle), reps, labels_out)
+    p, x, m, bank, pred, record = predictor_frames(lambda: Predictor(bundle, int8=bool(int8)), reps, labels_out)
     # (record's peak RSS is taken before the second planes session below) the planes graph alone, in a session of its own with the runtime's options
     from ago_runtime.cache import session_options
 
@@ -119,7 +143,8 @@ def child_frame(bundle: str, reps: int, cache: str, labels_out: str, profile: st
     if profile:
         so.enable_profiling = True
         so.profile_file_prefix = profile
-    sess = ort.InferenceSession(str(Path(bundle) / "planes.onnx"), so, providers=["CPUExecutionProvider"])
+    planes_graph = p.bundle.encoder_graphs("int8" if int8 else None)[0].path
+    sess = ort.InferenceSession(str(planes_graph), so, providers=["CPUExecutionProvider"])
     feed = dict(zip([i.name for i in sess.get_inputs()], [x, m]))
     sess.run(None, feed)
     planes = []
@@ -172,8 +197,8 @@ def child_rate() -> dict:
     return matmul_rates()
 
 
-CHILDREN = {"checkpoint": child_checkpoint, "export": child_export, "frame": child_frame, "flops": child_flops,
-            "rate": child_rate}
+CHILDREN = {"checkpoint": child_checkpoint, "export": child_export, "int8": child_int8, "frame": child_frame,
+            "flops": child_flops, "rate": child_rate}
 
 
 def run_child(tree: Path, *args: str) -> dict:
@@ -204,6 +229,7 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--work", type=Path, default=REPO / "work" / "paper_scale")
     ap.add_argument("--profile", action="store_true")
+    ap.add_argument("--int8", action="store_true", help="a third side: this tree's int8 variant (see the doc)")
     ap.add_argument("--out", type=Path, default=RESULTS)
     ap.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -232,13 +258,18 @@ def main() -> None:
     for side, tree in sides.items():
         res[f"{side}_export"] = run_child(tree, "export", str(ckpt), str(work / f"bundle_{side}"))
         log(f"{side}: exported in {res[f'{side}_export']['export_s']:.1f} s")
-    rounds: dict = {"base": [], "new": []}
+    if args.int8:
+        shutil.rmtree(work / "bundle_int8", ignore_errors=True)
+        res["int8_quantise"] = run_child(REPO, "int8", str(work / "bundle_new"), str(work / "bundle_int8"))
+        log(f"int8: quantised in {res['int8_quantise']['quantise_s']:.1f} s")
+        sides["int8"] = REPO
+    rounds: dict = {side: [] for side in sides}
     for r in range(args.rounds):
         for side, tree in sides.items():
             cache = str(work / f"cache_{side}")
             prof = str(work / "prof_new") if (args.profile and side == "new" and r == 0) else ""
             rounds[side].append(run_child(tree, "frame", str(work / f"bundle_{side}"), str(args.reps), cache,
-                                          str(work / f"labels_{side}.npy"), prof))
+                                          str(work / f"labels_{side}.npy"), prof, "int8" if side == "int8" else ""))
             log(f"{side} round {r + 1}: steady {rounds[side][-1]['steady_s']:.2f} s (load {os.getloadavg()[0]:.1f})")
     for side in sides:
         rs = rounds[side]
@@ -249,6 +280,12 @@ def main() -> None:
     a, b = np.load(work / "labels_base.npy"), np.load(work / "labels_new.npy")
     res["agreement"] = float((a == b).mean()) if a.shape == b.shape else None
     res["speedup"] = res["base"]["steady_s"] / res["new"]["steady_s"]
+    if "int8" in sides:
+        q = np.load(work / "labels_int8.npy")
+        res["int8_agreement"] = float((q == b).mean())
+        res["int8_speedup"] = res["base"]["steady_s"] / res["int8"]["steady_s"]
+        res["int8_vs_fp32"] = res["new"]["steady_s"] / res["int8"]["steady_s"]
+        res["int8_occupied_share"] = res["int8"]["occupied_share"]
     if args.profile and rounds["new"][0]["profile"]:
         res["op_split"] = op_split(rounds["new"][0]["profile"])
     res["flops"] = run_child(REPO, "flops")
@@ -264,7 +301,7 @@ def main() -> None:
 def write_report(res: dict, path: Path) -> None:
     from ago_runtime.atomic import write_text
 
-    b, n = res["base"], res["new"]
+    b, n, q = res["base"], res["new"], res.get("int8")
     lines = [
         "# The runtime at the paper's scale (issue 39)", "",
         f"Command: `{res['command']}` ({res['date']}, this 2-core CPU; load average {res['load_start']:.1f} at the "
@@ -272,17 +309,30 @@ def write_report(res: dict, path: Path) -> None:
         "`full` preset (1600x928 input, 200x200x16 grid, TPV 100x100x16 with the preset's widths), random weights "
         "(cost only; every voxel is called occupied, the runtime's worst case), exported without the parity check by "
         f"each side's code; frame: {res['frame']}. Baseline: commit {res['baseline']}. Best of the alternating rounds.", "",
-        "| | baseline | this tree | ratio |", "|---|---:|---:|---:|",
+        ("| | baseline | this tree | ratio | this tree, int8 | baseline / int8 | fp32 / int8 |\n"
+         "|---|---:|---:|---:|---:|---:|---:|") if q else "| | baseline | this tree | ratio |\n|---|---:|---:|---:|",
     ]
     for key, label in (("steady_s", "steady frame (s)"), ("first_s", "first frame (s)"), ("open_s", "bundle open (s)"),
                        ("planes_s", "planes graph alone (s)"), ("rss_mib", "peak RSS (MiB)")):
-        lines.append(f"| {label} | {b[key]:.2f} | {n[key]:.2f} | {b[key] / n[key]:.2f}x |")
-    lines += [f"| export (s) | {res['base_export']['export_s']:.1f} | {res['new_export']['export_s']:.1f} | |",
+        row = f"| {label} | {b[key]:.2f} | {n[key]:.2f} | {b[key] / n[key]:.2f}x |"
+        if q:
+            row += f" {q[key]:.2f} | {b[key] / q[key]:.2f}x | {n[key] / q[key]:.2f}x |"
+        lines.append(row)
+    lines += [f"| export (s) | {res['base_export']['export_s']:.1f} | {res['new_export']['export_s']:.1f} | |"
+              + (f" + {res['int8_quantise']['quantise_s']:.1f} (quantise) | | |" if q else ""),
               f"| export peak RSS (MiB) | {res['base_export']['export_rss_mib']:.0f} | "
-              f"{res['new_export']['export_rss_mib']:.0f} | |", "",
+              f"{res['new_export']['export_rss_mib']:.0f} | |"
+              + (f" {res['int8_quantise']['quantise_rss_mib']:.0f} (quantise) | | |" if q else ""), "",
               f"Label agreement (same voxel, same label), this tree vs baseline: "
-              f"{100 * res['agreement']:.3f} %." if res["agreement"] is not None else "Label grids differ in shape.", "",
-              f"FLOP bound: {res['flops']['total'] / 1e9:.0f} GFLOP a frame (planes {res['flops']['planes'] / 1e9:.0f}, "
+              f"{100 * res['agreement']:.3f} %." if res["agreement"] is not None else "Label grids differ in shape.", ""]
+    if q:
+        lines += [f"int8 (`Predictor(bundle, int8=True)`: planes static QDQ with every activation range fixed to "
+                  f"{tuple(res['int8_quantise']['range'])}, not calibrated; voxel stages dynamic int8): labels agree "
+                  f"with this tree's fp32 on {100 * res['int8_agreement']:.3f} % of the voxels (it calls "
+                  f"{100 * res['int8_occupied_share']:.1f} % occupied, fp32 {100 * n['occupied_share']:.1f} %). That "
+                  "is the agreement of an uncalibrated random-weight model, not a measure of int8 accuracy on a "
+                  "trained one (benchmarks/results/int8_qat_default.md measures that on the default model).", ""]
+    lines += [f"FLOP bound: {res['flops']['total'] / 1e9:.0f} GFLOP a frame (planes {res['flops']['planes'] / 1e9:.0f}, "
               f"{res['flops']['voxels_note']}: {res['flops']['voxels'] / 1e9:.0f}) at this CPU's best "
               f"{max(res['rate'].values()):.0f} GFLOP/s = {res['bound_s']:.2f} s; the steady frame reaches "
               f"{100 * res['bound_share']:.0f} % of it (the bound counts the main branch on every voxel; the adapted "
