@@ -14,6 +14,7 @@ import os
 import shutil
 import subprocess
 import sys
+import threading
 import types
 from pathlib import Path
 
@@ -164,6 +165,7 @@ def test_hidden_slab_product_form_matches_the_direct_form(tmp_path):
     planes = [rng.normal(0, 3, s).astype(np.float32) for s in ((X, Y, D), (X, Z, D), (Y, Z, D))]
     pm = PlaneMaps(planes)
     enc = SplitEncoder.__new__(SplitEncoder)                     # only the numpy part: no graphs
+    enc._local = threading.local()
     for threads in (1, 2, 3):
         enc.softplus = Softplus(threads)
         for x0, x1 in ((0, 1), (2, 5), (0, X)):
@@ -284,6 +286,43 @@ def test_streamed_slabs_match_whole_grid_heads(bundle_dir, frame_dir, monkeypatc
     monkeypatch.setattr(enc, "SCORE_BUDGET_BYTES", 1)
     seen = [(x1 - x0) * 20 * 4 for x0, x1 in p.encoder.slabs(p.encoder.slab_rows(p.fold(bank).num_rows))]
     assert seen == [20 * 4] * 20 and SCORE_BUDGET_BYTES > 1
+
+
+def test_slabs_in_parallel_give_what_one_thread_gives(bundle_dir, frame_dir):
+    """With several threads the slabs run in parallel (SplitEncoder.map_slabs), each on one thread: every output
+    equals the one-thread run's, for every identifier, with volumes, and through FrameFeatures re-queries."""
+    import ago_runtime.predict.encoder as enc
+    from ago_runtime.formats.calibration import load_images_folder
+    from ago_runtime.predict.classifier import FrameFeatures
+    from ago_runtime.predict.predictor import Predictor
+
+    p = Predictor(bundle_dir)
+    images, rig, _ = load_images_folder(frame_dir)
+    x, m = p.prepare(images, rig)
+    bank = p.bundle.load_bank()
+    one = enc.open_encoder(p.bundle, threads=1, slab_voxels=20 * 4)
+    two = enc.open_encoder(p.bundle, threads=2, slab_voxels=20 * 4)
+    assert one.slab_pool is None and two.slab_pool is not None
+    seen = []
+    run_slab = two.hidden_slab
+    two.hidden_slab = lambda *a: seen.append(two._single()) or run_slab(*a)
+    for identifier in ("none", "min-entropy", "max-conf", "adapted"):
+        for volumes in (False, True):
+            got = {}
+            for name, e in (("one", one), ("two", two)):
+                p.encoder = p.classifier.encoder = e
+                got[name] = p.predict_arrays(x, m, bank, identifier, volumes=volumes)
+            for field in ("semantics", "entropy", "confidence", "branch", "unexplained", "occupancy"):
+                a, b = getattr(got["one"], field), getattr(got["two"], field)
+                assert (a is None and b is None) or np.array_equal(a, b), (identifier, volumes, field)
+            t = got["two"].timings
+            assert t["encoder"] > 0 and t["heads"] > 0
+    assert seen and all(seen)                   # every slab ran in a worker, on its one thread
+    features = FrameFeatures()
+    p.encoder = p.classifier.encoder = two
+    first = p.predict_arrays(x, m, bank, "min-entropy", features=features)
+    again = p.predict_arrays(x, m, bank, "min-entropy", features=features)
+    assert len(features.hidden) == 20 and np.array_equal(first.semantics, again.semantics)
 
 
 def test_adapted_branch_runs_only_where_the_main_branch_sees_matter(bundle_dir, frame_dir, monkeypatch):

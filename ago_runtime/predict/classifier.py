@@ -41,7 +41,7 @@ class FrameFeatures:
     def hidden_slab(self, encoder, x0: int, x1: int) -> np.ndarray:
         """h of rows [x0, x1): sliced from a kept slab that covers them, else computed and kept."""
         row = encoder.grid.shape[1] * encoder.grid.shape[2]
-        for (a, b), h in self.hidden.items():
+        for (a, b), h in list(self.hidden.items()):     # a copy: slab workers may add slabs meanwhile
             if a <= x0 and x1 <= b:
                 return h[(x0 - a) * row:(x1 - a) * row]
         h = encoder.hidden_slab(self.planes, x0, x1)
@@ -68,7 +68,8 @@ class VoxelClassifier:
                  planes: list[np.ndarray] | None = None, features: FrameFeatures | None = None):
         """One frame's model inputs -> (out, timings): out = dict of (N,) arrays label (uint8), entropy,
         confidence, branch (+ unexplained, occupancy with volumes); timings: seconds in "encoder" (graphs and
-        the numpy glue between them) and "heads" (class scores and the decision).
+        the numpy glue between them) and "heads" (class scores and the decision); they add up to the call's wall
+        time (slabs running in parallel, `SplitEncoder.map_slabs`, share it in the ratio of their own times).
 
         planes: this frame's `encoder.plane_maps(x, m)` when the caller has them; features: a FrameFeatures of
         this frame, filled by the first call given it (later calls skip the planes and the decoder)."""
@@ -76,7 +77,6 @@ class VoxelClassifier:
         enc = self.encoder
         enc.check_folded(folded)
         out = _outputs(enc.grid.num_voxels, volumes)
-        t_enc = t_heads = 0.0
         t = time.perf_counter()
         if features is not None:
             if features.planes is None:
@@ -85,7 +85,10 @@ class VoxelClassifier:
         elif planes is None:
             planes = enc.plane_maps(x, m)
         row = enc.grid.shape[1] * enc.grid.shape[2]
-        for x0, x1 in enc.slabs(enc.slab_rows(folded.num_rows)):
+
+        def one_slab(x0: int, x1: int) -> tuple[float, float]:
+            """Decide the slab's voxels into `out` -> (encoder s, heads s) of this slab."""
+            t0 = time.perf_counter()
             h = features.hidden_slab(enc, x0, x1) if features is not None else enc.hidden_slab(planes, x0, x1)
             s_main = enc.scores(folded.A[Branch.MAIN], h)
             t2 = time.perf_counter()
@@ -102,10 +105,16 @@ class VoxelClassifier:
             d = decide_block(folded, s_main, adapted_scores, identifier, volumes)
             _store(out, slice(x0 * row, x1 * row), d, volumes)
             t5 = time.perf_counter()
-            t_enc += (t2 - t) + t_adapted
-            t_heads += (t5 - t2) - t_adapted
-            t = t5
-        return out, {"encoder": t_enc, "heads": t_heads}
+            return (t2 - t0) + t_adapted, (t5 - t2) - t_adapted
+
+        t_planes = time.perf_counter() - t
+        t = time.perf_counter()
+        parts = enc.map_slabs(one_slab, list(enc.slabs(enc.slab_rows(folded.num_rows))))
+        wall = time.perf_counter() - t
+        # slabs may run in parallel: the loop's wall time is split in the ratio of the slabs' own encoder / heads time
+        enc_s, heads_s = sum(p[0] for p in parts), sum(p[1] for p in parts)
+        share = enc_s / (enc_s + heads_s) if enc_s + heads_s > 0 else 1.0
+        return out, {"encoder": t_planes + wall * share, "heads": wall * (1.0 - share)}
 
     def classify_hidden(self, h: np.ndarray, g: np.ndarray, folded: FoldedHeads,
                         identifier: Identifier = Identifier.MIN_ENTROPY, volumes: bool = False,

@@ -26,6 +26,7 @@ dummy inputs of the real shapes (`warm_up`), so the first frame runs at the stea
 from __future__ import annotations
 
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,7 +47,7 @@ from ago_runtime.predict.decision import Branch
 from ago_runtime.predict.heads import SCORE_BUDGET_BYTES
 
 INT8 = "int8"         # the variant `--int8` picks (bundle.json "variants")
-SLAB_VOXELS = 4096    # target voxels per slab (whole x-rows of Y*Z voxels)
+SLAB_VOXELS = 8192    # target voxels per slab (whole x-rows of Y*Z voxels; benchmarks/results/infer_speed.md)
 
 
 @dataclass
@@ -151,6 +152,10 @@ class SplitEncoder:
                                      planes_width([st.spec for st in stages], hidden_dim))
         self.planes = load_session(planes_path, threads, signature, "planes", sha256, device, precision)
         self.bank_product = BankProduct(threads)   # the bank products stay on the CPU (docs/runtime.md, Devices)
+        self.threads = max(1, int(threads or os.cpu_count() or 1))
+        self.slab_pool = (ThreadPoolExecutor(self.threads, thread_name_prefix="ago-slab")
+                          if self.threads > 1 and device is Device.CPU else None)
+        self._local = threading.local()     # in a slab worker: .single = True, .bank_product (one thread)
         self.sessions = {Branch.MAIN: [], Branch.ADAPTED: []}
         for i, st in enumerate(stages):
             sess = load_session(Path(st.path), threads, stage_signature(st.spec), f"voxel_stages[{i}]", st.sha256,
@@ -177,6 +182,24 @@ class SplitEncoder:
         if num_rows is None:
             return self.slab
         return self.rows_per_slab(min(self.slab_voxels, SCORE_BUDGET_BYTES // (4 * num_rows)))
+
+    def map_slabs(self, fn, slabs: list[tuple[int, int]]) -> list:
+        """[fn(x0, x1) for each slab], in order. With several threads on the CPU the slabs run in parallel, one
+        slab per thread at a time, and everything a slab worker calls here (first activation, softplus, bank
+        products) runs on that worker's one thread: whole slabs in parallel beat splitting each small slab's
+        arrays over the threads (benchmarks/results/infer_speed.md). fn must write only its own slab's outputs."""
+        if self.slab_pool is None or len(slabs) < 2:
+            return [fn(x0, x1) for x0, x1 in slabs]
+
+        def run(slab):
+            self._local.single = True
+            return fn(*slab)
+
+        return list(self.slab_pool.map(run, slabs))
+
+    def _single(self) -> bool:
+        """Whether this thread is a slab worker (map_slabs): its work then stays on it."""
+        return getattr(self._local, "single", False)
 
     def slabs(self, rows: int) -> Iterator[tuple[int, int]]:
         """(x0, x1) of each slab of `rows` x rows; its voxels are [x0 * Y * Z, x1 * Y * Z) in the flat order."""
@@ -212,7 +235,7 @@ class SplitEncoder:
         for sess, softplus in self.sessions[branch]:
             (x,) = sess.run([STAGE_OUTPUT], {STAGE_INPUT: x})
             if softplus:
-                x = self.softplus(x)
+                x = softplus_(x, np.empty_like(x)) if self._single() else self.softplus(x)
         return x
 
     def hidden_slab(self, planes, x0: int, x1: int) -> np.ndarray:
@@ -230,13 +253,15 @@ class SplitEncoder:
         """softplus(a) (n, Dh) of the slab's plane sums a (see the module doc), split over the threads."""
         xy, xz, yz = planes
         exps = getattr(planes, "exps", None)
+        single = self._single()
         if exps is None:                                   # the direct form
             a = xy[x0:x1, :, None, :] + xz[x0:x1, None, :, :]
             a += yz
-            return self.softplus(a.reshape(-1, a.shape[-1]))
+            a = a.reshape(-1, a.shape[-1])
+            return softplus_(a, np.empty_like(a)) if single else self.softplus(a)
         Y, Z, D = yz.shape
         out = np.empty((x1 - x0, Y, Z, D), np.float32)
-        pool = self.softplus.pool
+        pool = None if single else self.softplus.pool
         if pool is None:
             softplus_of_sum_(exps, x0, x1, slice(None), out)
         elif x1 - x0 >= 2:                                 # whole x rows per thread (contiguous parts)
@@ -254,8 +279,12 @@ class SplitEncoder:
         return self._run(Branch.ADAPTED, h)
 
     def scores(self, bank: np.ndarray, x: np.ndarray) -> np.ndarray:
-        """bank (P', d) x (m, d) -> s = bank x^T (P', m), class-major."""
-        return self.bank_product(bank, x)
+        """bank (P', d) x (m, d) -> s = bank x^T (P', m), class-major (in a slab worker on its one thread)."""
+        if not self._single():
+            return self.bank_product(bank, x)
+        if not hasattr(self._local, "bank_product"):
+            self._local.bank_product = BankProduct(1)
+        return self._local.bank_product(bank, x)
 
     def check_folded(self, folded) -> None:
         if any(folded.width(branch) != self.widths[branch] for branch in Branch):
