@@ -1,7 +1,8 @@
 """How well the runtime's "unexplained obstacle" score finds matter that no prompt explains (AUROC).
 
     python -m benchmarks.unexplained_obstacles --bundle BUNDLE --data DATASET [--split val] \
-        [--prompts prompts/ow_pretrain.txt] [--max-frames N] [--out benchmarks/results/unexplained_obstacles.md]
+        [--prompts prompts/ow_pretrain.txt] [--max-frames N] [--out benchmarks/results/unexplained_obstacles.md] \
+        [--choose-split train --choose-frames 40 --false-rate 0.05]
 
 The bundle runs through the torch-free runtime (`Predictor.predict(..., volumes=True)`, what
 `ago infer --save-volumes` writes) with a prompt file that names only some classes (default: the
@@ -14,6 +15,11 @@ and, for comparison, of the product p_occ x score (which also counts the model's
 average precision beside the positives' prevalence, and the share of positives and of negatives the
 mask flags (p_occ > 0.5 and score > `ago_runtime.predict.predictor.UNEXPLAINED_THRESHOLD`), plus the mean
 score per GT class. Writes a markdown table with the command.
+
+--choose-split SPLIT: a mask threshold for this prompt file chosen on other frames (`choose_threshold`: the
+lowest threshold at which the mask flags at most --false-rate of the prompted-class voxels of SPLIT, e.g. the
+training split), then the mask at that threshold on --split beside the fixed one: the value to give
+`ago infer --unexplained-threshold`. The scored split is not looked at while choosing.
 """
 
 from __future__ import annotations
@@ -41,6 +47,40 @@ def covered_occ3d_ids(prompt_file: str) -> set[int]:
     return {i for c in parse_prompt_file(prompt_file).classes for i in c.occ3d_ids}
 
 
+def choose_threshold(scores: np.ndarray, occupancy: np.ndarray, explained: np.ndarray, false_rate: float) -> float:
+    """The lowest mask threshold t (score > t and occupancy > 0.5 flags a voxel) that flags at most `false_rate`
+    of the `explained` voxels (GT classes the prompt file covers); scores, occupancy: per voxel. Ties at t stay
+    unflagged (the mask is strict), so the rate holds exactly; 0.5 <= ... is not assumed: a prompt file that
+    explains its classes well gets a threshold below 0.5."""
+    if not 0.0 <= false_rate < 1.0:
+        raise ValueError(f"false_rate must be in [0, 1), got {false_rate}")
+    n = int(explained.sum())
+    if n == 0:
+        raise ValueError("no explained voxels to choose a threshold on")
+    cand = np.sort(scores[explained & (occupancy > 0.5)])[::-1]   # the explained voxels the mask could flag
+    allowed = int(np.floor(false_rate * n))
+    if allowed >= len(cand):
+        return 0.0
+    return float(cand[allowed])    # flags only scores > cand[allowed]: at most `allowed` voxels
+
+
+def score_frames(predictor, bank, ds, indices, what: str):
+    """-> (scores, occupancy, fixed-mask flags, GT classes) over the GT-occupied voxels in the GT camera mask of
+    the frames `indices` (the model's grid upsampled to the GT's by nearest neighbour)."""
+    scores, occs, flags, classes = [], [], [], []
+    for i in track(indices, what, total=len(indices)):
+        f = ds[i]
+        pred = predictor.predict(f.images, f.rig, bank, volumes=True, source=str(ds.root))
+        gt = f.gt
+        factor = tuple(a // b for a, b in zip(gt.semantics.shape, pred.unexplained.shape))
+        keep = gt.mask_camera.astype(bool) & (gt.semantics != OCC3D_FREE)
+        scores.append(upsample_nearest(pred.unexplained, factor)[keep].astype(np.float32))
+        occs.append(upsample_nearest(pred.occupancy, factor)[keep].astype(np.float32))
+        flags.append(upsample_nearest(pred.unexplained_mask, factor)[keep])
+        classes.append(gt.semantics[keep].astype(np.int16))
+    return np.concatenate(scores), np.concatenate(occs), np.concatenate(flags), np.concatenate(classes)
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--bundle", required=True)
@@ -49,7 +89,13 @@ def main(argv=None) -> dict:
     ap.add_argument("--prompts", default=str(REPO / "prompts/ow_pretrain.txt"))
     ap.add_argument("--max-frames", type=int, default=None)
     ap.add_argument("--out", default=str(REPO / "benchmarks/results/unexplained_obstacles.md"))
+    ap.add_argument("--choose-split", default=None, help="choose the mask threshold on this split (see the doc)")
+    ap.add_argument("--choose-frames", type=int, default=40, help="frames of --choose-split (spread over it)")
+    ap.add_argument("--false-rate", type=float, default=0.05, help="share of prompted-class voxels the chosen "
+                    "threshold may flag on --choose-split")
     args = ap.parse_args(argv)
+    if args.choose_split is not None and args.choose_split == args.split:
+        ap.error("--choose-split must differ from --split (the scored frames are not used to choose)")
 
     predictor = Predictor(args.bundle)
     bank = load_prompt_bank(args.prompts)
@@ -57,35 +103,46 @@ def main(argv=None) -> dict:
     ds = NuScenesDataset(args.data, load_extras=False)
     indices = ds.split(args.split) if args.split != "all" else list(range(len(ds)))
     indices = indices[: args.max_frames] if args.max_frames else indices
-    scores, occs, flags, classes = [], [], [], []
-    for i in track(indices, "unexplained-obstacle score", total=len(indices)):
-        f = ds[i]
-        pred = predictor.predict(f.images, f.rig, bank, volumes=True, source=str(args.data))
-        gt = f.gt
-        factor = tuple(a // b for a, b in zip(gt.semantics.shape, pred.unexplained.shape))
-        keep = gt.mask_camera.astype(bool) & (gt.semantics != OCC3D_FREE)
-        scores.append(upsample_nearest(pred.unexplained, factor)[keep].astype(np.float32))
-        occs.append(upsample_nearest(pred.occupancy, factor)[keep].astype(np.float32))
-        flags.append(upsample_nearest(pred.unexplained_mask, factor)[keep])
-        classes.append(gt.semantics[keep].astype(np.int16))
-    s = np.concatenate(scores)
-    occ = np.concatenate(occs)
-    c = np.concatenate(classes)
+    chosen = None
+    if args.choose_split is not None:   # chosen first, on frames the scoring below never reads
+        pool = ds.split(args.choose_split) if args.choose_split != "all" else list(range(len(ds)))
+        pick = [pool[int(k)] for k in np.linspace(0, len(pool) - 1, min(args.choose_frames, len(pool)))]
+        s_c, occ_c, _, c_c = score_frames(predictor, bank, ds, sorted(set(pick)), "choosing the threshold")
+        chosen = {"split": args.choose_split, "frames": len(set(pick)), "false_rate": args.false_rate,
+                  "threshold": choose_threshold(s_c, occ_c, np.isin(c_c, sorted(covered)), args.false_rate)}
+    s, occ, flagged, c = score_frames(predictor, bank, ds, indices, "unexplained-obstacle score")
     positive = ~np.isin(c, sorted(covered))
     auc = roc_auc(s, positive)
     auc_product = roc_auc(occ * s, positive)
     ap_ = average_precision(s, positive)
     prevalence = float(positive.mean())
-    flagged = np.concatenate(flags)
     tpr = float(flagged[positive].mean()) if positive.any() else float("nan")
     fpr = float(flagged[~positive].mean()) if (~positive).any() else float("nan")
+    at_chosen = None
+    if chosen is not None:
+        at_chosen = (occ > 0.5) & (s > chosen["threshold"])
+        chosen["tpr"] = float(at_chosen[positive].mean()) if positive.any() else float("nan")
+        chosen["fpr"] = float(at_chosen[~positive].mean()) if (~positive).any() else float("nan")
     per_class = []
     for cid in sorted(set(c.tolist())):
         sel = c == cid
         per_class.append((OCC3D_CLASSES[cid], "prompted" if cid in covered else "absent", int(sel.sum()),
-                          float(s[sel].mean()), float(flagged[sel].mean())))
+                          float(s[sel].mean()), float(flagged[sel].mean()),
+                          float(at_chosen[sel].mean()) if at_chosen is not None else None))
     cmd = "python -m benchmarks.unexplained_obstacles " + " ".join(argv if argv is not None else sys.argv[1:])
-    rows = "\n".join(f"| {n} | {kind} | {cnt} | {m:.3f} | {100 * fl:.1f} |" for n, kind, cnt, m, fl in per_class)
+    rows = "\n".join(f"| {n} | {kind} | {cnt} | {m:.3f} | {100 * fl:.1f} |"
+                     + (f" {100 * fc:.1f} |" if fc is not None else "") for n, kind, cnt, m, fl, fc in per_class)
+    chosen_text = ""
+    if chosen is not None:
+        chosen_text = (f"\nA threshold for this prompt file, chosen on {chosen['frames']} frames of split "
+                       f"`{chosen['split']}` (not scored here) as the lowest that flags at most "
+                       f"{100 * chosen['false_rate']:g} % of its prompted-class voxels: **{chosen['threshold']:.3f}** "
+                       f"(`ago infer --save-volumes --unexplained-threshold {chosen['threshold']:.3f}`). On the scored "
+                       f"frames it flags {100 * chosen['tpr']:.1f} % of absent-class voxels and "
+                       f"{100 * chosen['fpr']:.1f} % of prompted-class voxels (at {UNEXPLAINED_THRESHOLD}: "
+                       f"{100 * tpr:.1f} % and {100 * fpr:.1f} %).\n")
+    at_col = f" flagged at {chosen['threshold']:.3f} (%) |" if chosen is not None else ""
+    at_sep = "---:|" if chosen is not None else ""
     text = f"""# Unexplained-obstacle score: AUROC on the synthetic world
 
 Command: `{cmd}`
@@ -105,14 +162,15 @@ classes no prompt covers ({int(positive.sum())} voxels, prevalence {prevalence:.
 | average precision of the score (random ranking = prevalence {prevalence:.3f}) | {ap_:.3f} |
 | flagged by the mask: share of absent-class voxels | {100 * tpr:.1f} % |
 | flagged by the mask: share of prompted-class voxels | {100 * fpr:.1f} % |
-
-| GT class | in the prompt file | voxels | mean score | flagged (%) |
-|---|---|---:|---:|---:|
+{chosen_text}
+| GT class | in the prompt file | voxels | mean score | flagged (%) |{at_col}
+|---|---|---:|---:|---:|{at_sep}
 {rows}
 """
     write_text(args.out, text)
     print(text)
-    return {"auroc": auc, "auroc_product": auc_product, "ap": ap_, "prevalence": prevalence, "tpr": tpr, "fpr": fpr}
+    return {"auroc": auc, "auroc_product": auc_product, "ap": ap_, "prevalence": prevalence, "tpr": tpr, "fpr": fpr,
+            "chosen": chosen}
 
 
 if __name__ == "__main__":

@@ -497,6 +497,43 @@ def test_cli_infer_images_folder(bundle_dir, frame_dir, tmp_path):
         assert np.all((z["unexplained"] >= 0) & (z["unexplained"] <= 1))
 
 
+def test_cli_infer_unexplained_threshold_sets_the_mask(bundle_dir, frame_dir, tmp_path):
+    """--unexplained-threshold T: the saved mask is occupancy > 0.5 and score > T, the npz records T, and a run
+    with another T is not taken as already done (resume)."""
+    out = tmp_path / "out"
+    args = ["infer", "--images", frame_dir, "--bundle", bundle_dir, "--out", out, "--save-volumes",
+            "--prompts", "prompts/ow_pretrain.txt", "--picture", "none"]
+    masks = {}
+    for t in ("0.5", None, "0.3"):
+        r = run_cli(args + (["--unexplained-threshold", t] if t else []), cwd=tmp_path)
+        assert r.returncode == 0, r.stderr
+        assert "resuming" not in r.stdout + r.stderr        # each threshold is another run: nothing reused
+        with np.load(out / "frame.npz") as z:
+            want = float(t) if t else 0.5
+            assert float(z["unexplained_threshold"]) == pytest.approx(want)
+            mask = (z["occupancy"] > 0.5) & (z["unexplained"] > np.float32(want))
+            assert np.array_equal(z["unexplained_mask"].astype(bool), mask)
+            masks[t] = mask
+    assert masks["0.3"].sum() >= masks["0.5"].sum() and np.array_equal(masks["0.5"], masks[None])
+
+
+def test_choose_unexplained_threshold():
+    """benchmarks.unexplained_obstacles.choose_threshold: the lowest threshold whose strict mask flags at most the
+    given share of explained voxels; voxels called free never count."""
+    from benchmarks.unexplained_obstacles import choose_threshold
+
+    s = np.array([0.9, 0.8, 0.7, 0.6, 0.2, 0.95, 0.1, 0.85], np.float32)
+    occ = np.array([1, 1, 1, 1, 1, 0, 1, 1], np.float32)      # the 0.95 voxel is called free
+    explained = np.array([1, 1, 1, 1, 1, 1, 1, 0], bool)      # 7 explained voxels
+    t = choose_threshold(s, occ, explained, 2 / 7)             # at most 2 of 7 flagged
+    assert t == pytest.approx(0.7)
+    assert ((s > t) & (occ > 0.5) & explained).sum() == 2
+    assert choose_threshold(s, occ, explained, 0.0) == pytest.approx(0.9)    # nothing explained flagged
+    assert choose_threshold(s, occ, explained, 0.99) == 0.0                  # every explained voxel may be flagged
+    with pytest.raises(ValueError):
+        choose_threshold(s, occ, np.zeros(8, bool), 0.05)
+
+
 def test_cli_infer_without_calib_warns_and_uses_bundle_rig(bundle_dir, tmp_path):
     frame = write_random_frame(tmp_path / "f", 800, 450, calib=False)
     r = run_subprocess(["infer", "--images", frame, "--bundle", bundle_dir, "--out", tmp_path / "o"])

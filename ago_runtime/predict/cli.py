@@ -72,7 +72,8 @@ PICTURES = tuple(p.value for p in Picture)
 
 
 def run_key(bundle, bank, identifier: str, picture: str, save_volumes: bool, int8: bool,
-            device: str = "cpu", precision: str = "fp32", html: bool = False) -> str:
+            device: str = "cpu", precision: str = "fp32", html: bool = False,
+            unexplained_threshold: float | None = None) -> str:
     """What a prediction file was made with (bundle, bank, identifier, outputs), as a sha256: stored in each
     npz `ago infer` writes (`run_key`), so a resumed run keeps only frames made by the same settings."""
     import hashlib
@@ -87,6 +88,8 @@ def run_key(bundle, bank, identifier: str, picture: str, save_volumes: bool, int
         d["device"] = [device, precision]
     if html:   # (keys of runs without --html stay as they were)
         d["html"] = True
+    if unexplained_threshold is not None:   # (and of runs without --unexplained-threshold)
+        d["unexplained_threshold"] = float(unexplained_threshold)
     return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()
 
 
@@ -124,7 +127,6 @@ def prediction_picture(pred, images: dict | None, title: str = "", kind: str = "
     the rig's cameras; "bev": the class BEV and the legend only (a few ms)."""
     from ago_runtime.pictures import render
     from ago_runtime.predict.decision import Identifier
-    from ago_runtime.predict.predictor import UNEXPLAINED_THRESHOLD
 
     colors = render.palette_for(pred.class_names)
     colors = np.concatenate([colors, np.array([[240, 240, 240]], np.uint8)])
@@ -142,7 +144,7 @@ def prediction_picture(pred, images: dict | None, title: str = "", kind: str = "
         if pred.unexplained is not None:
             unexp = render.scalar_bev(pred.unexplained, reduce="max", mask=pred.occupancy > 0.5, vmin=0, vmax=1,
                                       label="unexplained score", grid=pred.grid, scale=scale)
-            panels.append((f"unexplained obstacles (> {UNEXPLAINED_THRESHOLD:g} = flagged)", unexp))
+            panels.append((f"unexplained obstacles (> {pred.unexplained_threshold:g} = flagged)", unexp))
     top = render.side_by_side(panels)
     parts = [top, render.legend(pred.class_names, colors[:-1], width=top.shape[1])]
     if images and kind == "full":
@@ -151,7 +153,8 @@ def prediction_picture(pred, images: dict | None, title: str = "", kind: str = "
     return render.with_title(picture, title) if title else picture   # the full name, wrapped, never cut
 
 
-def infer_writer(out: Path, key: str, picture: str, volumes: bool, html: bool = False):
+def infer_writer(out: Path, key: str, picture: str, volumes: bool, html: bool = False,
+                 unexplained_threshold: float | None = None):
     """`ago infer`'s write(name, images, prediction), called per frame of `predict_many`: `out/<name>.png` (unless
     picture is none) and `out/<name>.html` (with html: pictures.html_viewer), then `out/<name>.npz` with `run_key` (a whole
     npz means a whole frame: frame_is_whole), each written atomically; a killed run's temporary files of the frame are removed first
@@ -162,6 +165,8 @@ def infer_writer(out: Path, key: str, picture: str, volumes: bool, html: bool = 
     stale = list(out.glob(".*.tmp.*")) if out.is_dir() else []
 
     def write(name: str, images: dict, pred) -> list[Path]:
+        if unexplained_threshold is not None:
+            pred.unexplained_threshold = float(unexplained_threshold)
         npz = out / f"{name}.npz"
         for p in [p for p in stale if p.name.startswith(f".{name}.")]:
             p.unlink(missing_ok=True)
@@ -186,7 +191,8 @@ def infer_writer(out: Path, key: str, picture: str, volumes: bool, html: bool = 
 def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, sample=None, info=None,
               int8=False, picture: str = "full", warm_up: bool = False, workers: int | None = None,
               resume: bool = True, allow_outside_root: bool = False, shard: str | None = None,
-              device: str = "cpu", precision: str = "fp32", html: bool = False) -> list[Path]:
+              device: str = "cpu", precision: str = "fp32", html: bool = False,
+              unexplained_threshold: float | None = None) -> list[Path]:
     """`ago infer`: check the options, load the bundle and choose the bank, open the frames (a resumed run
     leaves out the frames whose outputs in `out` are whole and were made with the same bundle, bank and
     settings: frame_is_whole), then predict them with `Predictor.predict_many` and write each (reading, prediction
@@ -206,6 +212,13 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
         raise AgoInputError("--picture", f"must be one of {', '.join(PICTURES)}, got {picture!r}")
     if workers is not None and not 1 <= int(workers) <= 64:
         raise AgoInputError("--workers", f"must be between 1 and 64, got {workers}")
+    if unexplained_threshold is not None:
+        t = float(unexplained_threshold)
+        if not 0.0 < t < 1.0:   # (NaN fails this too)
+            raise AgoInputError("--unexplained-threshold", f"must be between 0 and 1 (exclusive), got {t}")
+        if not save_volumes:
+            raise AgoInputError("--unexplained-threshold", "the unexplained-obstacle mask is made only with "
+                                "--save-volumes; add it or leave this option out")
     parse_shard(shard)   # a bad --shard before any work
     device, precision = parse_device(device), parse_precision(precision)
     check_device(device, precision)   # a provider this onnxruntime lacks, before any work
@@ -215,7 +228,8 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
     b = Bundle.load(resolve_bundle(bundle))
     chosen = choose_bank(b, prompts, bank)   # checked against the bundle here, once
     identifier = identifier or b.identifier_for(chosen)   # none for a closed-world bank
-    key = run_key(b, chosen, identifier, picture, save_volumes, int8, device.value, precision.value, html)
+    key = run_key(b, chosen, identifier, picture, save_volumes, int8, device.value, precision.value, html,
+                  unexplained_threshold)
     out = Path(out)
     kept: list[str] = []
 
@@ -239,7 +253,7 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
         return []
     predictor = Predictor(b, int8=int8, warm_up=warm_up, device=device, precision=precision,
                           workers=int(workers) if workers is not None else auto_workers(count))
-    write = infer_writer(out, key, picture, save_volumes, html)
+    write = infer_writer(out, key, picture, save_volumes, html, unexplained_threshold)
     written: list[Path] = []
     with contextlib.closing(predictor.predict_many(frames, chosen, identifier, volumes=save_volumes,
                                                    progress="predicting")) as predictions:
@@ -285,11 +299,16 @@ def register(app: typer.Typer) -> None:
         precision: Precision = typer.Option(Precision.FP32, "--precision", help="fp16 with --device tensorrt|openvino; bf16 with --device openvino (a CPU with avx512_bf16 or amx_bf16)"),
         html: bool = typer.Option(False, "--html", help="also write <name>.html beside the PNG: the prediction in 3-D "
                                   "(one self-contained file, no network needed; docs/metric_and_pictures.md)"),
+        unexplained_threshold: Optional[float] = typer.Option(
+            None, "--unexplained-threshold", help="with --save-volumes: flag an occupied voxel as an unexplained "
+            "obstacle when its score is above this (default 0.5; choose one per prompt file on training frames: "
+            "docs/runtime.md, Unexplained obstacles)"),
     ) -> None:
         """Predict 3D occupancy for camera images with an exported bundle (numpy + onnxruntime)."""
         run_infer(images, prompts, bank, bundle, out, identifier.value if identifier else None, save_volumes, sample,
                   info, int8, picture.value, workers=workers, resume=resume, allow_outside_root=allow_outside_root,
-                  shard=shard, device=device.value, precision=precision.value, html=html)
+                  shard=shard, device=device.value, precision=precision.value, html=html,
+                  unexplained_threshold=unexplained_threshold)
 
     @app.command("demo")
     def demo_cmd(

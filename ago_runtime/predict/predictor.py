@@ -50,6 +50,15 @@ from ago_runtime.vocab.bank import check_class_count
 __all__ = ["Predictor", "Prediction", "FrameFeatures", "prepare_inputs", "table_id_lookup", "UNEXPLAINED_THRESHOLD"]
 
 
+# A voxel is flagged as an unexplained obstacle when it is occupied (p_occ > 0.5) and its score
+# 1 - (best prompted-class probability) exceeds this (decision.decide with volumes, against the
+# prompted + reference classes: fold_with_reference): no branch gives any prompted class more than half
+# of its probability. Measured in benchmarks/unexplained_obstacles.py (AUROC, share flagged at 0.5); a prompt
+# file whose classes explain their voxels weakly needs a higher one (`ago infer --unexplained-threshold`, chosen
+# on training frames by that benchmark's --choose-split).
+UNEXPLAINED_THRESHOLD = 0.5
+
+
 @dataclass
 class Prediction:
     """One frame's prediction over the grid (axis order [x, y, z])."""
@@ -68,13 +77,14 @@ class Prediction:
     timings: dict = field(default_factory=dict)   # seconds: preprocess, encoder, heads
     unexplained: np.ndarray | None = None   # (X, Y, Z) float32 unexplained-obstacle score (volumes=True)
     occupancy: np.ndarray | None = None     # (X, Y, Z) float32 p_occ against prompted + reference classes
+    unexplained_threshold: float = UNEXPLAINED_THRESHOLD   # the mask's score threshold
 
     @property
     def unexplained_mask(self) -> np.ndarray | None:
-        """(X, Y, Z) bool: occupied (p_occ > 0.5) and no prompt explains it (score > UNEXPLAINED_THRESHOLD)."""
+        """(X, Y, Z) bool: occupied (p_occ > 0.5) and no prompt explains it (score > unexplained_threshold)."""
         if self.unexplained is None:
             return None
-        return (self.occupancy > 0.5) & (self.unexplained > UNEXPLAINED_THRESHOLD)
+        return (self.occupancy > 0.5) & (self.unexplained > self.unexplained_threshold)
 
     @property
     def label_names(self) -> list[str]:
@@ -99,15 +109,10 @@ class Prediction:
             if self.unexplained is not None:
                 out.update(unexplained=self.unexplained, occupancy=self.occupancy,
                            unexplained_mask=self.unexplained_mask.astype(np.uint8),
-                           unexplained_threshold=np.array(UNEXPLAINED_THRESHOLD, np.float32))
+                           unexplained_threshold=np.array(self.unexplained_threshold, np.float32))
         return out
 
 
-# A voxel is flagged as an unexplained obstacle when it is occupied (p_occ > 0.5) and its score
-# 1 - (best prompted-class probability) exceeds this (decision.decide with volumes, against the
-# prompted + reference classes: fold_with_reference): no branch gives any prompted class more than half
-# of its probability. Measured in benchmarks/unexplained_obstacles.py (AUROC, share flagged at 0.5).
-UNEXPLAINED_THRESHOLD = 0.5
 
 
 def table_id_lookup(bank) -> np.ndarray | None:
