@@ -11,9 +11,10 @@ Bundle format 5 (ago_runtime/predict/contract.py):
   as x = log(1 + E_xy[x, y] * E_xz[x, z] * E_yz[y, z]) from the planes' exponentials, taken once a frame
   (`PlaneMaps`; e^a is the product of the three, so the per-voxel work is two products, an add and a log
   instead of two sums, a clamp, an exp, an add, a log and a max); a frame whose planes could overflow or
-  underflow that product takes the direct form, softplus(a) (`softplus_`). Then the voxel stages `voxels_<i>.onnx`, each y = x W^T + b (the softplus between
-  layers runs here in numpy + OpenCV). The decoder's stages (branch "main") give h (`hidden_slab`, every
-  voxel); the adapter's stages (branch "adapted") give g from h (`adapted_hidden`, for any subset of voxels).
+  underflow that product takes the direct form, softplus(a) (`softplus_`). Then the voxel stages
+  `voxels_<i>.onnx`, each y = x W^T + b (the softplus between layers runs here in numpy + OpenCV). The
+  decoder's stages (branch "main") give h (`hidden_slab`, every voxel); the adapter's stages (branch
+  "adapted") give g from h (`adapted_hidden`, for any subset of voxels).
 - the folded bank's products s = A x^T run in ago_runtime.predict.bank_product (`scores`).
 
 The slab loop that puts these together is ago_runtime.predict.classifier.VoxelClassifier.
