@@ -25,6 +25,8 @@ from ago_export.testing import random_checkpoint  # noqa: E402
 from ago_train.checkpoint import (DERIVED_KEYS, PAYLOAD_KEYS, BankRecord, CalibrationRecord,  # noqa: E402
                                   CheckpointContract, LabelSpaceRecord, TrainingState)
 
+pytestmark = pytest.mark.xdist_group("test_checkpoint_contract")  # one worker builds the module fixtures (--dist loadgroup)
+
 REPO = Path(__file__).resolve().parents[1]
 # the top-level keys `ago train` wrote at b3080d8 (last.pt of the shipped default model): the layout stays readable
 V1_TRAINER_KEYS = {"format", "version", "model", "optimizer", "scheduler", "step", "epoch", "total_steps",

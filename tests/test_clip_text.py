@@ -24,6 +24,8 @@ pytest.importorskip("transformers")
 from clip_tiny import WORDS, write_clip, write_noise  # noqa: E402
 from test_bad_inputs import assert_one_error_line, ok, run_ago  # noqa: E402
 
+pytestmark = pytest.mark.xdist_group("test_clip_text")  # one worker builds the module fixtures (--dist loadgroup)
+
 REPO = Path(__file__).resolve().parents[1]
 PROMPTS = """car [car]: car, van
 road [driveable_surface]: road, street

@@ -19,6 +19,8 @@ from ago_runtime.classes import OCC3D_NUSCENES, OCC3D_WAYMO, ClassTable, load_cl
 from ago_runtime.errors import AgoInputError
 from test_bad_inputs import assert_one_error_line, ok, run_ago, run_chain
 
+pytestmark = pytest.mark.xdist_group("test_custom_table")  # one worker builds the module fixtures (--dist loadgroup)
+
 # our own table: file id of each class, and the Occ3D-nuScenes classes relabelled into it
 MY_TABLE = {"name": "my_table", "free_id": 0, "ignore_ids": [255],
             "classes": [{"name": "vehicle", "id": 10}, {"name": "person", "id": 20},

@@ -19,6 +19,8 @@ from ago_runtime.errors import AgoInputError  # noqa: E402
 from ago_train.experiments.driver import EXPERIMENTS, ExperimentRunner, runs_for, views_for  # noqa: E402
 from ago_train.experiments.plan import ExperimentProfile, cw_run, fewshot_run, ow_run  # noqa: E402
 
+pytestmark = pytest.mark.xdist_group("test_experiments")  # one worker builds the module fixtures (--dist loadgroup)
+
 ENV = {**os.environ, "AGO_NO_PROGRESS": "1"}
 
 

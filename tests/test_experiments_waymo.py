@@ -22,6 +22,8 @@ from ago_train.experiments.driver import EXPERIMENTS, ExperimentRunner, runs_for
 from ago_train.experiments.plan import ExperimentProfile, profile_differences, waymo_run  # noqa: E402
 from ago_train.experiments.paper import read_paper_tables  # noqa: E402
 
+pytestmark = pytest.mark.xdist_group("test_experiments_waymo")  # one worker builds the module fixtures (--dist loadgroup)
+
 ENV = {**os.environ, "AGO_NO_PROGRESS": "1"}
 OW_WAYMO = ["pedestrian", "road", "sidewalk", "vehicle", "bicycle", "motorcycle", "bicyclist", "sign", "traffic light",
             "pole", "construction cone", "building", "vegetation", "tree trunk"]

@@ -24,6 +24,8 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
+pytestmark = pytest.mark.xdist_group("test_fit")  # one worker builds the module fixtures (--dist loadgroup)
+
 REPO = Path(__file__).resolve().parents[1]
 GRID = '{"range_min": [-40.0, -40.0, -1.0], "range_max": [40.0, 40.0, 5.4], "voxel_size": [0.8, 0.8, 0.8], ' \
        '"shape": [100, 100, 8]}'

@@ -17,6 +17,8 @@ pytest.importorskip("onnx")
 
 from ago_runtime.errors import AgoInputError  # noqa: E402
 
+pytestmark = pytest.mark.xdist_group("test_int8_qat")  # one worker builds the module fixtures (--dist loadgroup)
+
 REPO = Path(__file__).resolve().parents[1]
 GRID = "20x20x4"
 

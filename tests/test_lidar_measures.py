@@ -23,6 +23,8 @@ from ago_runtime.scoring.lidar_agreement import (PRIMARY, TrainingPrior, baselin
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_bad_inputs import assert_one_error_line, run_ago  # noqa: E402
 
+pytestmark = pytest.mark.xdist_group("test_lidar_measures")  # one worker builds the module fixtures (--dist loadgroup)
+
 OBJECT_IDS = [OCC3D_CLASSES.index(c) for c in BOX_CLASSES]
 TRAIN_FRAMES = 2     # the first two keyframes make the prior; the other two are scored
 

@@ -26,6 +26,8 @@ from ago_runtime.predict.bundle import Bundle  # noqa: E402
 from ago_runtime.predict.predictor import Predictor  # noqa: E402
 from ago_train.synth.rigs import make_rig  # noqa: E402
 
+pytestmark = pytest.mark.xdist_group("test_rigs")  # one worker builds the module fixtures (--dist loadgroup)
+
 REPO = Path(__file__).resolve().parents[1]
 
 

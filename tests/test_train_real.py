@@ -17,6 +17,8 @@ from ago_runtime.errors import AgoInputError
 
 from conftest import shared_path  # noqa: E402
 
+pytestmark = pytest.mark.xdist_group("test_train_real")  # one worker builds the module fixtures (--dist loadgroup)
+
 REPO = Path(__file__).resolve().parents[1]
 GRID = "20x20x4"
 

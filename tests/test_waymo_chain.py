@@ -18,6 +18,8 @@ from ago_runtime.formats.datasets import open_dataset  # noqa: E402
 from ago_train.synth.rigs import WAYMO_CAMERAS  # noqa: E402
 from test_bad_inputs import assert_one_error_line, ok, run_ago, run_chain  # noqa: E402
 
+pytestmark = pytest.mark.xdist_group("test_waymo_chain")  # one worker builds the module fixtures (--dist loadgroup)
+
 PROMPTS = "waymo/cw_waymo"          # the shipped closed Occ3D-Waymo label space (15 classes, Tab. G)
 WAYMO_NAMES = list(OCC3D_WAYMO.names)
 
