@@ -8,6 +8,11 @@ from pathlib import Path
 import pytest
 
 os.environ.setdefault("AGO_NO_PROGRESS", "1")
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # `pytest -n 2` on 2 cores: each worker, and every torch process it starts, gets one OpenMP thread. Two
+    # processes that each spin up an OpenMP thread per core starve each other (a 30 s training test took 240 s
+    # beside the experiments fixture's training subprocess).
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
