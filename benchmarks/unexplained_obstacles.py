@@ -37,7 +37,7 @@ from ago_runtime.vocab.bank import load_prompt_bank  # noqa: E402
 from ago_runtime.classes import FREE as OCC3D_FREE, OCC3D_CLASSES  # noqa: E402
 from ago_runtime.scoring.metric import upsample_nearest  # noqa: E402
 from ago_runtime.formats.nuscenes import NuScenesDataset  # noqa: E402
-from ago_runtime.predict.predictor import UNEXPLAINED_THRESHOLD, Predictor  # noqa: E402
+from ago_runtime.predict.predictor import UNEXPLAINED_THRESHOLD, Predictor, unexplained_mask  # noqa: E402
 from ago_runtime.progress import track  # noqa: E402
 from ago_runtime.vocab.prompts import parse_prompt_file  # noqa: E402
 from ago_runtime.scoring.ranking import average_precision, roc_auc  # noqa: E402
@@ -57,7 +57,8 @@ def choose_threshold(scores: np.ndarray, occupancy: np.ndarray, explained: np.nd
     n = int(explained.sum())
     if n == 0:
         raise ValueError("no explained voxels to choose a threshold on")
-    cand = np.sort(scores[explained & (occupancy > 0.5)])[::-1]   # the explained voxels the mask could flag
+    could = unexplained_mask(scores, occupancy, -np.inf)            # flagged at some threshold: the occupied ones
+    cand = np.sort(scores[explained & could])[::-1]
     allowed = int(np.floor(false_rate * n))
     if allowed >= len(cand):
         return 0.0
@@ -120,7 +121,7 @@ def main(argv=None) -> dict:
     fpr = float(flagged[~positive].mean()) if (~positive).any() else float("nan")
     at_chosen = None
     if chosen is not None:
-        at_chosen = (occ > 0.5) & (s > chosen["threshold"])
+        at_chosen = unexplained_mask(s, occ, chosen["threshold"])
         chosen["tpr"] = float(at_chosen[positive].mean()) if positive.any() else float("nan")
         chosen["fpr"] = float(at_chosen[~positive].mean()) if (~positive).any() else float("nan")
     per_class = []

@@ -47,7 +47,8 @@ from ago_runtime.predict.heads import FoldedHeads
 from ago_runtime.providers import Device, Precision, check_device, parse_device, parse_precision
 from ago_runtime.vocab.bank import check_class_count
 
-__all__ = ["Predictor", "Prediction", "FrameFeatures", "prepare_inputs", "table_id_lookup", "UNEXPLAINED_THRESHOLD"]
+__all__ = ["Predictor", "Prediction", "FrameFeatures", "prepare_inputs", "table_id_lookup", "UNEXPLAINED_THRESHOLD",
+           "unexplained_mask"]
 
 
 # A voxel is flagged as an unexplained obstacle when it is occupied (p_occ > 0.5) and its score
@@ -57,6 +58,11 @@ __all__ = ["Predictor", "Prediction", "FrameFeatures", "prepare_inputs", "table_
 # file whose classes explain their voxels weakly needs a higher one (`ago infer --unexplained-threshold`, chosen
 # on training frames by that benchmark's --choose-split).
 UNEXPLAINED_THRESHOLD = 0.5
+
+
+def unexplained_mask(unexplained: np.ndarray, occupancy: np.ndarray, threshold: float) -> np.ndarray:
+    """The unexplained-obstacle mask's rule: occupied (p_occ > 0.5) and score above `threshold` (any shapes)."""
+    return (occupancy > 0.5) & (unexplained > threshold)
 
 
 @dataclass
@@ -84,7 +90,7 @@ class Prediction:
         """(X, Y, Z) bool: occupied (p_occ > 0.5) and no prompt explains it (score > unexplained_threshold)."""
         if self.unexplained is None:
             return None
-        return (self.occupancy > 0.5) & (self.unexplained > self.unexplained_threshold)
+        return unexplained_mask(self.unexplained, self.occupancy, self.unexplained_threshold)
 
     @property
     def label_names(self) -> list[str]:
@@ -111,8 +117,6 @@ class Prediction:
                            unexplained_mask=self.unexplained_mask.astype(np.uint8),
                            unexplained_threshold=np.array(self.unexplained_threshold, np.float32))
         return out
-
-
 
 
 def table_id_lookup(bank) -> np.ndarray | None:
