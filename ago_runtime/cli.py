@@ -1,7 +1,7 @@
 """The `ago` command line (typer): the table of verb modules, the app built from it, and the one error path.
 
 Verbs live next to what they drive, each module defining `register(app)`:
-ago_runtime/predict/cli.py (infer, demo, retrieve), ago_runtime/vocab/cli.py (prompts build|show),
+ago_runtime/predict/cli.py (infer, demo, retrieve, choose-threshold), ago_runtime/vocab/cli.py (prompts build|show),
 ago_runtime/pictures/cli.py (show), ago_runtime/scoring/cli.py (metric), and in the training
 packages ago_train/text/cli.py (prompts export-encoder|noise), ago_train/synth/cli.py (synth),
 ago_train/vlm/cli.py (vlm-files), ago_train/pseudo/cli.py (pseudo-labels, seen-gt), ago_train/cli.py (train, calibrate, eval, open-world),
@@ -58,6 +58,7 @@ VERB_MODULES: dict[str, tuple[str, ...]] = {
     "infer": ("ago_runtime.predict.cli",),
     "demo": ("ago_runtime.predict.cli",),
     "retrieve": ("ago_runtime.predict.cli",),
+    "choose-threshold": ("ago_runtime.predict.cli",),
     "prompts": ("ago_runtime.vocab.cli", "ago_train.text.cli"),   # build|show; export-encoder|noise
     "show": ("ago_runtime.pictures.cli",),
     "metric": ("ago_runtime.scoring.cli",),

@@ -16,10 +16,12 @@ average precision beside the positives' prevalence, and the share of positives a
 mask flags (p_occ > 0.5 and score > `ago_runtime.predict.predictor.UNEXPLAINED_THRESHOLD`), plus the mean
 score per GT class. Writes a markdown table with the command.
 
---choose-split SPLIT: a mask threshold for this prompt file chosen on other frames (`choose_threshold`: the
-lowest threshold at which the mask flags at most --false-rate of the prompted-class voxels of SPLIT, e.g. the
-training split), then the mask at that threshold on --split beside the fixed one: the value to give
-`ago infer --unexplained-threshold`. The scored split is not looked at while choosing.
+--choose-split SPLIT: a mask threshold for this prompt file chosen on other frames (the rule of `ago
+choose-threshold`, ago_runtime.predict.threshold.choose_threshold: the lowest threshold at which the mask flags
+at most --false-rate of the prompted-class voxels of SPLIT, here by the GT, e.g. the training split), then the
+mask at that threshold on --split beside the fixed one. The scored split is not looked at while choosing.
+With --choose-labels PSEUDO_DIR the threshold is chosen as a user without GT chooses it: `ago choose-threshold`'s
+code on those pseudo-labels of the same frames.
 """
 
 from __future__ import annotations
@@ -38,6 +40,8 @@ from ago_runtime.classes import FREE as OCC3D_FREE, OCC3D_CLASSES  # noqa: E402
 from ago_runtime.scoring.metric import upsample_nearest  # noqa: E402
 from ago_runtime.formats.nuscenes import NuScenesDataset  # noqa: E402
 from ago_runtime.predict.predictor import UNEXPLAINED_THRESHOLD, Predictor, unexplained_mask  # noqa: E402
+from ago_runtime.predict.frames import open_frames  # noqa: E402
+from ago_runtime.predict.threshold import LabelFolder, choose_for_prompts, choose_threshold  # noqa: E402
 from ago_runtime.progress import track  # noqa: E402
 from ago_runtime.vocab.prompts import parse_prompt_file  # noqa: E402
 from ago_runtime.scoring.ranking import average_precision, roc_auc  # noqa: E402
@@ -45,24 +49,6 @@ from ago_runtime.scoring.ranking import average_precision, roc_auc  # noqa: E402
 
 def covered_occ3d_ids(prompt_file: str) -> set[int]:
     return {i for c in parse_prompt_file(prompt_file).classes for i in c.occ3d_ids}
-
-
-def choose_threshold(scores: np.ndarray, occupancy: np.ndarray, explained: np.ndarray, false_rate: float) -> float:
-    """The lowest mask threshold t (score > t and occupancy > 0.5 flags a voxel) that flags at most `false_rate`
-    of the `explained` voxels (GT classes the prompt file covers); scores, occupancy: per voxel. Ties at t stay
-    unflagged (the mask is strict), so the rate holds exactly; 0.5 <= ... is not assumed: a prompt file that
-    explains its classes well gets a threshold below 0.5."""
-    if not 0.0 <= false_rate < 1.0:
-        raise ValueError(f"false_rate must be in [0, 1), got {false_rate}")
-    n = int(explained.sum())
-    if n == 0:
-        raise ValueError("no explained voxels to choose a threshold on")
-    could = unexplained_mask(scores, occupancy, -np.inf)            # flagged at some threshold: the occupied ones
-    cand = np.sort(scores[explained & could])[::-1]
-    allowed = int(np.floor(false_rate * n))
-    if allowed >= len(cand):
-        return 0.0
-    return float(cand[allowed])    # flags only scores > cand[allowed]: at most `allowed` voxels
 
 
 def score_frames(predictor, bank, ds, indices, what: str):
@@ -94,6 +80,8 @@ def main(argv=None) -> dict:
     ap.add_argument("--choose-frames", type=int, default=40, help="frames of --choose-split (spread over it)")
     ap.add_argument("--false-rate", type=float, default=0.05, help="share of prompted-class voxels the chosen "
                     "threshold may flag on --choose-split")
+    ap.add_argument("--choose-labels", default=None, help="with --choose-split: choose on these labels (an `ago "
+                    "pseudo-labels` folder, as `ago choose-threshold` does) instead of the split's GT")
     args = ap.parse_args(argv)
     if args.choose_split is not None and args.choose_split == args.split:
         ap.error("--choose-split must differ from --split (the scored frames are not used to choose)")
@@ -108,9 +96,20 @@ def main(argv=None) -> dict:
     if args.choose_split is not None:   # chosen first, on frames the scoring below never reads
         pool = ds.split(args.choose_split) if args.choose_split != "all" else list(range(len(ds)))
         pick = [pool[int(k)] for k in np.linspace(0, len(pool) - 1, min(args.choose_frames, len(pool)))]
-        s_c, occ_c, _, c_c = score_frames(predictor, bank, ds, sorted(set(pick)), "choosing the threshold")
+        if args.choose_labels is None:
+            s_c, occ_c, _, c_c = score_frames(predictor, bank, ds, sorted(set(pick)), "choosing the threshold")
+            threshold = choose_threshold(s_c, occ_c, np.isin(c_c, sorted(covered)), args.false_rate)
+            labels_used = "its Occ3D GT"
+        else:   # the user's path: `ago choose-threshold`'s own code on pseudo-labels of the same frames
+            folder = LabelFolder.open(args.choose_labels)
+            tokens = [ds.sample_tokens[i] for i in sorted(set(pick)) if ds.sample_tokens[i] in folder.files]
+            if not tokens:
+                ap.error(f"--choose-labels {args.choose_labels} has no label of the picked {args.choose_split} frames")
+            threshold = choose_for_prompts(predictor, bank, open_frames(args.data, tokens, rig=predictor.bundle.rig),
+                                           folder, args.false_rate).threshold
+            pick, labels_used = tokens, f"the pseudo-labels in {args.choose_labels} (`ago choose-threshold`'s code)"
         chosen = {"split": args.choose_split, "frames": len(set(pick)), "false_rate": args.false_rate,
-                  "threshold": choose_threshold(s_c, occ_c, np.isin(c_c, sorted(covered)), args.false_rate)}
+                  "threshold": threshold, "labels": labels_used}
     s, occ, flagged, c = score_frames(predictor, bank, ds, indices, "unexplained-obstacle score")
     positive = ~np.isin(c, sorted(covered))
     auc = roc_auc(s, positive)
@@ -136,7 +135,7 @@ def main(argv=None) -> dict:
     chosen_text = ""
     if chosen is not None:
         chosen_text = (f"\nA threshold for this prompt file, chosen on {chosen['frames']} frames of split "
-                       f"`{chosen['split']}` (not scored here) as the lowest that flags at most "
+                       f"`{chosen['split']}` (not scored here), by {chosen['labels']}, as the lowest that flags at most "
                        f"{100 * chosen['false_rate']:g} % of its prompted-class voxels: **{chosen['threshold']:.3f}** "
                        f"(`ago infer --save-volumes --unexplained-threshold {chosen['threshold']:.3f}`). On the scored "
                        f"frames it flags {100 * chosen['tpr']:.1f} % of absent-class voxels and "

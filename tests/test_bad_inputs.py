@@ -218,6 +218,8 @@ def w(tmp_path_factory):
 TRAIN = lambda w: ["--data", w.data, "--pseudo", w.pseudo, "--set", 'train_split="all"', "--set",   # noqa: E731
                    f'noise_bank="{w.noise}"', "--set", 'device="cpu"']
 
+CHOOSE = lambda w: ["choose-threshold", "--images", w.data, "--bundle", w.bundle]   # noqa: E731
+
 ROWS = [
     # ---- usage errors, every verb (click's classes, whichever copy typer carries)
     ("unknown verb", lambda w: ["bogus"], ["bogus"], []),
@@ -247,6 +249,20 @@ ROWS = [
     ("infer --unexplained-threshold without --save-volumes",
      lambda w: ["infer", "--images", w.frame, "--bundle", w.bundle, "--unexplained-threshold", "0.8", "--out", "o"],
      ["--unexplained-threshold", "--save-volumes"], ["o"]),
+    ("choose-threshold --false-rate 1", lambda w: CHOOSE(w) + ["--labels", w.pseudo, "--false-rate", "1",
+                                                              "--json", "o.json"], ["--false-rate", "below 1"],
+     ["o.json"]),
+    ("choose-threshold --false-rate nan", lambda w: CHOOSE(w) + ["--labels", w.pseudo, "--false-rate", "nan"],
+     ["--false-rate"], []),
+    ("choose-threshold --frames 0", lambda w: CHOOSE(w) + ["--labels", w.pseudo, "--frames", "0", "--json", "o.json"],
+     ["--frames", "between 1"], ["o.json"]),
+    ("choose-threshold --labels not a label folder", lambda w: CHOOSE(w) + ["--labels", w.frame],
+     ["--labels", "labels.npz"], []),
+    ("choose-threshold --labels missing", lambda w: CHOOSE(w) + ["--labels", "nowhere"], ["nowhere", "not found"], []),
+    ("choose-threshold --json under a file", lambda w: CHOOSE(w) + ["--labels", w.pseudo, "--json",
+                                                                    w.a_file / "c.json"], ["a_file.txt"], []),
+    ("choose-threshold --prompts and --bank", lambda w: CHOOSE(w) + ["--labels", w.pseudo, "--prompts", "ow",
+                                                                     "--bank", "ow"], ["--bank", "not both"], []),
     ("demo --bogus", lambda w: ["demo", "--bogus"], ["--bogus"], []),
     ("train-real: dataroot missing", lambda w: ["train-real", "no_such_root", "o"], ["no_such_root"], ["o"]),
     ("train-real --steps 0", lambda w: ["train-real", w.data, "o", "--steps", "0"], ["--steps"], ["o"]),

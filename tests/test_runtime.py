@@ -518,9 +518,9 @@ def test_cli_infer_unexplained_threshold_sets_the_mask(bundle_dir, frame_dir, tm
 
 
 def test_choose_unexplained_threshold():
-    """benchmarks.unexplained_obstacles.choose_threshold: the lowest threshold whose strict mask flags at most the
+    """ago_runtime.predict.threshold.choose_threshold: the lowest threshold whose strict mask flags at most the
     given share of explained voxels; voxels called free never count."""
-    from benchmarks.unexplained_obstacles import choose_threshold
+    from ago_runtime.predict.threshold import choose_threshold
 
     s = np.array([0.9, 0.8, 0.7, 0.6, 0.2, 0.95, 0.1, 0.85], np.float32)
     occ = np.array([1, 1, 1, 1, 1, 0, 1, 1], np.float32)      # the 0.95 voxel is called free
@@ -918,3 +918,84 @@ def test_unexplained_score_sees_reference_classes_and_keeps_the_labels():
         assert d_ref.unexplained[0] < 0.01 and d_ref.occupancy[2] < 0.01
     with pytest.raises(ValueError):
         FoldedHeads.fold(w, np.eye(2, C, dtype=np.float32), np.arange(2), 2, reference_classes=2)
+
+
+# ---------------------------------------------------------------------------- ago choose-threshold
+def _pseudo_like(gt_root: Path, out: Path, step: int, range_max=(40.0, 40.0, 5.4)) -> Path:
+    """An `ago pseudo-labels`-shaped folder (meta.json naming the cw classes, free 17) made from a synthetic town's
+    Occ3D GT, every `step`-th voxel along x and y (a coarser grid)."""
+    from ago_runtime.classes import OCC3D_CLASSES
+
+    shape = None
+    for f in sorted(gt_root.glob("*/*/labels.npz")):
+        with np.load(f) as z:
+            sem, mask = z["semantics"][::step, ::step], z["mask_camera"][::step, ::step]
+        d = out / f.parent.parent.name / f.parent.name
+        d.mkdir(parents=True)
+        np.savez(d / "labels.npz", semantics=sem, mask_camera=mask)
+        shape = sem.shape
+    meta = {"label_space": {"name": "cw", "classes": list(OCC3D_CLASSES[:17])}, "free_index": 17,
+            "ignore_index": 255, "grid": {"range_min": [-40.0, -40.0, -1.0], "range_max": list(range_max),
+                                          "shape": list(shape)}}
+    (out / "meta.json").write_text(json.dumps(meta))
+    return out
+
+
+def test_choose_threshold_on_labelled_frames(bundle_dir, tmp_path):
+    """`ago choose-threshold` on Occ3D GT (labels finer than the bundle's grid) and on a pseudo-label folder
+    (coarser): the threshold it prints is the one `ago infer --unexplained-threshold` then applies, flagging at most
+    --false-rate of the voxels labelled with a prompted class (recomputed here from infer's own npz files and the
+    labels), and --frames picks that many frames. Labels of another grid range or of frames the dataset lacks are
+    refused with one line."""
+    from ago_runtime.predict.threshold import LabelFolder
+    from ago_runtime.scoring.metric import upsample_nearest
+    from ago_runtime.vocab.prompts import parse_prompt_file
+
+    data = tmp_path / "town"
+    r = run_cli(["synth", "--out", data, "--scenes", "1", "--frames", "3", "--image-size", "96x54", "--grid",
+                 "40x40x4"], cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    prompts = str(REPO / "prompts" / "ow_pretrain.txt")
+    base = ["choose-threshold", "--images", data, "--bundle", bundle_dir, "--prompts", prompts]
+    r = run_cli(base + ["--labels", data / "gts", "--json", tmp_path / "gt.json", "--false-rate", "0.1"], cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    choice = json.loads((tmp_path / "gt.json").read_text())
+    t = choice["threshold"]
+    assert f"--unexplained-threshold {t:.3f}" in r.stdout and len(choice["frames"]) == 3
+
+    out = tmp_path / "infer"
+    r = run_cli(["infer", "--images", data, "--bundle", bundle_dir, "--prompts", prompts, "--out", out,
+                 "--save-volumes", "--picture", "none", "--unexplained-threshold", repr(t) if t > 0 else "1e-9"],
+                cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    labels = LabelFolder.open(data / "gts")
+    classes = parse_prompt_file(prompts).classes   # vehicle [car, bus, ...] explains car, bus ...
+    covered = {c.name for c in classes} | {OCC3D_CLASSES[i] for c in classes for i in c.occ3d_ids}
+    ids = [i for i, n in enumerate(labels.class_names) if n in covered]
+    flagged, explained = 0, 0
+    for token in choice["frames"]:
+        sem, counted = labels.load(token)
+        with np.load(out / f"{token}.npz") as z:
+            factor = [a // b for a, b in zip(sem.shape, z["unexplained_mask"].shape)]
+            mask = upsample_nearest(z["unexplained_mask"].astype(bool), factor)
+        sel = counted & np.isin(sem, ids)
+        flagged += int(mask[sel].sum())
+        explained += int(sel.sum())
+    assert explained == choice["explained_voxels"] > 0
+    if t > 0:
+        assert flagged / explained == pytest.approx(choice["flagged_explained"]) and flagged / explained <= 0.1
+
+    pseudo = _pseudo_like(data / "gts", tmp_path / "pseudo", step=4)        # 10 x 10 x 4: coarser than the bundle's
+    r = run_cli(base + ["--labels", pseudo, "--frames", "2", "--json", tmp_path / "p.json"], cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    p = json.loads((tmp_path / "p.json").read_text())
+    assert len(p["frames"]) == 2 and 0.0 <= p["threshold"] <= 1.0 and p["flagged_explained"] <= 0.05
+
+    wrong = _pseudo_like(data / "gts", tmp_path / "wrong_range", step=4, range_max=(50.0, 50.0, 5.4))
+    r = run_cli(base + ["--labels", wrong], cwd=tmp_path)
+    assert r.returncode == 2 and "meta.json" in r.stderr and "not the same space" in r.stderr
+    other = tmp_path / "other" / "scene-x" / ("0" * 32)
+    other.mkdir(parents=True)
+    shutil.copy(next((data / "gts").glob("*/*/labels.npz")), other / "labels.npz")
+    r = run_cli(base + ["--labels", tmp_path / "other"], cwd=tmp_path)
+    assert r.returncode == 2 and "none of the 1 labelled frames" in r.stderr

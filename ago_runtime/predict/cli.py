@@ -1,4 +1,6 @@
-"""`ago infer`, `ago demo`, `ago retrieve`: run an exported bundle on camera images (no torch).
+"""`ago infer`, `ago demo`, `ago retrieve`: run an exported bundle on camera images (no torch); `ago
+choose-threshold`: the unexplained-obstacle threshold for a prompt file, chosen on labelled frames
+(ago_runtime/predict/threshold.py).
 
 Inputs (`--images DIR`):
 - an images folder: one image per camera of the bundle's rig, named by camera (`CAM_FRONT.jpg` ...), and a `calib.json`
@@ -310,6 +312,25 @@ def register(app: typer.Typer) -> None:
                   shard=shard, device=device.value, precision=precision.value, html=html,
                   unexplained_threshold=unexplained_threshold)
 
+    @app.command("choose-threshold")
+    def choose_threshold_cmd(
+        images: Path = typer.Option(..., "--images", help="the dataset (nuScenes or Occ3D-Waymo layout) holding the "
+                                    "labelled frames"),
+        labels: Path = typer.Option(..., "--labels", help="their labels: an `ago pseudo-labels` folder (what "
+                                    "training on your own data gives) or Occ3D ground truth (<scene>/<token>/labels.npz)"),
+        prompts: Optional[str] = typer.Option(None, "--prompts", help="the prompt file `ago infer` will use (the "
+                                              "threshold is for this file); default: the bundle's training classes"),
+        bank: Optional[str] = typer.Option(None, "--bank", help="a prompt bank .npz, or the name of a bank in the bundle"),
+        bundle: Optional[Path] = typer.Option(None, "--bundle", help="bundle folder (default: $AGO_BUNDLE, then the "
+                                              "shipped one)"),
+        false_rate: float = typer.Option(0.05, "--false-rate", help="the share of voxels labelled with a prompted class "
+                                         "the mask may flag (0 <= r < 1)"),
+        frames: int = typer.Option(40, "--frames", help="labelled frames used, spread over those the dataset holds"),
+        json_out: Optional[Path] = typer.Option(None, "--json", help="also write the choice and its rates as JSON"),
+    ) -> None:
+        """Choose `ago infer --unexplained-threshold` for a prompt file on labelled frames (pseudo-labels or GT)."""
+        run_choose_threshold(images, labels, prompts, bank, bundle, false_rate, frames, json_out)
+
     @app.command("demo")
     def demo_cmd(
         out: Path = typer.Option(Path("ago_demo"), "--out", "-o", help="output folder"),
@@ -347,6 +368,68 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Similarity of every voxel to a phrase (cosine, on the adapted VLM-aligned branch) + a BEV picture."""
         run_retrieve(phrase, images, bundle, out, sample, device.value, precision.value, html)
+
+
+def run_choose_threshold(images: Path, labels: Path, prompts: Optional[str], bank: Optional[str], bundle,
+                         false_rate: float = 0.05, frames: int = 40, json_out: Path | None = None):
+    """`ago choose-threshold`: check the options, open the labels and the bank, pick up to `frames` labelled
+    frames of the dataset (spread evenly over them, in the label folder's order), predict them and choose the
+    threshold (ago_runtime/predict/threshold.py); prints it and the rates it gives. Gives the ThresholdChoice."""
+    from ago_runtime.atomic import write_json
+    from ago_runtime.outputs import check_output_file
+    from ago_runtime.predict.bundle import Bundle, resolve_bundle
+    from ago_runtime.predict.frames import open_frames
+    from ago_runtime.predict.predictor import UNEXPLAINED_THRESHOLD, Predictor
+    from ago_runtime.predict.threshold import LabelFolder, choose_for_prompts
+
+    one_line_warnings()
+    if not 0.0 <= float(false_rate) < 1.0:   # (NaN fails this too)
+        raise AgoInputError("--false-rate", f"must be at least 0 and below 1, got {false_rate}")
+    if not 1 <= int(frames) <= 100_000:
+        raise AgoInputError("--frames", f"must be between 1 and 100000, got {frames}")
+    if json_out is not None:
+        check_output_file(json_out, "--json")   # before any work
+    folder = LabelFolder.open(labels)
+    b = Bundle.load(resolve_bundle(bundle))
+    chosen_bank = choose_bank(b, prompts, bank)
+    present: list[str] = []
+
+    def unlabelled(token: str) -> bool:
+        if token in folder.files:
+            present.append(token)
+            return False
+        return True
+
+    open_frames(images, rig=b.rig, skip=unlabelled)   # which labelled frames the dataset holds (nothing decoded)
+    if not present:
+        raise AgoInputError("--labels", f"none of the {len(folder.files)} labelled frames of {labels} is a keyframe of "
+                            f"{images}")
+    order = {t: i for i, t in enumerate(folder.files)}
+    present.sort(key=order.__getitem__)
+    picked = {present[int(k)] for k in np.linspace(0, len(present) - 1, min(int(frames), len(present)))}
+    predictor = Predictor(b)
+    choice = choose_for_prompts(predictor, chosen_bank, open_frames(images, rig=b.rig, skip=lambda t: t not in picked),
+                                folder, float(false_rate))
+
+    def pct(x) -> str:
+        return "-" if x is None else f"{100 * x:.1f} %"
+
+    what = f"--prompts {prompts}" if prompts else f"--bank {bank}" if bank else "the bundle's training classes"
+    typer.echo(f"unexplained threshold for {what}: {choice.threshold:.3f}")
+    typer.echo(f"  chosen on {len(choice.frames)} frames ({folder.kind} in {labels}): the lowest threshold that "
+               f"flags at most {100 * choice.false_rate:g} % of the {choice.explained_voxels} voxels labelled "
+               f"{', '.join(choice.explained_classes)}")
+    others = (f"{pct(choice.flagged_other)} of the {choice.other_voxels} voxels labelled with other classes "
+              f"({', '.join(choice.other_classes)})" if choice.other_voxels else "no voxel is labelled with another class")
+    typer.echo(f"  flagged at {choice.threshold:.3f}: {pct(choice.flagged_explained)} of those; {others}; at "
+               f"{UNEXPLAINED_THRESHOLD}: {pct(choice.default_flagged_explained)}"
+               + (f" and {pct(choice.default_flagged_other)}" if choice.other_voxels else ""))
+    typer.echo(f"  use: ago infer --save-volumes --unexplained-threshold {choice.threshold:.3f}"
+               + (f" --prompts {prompts}" if prompts else f" --bank {bank}" if bank else ""))
+    if json_out is not None:
+        write_json(json_out, {**choice.to_dict(), "labels": str(labels), "images": str(images),
+                              "prompts": prompts, "bank": bank, "bundle": str(b.root)})
+    return choice
 
 
 def run_retrieve(phrase: str, images: Path, bundle, out: Path, sample: str | None = None, device: str = "cpu",
