@@ -406,7 +406,7 @@ def bundle_cases(x) -> list:
         ("bundle.json grid 10^12 voxels", grid_huge, ["bundle.json", "grid"]),
         ("bundle.json lists 2 classes", classes_lie, ["bundle.json", "label_space"]),
         ("bundle.json lists 100000 classes", classes_many, ["bundle.json", "label_space"]),
-        ("bundle.json text width 7", dim_lie, ["heads.npz", "width 7"]),
+        ("bundle.json text width 7", dim_lie, ["heads.npz", "C 7"]),
         ("bundle.json preprocess width 10^9", pre_huge, ["bundle.json", "preprocess.width"]),
         ("bundle.json preprocess height 0", pre_zero, ["bundle.json", "preprocess.height"]),
         ("bundle.json preprocess std 0", std_zero, ["bundle.json", "preprocess.std"]),
@@ -418,8 +418,9 @@ def bundle_cases(x) -> list:
         ("voxel stage of other widths (hash updated)", stage_other_widths, ["voxels_0.onnx", "voxel_stages[0]"]),
         ("bundle.json file: absolute path outside", file_outside, ["bundle.json", "outside"]),
         ("bundle.json file: ../ path", file_dotdot, ["bundle.json", "outside"]),
-        ("bundle.json bank: ../ path", bank_outside, ["bundle.json", "outside"]),
-        ("bundle.json bank: absolute path", bank_abs, ["bundle.json", "outside"]),
+        # a bank names an entry of the bundle's own file table (format 5), so a path is refused as not listed there
+        ("bundle.json bank: ../ path", bank_outside, ["bundle.json", "banks['train']", "files does not list"]),
+        ("bundle.json bank: absolute path", bank_abs, ["bundle.json", "banks['train']", "files does not list"]),
         ("bundle.json names a missing file", file_missing, ["nothing.onnx"]),
         ("bundle.json voxel_stages bogus", stages_bogus, ["bundle.json"]),
         ("bundle.json 100000 voxel stages", stages_many, ["bundle.json"]),
@@ -785,6 +786,33 @@ def npz_cases(x) -> list:
         "metric", "--pred", late, "--gt", x.data / "gts"], [str(last.relative_to(late))], []))
     cases.append(("npz / banks", "metric --pred with a zip-bomb prediction", lambda: [
         "metric", "--pred", pred, "--gt", x.data / "gts", "--allow-missing"], ["labels.npz"], []))
+    # choose-threshold --labels: a pseudo-label folder with one hostile labels.npz, or a hostile meta.json
+    CT = lambda labels: ["choose-threshold", "--images", x.data, "--bundle", x.bundle, "--labels", labels]  # noqa: E731
+    for n in ("zip_bomb.npz", "huge_shape.npz", "pickle.npz", "huge_dims_no_data.npz", "empty_grid.npz"):
+        d = root / f"ct_{n[:-4]}"
+        if d.exists():
+            shutil.rmtree(d)
+        shutil.copytree(x.pseudo, d)
+        target = sorted(d.glob("*/*/labels.npz"))[0]
+        shutil.copy(files[n], target)
+        cases.append(("npz / banks", f"choose-threshold --labels with a {n[:-4]} labels.npz",
+                      lambda d=d: CT(d), [str(target.relative_to(d))], []))
+    for n, change in (("classes a string", lambda m: m["label_space"].__setitem__("classes", "car")),
+                      ("free_index text", lambda m: m.__setitem__("free_index", "x")),
+                      ("free = ignore", lambda m: m.__setitem__("free_index", 255)),
+                      ("grid range of 2 axes", lambda m: m["grid"].__setitem__("range_min", [0, 0])),
+                      ("10^5 nested lists", lambda m: m.__setitem__("deep", json.loads("[" * 100000 + "]" * 100000)))):
+        d = root / f"ct_meta_{n.replace(' ', '_').replace('^', '')}"
+        if d.exists():
+            shutil.rmtree(d)
+        shutil.copytree(x.pseudo, d)
+        meta = json.loads((d / "meta.json").read_text())
+        if n == "10^5 nested lists":
+            (d / "meta.json").write_text(json.dumps(meta)[:-1] + ', "deep": ' + "[" * 100000 + "]" * 100000 + "}")
+        else:
+            change(meta)
+            (d / "meta.json").write_text(json.dumps(meta))
+        cases.append(("npz / banks", f"choose-threshold --labels meta.json: {n}", lambda d=d: CT(d), ["meta.json"], []))
     return cases
 
 
@@ -816,6 +844,8 @@ def output_cases(x) -> list:
     file_verbs = {
         "show": lambda o: ["show", x.gt, "--out", o],
         "metric --json": lambda o: ["metric", "--pred", x.data / "gts", "--gt", x.data / "gts", "--json", o],
+        "choose-threshold --json": lambda o: ["choose-threshold", "--images", x.data, "--bundle", x.bundle, "--labels",
+                                              x.pseudo, "--json", o],
         "prompts build": lambda o: ["prompts", "build", "cw", "-o", o],
         "prompts noise": lambda o: ["prompts", "noise", "-o", o],
         "prompts export-encoder": lambda o: ["prompts", "export-encoder", "-o", o],
@@ -832,7 +862,7 @@ def output_cases(x) -> list:
                                    ("/dev/null", Path("/dev/null"), "/dev/null"),
                                    ("under /sys", Path("/sys/ago-sweep.x"), "/sys/ago-sweep.x"),
                                    ("empty string", "", None)):
-            option = "--out" if verb == "show" else "--json" if verb.startswith("metric") else "-o"
+            option = "--out" if verb == "show" else "--json" if verb.endswith("--json") else "-o"
             cases.append(("outputs", f"{verb} -o {kind}", lambda make=make, path=path: make(path), [needle or option],
                           [root / "nowhere.png"] if path == dangling_file else []))
     cases.append(("outputs", "metric --json x.json --md x.json", lambda: [

@@ -89,7 +89,10 @@ class LabelFolder:
             return cls(root, dict(sorted(files.items(), key=lambda kv: str(kv[1]))), list(OCC3D_CLASSES), FREE)
         meta = read_json(root / "meta.json")
         try:
-            names = [str(c) for c in meta["label_space"]["classes"]]
+            classes = meta["label_space"]["classes"]
+            if not isinstance(classes, list) or not all(isinstance(c, str) for c in classes):
+                raise TypeError(f"label_space.classes is {type(classes).__name__}, not a list of names")
+            names = list(classes)
             free = int(meta.get("free_index", len(names)))
             ignore = int(meta.get("ignore_index", 255))
             grid = meta.get("grid") or {}
