@@ -32,7 +32,7 @@ REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("ago_runtime", "ago_train", "ago_export")
 
 BASICS = {"errors", "atomic", "readers", "outputs", "paths", "progress", "classes", "cache", "providers", "openvino_session",
-          "shards"}
+          "shards", "volumes"}
 # subpackage -> the ago_runtime parts its (non-cli) modules may import; "basics" = the top-level modules above
 ALLOWED = {
     "basics": {"basics"},

@@ -138,7 +138,7 @@ def _common_shape(a: tuple[int, ...], b: tuple[int, ...], what: str) -> tuple[in
 
 
 def _repeat_to(volume: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
-    from ago_runtime.scoring.metric import upsample_nearest
+    from ago_runtime.volumes import upsample_nearest
 
     return upsample_nearest(volume, [s // v for s, v in zip(shape, volume.shape)])
 

@@ -33,21 +33,7 @@ import numpy as np
 
 from ago_runtime.errors import AgoInputError
 from ago_runtime.classes import FREE, IGNORE, MIOU_STAR_EXCLUDED, OCC3D_CLASSES, ClassTable
-
-
-def upsample_nearest(volume: np.ndarray, factor_xyz: int | Sequence[int]) -> np.ndarray:
-    """Repeat each voxel `factor` times along each axis: (X, Y, Z) -> (X*fx, Y*fy, Z*fz), same dtype."""
-    if isinstance(factor_xyz, (int, np.integer)):
-        factor_xyz = (int(factor_xyz),) * volume.ndim
-    out = np.asarray(volume)
-    if len(factor_xyz) != out.ndim:
-        raise ValueError(f"need one factor per axis: volume has {out.ndim} axes, got {tuple(factor_xyz)}")
-    for axis, f in enumerate(factor_xyz):
-        if int(f) < 1:
-            raise ValueError(f"upsampling factors must be >= 1, got {tuple(factor_xyz)}")
-        if int(f) > 1:
-            out = np.repeat(out, int(f), axis=axis)
-    return out
+X
 
 
 def _pct(x: float) -> float | None:
