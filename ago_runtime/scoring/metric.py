@@ -33,7 +33,7 @@ import numpy as np
 
 from ago_runtime.errors import AgoInputError
 from ago_runtime.classes import FREE, IGNORE, MIOU_STAR_EXCLUDED, OCC3D_CLASSES, ClassTable
-X
+from ago_runtime.volumes import upsample_nearest  # also imported from here by metric's callers
 
 
 def _pct(x: float) -> float | None:
