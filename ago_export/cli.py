@@ -1,4 +1,4 @@
-"""`ago export model.ckpt -o BUNDLE [--int8 [--calibration-data DIR]] [--parity-frame DIR | --no-real-frame] [--card-note TEXT]
+"""`ago export model.ckpt -o BUNDLE [--int8 [--calibration-data DIR] [--int8-float MODULE ...]] [--parity-frame DIR | --no-real-frame] [--card-note TEXT]
 [--card-json FILE] [--readout-grid XxYxZ] [--text-encoder DIR]` (needs torch; a CLIP text tower needs the vlm extra)."""
 
 from __future__ import annotations
@@ -20,6 +20,11 @@ def register(app: typer.Typer) -> None:
             None, "--calibration-data",
             help="with --int8: the dataset whose train split calibrates the int8 planes graph (default: the "
                  "checkpoint's training data)"),
+        int8_float: Optional[list[str]] = typer.Option(
+            None, "--int8-float",
+            help="with --int8: a torch module whose convolutions stay float32 in the int8 planes graph (repeatable; "
+                 "e.g. backbone.stem and backbone.stage8, the layers int8 hurts most: more labels kept, less speed; "
+                 "docs/runtime.md)"),
         parity_frame: Optional[Path] = typer.Option(
             None, "--parity-frame",
             help="frame for the ORT-vs-torch parity check: an images folder (CAM_*.jpg + calib.json), a "
@@ -72,6 +77,8 @@ def register(app: typer.Typer) -> None:
         if parity_frame is not None and not parity_frame.is_dir():   # before any export work
             raise AgoInputError("--parity-frame", f"{parity_frame}: folder not found (an images folder, a folder "
                                 "with mmdet3d_info.pkl, or a dataset root)")
+        if int8_float and not int8:
+            raise AgoInputError("--int8-float", "keeps convolutions of the int8 variant in float32; give --int8 too")
         if calibration_data is not None and not int8:
             raise AgoInputError("--calibration-data", "calibrates the int8 graphs; give --int8 too")
         if bank and train_bank_only:
@@ -89,4 +96,5 @@ def register(app: typer.Typer) -> None:
         export_bundle(checkpoint, out, int8=int8, parity_frame_dir=parity_frame,
                       real_frame=not no_real_frame, bank_prompts=prompts,
                       log=lambda s: typer.echo(s, err=True), card=card, readout_grid=readout,
-                      static_sampling=static_sampling, text_encoder=text_encoder, calibration_data=calibration_data)
+                      static_sampling=static_sampling, text_encoder=text_encoder, calibration_data=calibration_data,
+                      int8_float=tuple(int8_float or ()))

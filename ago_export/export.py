@@ -244,7 +244,8 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
                   bank_prompts: list[str] | None = None, tolerance: Tolerance = FP32_TOLERANCE,
                   int8_tolerance: Tolerance = INT8_TOLERANCE, log=print, parity: bool = True,
                   card: dict | None = None, readout_grid: Grid | None = None, static_sampling: bool = False,
-                  text_encoder: str | Path | None = None, calibration_data: str | Path | None = None) -> dict:
+                  text_encoder: str | Path | None = None, calibration_data: str | Path | None = None,
+                  int8_float: tuple[str, ...] = ()) -> dict:
     """Write a bundle for `checkpoint` at `out`; returns bundle.json's content.
 
     parity=False skips the ORT-vs-torch check (benchmarks only; not offered by the CLI);
@@ -268,7 +269,9 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
 
     int8 (`ago export --int8`): also the int8 variant (ago_export.quantize.quantize_int8_graphs), its planes graph
     calibrated on frames of the training split of `calibration_data` (`--calibration-data DIR`; default the
-    checkpoint's training data), parity-checked with the int8 tolerance.
+    checkpoint's training data), parity-checked with the int8 tolerance. int8_float (`--int8-float`): torch module
+    names whose convolutions stay float32 in the int8 planes graph (e.g. "backbone.stem", "backbone.stage8";
+    ago_export.quantize.convs_in_modules; the variant's method records them).
     """
     checkpoint, out = Path(checkpoint), Path(out)
     model, ckpt, cfg = load_model(checkpoint)
@@ -280,6 +283,12 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
     elif text_encoder is not None:
         raise AgoInputError("--text-encoder", f"{checkpoint} was trained with the text encoder {bank.encoder_id}, "
                             "not a CLIP folder's; leave --text-encoder out")
+    if int8_float:
+        if not int8:
+            raise AgoInputError("--int8-float", "keeps convolutions of the int8 variant in float32; give --int8 too")
+        from .quantize import check_float_modules
+
+        check_float_modules(model, tuple(int8_float))
     heads = head_weights(model, ckpt.calibration)
     if heads.embed_dim != bank.dim:
         raise AgoInputError(checkpoint, f"model embedding width {heads.embed_dim} differs from its bank's {bank.dim}")
@@ -341,13 +350,17 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
         variants = {}
         if int8:
             from .calibration_frames import planes_feeds
-            from .quantize import quantize_int8_graphs
+            from .quantize import convs_in_modules, quantize_int8_graphs
 
             log(f"quantising the encoder to int8 (planes static QDQ, calibrated on {len(calibration)} training "
                 "frames; voxel stages dynamic) ...")
-            files.update(quantize_int8_graphs(tmp, files, [st.file for st in stages], planes_feeds(calibration, pre)))
-            variant = VariantSpec(INT8, "static-qdq", {k: f"{k}_{INT8}" for k in [BundleContract.PLANES] +
-                                                       [st.file for st in stages]}, None)
+            keep = (convs_in_modules(tmp / files[BundleContract.PLANES], {n for n, _ in model.named_modules()},
+                                     tuple(int8_float)) if int8_float else None)
+            files.update(quantize_int8_graphs(tmp, files, [st.file for st in stages], planes_feeds(calibration, pre),
+                                              keep))
+            method = "static-qdq" + (f"; float32: {', '.join(int8_float)}" if int8_float else "")
+            variant = VariantSpec(INT8, method, {k: f"{k}_{INT8}" for k in [BundleContract.PLANES] +
+                                                 [st.file for st in stages]}, None)
             if parity:
                 variant.parity = _parity(model, open_split_encoder(tmp, files, stages, grid, heads, variant), heads,
                                          bank, x, m, int8_tolerance, frame_name, checkpoint, INT8, log)

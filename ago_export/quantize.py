@@ -129,14 +129,67 @@ def quantize_planes_static(fp32_path: str | Path, out_path: str | Path, feeds: l
     return Path(out_path)
 
 
+def node_module(node_name: str, module_names: set[str]) -> str | None:
+    """The torch module an exported node came from, or None. torch.onnx names a node by its scopes, one per module
+    that ran ("/backbone/stage8.0/_expand_conv/Conv", "/backbone/convs.0/convs.0.0/Conv"), each named relative to
+    an enclosing module that is not a plain container; so each scope is looked up under the modules found so far,
+    innermost first."""
+    found: list[str] = []
+    for scope in node_name.strip("/").split("/")[:-1]:
+        for base in [*reversed(found), ""]:
+            name = f"{base}.{scope}" if base else scope
+            if name in module_names:
+                found.append(name)
+                break
+        else:
+            return None
+    return found[-1] if found else None
+
+
+def in_modules(module: str | None, modules: tuple[str, ...] | list[str]) -> bool:
+    """Whether `module` is one of `modules` or inside one ("backbone.stage8" holds "backbone.stage8.0.conv")."""
+    return module is not None and any(module == m or module.startswith(m + ".") for m in modules)
+
+
+def convs_in_modules(planes: str | Path, module_names: set[str], modules: tuple[str, ...] | list[str]) -> list[str]:
+    """The Conv nodes of an exported planes graph that come from `modules` (torch module names of the exported
+    model, whose every module name is in `module_names`; e.g. "backbone.stem", "backbone.stage8": the backbone's
+    first layers, the ones int8 hurts most). Each of `modules` must own one at least: else an AgoInputError (the
+    TPV encoder's convolutions are traced as functional ops and belong to no module)."""
+    import onnx
+
+    nodes = [n.name for n in onnx.load(str(planes), load_external_data=False).graph.node if n.op_type == "Conv"]
+    owner = {n: node_module(n, module_names) for n in nodes}
+    for m in modules:
+        if not any(in_modules(owner[n], (m,)) for n in nodes):
+            raise AgoInputError("--int8-float", f"{m!r}: none of its convolutions is a Conv node of the exported "
+                                "planes graph (the TPV encoder's are functional, /tpv/Conv*); name backbone or fpn "
+                                "modules")
+    return [n for n in nodes if in_modules(owner[n], modules)]
+
+
+def check_float_modules(model, modules: tuple[str, ...] | list[str], option: str = "--int8-float") -> None:
+    """Each name of `modules` must name a module of `model` that holds a convolution (before any export work: a
+    misspelt name must not quietly quantise everything)."""
+    import torch
+
+    convs = [name for name, m in model.named_modules() if isinstance(m, torch.nn.Conv2d)]
+    for m in modules:
+        if not any(in_modules(c, (m,)) for c in convs):
+            tops = sorted({".".join(c.split(".")[:2]) for c in convs})
+            raise AgoInputError(option, f"{m!r} is no module of the model holding a convolution (modules with "
+                                f"convolutions: {', '.join(tops[:12])}{' ...' if len(tops) > 12 else ''})")
+
+
 def quantize_int8_graphs(folder: str | Path, files: dict[str, str], stage_keys: list[str],
-                         feeds: list[dict[str, np.ndarray]]) -> dict[str, str]:
+                         feeds: list[dict[str, np.ndarray]], keep_float: list[str] | None = None) -> dict[str, str]:
     """Write the int8 variant of a bundle's graphs into `folder` -> {"<key>_int8": file name} for the bundle's
     file table. files: the bundle's {key: file name} ("planes" and each of stage_keys); feeds: the planes
-    graph's calibration feeds (ago_export.calibration_frames.planes_feeds of training frames)."""
+    graph's calibration feeds (ago_export.calibration_frames.planes_feeds of training frames); keep_float:
+    planes Conv node names left in float32 (`convs_in_modules`)."""
     folder = Path(folder)
     out = {"planes_int8": "planes.int8.onnx"}
-    quantize_planes_static(folder / files["planes"], folder / out["planes_int8"], feeds)
+    quantize_planes_static(folder / files["planes"], folder / out["planes_int8"], feeds, keep_float=keep_float)
     for key in stage_keys:
         out[f"{key}_int8"] = f"{key}.int8.onnx"
         quantize_encoder(folder / files[key], folder / out[f"{key}_int8"])

@@ -106,7 +106,7 @@ MAX_SET_CHARS = 100_000      # a --set KEY=VALUE (ago_train/train_config.py boun
 NAME_OPTIONS = ("--phrase", "--template", "--card-note", "--sample", "--split", "--eval-split", "--subset", "--stage",
                 "--profile", "--identifier", "--device", "--precision", "--picture", "--view", "--layout", "--rig",
                 "--shard", "--seeds", "--readout", "--readout-grid", "--grid", "--image-size", "--segmenter",
-                "--embedder", "--ray-origin")
+                "--embedder", "--ray-origin", "--int8-float")
 
 
 def value_problem(name: str, value: str) -> str | None:

@@ -29,6 +29,7 @@ far beyond its cores wall time mostly measures the wait for a core); wall times 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import statistics
 import subprocess
@@ -91,13 +92,14 @@ def run(args) -> str:
         bundles, parity = {}, {}
         for name, ckpt in (("fp32", args.fp32), ("qat", args.qat)):
             if ckpt.is_dir():   # a bundle `ago export --int8` made already
-                bundles[name], parity[name] = ckpt, Bundle.load(ckpt).contract.parity
+                variant = Bundle.load(ckpt).contract.variants.get("int8")
+                bundles[name], parity[name] = ckpt, {"int8": variant.parity.to_dict() if variant and variant.parity else None}
                 continue
             t = time.perf_counter()
             meta = export_bundle(ckpt, tmp / name, int8=True, bank_prompts=[],
                                  readout_grid=readout, log=lambda s: print(s, flush=True),
-                                 calibration_data=args.calibration_data)
-            parity[name] = meta["parity"]
+                                 calibration_data=args.calibration_data, int8_float=tuple(args.int8_float or ()))
+            parity[name] = {"int8": (meta.get("variants") or {}).get("int8", {}).get("parity")}
             bundles[name] = tmp / name
             print(f"exported {name} in {time.perf_counter() - t:.0f} s", flush=True)
         dirs = {"fp32": (bundles["fp32"], False), "ptq": (bundles["fp32"], True), "qat": (bundles["qat"], True),
@@ -166,17 +168,19 @@ def report(args, towns, planes_t, frame_t, parity, started, load_start, load_end
     fr = {v: statistics.median(c for _, c in t) for v, t in frame_t.items()}
     cmd = (f"python -m benchmarks.int8_qat --fp32 {args.fp32} --qat {args.qat} --towns {' '.join(args.towns)} "
            f"--frames {args.frames} --reps {args.reps} --readout-grid {args.readout_grid}"
-           + (f" --calibration-data {args.calibration_data}" if args.calibration_data else ""))
+           + (f" --calibration-data {args.calibration_data}" if args.calibration_data else "")
+           + (f" --int8-float {' '.join(args.int8_float)}" if args.int8_float else ""))
     L = ["# int8 that keeps the labels: fp32 vs post-training int8 (PTQ) vs quantisation-aware fine-tuned int8 (QAT)\n",
          f"Command: `{cmd}`  ",
          f"Run: {started}, commit {commit()}; load average {load_start} -> {load_end} (2 cores shared with other "
          "jobs: provisional timings).  ",
          f"CPU: {model}; flags of interest: {flags}.  ",
          "Both checkpoints exported with `ago export --int8` (planes graph static QDQ, per-channel int8 weights, uint8 "
-         "activations calibrated on 16 frames of the checkpoint's training split; voxel stages dynamic int8); export "
+         "activations calibrated on 16 frames of the checkpoint's training split; voxel stages dynamic int8"
+         + (f"; the convolutions of {', '.join(args.int8_float)} kept in float32" if args.int8_float else "")
+         + "); export "
          "parity of the int8 graphs vs torch on the export's parity frame: " + "; ".join(
-             f"{k}: main {p['int8']['agreement_main']:.4%}, identifier {p['int8']['agreement_identifier']:.4%}"
-             for k, p in parity.items() if "int8" in p) + ".\n",
+             f"{k}: {json.dumps(p['int8'], default=str)[:300]}" for k, p in parity.items() if p.get("int8")) + ".\n",
          "## Labels against fp32, mIoU against the GT (per fresh town)\n",
          "| town | frames | variant | labels = fp32 (all voxels) | labels = fp32 (voxels either calls occupied) | "
          "mIoU % | mIoU - fp32 |",
@@ -228,6 +232,9 @@ def main() -> None:
     ap.add_argument("--readout-grid", default="200x200x16")
     ap.add_argument("--calibration-data", type=Path, default=None,
                     help="default: each checkpoint's training data (its train split calibrates the int8 graph)")
+    ap.add_argument("--int8-float", nargs="+", default=None, metavar="MODULE",
+                    help="torch modules whose convolutions stay float32 in both int8 exports, as `ago export "
+                    "--int8-float` (e.g. backbone.stem backbone.stage8)")
     ap.add_argument("--out", type=Path, default=None, help="markdown file to write")
     args = ap.parse_args()
     text = run(args)

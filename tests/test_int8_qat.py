@@ -167,3 +167,47 @@ def test_int8_export_is_qdq_and_agrees_with_fp32(town, tmp_path):
     a = fp32.predict_arrays(x, m, bank).semantics
     b = int8.predict_arrays(x, m, bank).semantics
     assert (a == b).mean() >= 0.9
+
+
+def test_int8_float_keeps_the_named_modules_convolutions_in_float32(town, tmp_path):
+    """`ago export --int8 --int8-float backbone.convs.0 ...`: exactly the convolutions of those torch modules stay
+    float32 Conv nodes in planes.int8.onnx (their weights float, no DequantizeLinear in front), every other
+    backbone / FPN convolution is int8, and the variant's method records the modules. A name that is no module with
+    a convolution is refused before any export work, one naming only the TPV encoder's functional convolutions
+    when the graph is quantised; --int8-float without --int8 is refused."""
+    import onnx
+
+    from ago_export.export import export_bundle
+    from ago_export.quantize import node_module
+    from ago_export.export import load_model
+
+    keep = ("backbone.convs.0", "fpn.output")
+    bundle = tmp_path / "mixed"
+    export_bundle(town["fp32"], bundle, int8=True, real_frame=False, bank_prompts=[], log=lambda s: None,
+                  int8_float=keep)
+    graph = onnx.load(str(bundle / "planes.int8.onnx")).graph
+    weights = {i.name: i for i in graph.initializer}
+    produced = {o: n for n in graph.node for o in n.output}
+    float_convs, int8_convs = [], []
+    for n in graph.node:
+        if n.op_type != "Conv":
+            continue
+        w = n.input[1]
+        src = produced.get(w)
+        (int8_convs if src is not None and src.op_type == "DequantizeLinear" else float_convs).append(n.name)
+        if w in weights:
+            assert weights[w].data_type == onnx.TensorProto.FLOAT
+    names = {n for n, _ in load_model(town["fp32"])[0].named_modules()}
+    modules = sorted({node_module(c, names) for c in float_convs if not c.startswith("/tpv/")})
+    assert modules == ["backbone.convs.0.0", "fpn.output.0", "fpn.output.1", "fpn.output.2"], modules
+    assert any(node_module(c, names).startswith("backbone.convs.1") for c in int8_convs)
+    meta = json.loads((bundle / "bundle.json").read_text())
+    assert meta["variants"]["int8"]["method"] == "static-qdq; float32: backbone.convs.0, fpn.output"
+
+    for name, message in (("backbone.nope", "no module of the model"), ("encoder.layers.0.image_value", "/tpv/Conv")):
+        with pytest.raises(AgoInputError, match=message):
+            export_bundle(town["fp32"], tmp_path / "refused", int8=True, real_frame=False, bank_prompts=[],
+                          log=lambda s: None, int8_float=(name,))
+        assert not (tmp_path / "refused").exists()
+    r = _ago("export", str(town["fp32"]), "-o", str(tmp_path / "b1"), "--int8-float", "backbone.convs.0")
+    assert r.returncode == 2 and r.stderr.strip().splitlines()[-1].startswith("error: --int8-float:")
