@@ -55,8 +55,8 @@ def choose_threshold(scores: np.ndarray, occupancy: np.ndarray, explained: np.nd
 @dataclass
 class LabelFolder:
     """A folder of per-frame labels, `<scene>/<token>/labels.npz`: `files` sample token -> file, the label
-    classes (`class_names[i]` is label i), the free and ignore labels, and the grid (shape, range) when the
-    folder says it (an `ago pseudo-labels` meta.json; Occ3D GT says nothing and is taken on the Occ3D range)."""
+    classes (`class_names[i]` is label i), the free and ignore labels, and the grid's range when the folder says
+    it (an `ago pseudo-labels` meta.json, checked against the bundle's; Occ3D GT says nothing)."""
 
     root: Path
     files: dict[str, Path]
@@ -85,8 +85,9 @@ class LabelFolder:
         if not files:
             raise AgoInputError(root, f"{option}: no <scene>/<token>/labels.npz (an `ago pseudo-labels` folder or "
                                 "an Occ3D gts folder)")
+        files = dict(sorted(files.items(), key=lambda kv: str(kv[1])))   # by scene, then token
         if not (root / "meta.json").is_file():
-            return cls(root, dict(sorted(files.items(), key=lambda kv: str(kv[1]))), list(OCC3D_CLASSES), FREE)
+            return cls(root, files, list(OCC3D_CLASSES), FREE)
         meta = read_json(root / "meta.json")
         try:
             classes = meta["label_space"]["classes"]
@@ -105,8 +106,7 @@ class LabelFolder:
                                 f"label {ignore}: not a label space (1-254 classes, two different labels in 0-255)")
         if rng is not None and (len(rng[0]) != 3 or len(rng[1]) != 3):
             raise AgoInputError(root / "meta.json", f"{option}: grid range {rng} is not (x, y, z)")
-        return cls(root, dict(sorted(files.items(), key=lambda kv: str(kv[1]))), names, free, ignore, rng,
-                   "pseudo-labels")
+        return cls(root, files, names, free, ignore, rng, "pseudo-labels")
 
     def load(self, token: str) -> tuple[np.ndarray, np.ndarray]:
         """(labels (X, Y, Z) uint8, the voxels to count: labelled with a class, inside the camera mask if any)."""
