@@ -999,3 +999,31 @@ def test_choose_threshold_on_labelled_frames(bundle_dir, tmp_path):
     shutil.copy(next((data / "gts").glob("*/*/labels.npz")), other / "labels.npz")
     r = run_cli(base + ["--labels", tmp_path / "other"], cwd=tmp_path)
     assert r.returncode == 2 and "none of the 1 labelled frames" in r.stderr
+
+
+def test_label_folder_reads_waymo_scene_paths_and_refuses_bad_meta(tmp_path):
+    """LabelFolder finds labels one level deeper too (an Occ3D-Waymo dataset's scenes are `<split>/<scene>`, so its
+    pseudo-labels lie at training/000/<token>/labels.npz), keeps the label space meta.json gives, counts only
+    labelled voxels inside the camera mask, and refuses a meta.json whose classes are not a list of names."""
+    from ago_runtime.predict.threshold import LabelFolder
+
+    sem = np.full((4, 4, 2), 17, np.uint8)
+    sem[0, 0, 0], sem[1, 1, 0], sem[2, 2, 0] = 1, 255, 3
+    mask = np.ones_like(sem)
+    mask[2, 2, 0] = 0
+    for token in ("0000000", "0000001"):
+        d = tmp_path / "training" / "000" / token
+        d.mkdir(parents=True)
+        np.savez(d / "labels.npz", semantics=sem, mask_camera=mask)
+    meta = {"label_space": {"classes": ["general_object", "vehicle", "pedestrian", "sign"]}, "free_index": 17,
+            "grid": {"range_min": [-40, -40, -1], "range_max": [40, 40, 5.4]}}
+    (tmp_path / "meta.json").write_text(json.dumps(meta))
+    folder = LabelFolder.open(tmp_path)
+    assert list(folder.files) == ["0000000", "0000001"] and folder.kind == "pseudo-labels"
+    assert folder.class_names[1] == "vehicle" and folder.free_index == 17
+    labels, counted = folder.load("0000000")
+    assert counted.sum() == 1 and counted[0, 0, 0]          # free, ignored (255) and outside the mask do not count
+    meta["label_space"]["classes"] = "vehicle"
+    (tmp_path / "meta.json").write_text(json.dumps(meta))
+    with pytest.raises(AgoInputError, match="list of names"):
+        LabelFolder.open(tmp_path)

@@ -54,7 +54,8 @@ def choose_threshold(scores: np.ndarray, occupancy: np.ndarray, explained: np.nd
 
 @dataclass
 class LabelFolder:
-    """A folder of per-frame labels, `<scene>/<token>/labels.npz`: `files` sample token -> file, the label
+    """A folder of per-frame labels, `<scene>/<token>/labels.npz` (a Waymo scene is `<split>/<scene>`): `files` sample
+    token -> file, the label
     classes (`class_names[i]` is label i), the free and ignore labels, and the grid's range when the folder says
     it (an `ago pseudo-labels` meta.json, checked against the bundle's; Occ3D GT says nothing)."""
 
@@ -75,7 +76,7 @@ class LabelFolder:
         if not root.is_dir():
             raise AgoInputError(root, f"{option}: label folder not found")
         files: dict[str, Path] = {}
-        for f in root.glob("*/*/labels.npz"):
+        for f in root.rglob("labels.npz"):   # <scene>/<token>/, or <split>/<scene>/<token>/ (an Occ3D-Waymo dataset's)
             if len(files) >= MAX_LABEL_FILES:
                 raise AgoInputError(root, f"{option}: more than {MAX_LABEL_FILES} label files")
             token = f.parent.name

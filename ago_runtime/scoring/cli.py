@@ -232,7 +232,7 @@ def load_prior(pseudo: Path, scored: set[str]):
         raise AgoInputError(pseudo / "meta.json", f"--prior: no label_space.classes / grid.shape ({e})") from None
     if len(shape) != 3 or min(shape) < 1 or np.prod(shape) > 2 ** 26:
         raise AgoInputError(pseudo / "meta.json", f"--prior: grid shape {shape} is not a sane (X, Y, Z)")
-    files = sorted(pseudo.glob("*/*/labels.npz"))
+    files = sorted(pseudo.rglob("labels.npz"))   # <scene>/<token>/ (an Occ3D-Waymo scene is <split>/<scene>)
     if not files:
         raise AgoInputError(pseudo, "--prior: no <scene>/<token>/labels.npz in the pseudo-label folder")
     prior = TrainingPrior(names, free, shape)

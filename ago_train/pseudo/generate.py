@@ -259,7 +259,8 @@ class PseudoLabelDir:
 
     def samples(self) -> list[tuple[str, str]]:
         """(scene, token) of every finished sample (labels.npz present), sorted."""
-        return sorted((p.parent.parent.name, p.parent.name) for p in self.root.glob("*/*/labels.npz"))
+        return sorted((p.parent.parent.relative_to(self.root).as_posix(), p.parent.name)   # a Waymo scene: split/scene
+                      for p in self.root.rglob("labels.npz"))
 
     def has(self, scene: str, token: str) -> bool:
         d = sample_dir(self.root, scene, token)
