@@ -1023,6 +1023,12 @@ def test_label_folder_reads_waymo_scene_paths_and_refuses_bad_meta(tmp_path):
     assert folder.class_names[1] == "vehicle" and folder.free_index == 17
     labels, counted = folder.load("0000000")
     assert counted.sum() == 1 and counted[0, 0, 0]          # free, ignored (255) and outside the mask do not count
+    from ago_runtime.scoring.cli import load_prior           # `ago metric --lidar --prior` reads the same layout
+
+    meta["grid"]["shape"] = [4, 4, 2]
+    (tmp_path / "meta.json").write_text(json.dumps(meta))
+    prior, notes = load_prior(tmp_path, {"0000001"})
+    assert notes and "1 of the scored keyframes" in notes[0]
     meta["label_space"]["classes"] = "vehicle"
     (tmp_path / "meta.json").write_text(json.dumps(meta))
     with pytest.raises(AgoInputError, match="list of names"):
