@@ -732,3 +732,48 @@ def test_pseudo_labels_in_worker_processes_are_the_same(tmp_path_factory, tmp_pa
         assert "6 written" in res.output
         files[jobs] = {p.relative_to(out): p.read_bytes() for p in sorted(out.glob("*/*/*.npz"))}
     assert len(files[1]) == 12 and files[1] == files[2]     # labels.npz + embeds.npz per sample
+
+
+def test_moving_keyframe_takes_moving_classes_from_the_keyframe_only(tmp_path, cw):
+    """--moving keyframe: a car seen at another place by another keyframe (it moved) is not labelled there, while
+    the static points of the other keyframes still are; --moving aggregate (the default) labels both car places.
+    The rule is recorded in meta.json; a folder from before --moving resumes as aggregate, and asking for keyframe on
+    it is refused."""
+    from ago_train.pseudo.generate import moving_classes
+
+    car, manmade = cw.class_names.index("car"), cw.class_names.index("manmade")
+    assert car in moving_classes(cw) and manmade not in moving_classes(cw)
+    assert cw.class_names.index("driveable_surface") not in moving_classes(cw)
+    grid = Grid((-20.0, -20.0, -2.0), (20.0, 20.0, 4.0), (0.5, 0.5, 0.5))
+    here, there, wall = np.array([[8.2, 0.3, 0.7]]), np.array([[8.2, 4.1, 0.7]]), np.array([[12.1, -3.2, 1.3]])
+    key = make_frame(ego_to_lidar(here), token="k")
+    moved = make_frame(ego_to_lidar(there), token="o")
+    static = make_frame(ego_to_lidar(wall), token="s")
+    seg = ConstantSegmenter({"k": car, "o": car, "s": manmade})
+    lifted = [lift_frame(key, seg), lift_frame(moved, seg), lift_frame(static, seg)]
+
+    def label_at(sem, p):
+        idx, inside = grid.points_to_index(p)
+        assert inside[0]
+        return int(sem[tuple(idx[0])])
+
+    agg = build_sample(key, lifted, len(cw.class_names), PseudoLabelConfig(grid=grid), moving=moving_classes(cw))
+    kf = build_sample(key, lifted, len(cw.class_names), PseudoLabelConfig(grid=grid, moving="keyframe"),
+                      moving=moving_classes(cw))
+    assert [label_at(agg.semantics, p) for p in (here, there, wall)] == [car, car, manmade]
+    assert [label_at(kf.semantics, p) for p in (here, wall)] == [car, manmade]
+    assert label_at(kf.semantics, there) != car
+    with pytest.raises(AgoInputError, match="--moving"):
+        PseudoLabelConfig(grid=grid, moving="track")
+
+    ds = ListDataset([make_frame(ego_to_lidar(np.concatenate([here, wall])), token="tok0", extras=sim_frame().extras)])
+    sim = SimulatedSegmenter(cw)
+    out = tmp_path / "out"
+    generate(ds, [0], out, cw, sim, None, PseudoLabelConfig(grid=grid), progress=False)
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["config"]["moving"] == "aggregate"
+    del meta["config"]["moving"]   # a folder from before --moving
+    (out / "meta.json").write_text(json.dumps(meta))
+    assert generate(ds, [0], out, cw, sim, None, PseudoLabelConfig(grid=grid), progress=False)["skipped"] == 1
+    with pytest.raises(AgoInputError, match="config differ"):
+        generate(ds, [0], out, cw, sim, None, PseudoLabelConfig(grid=grid, moving="keyframe"), progress=False)

@@ -45,6 +45,13 @@ class Embedder(str, Enum):
     NONE = "none"
 
 
+class Moving(str, Enum):
+    """`ago pseudo-labels --moving`: where the moving classes' points come from."""
+
+    AGGREGATE = "aggregate"
+    KEYFRAME = "keyframe"
+
+
 class Carve(str, Enum):
     """`ago pseudo-labels --carve`: which voxels a LiDAR ray calls free."""
 
@@ -62,6 +69,10 @@ CARVE_HELP = {Carve.ALL: "every voxel a ray crosses before its hit voxel",
               Carve.GRAZING: "a ray descending to its hit stops half a voxel height above the lowest hit voxel of "
                              "the hit's column, so rays grazing far ground do not call it free; the default; "
                              "ago_train/pseudo/raycast.py"}
+MOVING_HELP = {Moving.AGGREGATE: "from every superimposed keyframe, like the static classes (a moving object is "
+                                  "labelled along its track: benchmarks/results/pseudo_aggregation_smear.md); the default",
+               Moving.KEYFRAME: "only from the sample's own keyframe and its own sweeps (vehicles, cycles, pedestrians: "
+                                "ago_train/pseudo/generate.py MOVING_TABLE_CLASSES)"}
 EMBEDDER_HELP = {Embedder.FILES: "feature maps, docs/vlm_files.md", Embedder.MASKCLIP: "--clip, on the fly",
                  Embedder.SIM: "SIMULATED", Embedder.NONE: "no features: training will not align the adapter"}
 
@@ -328,6 +339,8 @@ def register(app: typer.Typer) -> None:
                                   "Default: train when splits.json exists, else all."),
         raycast: bool = typer.Option(True, "--raycast/--no-raycast", help="Free space from LiDAR rays (else: every empty voxel is free)."),
         carve: Carve = typer.Option(None, "--carve", help="With --raycast: " + choices_help(Carve, CARVE_HELP) + "."),
+        moving: Moving = typer.Option(Moving.AGGREGATE, "--moving", help="Points of the moving classes: "
+                                      + choices_help(Moving, MOVING_HELP) + "."),
         seed: int = typer.Option(0, "--seed", min=0, help="Seed of the simulated backends."),
         limit: int = typer.Option(0, "--limit", min=0, help="Only the first N samples of the split (0 = all)."),
         jobs: int = typer.Option(1, "--jobs", min=1, max=64, help="Worker processes labelling scenes in parallel "
@@ -414,7 +427,8 @@ def register(app: typer.Typer) -> None:
         for n in notes:
             typer.echo(f"note: using {n}")
         config = PseudoLabelConfig(grid=pgrid, num_keyframes=keyframes, interval=interval, nonkey_sweeps=nonkey,
-                                   raycast=raycast, carve=GrazingRule() if carve is Carve.GRAZING else None)
+                                   raycast=raycast, carve=GrazingRule() if carve is Carve.GRAZING else None,
+                                   moving=moving.value)
         command = "ago " + " ".join(shlex.quote(a) for a in sys.argv[1:])
         result = generate(ds, indices, out, space, seg, emb, config, command=command, jobs=jobs)
         remade = f", {result['remade']} damaged ones remade" if result.get("remade") else ""

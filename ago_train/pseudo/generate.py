@@ -64,6 +64,9 @@ class PseudoLabelConfig:
     carve: GrazingRule | None = None   # CLI --carve: None = `all` (every ray carves up to its hit voxel);
                                        # a GrazingRule = `grazing` (raycast.py: rays grazing the ground stop short),
                                        # the CLI's default; None here keeps the library benchmarks' committed tables
+    moving: str = "aggregate"   # CLI --moving: "aggregate" = points of every class from every superimposed keyframe
+                                # (static world); "keyframe" = points of the moving classes (`moving_classes`) only
+                                # from the sample's own keyframe and its own sweeps: the others' track smears
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -72,10 +75,28 @@ class PseudoLabelConfig:
         d["carve"] = None if self.carve is None else self.carve.to_dict()
         return d
 
+    def __post_init__(self):
+        if self.moving not in MOVING_RULES:
+            raise AgoInputError("--moving", f"must be one of {', '.join(MOVING_RULES)}, got {self.moving!r}")
+
     @property
     def carve_name(self) -> str:
         """The --carve choice these settings are: all or grazing."""
         return "all" if self.carve is None else "grazing"
+
+
+MOVING_RULES = ("aggregate", "keyframe")
+# the classes that move (class-table names: Occ3D-nuScenes and Occ3D-Waymo); a label-space class is moving when every
+# table class it maps to is (a class of no table class, an open-vocabulary one, is not)
+MOVING_TABLE_CLASSES = frozenset({"bicycle", "bus", "car", "construction_vehicle", "motorcycle", "pedestrian",
+                                  "trailer", "truck", "vehicle", "bicyclist"})
+
+
+def moving_classes(label_space) -> np.ndarray:
+    """Indices of the label space's moving classes (MOVING_TABLE_CLASSES), for --moving keyframe."""
+    table = label_space.class_table
+    return np.array([k for k, c in enumerate(label_space.classes)
+                     if c.occ3d_ids and all(table.name_of(i) in MOVING_TABLE_CLASSES for i in c.occ3d_ids)], np.int64)
 
 
 @dataclass
@@ -107,9 +128,11 @@ def frustum_mask(grid: Grid, rig: Rig) -> np.ndarray:
     return inside
 
 
-def build_sample(key: Frame, lifted: list[LiftedFrame], num_classes: int, config: PseudoLabelConfig
-                 ) -> PseudoSample:
-    """Pseudo-labels of keyframe `key` from lifted frames (lifted[0] = the keyframe's own)."""
+def build_sample(key: Frame, lifted: list[LiftedFrame], num_classes: int, config: PseudoLabelConfig,
+                 own: int = 1, moving: np.ndarray | None = None) -> PseudoSample:
+    """Pseudo-labels of keyframe `key` from lifted frames (lifted[0] = the keyframe's own; the first `own` are the
+    keyframe's own sweeps). With config.moving "keyframe", points labelled with a class of `moving` (label indices)
+    count only from those first `own` frames: elsewhere they neither occupy nor vote (their rays still carve)."""
     grid = config.grid
     if num_classes > FREE:
         raise AgoInputError(None, f"a label space for pseudo-labels has at most {FREE} classes "
@@ -121,12 +144,15 @@ def build_sample(key: Frame, lifted: list[LiftedFrame], num_classes: int, config
     fmean = FeatureMean()
     n_points = n_labelled = rays = 0
     ray_sets, columns = [], []   # (origin, ends) per sweep; occupied lattice keys per sweep (--carve grazing)
+    drop_moving = config.moving == "keyframe" and moving is not None and len(moving) > 0
     for f_i, lf in enumerate(lifted):
         pts, origin = warp_to(lf, key.ego2global)
         idx, inside = grid.points_to_index(pts)
         flat = grid.flat_index(idx)
-        hit[flat[inside]] = True
-        ok = inside & (lf.labels != IGNORE)
+        dropped = np.isin(lf.labels, moving) if drop_moving and f_i >= own else None   # moving, another time
+        stays = inside if dropped is None else inside & ~dropped
+        hit[flat[stays]] = True
+        ok = stays & (lf.labels != IGNORE)
         vox_parts.append(flat[ok])
         lab_parts.append(lf.labels[ok])
         n_points += int(inside.sum())
@@ -138,7 +164,7 @@ def build_sample(key: Frame, lifted: list[LiftedFrame], num_classes: int, config
                 crossed |= traverse(origin[None], ends, grid)
             else:   # the stops need every sweep's hits first (a wall's other hits may come from another sweep)
                 ray_sets.append((origin, ends))
-                columns.append(occupied_keys(pts, grid))
+                columns.append(occupied_keys(pts if dropped is None else pts[~dropped], grid))
         if lf.feature_maps is not None and (config.embed_all_frames or f_i == 0):
             for ci, fmap in enumerate(lf.feature_maps):
                 sel = np.flatnonzero(inside & (lf.cam_idx == ci))
@@ -372,6 +398,7 @@ def _differences(a: dict, b: dict) -> list[str]:
                 c["num_keyframes"] = c.pop("num_sweeps")
             c.setdefault("nonkey_sweeps", 0)
             c.setdefault("carve", None)           # folders from before --carve: every ray carved to its hit
+            c.setdefault("moving", "aggregate")   # folders from before --moving: every class aggregated
         if m.get("label_space"):
             m["label_space"].pop("prompt_file", None)
         if m.get("embedder"):
@@ -418,13 +445,14 @@ def pseudo_sample(ds, i: int, label_space, segmenter, embedder, config: PseudoLa
                                config.nonkey_sweeps)
     ids = frames_to_aggregate(ds, i, config.num_keyframes, config.interval)
     pairs = [cache.get(j) for j in ids]
+    moving = moving_classes(label_space) if config.moving == "keyframe" else None
     lifted: list[LiftedFrame] = []   # keyframe i's own sweep first (build_sample embeds from lifted[0])
     for k, (frame, parts) in enumerate(pairs):
         own = parts[0]
         if embedder is not None and (k == 0 or config.embed_all_frames):
             own = attach_features(frame, own, embedder)
         lifted += [own] + list(parts[1:])
-    return build_sample(pairs[0][0], lifted, label_space.num_classes, config)
+    return build_sample(pairs[0][0], lifted, label_space.num_classes, config, own=len(pairs[0][1]), moving=moving)
 
 
 def _cache_for(ds, segmenter, config: PseudoLabelConfig) -> LiftCache:
