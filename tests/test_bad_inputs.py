@@ -291,6 +291,8 @@ ROWS = [
     ("metric no --pred", lambda w: ["metric", "--gt", w.data / "gts"], ["--pred", "missing"], []),
     ("pseudo-labels --limit -1", lambda w: ["pseudo-labels", "--data", w.data, "--out", "o", "--limit", "-1"],
      ["--limit"], ["o"]),
+    ("pseudo-labels --moving track", lambda w: ["pseudo-labels", "--data", w.data, "--out", "o", "--moving", "track"],
+     ["--moving", "track"], ["o"]),
     ("pseudo-labels --keyframes 0", lambda w: ["pseudo-labels", "--data", w.data, "--out", "o", "--keyframes", "0"],
      ["--keyframes"], ["o"]),
     ("pseudo-labels --interval 0", lambda w: ["pseudo-labels", "--data", w.data, "--out", "o", "--interval", "0"],
