@@ -19,7 +19,7 @@ import typer
 
 from ago_runtime.predict.decision import Identifier
 
-from .pseudo.cli import Carve
+from .pseudo.cli import Carve, Moving
 from .train_real import RealRecipe
 
 REAL = RealRecipe()   # `ago train-real`'s option defaults are the recipe's
@@ -121,6 +121,8 @@ def register(app: typer.Typer) -> None:
         jobs: int = typer.Option(REAL.jobs, "--jobs", min=1, help="worker processes for synth and pseudo-labels"),
         carve: Carve = typer.Option(Carve(REAL.carve), "--carve", help="pseudo-labels' free-space rule (`ago pseudo-labels "
                                     "--carve`): all or grazing"),
+        moving: Moving = typer.Option(Moving(REAL.moving), "--moving", help="pseudo-labels' moving classes (`ago "
+                                      "pseudo-labels --moving`): aggregate or keyframe"),
     ):
         """A nuScenes dataroot -> OUT/bundle: time split, synthetic town, pseudo-labels, mixed training, length
         chosen on a val block, export (docs/training.md, "Training on your own data"); resumes."""
@@ -133,7 +135,8 @@ def register(app: typer.Typer) -> None:
         from .train_real import train_real
 
         train_real(dataroot, out, RealRecipe(max_scenes=max_scenes, steps=steps, town_scenes=town_scenes,
-                                             town_frames=town_frames, preset=preset, jobs=jobs, carve=carve.value),
+                                             town_frames=town_frames, preset=preset, jobs=jobs, carve=carve.value,
+                                             moving=moving.value),
                    say=lambda s: typer.echo(s))
 
     @app.command("calibrate")

@@ -61,6 +61,7 @@ class RealRecipe:
     readout_grid: str = "200x200x16"
     jobs: int = 2
     carve: str = "grazing"       # pseudo-labels' free-space rule (`ago pseudo-labels --carve`: all | grazing)
+    moving: str = "aggregate"    # pseudo-labels' moving classes (`ago pseudo-labels --moving`: aggregate | keyframe)
 
 
 STAGE_NAMES = ("split", "town", "pseudo", "train", "select", "export")
@@ -190,12 +191,12 @@ def train_real(dataroot: str | Path, out: str | Path, recipe: RealRecipe | None 
     record["grid"] = grid
     t0 = stage(3, "pseudo", "pseudo-labels: town (simulated segmenter), real train + val (dataset boxes + LiDAR ground)")
     run_verb("pseudo", ["pseudo-labels", "--data", town, "--out", work / "town-pseudo", "--prompts", "cw", "--grid",
-                    grid, "--carve", r.carve, "--split", "all", "--segmenter", "sim", "--embedder", "none", "--keyframes", 10,
-                    "--jobs", r.jobs], work, say)
+                    grid, "--carve", r.carve, "--moving", r.moving, "--split", "all", "--segmenter", "sim", "--embedder",
+                    "none", "--keyframes", 10, "--jobs", r.jobs], work, say)
     for part in ("train", "val"):
         run_verb("pseudo", ["pseudo-labels", "--data", real, "--out", work / f"real-pseudo-{part}", "--prompts", "cw",
-                        "--grid", grid, "--carve", r.carve, "--split", part, "--segmenter", "boxes", "--embedder", "none",
-                        "--keyframes", r.keyframes, "--jobs", r.jobs], work, say)
+                        "--grid", grid, "--carve", r.carve, "--moving", r.moving, "--split", part, "--segmenter", "boxes",
+                        "--embedder", "none", "--keyframes", r.keyframes, "--jobs", r.jobs], work, say)
     done("pseudo", t0)
 
     # 4. train from both sources
