@@ -266,6 +266,8 @@ ROWS = [
     ("demo --bogus", lambda w: ["demo", "--bogus"], ["--bogus"], []),
     ("train-real: dataroot missing", lambda w: ["train-real", "no_such_root", "o"], ["no_such_root"], ["o"]),
     ("train-real --steps 0", lambda w: ["train-real", w.data, "o", "--steps", "0"], ["--steps"], ["o"]),
+    ("train-real --moving track", lambda w: ["train-real", w.data, "o", "--moving", "track"], ["--moving", "track"],
+     ["o"]),
     ("vlm-files no --detector folder", lambda w: ["vlm-files", "--data", w.data, "--out", "o", "--prompts", "cw",
                                                   "--detector", "no_such_folder", "--sam", "no_sam"],
      ["--detector", "no such folder", "grounding-dino"], ["o"]),
