@@ -77,8 +77,6 @@ def register(app: typer.Typer) -> None:
         if parity_frame is not None and not parity_frame.is_dir():   # before any export work
             raise AgoInputError("--parity-frame", f"{parity_frame}: folder not found (an images folder, a folder "
                                 "with mmdet3d_info.pkl, or a dataset root)")
-        if int8_float and not int8:
-            raise AgoInputError("--int8-float", "keeps convolutions of the int8 variant in float32; give --int8 too")
         if calibration_data is not None and not int8:
             raise AgoInputError("--calibration-data", "calibrates the int8 graphs; give --int8 too")
         if bank and train_bank_only:

@@ -16,12 +16,11 @@ average precision beside the positives' prevalence, and the share of positives a
 mask flags (p_occ > 0.5 and score > `ago_runtime.predict.predictor.UNEXPLAINED_THRESHOLD`), plus the mean
 score per GT class. Writes a markdown table with the command.
 
---choose-split SPLIT: a mask threshold for this prompt file chosen on other frames (the rule of `ago
-choose-threshold`, ago_runtime.predict.threshold.choose_threshold: the lowest threshold at which the mask flags
-at most --false-rate of the prompted-class voxels of SPLIT, here by the GT, e.g. the training split), then the
-mask at that threshold on --split beside the fixed one. The scored split is not looked at while choosing.
-With --choose-labels PSEUDO_DIR the threshold is chosen as a user without GT chooses it: `ago choose-threshold`'s
-code on those pseudo-labels of the same frames.
+--choose-split SPLIT: a mask threshold for this prompt file chosen on other frames by `ago choose-threshold`'s code
+(ago_runtime.predict.threshold: the lowest threshold at which the mask flags at most --false-rate of the
+prompted-class voxels of SPLIT, e.g. the training split, by its Occ3D GT), then the mask at that threshold on
+--split beside the fixed one. The scored split is not looked at while choosing. With --choose-labels PSEUDO_DIR
+the threshold is chosen as a user without GT chooses it, on those pseudo-labels of the same frames.
 """
 
 from __future__ import annotations
@@ -41,7 +40,7 @@ from ago_runtime.scoring.metric import upsample_nearest  # noqa: E402
 from ago_runtime.formats.nuscenes import NuScenesDataset  # noqa: E402
 from ago_runtime.predict.predictor import UNEXPLAINED_THRESHOLD, Predictor, unexplained_mask  # noqa: E402
 from ago_runtime.predict.frames import open_frames  # noqa: E402
-from ago_runtime.predict.threshold import LabelFolder, choose_for_prompts, choose_threshold  # noqa: E402
+from ago_runtime.predict.threshold import LabelFolder, choose_for_prompts  # noqa: E402
 from ago_runtime.progress import track  # noqa: E402
 from ago_runtime.vocab.prompts import parse_prompt_file  # noqa: E402
 from ago_runtime.scoring.ranking import average_precision, roc_auc  # noqa: E402
@@ -96,18 +95,16 @@ def main(argv=None) -> dict:
     if args.choose_split is not None:   # chosen first, on frames the scoring below never reads
         pool = ds.split(args.choose_split) if args.choose_split != "all" else list(range(len(ds)))
         pick = [pool[int(k)] for k in np.linspace(0, len(pool) - 1, min(args.choose_frames, len(pool)))]
-        if args.choose_labels is None:
-            s_c, occ_c, _, c_c = score_frames(predictor, bank, ds, sorted(set(pick)), "choosing the threshold")
-            threshold = choose_threshold(s_c, occ_c, np.isin(c_c, sorted(covered)), args.false_rate)
-            labels_used = "its Occ3D GT"
-        else:   # the user's path: `ago choose-threshold`'s own code on pseudo-labels of the same frames
-            folder = LabelFolder.open(args.choose_labels)
-            tokens = [ds.sample_tokens[i] for i in sorted(set(pick)) if ds.sample_tokens[i] in folder.files]
-            if not tokens:
-                ap.error(f"--choose-labels {args.choose_labels} has no label of the picked {args.choose_split} frames")
-            threshold = choose_for_prompts(predictor, bank, open_frames(args.data, tokens, rig=predictor.bundle.rig),
-                                           folder, args.false_rate).threshold
-            pick, labels_used = tokens, f"the pseudo-labels in {args.choose_labels} (`ago choose-threshold`'s code)"
+        # `ago choose-threshold`'s own code, on the split's Occ3D GT or on --choose-labels (pseudo-labels)
+        folder = LabelFolder.open(args.choose_labels or Path(args.data) / "gts")
+        tokens = [ds.sample_tokens[i] for i in sorted(set(pick)) if ds.sample_tokens[i] in folder.files]
+        if not tokens:
+            ap.error(f"{folder.root} has no label of the picked {args.choose_split} frames")
+        threshold = choose_for_prompts(predictor, bank, open_frames(args.data, tokens, rig=predictor.bundle.rig),
+                                       folder, args.false_rate).threshold
+        pick = tokens
+        labels_used = (f"the pseudo-labels in {args.choose_labels}" if args.choose_labels else "its Occ3D GT") \
+            + " (`ago choose-threshold`'s code)"
         chosen = {"split": args.choose_split, "frames": len(set(pick)), "false_rate": args.false_rate,
                   "threshold": threshold, "labels": labels_used}
     s, occ, flagged, c = score_frames(predictor, bank, ds, indices, "unexplained-obstacle score")

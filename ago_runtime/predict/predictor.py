@@ -56,7 +56,7 @@ __all__ = ["Predictor", "Prediction", "FrameFeatures", "prepare_inputs", "table_
 # prompted + reference classes: fold_with_reference): no branch gives any prompted class more than half
 # of its probability. Measured in benchmarks/unexplained_obstacles.py (AUROC, share flagged at 0.5); a prompt
 # file whose classes explain their voxels weakly needs a higher one (`ago infer --unexplained-threshold`, chosen
-# on training frames by that benchmark's --choose-split).
+# on labelled frames by `ago choose-threshold`, ago_runtime/predict/threshold.py).
 UNEXPLAINED_THRESHOLD = 0.5
 
 

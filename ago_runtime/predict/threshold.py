@@ -212,10 +212,10 @@ def choose_for_prompts(predictor, bank, frames, labels: LabelFolder, false_rate:
         return float(mask[sel].mean()) if sel.any() else None
 
     at_t, at_default = unexplained_mask(s, o, t), unexplained_mask(s, o, UNEXPLAINED_THRESHOLD)
+    named = set(explained_ids.tolist())
     return ThresholdChoice(
         threshold=t, false_rate=false_rate, frames=names, explained_voxels=int(e.sum()), other_voxels=int((~e).sum()),
-        explained_classes=[n for i, n in enumerate(labels.class_names) if i in set(explained_ids.tolist())],
-        other_classes=[n for i, n in enumerate(labels.class_names)
-                       if i not in set(explained_ids.tolist()) and i != labels.free_index],
+        explained_classes=[n for i, n in enumerate(labels.class_names) if i in named],
+        other_classes=[n for i, n in enumerate(labels.class_names) if i not in named and i != labels.free_index],
         flagged_explained=rate(at_t, e), flagged_other=rate(at_t, ~e),
         default_flagged_explained=rate(at_default, e), default_flagged_other=rate(at_default, ~e))
