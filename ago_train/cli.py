@@ -122,7 +122,7 @@ def register(app: typer.Typer) -> None:
         carve: Carve = typer.Option(Carve(REAL.carve), "--carve", help="pseudo-labels' free-space rule (`ago pseudo-labels "
                                     "--carve`): all or grazing"),
         moving: Moving = typer.Option(Moving(REAL.moving), "--moving", help="pseudo-labels' moving classes (`ago "
-                                      "pseudo-labels --moving`): aggregate or keyframe"),
+                                      "pseudo-labels --moving`): aggregate, keyframe or track"),
     ):
         """A nuScenes dataroot -> OUT/bundle: time split, synthetic town, pseudo-labels, mixed training, length
         chosen on a val block, export (docs/training.md, "Training on your own data"); resumes."""

@@ -61,7 +61,7 @@ class RealRecipe:
     readout_grid: str = "200x200x16"
     jobs: int = 2
     carve: str = "grazing"       # pseudo-labels' free-space rule (`ago pseudo-labels --carve`: all | grazing)
-    moving: str = "aggregate"    # pseudo-labels' moving classes (`ago pseudo-labels --moving`: aggregate | keyframe)
+    moving: str = "aggregate"    # pseudo-labels' moving classes (`ago pseudo-labels --moving`: aggregate | keyframe | track)
 
 
 STAGE_NAMES = ("split", "town", "pseudo", "train", "select", "export")

@@ -122,6 +122,8 @@ def w(tmp_path_factory):
     r = run_ago(["pseudo-labels", "--data", x.data, "--out", x.pseudo, "--grid", "20x20x4", "--keyframes", "1",
                  "--split", "all"], cwd)
     assert r.code == 0, r.stderr
+    x.no_boxes = shutil.copytree(x.data, root / "no_boxes")   # the dataset without its box table
+    next(x.no_boxes.glob("*/sample_annotation.json")).unlink()
     x.labels = next(x.pseudo.glob("*/*/labels.npz"))
     x.gt = next((x.data / "gts").glob("*/*/labels.npz"))
     x.token = x.gt.parent.name
@@ -266,7 +268,7 @@ ROWS = [
     ("demo --bogus", lambda w: ["demo", "--bogus"], ["--bogus"], []),
     ("train-real: dataroot missing", lambda w: ["train-real", "no_such_root", "o"], ["no_such_root"], ["o"]),
     ("train-real --steps 0", lambda w: ["train-real", w.data, "o", "--steps", "0"], ["--steps"], ["o"]),
-    ("train-real --moving track", lambda w: ["train-real", w.data, "o", "--moving", "track"], ["--moving", "track"],
+    ("train-real --moving sweep", lambda w: ["train-real", w.data, "o", "--moving", "sweep"], ["--moving", "sweep"],
      ["o"]),
     ("vlm-files no --detector folder", lambda w: ["vlm-files", "--data", w.data, "--out", "o", "--prompts", "cw",
                                                   "--detector", "no_such_folder", "--sam", "no_sam"],
@@ -293,8 +295,11 @@ ROWS = [
     ("metric no --pred", lambda w: ["metric", "--gt", w.data / "gts"], ["--pred", "missing"], []),
     ("pseudo-labels --limit -1", lambda w: ["pseudo-labels", "--data", w.data, "--out", "o", "--limit", "-1"],
      ["--limit"], ["o"]),
-    ("pseudo-labels --moving track", lambda w: ["pseudo-labels", "--data", w.data, "--out", "o", "--moving", "track"],
-     ["--moving", "track"], ["o"]),
+    ("pseudo-labels --moving sweep", lambda w: ["pseudo-labels", "--data", w.data, "--out", "o", "--moving", "sweep"],
+     ["--moving", "sweep"], ["o"]),
+    ("pseudo-labels --moving track without box tables", lambda w: ["pseudo-labels", "--data", w.no_boxes, "--out", "o",
+                                                                   "--moving", "track", "--grid", "20x20x4"],
+     ["--moving", "box tables", "sample_annotation"], ["o"]),
     ("pseudo-labels --keyframes 0", lambda w: ["pseudo-labels", "--data", w.data, "--out", "o", "--keyframes", "0"],
      ["--keyframes"], ["o"]),
     ("pseudo-labels --interval 0", lambda w: ["pseudo-labels", "--data", w.data, "--out", "o", "--interval", "0"],

@@ -764,7 +764,7 @@ def test_moving_keyframe_takes_moving_classes_from_the_keyframe_only(tmp_path, c
     assert [label_at(kf.semantics, p) for p in (here, wall)] == [car, manmade]
     assert label_at(kf.semantics, there) != car
     with pytest.raises(AgoInputError, match="--moving"):
-        PseudoLabelConfig(grid=grid, moving="track")
+        PseudoLabelConfig(grid=grid, moving="sweep")
 
     ds = ListDataset([make_frame(ego_to_lidar(np.concatenate([here, wall])), token="tok0", extras=sim_frame().extras)])
     sim = SimulatedSegmenter(cw)
@@ -777,3 +777,95 @@ def test_moving_keyframe_takes_moving_classes_from_the_keyframe_only(tmp_path, c
     assert generate(ds, [0], out, cw, sim, None, PseudoLabelConfig(grid=grid), progress=False)["skipped"] == 1
     with pytest.raises(AgoInputError, match="config differ"):
         generate(ds, [0], out, cw, sim, None, PseudoLabelConfig(grid=grid, moving="keyframe"), progress=False)
+
+
+def box_at(centre, yaw_deg: float = 0.0, wlh=(2.0, 4.0, 1.6)) -> tuple[np.ndarray, np.ndarray]:
+    m = pose(yaw_deg, centre)
+    return m, np.asarray(wlh, float)
+
+
+def test_follow_tracks_carries_moving_points_along_their_boxes():
+    """--moving track's rule: a point in a box that moved goes with the box (a rigid motion: translation and turn);
+    a parked box leaves its points where they are; a movable point in no box, or in the box of an object the
+    sample does not annotate, is dropped; points not movable are never touched."""
+    from ago_train.pseudo.generate import follow_tracks
+
+    then = {"moved": box_at((10.0, 5.0, 0.8), 0.0), "parked": box_at((-6.0, 3.0, 0.8), 30.0),
+            "gone": box_at((0.0, -9.0, 0.8))}
+    now = {"moved": box_at((14.0, 5.0, 0.8), 90.0), "parked": box_at((-6.0, 3.0, 0.8), 30.0),
+           "new": box_at((3.0, 3.0, 0.8))}
+    pts = np.array([[11.0, 5.5, 1.0],      # in the moved box, 1 m ahead of its centre, 0.5 m to its left
+                    [-6.2, 3.1, 1.2],      # in the parked box
+                    [0.3, -9.2, 0.5],      # in the box of an object the sample does not annotate
+                    [20.0, 20.0, 1.0],     # in no box
+                    [10.5, 5.0, 0.9]])     # in the moved box, but not a moving class (a wall behind it, say)
+    movable = np.array([True, True, True, True, False])
+    out, dropped = follow_tracks(pts, movable, then, now)
+    assert dropped.tolist() == [False, False, True, True, False]
+    # the moved box turned 90 degrees left about its centre: 1 m ahead, 0.5 m left -> 0.5 m behind in x, 1 m in y
+    assert np.allclose(out[0], [14.0 - 0.5, 5.0 + 1.0, 1.0])
+    assert np.allclose(out[1], pts[1]) and np.allclose(out[4], pts[4])
+    assert follow_tracks(pts, np.zeros(5, bool), then, now)[1].sum() == 0
+
+
+def test_moving_track_labels_a_moved_car_at_its_place_in_the_sample(tmp_path, cw):
+    """--moving track, end to end through build_sample: another keyframe's car points, seen where the car was then,
+    are labelled where its box is at the sample (not where they were seen), while --moving keyframe drops them
+    and aggregate labels the old place; a parked car's other views still count; static points are kept; another
+    keyframe's non-key sweeps (no boxes at their times: tracks None) lose their car points as with keyframe."""
+    from ago_train.pseudo.generate import moving_classes
+
+    car, manmade = cw.class_names.index("car"), cw.class_names.index("manmade")
+    grid = Grid((-20.0, -20.0, -2.0), (20.0, 20.0, 4.0), (0.5, 0.5, 0.5))
+    here, there, wall = np.array([[8.2, 0.3, 0.7]]), np.array([[8.2, 4.1, 0.7]]), np.array([[12.1, -3.2, 1.3]])
+    parked_other = np.array([[-8.3, 6.2, 0.7]])   # a parked car the sample's keyframe does not see
+    key = make_frame(ego_to_lidar(here), token="k")
+    moved = make_frame(ego_to_lidar(np.concatenate([there, parked_other])), token="o")
+    static = make_frame(ego_to_lidar(wall), token="s")
+    seg = ConstantSegmenter({"k": car, "o": car, "s": manmade})
+    lifted = [lift_frame(key, seg), lift_frame(moved, seg), lift_frame(static, seg), lift_frame(moved, seg)]
+    then = {"a": box_at((8.2, 4.0, 0.8)), "p": box_at((-8.3, 6.0, 0.8))}
+    now = {"a": box_at((8.2, 0.2, 0.8)), "p": box_at((-8.3, 6.0, 0.8))}
+    tracks = [None, (then, now), ({}, now), None]   # the last: a non-key sweep of the other keyframe
+
+    def label_at(sem, p):
+        idx, inside = grid.points_to_index(p)
+        assert inside[0]
+        return int(sem[tuple(idx[0])])
+
+    config = PseudoLabelConfig(grid=grid, moving="track")
+    tr = build_sample(key, lifted, len(cw.class_names), config, moving=moving_classes(cw), tracks=tracks)
+    assert [label_at(tr.semantics, p) for p in (here, wall, parked_other)] == [car, manmade, car]
+    assert label_at(tr.semantics, there) != car
+    moved_to = there + np.array([[0.0, -3.8, 0.0]])   # where the box carried the other keyframe's point
+    assert label_at(tr.semantics, moved_to) == car
+    assert tr.stats["labelled_points"] == 4   # here, there (carried), wall, the parked car; the sweep's two dropped
+    kf = build_sample(key, lifted, len(cw.class_names), PseudoLabelConfig(grid=grid, moving="keyframe"),
+                      moving=moving_classes(cw), tracks=tracks)
+    assert label_at(kf.semantics, parked_other) != car and kf.stats["labelled_points"] == 2
+
+
+def test_moving_track_needs_the_box_tables(synth_root, tmp_path):
+    """`ago pseudo-labels --moving track` on an `ago synth` dataset (which has sample_annotation) writes
+    pseudo-labels recorded as track; on a dataset without the box tables it is refused with one line naming
+    --moving, before anything is written."""
+    import contextlib
+    import io
+    import shutil
+    from ago_runtime.cli import run
+    from ago_runtime.formats.nuscenes import find_version
+
+    args = ["pseudo-labels", "--prompts", "cw", "--segmenter", "sim", "--embedder", "none", "--grid", "20x20x4",
+            "--keyframes", "2", "--split", "all", "--moving", "track"]
+    out = tmp_path / "pl"
+    assert run(args + ["--data", str(synth_root), "--out", str(out)]) == 0
+    assert json.loads((out / "meta.json").read_text())["config"]["moving"] == "track"
+    assert len(list(out.rglob("labels.npz"))) == 2
+    bare = tmp_path / "bare"
+    shutil.copytree(synth_root, bare)
+    (bare / find_version(bare) / "sample_annotation.json").unlink()
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        code = run(args + ["--data", str(bare), "--out", str(tmp_path / "pl2")])
+    assert code == 2 and "error: --moving: track needs the dataset's box tables" in err.getvalue(), err.getvalue()
+    assert not (tmp_path / "pl2").exists()

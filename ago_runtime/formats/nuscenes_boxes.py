@@ -4,7 +4,9 @@
   categories it maps to "ignore" (police car, bicycle rack, debris, pushable/pullable, animals, strollers,
   wheelchairs, personal mobility) become `others`.
 - `DatasetBoxes(root)`: every keyframe's boxes as (box2global 4x4, size wlh, Occ3D class); `in_ego(token,
-  ego2global)` gives them in a keyframe's ego frame. Needs the sample_annotation, instance and category tables.
+  ego2global)` gives them in a keyframe's ego frame, `by_instance(token, ego2global)` keyed by the object's
+  instance token (its track over the keyframes: `ago pseudo-labels --moving track`). Needs the
+  sample_annotation, instance and category tables.
 - `inside_box(points, box2ego, wlh)`: which points lie in a box (x along its length l, y along its width w,
   z along its height h, each side grown by `BOX_MARGIN` 0.05 m).
 - `GROUND_Z` (0.3 m): a return below it in the ego frame (whose origin is on the ground under the rear axle)
@@ -62,17 +64,27 @@ class DatasetBoxes:
         instance_class = {r["token"]: CATEGORY_CLASS.get(categories.get(r.get("category_token"), ""), OTHER_CLASS)
                           for r in load_table(table_dir, "instance")}
         self.boxes: dict[str, list[Box]] = {}   # sample token -> boxes in the global frame
+        self.instances: dict[str, list[str]] = {}   # sample token -> each box's instance token (boxes' order)
         for r in load_table(table_dir, "sample_annotation"):
             m = np.eye(4)
             m[:3, :3] = quaternion_to_matrix(r["rotation"])
             m[:3, 3] = r["translation"]
             cls = instance_class.get(r.get("instance_token"), OTHER_CLASS)
             self.boxes.setdefault(r["sample_token"], []).append((m, np.asarray(r["size"], float), cls))
+            self.instances.setdefault(r["sample_token"], []).append(str(r.get("instance_token", "")))
 
     def in_ego(self, token: str, ego2global: np.ndarray) -> list[Box]:
         """(box2ego 4x4, size wlh, Occ3D class) of a keyframe's annotations, in its ego frame."""
         global2ego = np.linalg.inv(ego2global)
         return [(global2ego @ m, wlh, cls) for m, wlh, cls in self.boxes.get(token, [])]
+
+    def by_instance(self, token: str, ego2global: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """instance token -> (box2ego 4x4, size wlh) of a keyframe's annotations in the frame `ego2global` maps
+        from (another keyframe's ego frame too: the object's track across keyframes). Boxes without an instance
+        token are left out."""
+        global2ego = np.linalg.inv(ego2global)
+        return {inst: (global2ego @ m, wlh) for inst, (m, wlh, _) in zip(self.instances.get(token, []),
+                                                                         self.boxes.get(token, [])) if inst}
 
 
 def inside_box(points: np.ndarray, box2ego: np.ndarray, wlh, margin: float = BOX_MARGIN) -> np.ndarray:

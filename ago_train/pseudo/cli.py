@@ -50,6 +50,7 @@ class Moving(str, Enum):
 
     AGGREGATE = "aggregate"
     KEYFRAME = "keyframe"
+    TRACK = "track"
 
 
 class Carve(str, Enum):
@@ -72,7 +73,10 @@ CARVE_HELP = {Carve.ALL: "every voxel a ray crosses before its hit voxel",
 MOVING_HELP = {Moving.AGGREGATE: "from every superimposed keyframe, like the static classes (a moving object is "
                                   "labelled along its track: benchmarks/results/pseudo_aggregation_smear.md); the default",
                Moving.KEYFRAME: "only from the sample's own keyframe and its own sweeps (vehicles, cycles, pedestrians: "
-                                "ago_train/pseudo/generate.py MOVING_TABLE_CLASSES)"}
+                                "ago_train/pseudo/generate.py MOVING_TABLE_CLASSES)",
+               Moving.TRACK: "the other keyframes' carried along their objects' annotated box tracks (parked ones "
+                             "stay), those in no annotated box dropped as with keyframe; needs the sample_annotation "
+                             "table"}
 EMBEDDER_HELP = {Embedder.FILES: "feature maps, docs/vlm_files.md", Embedder.MASKCLIP: "--clip, on the fly",
                  Embedder.SIM: "SIMULATED", Embedder.NONE: "no features: training will not align the adapter"}
 
@@ -423,6 +427,13 @@ def register(app: typer.Typer) -> None:
             notes.append(f"shard {shard_kn[0]}/{shard_kn[1]}: {len(indices)} keyframes")
             if not indices:
                 raise AgoInputError("--shard", f"shard {shard} of this split has no keyframes (fewer than N)")
+        if moving is Moving.TRACK:   # the box tables, before the models load
+            from ago_runtime.formats.nuscenes_boxes import box_tables_missing
+
+            missing = box_tables_missing(ds.root)
+            if missing:
+                raise AgoInputError("--moving", f"track needs the dataset's box tables ({', '.join(missing)} "
+                                    f"missing in {ds.root}); use --moving keyframe or aggregate")
         load_models(seg, emb)   # the models (grounded-sam, maskclip) once every cheap check has passed
         for n in notes:
             typer.echo(f"note: using {n}")

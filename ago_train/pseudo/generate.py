@@ -37,6 +37,7 @@ from ago_runtime.classes import FREE, IGNORE, table_record
 from ago_runtime.errors import AgoInputError
 from ago_runtime.readers import read_json
 from ago_runtime.formats.frame import Frame
+from ago_runtime.formats.nuscenes_boxes import DatasetBoxes, inside_box
 from ago_runtime.geometry.grid import Grid
 from ago_runtime.readers import read_npz
 from ago_runtime.progress import track
@@ -66,7 +67,9 @@ class PseudoLabelConfig:
                                        # the CLI's default; None here keeps the library benchmarks' committed tables
     moving: str = "aggregate"   # CLI --moving: "aggregate" = points of every class from every superimposed keyframe
                                 # (static world); "keyframe" = points of the moving classes (`moving_classes`) only
-                                # from the sample's own keyframe and its own sweeps: the others' track smears
+                                # from the sample's own keyframe and its own sweeps: the others' track smears;
+                                # "track" = the other keyframes' moving-class points carried along their objects'
+                                # annotated box tracks (`follow_tracks`), the rest dropped as with "keyframe"
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -85,7 +88,7 @@ class PseudoLabelConfig:
         return "all" if self.carve is None else "grazing"
 
 
-MOVING_RULES = ("aggregate", "keyframe")
+MOVING_RULES = ("aggregate", "keyframe", "track")
 # the classes that move (class-table names: Occ3D-nuScenes and Occ3D-Waymo); a label-space class is moving when every
 # table class it maps to is (a class of no table class, an open-vocabulary one, is not)
 MOVING_TABLE_CLASSES = frozenset({"bicycle", "bus", "car", "construction_vehicle", "motorcycle", "pedestrian",
@@ -93,7 +96,7 @@ MOVING_TABLE_CLASSES = frozenset({"bicycle", "bus", "car", "construction_vehicle
 
 
 def moving_classes(label_space) -> np.ndarray:
-    """Indices of the label space's moving classes (MOVING_TABLE_CLASSES), for --moving keyframe."""
+    """Indices of the label space's moving classes (MOVING_TABLE_CLASSES), for --moving keyframe and track."""
     table = label_space.class_table
     return np.array([k for k, c in enumerate(label_space.classes)
                      if c.occ3d_ids and all(table.name_of(i) in MOVING_TABLE_CLASSES for i in c.occ3d_ids)], np.int64)
@@ -107,6 +110,38 @@ class PseudoSample:
     embed_index: np.ndarray | None = None   # (M,) int32
     embeds: np.ndarray | None = None        # (M, C) float16
     stats: dict = field(default_factory=dict)
+
+
+Track = dict[str, tuple[np.ndarray, np.ndarray]]   # instance token -> (box2ego 4x4, size wlh): DatasetBoxes.by_instance
+
+
+def follow_tracks(pts: np.ndarray, movable: np.ndarray, then: Track, now: Track) -> tuple[np.ndarray, np.ndarray]:
+    """`--moving track`: another keyframe's moving-class points carried to where their objects are at the sample.
+
+    pts (N, 3): that keyframe's points in the sample's ego frame, as the static warp (`warp_to`) puts them;
+    movable (N,) bool: the points labelled with a moving class; then / now: the boxes annotated at that keyframe /
+    at the sample, both in the sample's ego frame (`DatasetBoxes.by_instance`). A movable point inside a box of
+    `then` (grown by BOX_MARGIN) whose object is annotated at the sample too moves with the box
+    (now_box @ then_box^-1, a rigid motion); a movable point in no box, or in the box of an object not annotated at
+    the sample, is dropped, as `--moving keyframe` drops it. A parked object's box does not move between
+    keyframes, so its points stay where aggregation puts them. Gives (points, dropped (N,) bool); the other points
+    are returned unchanged. A point inside two boxes goes with the first."""
+    out = np.array(pts, np.float64, copy=True)
+    dropped = np.asarray(movable, bool).copy()
+    todo = np.flatnonzero(dropped)
+    for inst, (box_then, wlh) in then.items():
+        if todo.size == 0:
+            break
+        inside = inside_box(out[todo], box_then, wlh)
+        if not inside.any():
+            continue
+        sel = todo[inside]
+        if inst in now:
+            motion = now[inst][0] @ np.linalg.inv(box_then)
+            out[sel] = out[sel] @ motion[:3, :3].T + motion[:3, 3]
+            dropped[sel] = False
+        todo = todo[~inside]
+    return out, dropped
 
 
 _FRUSTUM_CACHE: OrderedDict = OrderedDict()
@@ -129,10 +164,14 @@ def frustum_mask(grid: Grid, rig: Rig) -> np.ndarray:
 
 
 def build_sample(key: Frame, lifted: list[LiftedFrame], num_classes: int, config: PseudoLabelConfig,
-                 own: int = 1, moving: np.ndarray | None = None) -> PseudoSample:
+                 own: int = 1, moving: np.ndarray | None = None,
+                 tracks: list[tuple[Track, Track] | None] | None = None) -> PseudoSample:
     """Pseudo-labels of keyframe `key` from lifted frames (lifted[0] = the keyframe's own; the first `own` are the
     keyframe's own sweeps). With config.moving "keyframe", points labelled with a class of `moving` (label indices)
-    count only from those first `own` frames: elsewhere they neither occupy nor vote (their rays still carve)."""
+    count only from those first `own` frames: elsewhere they neither occupy nor vote (their rays still carve, to
+    where the point was). With "track", tracks[f] = (the boxes at lifted[f]'s keyframe, the boxes at `key`) carries
+    lifted[f]'s moving-class points along their objects' tracks instead (`follow_tracks`); a frame whose
+    tracks[f] is None (another keyframe's non-key sweeps: no boxes at their times) has them dropped."""
     grid = config.grid
     if num_classes > FREE:
         raise AgoInputError(None, f"a label space for pseudo-labels has at most {FREE} classes "
@@ -144,12 +183,16 @@ def build_sample(key: Frame, lifted: list[LiftedFrame], num_classes: int, config
     fmean = FeatureMean()
     n_points = n_labelled = rays = 0
     ray_sets, columns = [], []   # (origin, ends) per sweep; occupied lattice keys per sweep (--carve grazing)
-    drop_moving = config.moving == "keyframe" and moving is not None and len(moving) > 0
+    drop_moving = config.moving in ("keyframe", "track") and moving is not None and len(moving) > 0
     for f_i, lf in enumerate(lifted):
         pts, origin = warp_to(lf, key.ego2global)
-        idx, inside = grid.points_to_index(pts)
+        hits, dropped = pts, None   # where the points occupy and vote; the rays end at pts
+        if drop_moving and f_i >= own:   # moving, another time
+            movable = np.isin(lf.labels, moving)
+            boxes = tracks[f_i] if config.moving == "track" and tracks is not None else None
+            hits, dropped = follow_tracks(pts, movable, *boxes) if boxes is not None else (pts, movable)
+        idx, inside = grid.points_to_index(hits)
         flat = grid.flat_index(idx)
-        dropped = np.isin(lf.labels, moving) if drop_moving and f_i >= own else None   # moving, another time
         stays = inside if dropped is None else inside & ~dropped
         hit[flat[stays]] = True
         ok = stays & (lf.labels != IGNORE)
@@ -164,7 +207,7 @@ def build_sample(key: Frame, lifted: list[LiftedFrame], num_classes: int, config
                 crossed |= traverse(origin[None], ends, grid)
             else:   # the stops need every sweep's hits first (a wall's other hits may come from another sweep)
                 ray_sets.append((origin, ends))
-                columns.append(occupied_keys(pts if dropped is None else pts[~dropped], grid))
+                columns.append(occupied_keys(hits if dropped is None else hits[~dropped], grid))
         if lf.feature_maps is not None and (config.embed_all_frames or f_i == 0):
             for ci, fmap in enumerate(lf.feature_maps):
                 sel = np.flatnonzero(inside & (lf.cam_idx == ci))
@@ -438,21 +481,41 @@ class LiftCache:
         return frame, lifted
 
 
+def dataset_tracks(ds, config: PseudoLabelConfig) -> DatasetBoxes | None:
+    """The dataset's annotated boxes when config.moving is "track" (refused with one line when its tables lack
+    them), else None."""
+    if config.moving != "track":
+        return None
+    if getattr(ds, "root", None) is None:
+        raise AgoInputError("--moving", "track needs a nuScenes-layout dataset's box tables (sample_annotation); "
+                            "use --moving keyframe or aggregate")
+    return DatasetBoxes(ds.root, "--moving track", "; use --moving keyframe or aggregate")
+
+
 def pseudo_sample(ds, i: int, label_space, segmenter, embedder, config: PseudoLabelConfig,
-                  cache: LiftCache | None = None) -> PseudoSample:
-    """Pseudo-labels (and voxel embeddings) of dataset index i, in memory."""
+                  cache: LiftCache | None = None, boxes: DatasetBoxes | None = None) -> PseudoSample:
+    """Pseudo-labels (and voxel embeddings) of dataset index i, in memory. boxes: `dataset_tracks(ds, config)`
+    when the caller has it (--moving track; None loads it here)."""
     cache = cache or LiftCache(ds, segmenter, config.ego_box, config.num_keyframes * config.interval + 1,
                                config.nonkey_sweeps)
     ids = frames_to_aggregate(ds, i, config.num_keyframes, config.interval)
     pairs = [cache.get(j) for j in ids]
-    moving = moving_classes(label_space) if config.moving == "keyframe" else None
+    moving = moving_classes(label_space) if config.moving in ("keyframe", "track") else None
+    if config.moving == "track" and boxes is None:
+        boxes = dataset_tracks(ds, config)
+    key = pairs[0][0]
+    now = boxes.by_instance(key.token, key.ego2global) if boxes is not None else None
     lifted: list[LiftedFrame] = []   # keyframe i's own sweep first (build_sample embeds from lifted[0])
+    tracks: list = []                # per lifted frame: (its keyframe's boxes, the sample's), or None
     for k, (frame, parts) in enumerate(pairs):
         own = parts[0]
         if embedder is not None and (k == 0 or config.embed_all_frames):
             own = attach_features(frame, own, embedder)
         lifted += [own] + list(parts[1:])
-    return build_sample(pairs[0][0], lifted, label_space.num_classes, config, own=len(pairs[0][1]), moving=moving)
+        then = boxes.by_instance(frame.token, key.ego2global) if boxes is not None and k > 0 else None
+        tracks += [None if then is None else (then, now)] + [None] * (len(parts) - 1)
+    return build_sample(key, lifted, label_space.num_classes, config, own=len(pairs[0][1]), moving=moving,
+                        tracks=tracks)
 
 
 def _cache_for(ds, segmenter, config: PseudoLabelConfig) -> LiftCache:
@@ -464,7 +527,7 @@ def _cache_for(ds, segmenter, config: PseudoLabelConfig) -> LiftCache:
 def _label_and_save(job: dict, indices: list[int], cache: LiftCache) -> int:
     for i in indices:
         sample = pseudo_sample(job["ds"], i, job["label_space"], job["segmenter"], job["embedder"], job["config"],
-                               cache)
+                               cache, job.get("boxes"))
         save_sample(job["out"], job["ds"].scene_of(i), job["ds"].sample_tokens[i], sample)
     return len(indices)
 
@@ -507,6 +570,7 @@ def generate(ds, indices: list[int], out_dir: str | Path, label_space, segmenter
     (e.g. a labels.npz cut short by a kill) is made again, and counted in "remade"."""
     out = Path(out_dir)
     meta = make_meta(label_space, segmenter, embedder, config, command)
+    boxes = dataset_tracks(ds, config)   # --moving track: the boxes, or its one-line refusal, before any work
     meta_path = out / "meta.json"
     indices = sorted(set(int(i) for i in indices))
     if not indices:
@@ -531,7 +595,7 @@ def generate(ds, indices: list[int], out_dir: str | Path, label_space, segmenter
         todo = list(indices)
         # the window of keyframes one sample uses spans num_keyframes * interval keyframes; cap the memory
         first_cache = LiftCache(ds, segmenter, config.ego_box, 4, config.nonkey_sweeps)
-        first = pseudo_sample(ds, todo[0], label_space, segmenter, embedder, config, first_cache)  # settings work
+        first = pseudo_sample(ds, todo[0], label_space, segmenter, embedder, config, first_cache, boxes)  # settings work
         out.mkdir(parents=True, exist_ok=True)
         write_bytes(out / "label_space.txt", Path(label_space.source).read_bytes())
         write_json(meta_path, meta)
@@ -543,7 +607,7 @@ def generate(ds, indices: list[int], out_dir: str | Path, label_space, segmenter
         save_sample(out, ds.scene_of(rest[0]), ds.sample_tokens[rest[0]], first)
         rest = rest[1:]
     job = {"ds": ds, "label_space": label_space, "segmenter": segmenter, "embedder": embedder, "config": config,
-           "out": str(out)}
+           "out": str(out), "boxes": boxes}
     # neighbouring keyframes share lifted frames: process in dataset (scene, time) order
     groups = scene_groups(ds, rest)
     if jobs > 1 and len(groups) > 1:
