@@ -119,7 +119,8 @@ def train_real(dataroot: str | Path, out: str | Path, recipe: RealRecipe | None 
                run_verb=_run) -> dict:
     """Run the stages (module docstring); returns the record written to OUT/train_real.json. `run_verb(stage
     name, ago arguments, work folder, say)` runs one verb (tests pass a stand-in)."""
-    from ago_runtime.formats.nuscenes import NuScenesDataset
+    from ago_runtime.formats.nuscenes import NuScenesDataset, find_version
+    from ago_runtime.formats.nuscenes_boxes import box_tables_missing
 
     from .time_split import time_split
 
@@ -131,6 +132,11 @@ def train_real(dataroot: str | Path, out: str | Path, recipe: RealRecipe | None 
         raise AgoInputError(dataroot, "nuScenes dataroot not found")
     if not any(p.is_dir() for p in dataroot.glob("v1.0-*")):
         raise AgoInputError(dataroot, "not a nuScenes dataroot (no v1.0-* table folder)")
+    missing = box_tables_missing(dataroot)   # the real keyframes' labels are painted from the boxes (and --moving track)
+    if missing:
+        raise AgoInputError(dataroot / find_version(dataroot) / f"{missing[0]}.json", "train-real labels the real "
+                            f"keyframes from the dataset's 3D boxes (--segmenter boxes); missing: "
+                            f"{', '.join(t + '.json' for t in missing)}")
     work = out / "work"
     work.mkdir(parents=True, exist_ok=True)
     earlier = []   # the stage times of earlier (interrupted or finished) invocations on this OUT

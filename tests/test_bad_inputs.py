@@ -268,6 +268,8 @@ ROWS = [
     ("demo --bogus", lambda w: ["demo", "--bogus"], ["--bogus"], []),
     ("train-real: dataroot missing", lambda w: ["train-real", "no_such_root", "o"], ["no_such_root"], ["o"]),
     ("train-real --steps 0", lambda w: ["train-real", w.data, "o", "--steps", "0"], ["--steps"], ["o"]),
+    ("train-real without box tables", lambda w: ["train-real", w.no_boxes, "o"], ["sample_annotation.json", "boxes"],
+     ["o"]),
     ("train-real --moving sweep", lambda w: ["train-real", w.data, "o", "--moving", "sweep"], ["--moving", "sweep"],
      ["o"]),
     ("vlm-files no --detector folder", lambda w: ["vlm-files", "--data", w.data, "--out", "o", "--prompts", "cw",
