@@ -374,7 +374,7 @@ def register(app: typer.Typer) -> None:
         from ago_runtime.formats.datasets import check_label_table, open_dataset
         from ago_runtime.outputs import check_output_dir
 
-        from .generate import PseudoLabelConfig, generate
+        from .generate import PseudoLabelConfig, check_track_tables, generate
         from .raycast import GrazingRule
 
         from ago_runtime.errors import AgoInputError
@@ -428,12 +428,7 @@ def register(app: typer.Typer) -> None:
             if not indices:
                 raise AgoInputError("--shard", f"shard {shard} of this split has no keyframes (fewer than N)")
         if moving is Moving.TRACK:   # the box tables, before the models load
-            from ago_runtime.formats.nuscenes_boxes import box_tables_missing
-
-            missing = box_tables_missing(ds.root)
-            if missing:
-                raise AgoInputError("--moving", f"track needs the dataset's box tables ({', '.join(missing)} "
-                                    f"missing in {ds.root}); use --moving keyframe or aggregate")
+            check_track_tables(ds)
         load_models(seg, emb)   # the models (grounded-sam, maskclip) once every cheap check has passed
         for n in notes:
             typer.echo(f"note: using {n}")

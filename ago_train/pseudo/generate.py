@@ -37,7 +37,7 @@ from ago_runtime.classes import FREE, IGNORE, table_record
 from ago_runtime.errors import AgoInputError
 from ago_runtime.readers import read_json
 from ago_runtime.formats.frame import Frame
-from ago_runtime.formats.nuscenes_boxes import DatasetBoxes, inside_box
+from ago_runtime.formats.nuscenes_boxes import BOX_TABLES, DatasetBoxes, box_tables_missing, inside_box
 from ago_runtime.geometry.grid import Grid
 from ago_runtime.readers import read_npz
 from ago_runtime.progress import track
@@ -481,15 +481,22 @@ class LiftCache:
         return frame, lifted
 
 
+def check_track_tables(ds) -> None:
+    """`--moving track` needs the dataset's box tables: refused with one line naming --moving when it lacks them."""
+    root = getattr(ds, "root", None)
+    missing = list(BOX_TABLES) if root is None else box_tables_missing(root)
+    if missing:
+        where = f" in {root}" if root is not None else ""
+        raise AgoInputError("--moving", f"track needs the dataset's box tables ({', '.join(missing)} missing{where}); "
+                            "use --moving keyframe or aggregate")
+
+
 def dataset_tracks(ds, config: PseudoLabelConfig) -> DatasetBoxes | None:
-    """The dataset's annotated boxes when config.moving is "track" (refused with one line when its tables lack
-    them), else None."""
+    """The dataset's annotated boxes when config.moving is "track" (check_track_tables first), else None."""
     if config.moving != "track":
         return None
-    if getattr(ds, "root", None) is None:
-        raise AgoInputError("--moving", "track needs a nuScenes-layout dataset's box tables (sample_annotation); "
-                            "use --moving keyframe or aggregate")
-    return DatasetBoxes(ds.root, "--moving track", "; use --moving keyframe or aggregate")
+    check_track_tables(ds)
+    return DatasetBoxes(ds.root, "--moving track")
 
 
 def pseudo_sample(ds, i: int, label_space, segmenter, embedder, config: PseudoLabelConfig,
