@@ -54,10 +54,10 @@ def choose_threshold(scores: np.ndarray, occupancy: np.ndarray, explained: np.nd
 
 @dataclass
 class LabelFolder:
-    """A folder of per-frame labels, `<scene>/<token>/labels.npz` (a Waymo scene is `<split>/<scene>`): `files` sample
-    token -> file, the label
-    classes (`class_names[i]` is label i), the free and ignore labels, and the grid's range when the folder says
-    it (an `ago pseudo-labels` meta.json, checked against the bundle's; Occ3D GT says nothing)."""
+    """A folder of per-frame labels, `<scene>/<token>/labels.npz` (a Waymo scene is `<split>/<scene>`): `files`
+    sample token -> file, the label classes (`class_names[i]` is label i), the free and ignore labels, and the grid's
+    range when the folder says it (an `ago pseudo-labels` meta.json, checked against the bundle's; Occ3D GT says
+    nothing)."""
 
     root: Path
     files: dict[str, Path]

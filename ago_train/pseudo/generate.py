@@ -83,6 +83,11 @@ class PseudoLabelConfig:
             raise AgoInputError("--moving", f"must be one of {', '.join(MOVING_RULES)}, got {self.moving!r}")
 
     @property
+    def separates_moving(self) -> bool:
+        """Whether the moving classes' points of the other keyframes are treated apart (keyframe, track)."""
+        return self.moving != "aggregate"
+
+    @property
     def carve_name(self) -> str:
         """The --carve choice these settings are: all or grazing."""
         return "all" if self.carve is None else "grazing"
@@ -183,7 +188,7 @@ def build_sample(key: Frame, lifted: list[LiftedFrame], num_classes: int, config
     fmean = FeatureMean()
     n_points = n_labelled = rays = 0
     ray_sets, columns = [], []   # (origin, ends) per sweep; occupied lattice keys per sweep (--carve grazing)
-    drop_moving = config.moving in ("keyframe", "track") and moving is not None and len(moving) > 0
+    drop_moving = config.separates_moving and moving is not None and len(moving) > 0
     for f_i, lf in enumerate(lifted):
         pts, origin = warp_to(lf, key.ego2global)
         hits, dropped = pts, None   # where the points occupy and vote; the rays end at pts
@@ -507,9 +512,8 @@ def pseudo_sample(ds, i: int, label_space, segmenter, embedder, config: PseudoLa
                                config.nonkey_sweeps)
     ids = frames_to_aggregate(ds, i, config.num_keyframes, config.interval)
     pairs = [cache.get(j) for j in ids]
-    moving = moving_classes(label_space) if config.moving in ("keyframe", "track") else None
-    if config.moving == "track" and boxes is None:
-        boxes = dataset_tracks(ds, config)
+    moving = moving_classes(label_space) if config.separates_moving else None
+    boxes = boxes if boxes is not None else dataset_tracks(ds, config)
     key = pairs[0][0]
     now = boxes.by_instance(key.token, key.ego2global) if boxes is not None else None
     lifted: list[LiftedFrame] = []   # keyframe i's own sweep first (build_sample embeds from lifted[0])
