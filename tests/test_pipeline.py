@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -73,3 +74,29 @@ def test_leaving_the_loop_early_stops_the_threads(demo):
             break
     assert frame.name == "demo"
     assert threading.active_count() <= before
+
+
+def test_a_free_worker_takes_the_next_frame_while_the_caller_is_busy():
+    """overlapped: while the caller handles frame 0 (here a 0.4 s sleep; in `ago infer`, its picture and files),
+    the workers go on with frames 1..3 instead of idling until the caller asks for the next result."""
+    from ago_runtime.predict.pipeline import overlapped
+
+    started: dict[int, float] = {}
+    clock = threading.Lock()
+
+    def predict(i: int) -> int:
+        with clock:
+            started[i] = time.perf_counter()
+        time.sleep(0.02)
+        return i
+
+    handed = []
+    with contextlib.closing(overlapped(range(8), lambda i: i, predict, workers=2)) as results:
+        for i in results:
+            handed.append(i)
+            if i == 0:
+                time.sleep(0.4)
+                busy_until = time.perf_counter()
+    assert handed == list(range(8))
+    # frames 1, 2 and 3 were taken up by the workers during the caller's 0.4 s with frame 0
+    assert all(started[i] < busy_until - 0.2 for i in (1, 2, 3)), started

@@ -6,10 +6,12 @@
 
 Two stages run in threads beside the caller (numpy, OpenCV and onnxruntime release the GIL): a reader
 thread takes the next items from `frames` and applies `read` (decode, preprocess), `workers` threads apply
-`predict`, and the generator hands the results out in frame order. Up to `workers` frames are predicted
-while the caller handles the previous one. An error in reading or predicting ends the iteration with that
-error once the frames before it have been handed out; leaving the loop early (break, an error in the loop
-body) stops the threads when the generator is closed (`contextlib.closing`, or when it is collected).
+`predict`, and the generator hands the results out in frame order. Up to 2 x `workers` frames are handed
+to the workers before the oldest is handed out, so that a worker that finishes while the caller handles a
+result (`ago infer` draws and writes it) takes the next frame at once instead of waiting for the caller.
+An error in reading or predicting ends the iteration with that error once the frames before it have been
+handed out; leaving the loop early (break, an error in the loop body) stops the threads when the generator is
+closed (`contextlib.closing`, or when it is collected).
 """
 
 from __future__ import annotations
@@ -66,7 +68,7 @@ def overlapped(frames: Iterable[F], read: Callable[[F], object], predict: Callab
                     yield in_flight.popleft().result()
                 raise
             in_flight.append(pool.submit(predict, item))
-            if len(in_flight) > workers:
+            if len(in_flight) >= 2 * workers:
                 yield in_flight.popleft().result()
         while in_flight:
             yield in_flight.popleft().result()
