@@ -5,9 +5,14 @@
   GridSample stay float32. Used for the voxel stages (one Gemm each).
 - `quantize_planes_static` (static, onnxruntime.quantization.quantize_static): takes planes.onnx and
   calibration feeds (real preprocessed frames, ago_export.calibration_frames); writes a QDQ graph whose
-  convolutions (the image backbone, the FPN and the TPV convolutions) run on int8 activations and int8
-  per-channel weights. The activation ranges are the min/max seen on the calibration frames (or their
-  percentiles). GridSample, the attention MatMuls/Gemms and everything else stay float32.
+  convolutions (the image backbone and the FPN) run on int8 activations and int8 per-channel weights. The
+  activation ranges are the min/max seen on the calibration frames (or their percentiles). GridSample, the
+  attention MatMuls/Gemms and everything else stay float32, and so do the convolutions that make the features
+  the TPV encoder samples (`sampled_feature_convs`: the value projections and the FPN outputs they read).
+  In int8 those convolutions run faster, but what their int8 outputs need on the way to the samplers costs
+  more than that: a dequantisation per sampler reading the value projection, and, behind the FPN outputs, a
+  transpose that moves the channels of onnxruntime's int8 channels-last layout to the front (0.21 s of a 3 s
+  planes graph at the paper's scale; benchmarks/results/paper_scale.md).
 - `quantize_int8_graphs`: the bundle's int8 variant, what `ago export --int8` writes: planes.onnx static QDQ
   (calibrated on frames of the checkpoint's training split only) and every voxel stage dynamic. The same
   recipe serves a model fine-tuned with fake int8 first (`ago train --set quant=int8`, ago_train/quant.py);
@@ -35,6 +40,10 @@ from ago_runtime.atomic import atomic_path
 from ago_runtime.errors import AgoInputError
 
 STATIC_OP_TYPES = ["Conv", "Clip"]   # Clip: see the module doc (ReLU6 folded into the conv's output range)
+# ops that only move or reshape data: a convolution whose output reaches a sampler through these alone makes
+# the sampled features (sampled_feature_convs)
+DATA_MOVEMENT_OPS = frozenset({"Concat", "Pad", "Transpose", "Reshape", "Slice", "Split", "Squeeze", "Unsqueeze",
+                               "Identity", "Flatten"})
 
 
 @contextmanager
@@ -88,8 +97,8 @@ def quantize_planes_static(fp32_path: str | Path, out_path: str | Path, feeds: l
                            uncalibrated_range: tuple[float, float] | None = None, method: str = "minmax") -> Path:
     """Static QDQ int8 of planes.onnx's convolutions, calibrated on `feeds` (see the module doc).
 
-    keep_float: node names left in float32 (e.g. a sensitive convolution). The file appears at out_path only
-    when quantisation finished (temp name + rename).
+    keep_float: node names left in float32 (e.g. a sensitive convolution), besides `sampled_feature_convs`,
+    which always are. The file appears at out_path only when quantisation finished (temp name + rename).
     method: "minmax" (each activation's range: the min and max over the frames) or "percentile" (the 0.001 and
     99.999 percentiles; keeps every activation of every frame in memory while calibrating: few frames only).
     uncalibrated_range (benchmarks of random-weight graphs only, where the ranges do not matter): no
@@ -120,13 +129,47 @@ def quantize_planes_static(fp32_path: str | Path, out_path: str | Path, feeds: l
         if uncalibrated_range is not None:
             cache = Path(tmp) / "ranges.json"
             _write_fixed_ranges(pre, cache, uncalibrated_range)
+        import onnx
+
+        sampled = sampled_feature_convs(onnx.load(str(pre), load_external_data=False).graph)
+        exclude = list(dict.fromkeys([*(keep_float or []), *sampled]))
         quantize_static(str(pre), str(part), None if cache else Feeds(), quant_format=QuantFormat.QDQ,
                         activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, per_channel=True,
                         reduce_range=False,
                         calibrate_method=CalibrationMethod.MinMax if cache else methods[method],
-                        op_types_to_quantize=STATIC_OP_TYPES, nodes_to_exclude=list(keep_float or []),
+                        op_types_to_quantize=STATIC_OP_TYPES, nodes_to_exclude=exclude,
                         calibration_cache_path=cache)
     return Path(out_path)
+
+
+def sampled_feature_convs(graph) -> list[str]:
+    """The Conv nodes of an ONNX graph that make the features a GridSample reads, in two steps: the convolutions
+    whose output reaches a GridSample's input through data-movement ops only (DATA_MOVEMENT_OPS; in planes.onnx
+    the TPV encoder's value projections), then those whose output reaches one of the first through such ops
+    only (the FPN outputs: concatenated, padded and transposed into the cameras' mosaic). Kept in float32 by
+    quantize_planes_static (the module doc says why)."""
+    users: dict[str, list] = {}
+    for node in graph.node:
+        for name in node.input:
+            users.setdefault(name, []).append(node)
+
+    def reaches(conv, is_target) -> bool:
+        tensors, seen = [conv.output[0]], set()
+        while tensors:
+            tensor = tensors.pop()
+            for user in users.get(tensor, []):
+                if user.input[0] == tensor and is_target(user):
+                    return True
+                if user.op_type in DATA_MOVEMENT_OPS and user.name not in seen:
+                    seen.add(user.name)
+                    tensors.extend(user.output)
+        return False
+
+    convs = [n for n in graph.node if n.op_type == "Conv"]
+    first = {c.name for c in convs if reaches(c, lambda n: n.op_type == "GridSample")}
+    second = {c.name for c in convs if c.name not in first
+              and reaches(c, lambda n: n.op_type == "Conv" and n.name in first)}
+    return [c.name for c in convs if c.name in first | second]
 
 
 def node_module(node_name: str, module_names: set[str]) -> str | None:

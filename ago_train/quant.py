@@ -1,9 +1,11 @@
 """Quantisation-aware fine-tuning (`TrainConfig.quant = "int8"`): fake int8 on the convolutions, distilled from fp32.
 
-What the int8 planes graph runs in int8 (ago_export.quantize.quantize_planes_static: every Conv of the image
-backbone, the FPN and the TPV encoder, uint8 activations with one range per tensor, int8 weights per output
-channel) is what this module simulates in torch, on every nn.Conv2d of the model (the decoder and adapter are
-linear layers: their graphs stay float or dynamic int8):
+What the int8 planes graph runs in int8 (ago_export.quantize.quantize_planes_static: the convolutions of the
+image backbone and the FPN, uint8 activations with one range per tensor, int8 weights per output channel) is
+what this module simulates in torch, on every nn.Conv2d of the model but the FPN's output convolutions
+(`FLOAT_IN_INT8`: they make the features the TPV encoder samples, which the export keeps in float32,
+ago_export.quantize.sampled_feature_convs; the TPV encoder's own value projections are functional convolutions,
+not modules; the decoder and adapter are linear layers: their graphs stay float or dynamic int8):
 
 - weights: symmetric int8 per output channel, scale = max |w| / 127 (`torch.fake_quantize_per_channel_affine`;
   a batch norm that follows the convolution scales whole output channels, so quantising the unfolded
@@ -79,9 +81,15 @@ def _quantise_input(module: nn.Module, args: tuple) -> tuple:
     return (module.input_quant(args[0]), *args[1:])
 
 
+# the modules whose convolutions the int8 planes graph keeps in float32 (the FPN outputs: the module doc)
+FLOAT_IN_INT8 = ("fpn.output",)
+
+
 def attach_fake_quant(model: nn.Module) -> int:
-    """Fake int8 on every nn.Conv2d of `model` (in place; see the module doc) -> how many convolutions."""
-    convs = [m for m in model.modules() if isinstance(m, nn.Conv2d)]
+    """Fake int8 on every nn.Conv2d of `model` outside FLOAT_IN_INT8 (in place; see the module doc) -> how many
+    convolutions."""
+    convs = [m for name, m in model.named_modules() if isinstance(m, nn.Conv2d)
+             and not any(name == f or name.startswith(f + ".") for f in FLOAT_IN_INT8)]
     for conv in convs:
         parametrize.register_parametrization(conv, "weight", WeightFakeQuant())
         conv.input_quant = ActivationFakeQuant().to(conv.weight.device)

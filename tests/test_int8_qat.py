@@ -95,7 +95,10 @@ def test_fake_quant_model_keeps_plain_weight_names():
     quant = cfg.build()
     quant.load_state_dict(plain.state_dict())
     n = attach_fake_quant(quant)
-    assert n == sum(isinstance(m, torch.nn.Conv2d) for m in plain.modules()) > 0
+    convs = {name for name, m in plain.named_modules() if isinstance(m, torch.nn.Conv2d)}
+    fpn_out = {name for name in convs if name.startswith("fpn.output.")}
+    assert fpn_out and n == len(convs) - len(fpn_out) > 0   # the FPN outputs stay float, as the export keeps them
+    assert not any(hasattr(m, "input_quant") for name, m in quant.named_modules() if name in fpn_out)
     assert set(model_state(quant)) == set(plain.state_dict())      # checkpoints keep the plain names
     plain.eval(), quant.eval()
     images, ego2img = torch.randn(1, 6, 3, 64, 96), torch.eye(4).expand(1, 6, 4, 4).clone()
@@ -170,9 +173,11 @@ def test_int8_export_is_qdq_and_agrees_with_fp32(town, tmp_path):
 
 
 def test_int8_float_keeps_the_named_modules_convolutions_in_float32(town, tmp_path):
-    """`ago export --int8 --int8-float backbone.convs.0 ...`: exactly the convolutions of those torch modules stay
-    float32 Conv nodes in planes.int8.onnx (their weights float, no DequantizeLinear in front), every other
-    backbone / FPN convolution is int8, and the variant's method records the modules. A name that is no module with
+    """`ago export --int8 --int8-float backbone.convs.0`: exactly the convolutions of that torch module stay
+    float32 Conv nodes in planes.int8.onnx (their weights float, no DequantizeLinear in front), besides those that
+    always do (the FPN outputs and the TPV encoder's value projections, which make the sampled features: the
+    modules of QAT's FLOAT_IN_INT8), every other backbone / FPN convolution is int8, and the variant's method
+    records the modules. A name that is no module with
     a convolution is refused before any export work, one naming only the TPV encoder's functional convolutions
     when the graph is quantised; --int8-float without --int8 is refused."""
     import onnx
@@ -181,7 +186,9 @@ def test_int8_float_keeps_the_named_modules_convolutions_in_float32(town, tmp_pa
     from ago_export.quantize import node_module
     from ago_export.export import load_model
 
-    keep = ("backbone.convs.0", "fpn.output")
+    from ago_train.quant import FLOAT_IN_INT8
+
+    keep = ("backbone.convs.0",)
     bundle = tmp_path / "mixed"
     export_bundle(town["fp32"], bundle, int8=True, real_frame=False, bank_prompts=[], log=lambda s: None,
                   int8_float=keep)
@@ -200,9 +207,11 @@ def test_int8_float_keeps_the_named_modules_convolutions_in_float32(town, tmp_pa
     names = {n for n, _ in load_model(town["fp32"])[0].named_modules()}
     modules = sorted({node_module(c, names) for c in float_convs if not c.startswith("/tpv/")})
     assert modules == ["backbone.convs.0.0", "fpn.output.0", "fpn.output.1", "fpn.output.2"], modules
+    assert FLOAT_IN_INT8 == ("fpn.output",)   # QAT simulates int8 on exactly the convolutions the export quantises
+    assert [c for c in float_convs if c.startswith("/tpv/")] and not [c for c in int8_convs if c.startswith("/tpv/")]
     assert any(node_module(c, names).startswith("backbone.convs.1") for c in int8_convs)
     meta = json.loads((bundle / "bundle.json").read_text())
-    assert meta["variants"]["int8"]["method"] == "static-qdq; float32: backbone.convs.0, fpn.output"
+    assert meta["variants"]["int8"]["method"] == "static-qdq; float32: backbone.convs.0"
 
     for name, message in (("backbone.nope", "no module of the model"), ("encoder.layers.0.image_value", "/tpv/Conv")):
         with pytest.raises(AgoInputError, match=message):

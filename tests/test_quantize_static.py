@@ -13,28 +13,37 @@ ort = pytest.importorskip("onnxruntime")
 from onnx import TensorProto, helper, numpy_helper  # noqa: E402
 
 from ago_export.calibration_frames import MAX_CALIBRATION_FRAMES, planes_feeds, read_frames, spread  # noqa: E402
-from ago_export.quantize import quantize_planes_static  # noqa: E402
+from ago_export.quantize import quantize_planes_static, sampled_feature_convs  # noqa: E402
 from ago_runtime.errors import AgoInputError  # noqa: E402
 
 from conftest import shared_path  # noqa: E402
 
 
 def tiny_graph(path: Path) -> Path:
-    """x (1,3,16,16) -> Conv 3x3 (8) -> Clip [0, 6] (ReLU6) -> Conv 1x1 (8) -> GridSample(grid) -> y (1,8,8,8).
+    """x (1,3,16,16) -> Conv 3x3 (8) -> Clip [0, 6] (ReLU6) -> Conv 1x1 (8) -> Conv 3x3 (8, "the FPN output") ->
+    Pad (data movement) -> Conv 1x1 (8, "the value projection") -> GridSample(grid) -> y (1,8,8,8).
 
     The first convolution's weights are large (as a batch norm folded into them makes them), so its
-    pre-activation spans far more than the [0, 6] its ReLU6 keeps."""
+    pre-activation spans far more than the [0, 6] its ReLU6 keeps. The last two convolutions make the sampled
+    features: they stay float32 (sampled_feature_convs)."""
     rng = np.random.default_rng(0)
     w1 = (rng.normal(size=(8, 3, 3, 3)) * 4).astype(np.float32)
     w2 = (rng.normal(size=(8, 8, 1, 1)) * 0.3).astype(np.float32)
+    w3 = (rng.normal(size=(8, 8, 3, 3)) * 0.1).astype(np.float32)
+    w4 = (rng.normal(size=(8, 8, 1, 1)) * 0.3).astype(np.float32)
     nodes = [
         helper.make_node("Conv", ["x", "w1", "b1"], ["c1"], name="conv1", pads=[1, 1, 1, 1]),
         helper.make_node("Clip", ["c1", "lo", "hi"], ["r1"], name="relu6"),
         helper.make_node("Conv", ["r1", "w2", "b2"], ["c2"], name="conv2"),
-        helper.make_node("GridSample", ["c2", "grid"], ["y"], name="sample", align_corners=0),
+        helper.make_node("Conv", ["c2", "w3", "b2"], ["c3"], name="fpn_output", pads=[1, 1, 1, 1]),
+        helper.make_node("Pad", ["c3", "pads"], ["p3"], name="pad"),
+        helper.make_node("Conv", ["p3", "w4", "b2"], ["c4"], name="value_projection"),
+        helper.make_node("GridSample", ["c4", "grid"], ["y"], name="sample", align_corners=0),
     ]
     inits = [numpy_helper.from_array(w1, "w1"), numpy_helper.from_array(np.zeros(8, np.float32), "b1"),
              numpy_helper.from_array(w2, "w2"), numpy_helper.from_array(np.full(8, 0.1, np.float32), "b2"),
+             numpy_helper.from_array(w3, "w3"), numpy_helper.from_array(w4, "w4"),
+             numpy_helper.from_array(np.array([0, 0, 1, 1, 0, 0, 1, 1], np.int64), "pads"),
              numpy_helper.from_array(np.array(0, np.float32), "lo"),
              numpy_helper.from_array(np.array(6, np.float32), "hi")]
     graph = helper.make_graph(nodes, "tiny", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 3, 16, 16]),
@@ -68,7 +77,7 @@ def test_convolutions_sit_between_quantize_and_dequantize(quantised):
     _, out = quantised
     model = onnx.load(str(out))
     made_by = producers(model)
-    convs = [n for n in model.graph.node if n.op_type == "Conv"]
+    convs = [n for n in model.graph.node if n.op_type == "Conv" and n.name.startswith(("conv1", "conv2"))]
     assert len(convs) == 2
     for conv in convs:
         # activation and weight come from DequantizeLinear; the output goes through QuantizeLinear
@@ -82,6 +91,22 @@ def test_convolutions_sit_between_quantize_and_dequantize(quantised):
         w_dq = made_by[conv.input[1]]
         assert inits[w_dq.input[1]].shape == (8,)
         assert inits[w_dq.input[0]].dtype == np.int8
+
+
+def test_the_convolutions_that_make_the_sampled_features_stay_float(quantised):
+    """The value projection (its output goes straight to the GridSample) and the FPN output (its output reaches the
+    value projection through a Pad only) keep float32 weights and write float32: no QuantizeLinear after them."""
+    fp32, out = quantised
+    assert sampled_feature_convs(onnx.load(str(fp32)).graph) == ["fpn_output", "value_projection"]
+    model = onnx.load(str(out))
+    made_by = producers(model)
+    weights = {i.name for i in model.graph.initializer}
+    for name in ("fpn_output", "value_projection"):
+        (conv,) = [n for n in model.graph.node if n.op_type == "Conv" and n.name == name]
+        assert conv.input[1] in weights   # the float weights themselves, no DequantizeLinear
+        assert not [n for n in model.graph.node if conv.output[0] in n.input and n.op_type == "QuantizeLinear"]
+    gs = next(n for n in model.graph.node if n.op_type == "GridSample")
+    assert made_by[gs.input[0]].name == "value_projection"
 
 
 def test_relu6_is_folded_into_the_convolution_output_range(quantised):
@@ -103,9 +128,9 @@ def test_grid_sample_stays_float(quantised):
     made_by = producers(model)
     gs = [n for n in model.graph.node if n.op_type == "GridSample"]
     assert len(gs) == 1
-    # its data input is dequantised float (the conv's QDQ pair), its grid is the float graph input, and its
+    # its data input is the float value projection's output, its grid is the float graph input, and its
     # output is the graph's float output with no QuantizeLinear after it
-    assert made_by[gs[0].input[0]].op_type == "DequantizeLinear"
+    assert made_by[gs[0].input[0]].op_type == "Conv"
     assert gs[0].input[1] == "grid"
     assert gs[0].output[0] == "y"
     assert not [n for n in model.graph.node if "y" in n.input]
