@@ -568,3 +568,20 @@ def test_real_overlay_png_and_json_conversion(real_frame, tmp_path):
     assert np.allclose(g.ego2global, f.ego2global) and np.allclose(g.lidar.lidar2ego, f.lidar.lidar2ego)
     for a, b in zip(g.rig, f.rig):
         assert np.allclose(a.intrinsics, b.intrinsics) and np.allclose(a.cam2ego, b.cam2ego)
+
+
+def test_jpeg_reader_gives_rgb(tmp_path):
+    """read_jpeg_rgb turns cv2's BGR into RGB (a contiguous array): a red-left, blue-right picture, encoded the way
+    the writers encode (RGB -> BGR -> JPEG), reads back red on the left, blue on the right."""
+    from ago_runtime.formats.nuscenes import read_jpeg_rgb
+
+    rgb = np.zeros((64, 96, 3), np.uint8)
+    rgb[:, :48, 0] = 255   # red
+    rgb[:, 48:, 2] = 255   # blue
+    ok, jpg = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 95])
+    assert ok
+    (tmp_path / "a.jpg").write_bytes(jpg.tobytes())
+    back = read_jpeg_rgb(tmp_path / "a.jpg")
+    assert back.shape == (64, 96, 3) and back.flags["C_CONTIGUOUS"]
+    assert back[32, 10, 0] > 200 and back[32, 10, 2] < 60      # red on the left
+    assert back[32, 80, 2] > 200 and back[32, 80, 0] < 60      # blue on the right

@@ -195,7 +195,7 @@ class NuScenesWriter:
         for cam in rig:
             stem = f"{logfile}__{cam.name}__{timestamp_us}"
             filename = f"samples/{cam.name}/{stem}.jpg"
-            ok, jpg = cv2.imencode(".jpg", np.ascontiguousarray(images[cam.name][..., ::-1]),
+            ok, jpg = cv2.imencode(".jpg", cv2.cvtColor(np.ascontiguousarray(images[cam.name]), cv2.COLOR_RGB2BGR),
                                    [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
             if not ok:
                 raise AgoInputError(self.root / filename, "cv2 could not encode the image as JPEG")

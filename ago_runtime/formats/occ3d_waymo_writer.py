@@ -90,7 +90,8 @@ class Occ3DWaymoWriter:
             img = np.asarray(images[cam.name])
             if img.shape != (cam.height, cam.width, 3):
                 raise AgoInputError(cam.name, f"image {img.shape} is not {cam.height}x{cam.width}x3")
-            ok, jpg = cv2.imencode(".jpg", np.ascontiguousarray(img[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+            bgr = cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2BGR)
+            ok, jpg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
             if not ok:
                 raise AgoInputError(cam.name, "JPEG encoding failed")
             write_bytes(self.root / image_name(split, k, sample), jpg.tobytes())

@@ -71,7 +71,7 @@ def render_depth_overlay(frame: Frame, out_png: str | Path | None = None, tile_w
     rows = [np.pad(r, ((0, 0), (0, width - r.shape[1]), (0, 0))) for r in rows]
     picture = np.concatenate(rows, axis=0)
     if out_png is not None:
-        ok, png = cv2.imencode(".png", np.ascontiguousarray(picture[..., ::-1]))
+        ok, png = cv2.imencode(".png", cv2.cvtColor(np.ascontiguousarray(picture), cv2.COLOR_RGB2BGR))
         if not ok:
             raise AgoInputError(out_png, "cv2 could not encode the PNG")
         write_bytes(out_png, png.tobytes())
