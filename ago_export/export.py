@@ -350,7 +350,7 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
         variants = {}
         if int8:
             from .calibration_frames import planes_feeds
-            from .quantize import convs_in_modules, quantize_int8_graphs
+            from .quantize import SAMPLED_FEATURES_FLOAT, convs_in_modules, quantize_int8_graphs
 
             log(f"quantising the encoder to int8 (planes static QDQ, calibrated on {len(calibration)} training "
                 "frames; voxel stages dynamic) ...")
@@ -358,7 +358,8 @@ def export_bundle(checkpoint: str | Path, out: str | Path, int8: bool = False,
                                      tuple(int8_float)) if int8_float else None)
             files.update(quantize_int8_graphs(tmp, files, [st.file for st in stages], planes_feeds(calibration, pre),
                                               keep))
-            method = "static-qdq" + (f"; float32: {', '.join(int8_float)}" if int8_float else "")
+            method = (f"static-qdq; {SAMPLED_FEATURES_FLOAT}" + (f"; float32: {', '.join(int8_float)}" if int8_float
+                                                               else ""))
             variant = VariantSpec(INT8, method, {k: f"{k}_{INT8}" for k in [BundleContract.PLANES] +
                                                  [st.file for st in stages]}, None)
             if parity:

@@ -40,6 +40,9 @@ from ago_runtime.atomic import atomic_path
 from ago_runtime.errors import AgoInputError
 
 STATIC_OP_TYPES = ["Conv", "Clip"]   # Clip: see the module doc (ReLU6 folded into the conv's output range)
+# how the bundle's int8 variant names this rule in its method (bundle.json variants.int8.method; bundles made
+# before it run every convolution in int8 and say "static-qdq" alone)
+SAMPLED_FEATURES_FLOAT = "sampled-feature convolutions float32"
 # ops that only move or reshape data: a convolution whose output reaches a sampler through these alone makes
 # the sampled features (sampled_feature_convs)
 DATA_MOVEMENT_OPS = frozenset({"Concat", "Pad", "Transpose", "Reshape", "Slice", "Split", "Squeeze", "Unsqueeze",

@@ -133,7 +133,8 @@ def test_short_qat_run_then_int8_export(town, tmp_path):
     assert f"2 frames of split 'all' of {town['data']}" in r.stderr       # the run's own training frames
     meta = json.loads((bundle / "bundle.json").read_text())
     int8 = meta["variants"]["int8"]
-    assert int8["parity"]["ok"] and int8["method"] == "static-qdq" and set(int8["graphs"].values()) <= set(meta["files"])
+    assert int8["parity"]["ok"] and int8["method"] == "static-qdq; sampled-feature convolutions float32"
+    assert set(int8["graphs"].values()) <= set(meta["files"])
 
 
 def test_int8_export_is_qdq_and_agrees_with_fp32(town, tmp_path):
@@ -211,7 +212,8 @@ def test_int8_float_keeps_the_named_modules_convolutions_in_float32(town, tmp_pa
     assert [c for c in float_convs if c.startswith("/tpv/")] and not [c for c in int8_convs if c.startswith("/tpv/")]
     assert any(node_module(c, names).startswith("backbone.convs.1") for c in int8_convs)
     meta = json.loads((bundle / "bundle.json").read_text())
-    assert meta["variants"]["int8"]["method"] == "static-qdq; float32: backbone.convs.0"
+    assert meta["variants"]["int8"]["method"] == ("static-qdq; sampled-feature convolutions float32; "
+                                                  "float32: backbone.convs.0")
 
     for name, message in (("backbone.nope", "no module of the model"), ("encoder.layers.0.image_value", "/tpv/Conv")):
         with pytest.raises(AgoInputError, match=message):

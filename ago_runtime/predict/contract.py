@@ -465,7 +465,9 @@ class VariantSpec:
     """The graphs at another precision ("int8": `ago export --int8`): `graphs` maps each float32 graph's key in
     `files` (planes, then every voxel stage's) to this variant's graph's key; `method` says how it was made
     ("static-qdq": the planes graph static QDQ, per-channel weights, activations calibrated on training frames;
-    the voxel stages dynamic; ago_export/quantize.py); `parity` its check against torch."""
+    the voxel stages dynamic; then "; sampled-feature convolutions float32" where the convolutions that make the
+    sampled features stayed float, "; float32: MODULES" for `--int8-float`; ago_export/quantize.py); `parity` its
+    check against torch."""
 
     precision: str
     method: str
