@@ -11,8 +11,8 @@
   the TPV encoder samples (`sampled_feature_convs`: the value projections and the FPN outputs they read).
   In int8 those convolutions run faster, but what their int8 outputs need on the way to the samplers costs
   more than that: a dequantisation per sampler reading the value projection, and, behind the FPN outputs, a
-  transpose that moves the channels of onnxruntime's int8 channels-last layout to the front (0.21 s of a 3 s
-  planes graph at the paper's scale; benchmarks/results/paper_scale.md).
+  transpose that moves the channels of onnxruntime's int8 channels-last layout to the front (measured in
+  benchmarks/results/paper_scale.md).
 - `quantize_int8_graphs`: the bundle's int8 variant, what `ago export --int8` writes: planes.onnx static QDQ
   (calibrated on frames of the checkpoint's training split only) and every voxel stage dynamic. The same
   recipe serves a model fine-tuned with fake int8 first (`ago train --set quant=int8`, ago_train/quant.py);

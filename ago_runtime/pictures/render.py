@@ -40,8 +40,8 @@ OUTSIDE_GREY = (215, 215, 215)   # BEV free columns not seen by any camera (mask
 BACKGROUND = (255, 255, 255)
 TEXT = (20, 20, 20)
 FONT = cv2.FONT_HERSHEY_SIMPLEX
-# PNG: deflate level 1 with the "up" row filter only: the same pixels, encoded in about 0.87x the time of
-# OpenCV's default filter choice and about 0.87x the bytes on `ago infer`'s pictures (benchmarks/results/infer_speed.md)
+# PNG: deflate level 1 with the "up" row filter only: the same pixels, faster to encode and smaller than with
+# OpenCV's default filter choice on `ago infer`'s pictures (benchmarks/results/infer_speed.md)
 PNG_OPTIONS = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_UP]
 
 # Where nuScenes' six cameras go in `rig_mosaic` (rows top to bottom, columns left to right).
