@@ -9,7 +9,11 @@ the `full` preset exported from a random checkpoint (cost only; made here with t
 with --paper-bundle DIR). Frame: the real nuScenes keyframe of ../shared (else the exporter's synthetic
 frame). Per bundle and device: bundle open (TensorRT: engine build included the first time), first frame,
 steady frame (median of --reps from the preprocessed tensors), and the labels' agreement with CPU fp32
-voxel by voxel. A device this onnxruntime lacks is written as refused, with the refusal, not skipped
+voxel by voxel. With --paper-scale the full preset comes in both of the planes graph's sampling forms: the
+compact one `ago export` writes (data-dependent sample counts: NonZero, ScatterElements) and the static one of
+`ago export --static-sampling` (every camera and pillar point sampled: fixed shapes, what TensorRT engines and
+CUDA graphs prefer); each is compared with its own CPU fp32, and the static form's CPU fp32 with the compact
+one's. A device this onnxruntime lacks is written as refused, with the refusal, not skipped
 silently. Every device runs in its own child process (peak RSS per child). On a machine without a package
 registry, carry the wheel: `pip download --no-deps 'onnxruntime-gpu>=1.17,<1.33' -d wheels/` here, then
 `pip uninstall -y onnxruntime && pip install wheels/onnxruntime_gpu-*.whl` there.
@@ -67,6 +71,8 @@ def main() -> None:
     ap.add_argument("--devices", default="cpu:fp32,cuda:fp32,tensorrt:fp32,tensorrt:fp16")
     ap.add_argument("--paper-scale", action="store_true", help="also the full preset (random weights)")
     ap.add_argument("--paper-bundle", default=None, help="an exported full-preset bundle to use")
+    ap.add_argument("--paper-static-bundle", default=None,
+                    help="the same exported with --static-sampling (else made here with --paper-scale)")
     ap.add_argument("--reps", type=int, default=5)
     ap.add_argument("--work", type=Path, default=REPO / "work" / "device_check")
     ap.add_argument("--out", type=Path, default=RESULTS)
@@ -95,18 +101,25 @@ def main() -> None:
     work.mkdir(parents=True, exist_ok=True)
     bundles = {"shipped default (cpu preset, 200x200x16 read-out)": str(resolve_bundle(None))}
     if args.paper_scale or args.paper_bundle:
-        paper = args.paper_bundle
-        if paper is None:
+        paper, static = args.paper_bundle, args.paper_static_bundle
+        for form, given in (("compact", paper), ("static", static)):
+            if given is not None:
+                continue
             from ago_export.export import export_bundle
             from ago_export.testing import random_checkpoint
 
-            paper = str(work / "paper_bundle")
-            if not (Path(paper) / "bundle.json").is_file():
-                ckpt = random_checkpoint(work / "full_random.pt", "full", prompts="cw", seed=0)
-                export_bundle(ckpt, Path(paper), bank_prompts=[], parity=False, log=print)
+            made = work / ("paper_bundle" if form == "compact" else "paper_bundle_static")
+            if not (made / "bundle.json").is_file():
+                ckpt = work / "full_random.pt"
+                if not ckpt.is_file():
+                    random_checkpoint(ckpt, "full", prompts="cw", seed=0)
+                export_bundle(ckpt, made, bank_prompts=[], parity=False, log=print, static_sampling=form == "static")
+            paper, static = (str(made), static) if form == "compact" else (paper, str(made))
         bundles["paper scale (full preset, random weights)"] = paper
+        bundles["paper scale, --static-sampling"] = static
     devices = [tuple(d.split(":")) for d in args.devices.split(",")]
     rows = []
+    cpu_labels = {}   # bundle label -> its CPU fp32 labels (the static form is also compared with the compact one)
     for b, (label, bundle) in enumerate(bundles.items()):
         ref = None
         best = {}
@@ -118,6 +131,7 @@ def main() -> None:
                     got = np.load(labels)
                     if (device, precision) == ("cpu", "fp32"):
                         ref = got
+                        cpu_labels[label] = got
                     res["agreement"] = float((got == ref).mean()) if ref is not None else None
                     res["python"] = pythons.get(device, sys.executable)
                 old = best.get((device, precision))
@@ -134,6 +148,10 @@ def main() -> None:
              f"{', '.join(ort.get_available_providers())}).", "",
              "| bundle | device | precision | onnxruntime | open (s) | first frame (s) | steady frame (s) | "
              "peak RSS (MiB) | labels = CPU fp32 (%) |", "|---|---|---|---|---:|---:|---:|---:|---:|"]
+    forms = [cpu_labels.get(k) for k in ("paper scale (full preset, random weights)", "paper scale, --static-sampling")]
+    if all(f is not None for f in forms) and forms[0].shape == forms[1].shape:
+        same = 100 * float((forms[0] == forms[1]).mean())
+        lines[4:4] = [f"CPU fp32 labels, static sampling = compact sampling: {same:.3f} % of the voxels.", ""]
     for label, device, precision, r in rows:
         if "steady_s" in r:
             agree = f"{100 * r['agreement']:.3f}" if r.get("agreement") is not None else "(no CPU fp32 run)"
