@@ -53,6 +53,21 @@ def child(bundle: str, device: str, precision: str, reps: int, labels_out: str) 
             "onnxruntime": __import__("onnxruntime").__version__}
 
 
+def paper_bundle(work: Path, static_sampling: bool) -> str:
+    """The full preset exported from a random checkpoint into `work` (made once, reused), in the compact or the
+    static sampling form."""
+    from ago_export.export import export_bundle
+    from ago_export.testing import random_checkpoint
+
+    out = work / ("paper_bundle_static" if static_sampling else "paper_bundle")
+    if not (out / "bundle.json").is_file():
+        ckpt = work / "full_random.pt"
+        if not ckpt.is_file():
+            random_checkpoint(ckpt, "full", prompts="cw", seed=0)
+        export_bundle(ckpt, out, bank_prompts=[], parity=False, log=print, static_sampling=static_sampling)
+    return str(out)
+
+
 def run_child(*args: str, python: str | None = None) -> dict:
     """One device's child: in this interpreter, or in `python` (another environment) with this repository on
     PYTHONPATH."""
@@ -101,20 +116,8 @@ def main() -> None:
     work.mkdir(parents=True, exist_ok=True)
     bundles = {"shipped default (cpu preset, 200x200x16 read-out)": str(resolve_bundle(None))}
     if args.paper_scale or args.paper_bundle:
-        paper, static = args.paper_bundle, args.paper_static_bundle
-        for form, given in (("compact", paper), ("static", static)):
-            if given is not None:
-                continue
-            from ago_export.export import export_bundle
-            from ago_export.testing import random_checkpoint
-
-            made = work / ("paper_bundle" if form == "compact" else "paper_bundle_static")
-            if not (made / "bundle.json").is_file():
-                ckpt = work / "full_random.pt"
-                if not ckpt.is_file():
-                    random_checkpoint(ckpt, "full", prompts="cw", seed=0)
-                export_bundle(ckpt, made, bank_prompts=[], parity=False, log=print, static_sampling=form == "static")
-            paper, static = (str(made), static) if form == "compact" else (paper, str(made))
+        paper = args.paper_bundle or paper_bundle(work, static_sampling=False)
+        static = args.paper_static_bundle or paper_bundle(work, static_sampling=True)
         bundles["paper scale (full preset, random weights)"] = paper
         bundles["paper scale, --static-sampling"] = static
     devices = [tuple(d.split(":")) for d in args.devices.split(",")]

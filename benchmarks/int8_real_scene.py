@@ -88,8 +88,10 @@ def run(args) -> str:
              f"{100 * occupied_share:.2f} % of the voxels occupied.", "",
              f"| recipe (`--int8-float`, calibration) | keyframes | labels = fp32, all voxels (>= {100 * TARGETS['all']:.1f} %) "
              f"| voxels either calls occupied (>= {100 * TARGETS['occupied']:.0f} %) |", "|---|---|---:|---:|"]
+    def mark(v: float, target: float) -> str:
+        return f"{100 * v:.3f} %" + (" (met)" if v >= target else " (MISSED)")
+
     for name, split, n, all_share, occ_share in rows:
-        mark = lambda v, t: f"{100 * v:.3f} %" + (" (met)" if v >= t else " (MISSED)")  # noqa: E731
         lines.append(f"| {name} | {split} ({n}) | {mark(all_share, TARGETS['all'])} | "
                      f"{mark(occ_share, TARGETS['occupied'])} |")
     return "\n".join(lines) + "\n"

@@ -184,7 +184,7 @@ def test_int8_float_keeps_the_named_modules_convolutions_in_float32(town, tmp_pa
     import onnx
 
     from ago_export.export import export_bundle
-    from ago_export.quantize import node_module
+    from ago_export.quantize import in_modules, node_module
     from ago_export.export import load_model
 
     from ago_train.quant import FLOAT_IN_INT8
@@ -208,7 +208,8 @@ def test_int8_float_keeps_the_named_modules_convolutions_in_float32(town, tmp_pa
     names = {n for n, _ in load_model(town["fp32"])[0].named_modules()}
     modules = sorted({node_module(c, names) for c in float_convs if not c.startswith("/tpv/")})
     assert modules == ["backbone.convs.0.0", "fpn.output.0", "fpn.output.1", "fpn.output.2"], modules
-    assert FLOAT_IN_INT8 == ("fpn.output",)   # QAT simulates int8 on exactly the convolutions the export quantises
+    # QAT leaves float exactly the modules the export keeps float on its own (the sampled features' rule)
+    assert [m for m in modules if in_modules(m, FLOAT_IN_INT8)] == ["fpn.output.0", "fpn.output.1", "fpn.output.2"]
     assert [c for c in float_convs if c.startswith("/tpv/")] and not [c for c in int8_convs if c.startswith("/tpv/")]
     assert any(node_module(c, names).startswith("backbone.convs.1") for c in int8_convs)
     meta = json.loads((bundle / "bundle.json").read_text())
