@@ -16,6 +16,8 @@ folded heads and the open-world identifier are numpy and stay on the CPU (docs/r
   one asked for (onnxruntime-gpu lists CUDA even when the CUDA libraries are missing, then quietly builds a
   CPU session).
 - `openvino_target(precision)`: OpenVINO's device and its compile settings for a precision.
+- `stage_target(device, precision)`: where the per-voxel stages run (the planes graph runs on `device`).
+- `check_int8(device, precision)`: refuses `--int8` where the int8 graphs cannot run (they need a CPU).
 - `provider_tag(device, precision)`: the part of the optimised-graph cache key that names the provider.
 """
 
@@ -103,6 +105,26 @@ def openvino_target(precision: Precision = Precision.FP32) -> tuple[str, dict]:
         return "GPU", {"INFERENCE_PRECISION_HINT": "f16"}
     hint = "bf16" if precision is Precision.BF16 else "f32"
     return "CPU", {"INFERENCE_PRECISION_HINT": hint, "PERFORMANCE_HINT": "LATENCY"}
+
+
+def stage_target(device: Device, precision: Precision) -> tuple[Device, Precision]:
+    """Where the voxel stages run when the planes graph runs on (device, precision). With OpenVINO on the CPU
+    (fp32, bf16) they run on onnxruntime's CPU provider in fp32: small per-slab graphs, which onnxruntime runs
+    in parallel slabs faster than OpenVINO does (benchmarks/results/bf16_openvino.md), so OpenVINO's gain is
+    the planes graph's. Every other device runs both."""
+    if device is Device.OPENVINO and openvino_target(precision)[0] == "CPU":
+        return Device.CPU, Precision.FP32
+    return device, precision
+
+
+def check_int8(device: Device, precision: Precision) -> None:
+    """The int8 variant (`ago export --int8`) runs on a CPU: onnxruntime's CPU provider, or OpenVINO's CPU device
+    for its planes graph (int8 kernels from the QDQ nodes; the rest of the graph at `precision`) with the voxel
+    stages on onnxruntime's CPU provider (`stage_target`). Refused with one line elsewhere."""
+    if stage_target(device, precision)[0] is not Device.CPU:
+        where = f"--device {device.value}" + (f" --precision {precision.value}" if device is Device.OPENVINO else "")
+        raise AgoInputError("--int8", f"the int8 graphs run on a CPU (--device cpu, or --device openvino with "
+                            f"--precision fp32 or bf16), not {where}")
 
 
 def cpu_flags() -> set[str]:

@@ -22,6 +22,9 @@ Its activation ranges are fixed (benchmarks.int8_static.UNCALIBRATED_RANGE), not
 calibrator does not fit this machine's memory at this scale (benchmarks/results/int8_static_paper.md), and the int8
 kernels' speed does not depend on the range values. So its label agreement with fp32 is that of an uncalibrated
 random-weight model: a check that it runs end to end, not a measure of int8 accuracy.
+--openvino (with --int8; needs the `openvino` extra) adds a fourth side: the same int8 bundle with its planes graph
+on OpenVINO's CPU device (`Predictor(bundle, int8=True, device="openvino")`, what `ago infer --int8 --device
+openvino` runs; the voxel stages stay on onnxruntime, ago_runtime.providers.stage_target).
 """
 
 from __future__ import annotations
@@ -128,15 +131,19 @@ def child_int8(bundle: str, out: str) -> dict:
             "range": list(UNCALIBRATED_RANGE)}
 
 
-def child_frame(bundle: str, reps: int, cache: str, labels_out: str, profile: str, int8: str = "") -> dict:
+def child_frame(bundle: str, reps: int, cache: str, labels_out: str, profile: str, variant: str = "") -> dict:
+    """variant: "" (fp32), "int8" or "int8-openvino" (the int8 graphs, the planes graph on OpenVINO's CPU device)."""
     os.environ["AGO_CACHE_DIR"] = cache
     import numpy as np
     import onnxruntime as ort
 
     from ago_runtime.predict.predictor import Predictor
 
-    p, x, m, bank, pred, record = predictor_frames(lambda: Predictor(bundle, int8=bool(int8)), reps, labels_out)
-    # (record's peak RSS is taken before the second planes session below) the planes graph alone, in a session of its own with the runtime's options
+    int8, device = variant.startswith("int8"), ("openvino" if variant.endswith("openvino") else "cpu")
+    p, x, m, bank, pred, record = predictor_frames(lambda: Predictor(bundle, int8=int8, device=device), reps,
+                                                   labels_out)
+    # (record's peak RSS is taken before the second planes session below) the planes graph alone, in a session of
+    # its own with the runtime's options; on OpenVINO the Predictor's own planes session
     from ago_runtime.cache import session_options
 
     so = session_options()
@@ -144,7 +151,8 @@ def child_frame(bundle: str, reps: int, cache: str, labels_out: str, profile: st
         so.enable_profiling = True
         so.profile_file_prefix = profile
     planes_graph = p.bundle.encoder_graphs("int8" if int8 else None)[0].path
-    sess = ort.InferenceSession(str(planes_graph), so, providers=["CPUExecutionProvider"])
+    sess = (p.encoder.planes if device == "openvino"
+            else ort.InferenceSession(str(planes_graph), so, providers=["CPUExecutionProvider"]))
     feed = dict(zip([i.name for i in sess.get_inputs()], [x, m]))
     sess.run(None, feed)
     planes = []
@@ -201,6 +209,9 @@ CHILDREN = {"checkpoint": child_checkpoint, "export": child_export, "int8": chil
             "flops": child_flops, "rate": child_rate}
 
 
+VARIANTS = {"int8": "int8", "int8_openvino": "int8-openvino"}   # side -> child_frame's variant
+
+
 def run_child(tree: Path, *args: str) -> dict:
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tree), str(REPO)]), "AGO_NO_PROGRESS": "1"}
     r = subprocess.run([sys.executable, "-m", "benchmarks.paper_scale", "--child", *args], capture_output=True,
@@ -230,6 +241,8 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=REPO / "work" / "paper_scale")
     ap.add_argument("--profile", action="store_true")
     ap.add_argument("--int8", action="store_true", help="a third side: this tree's int8 variant (see the doc)")
+    ap.add_argument("--openvino", action="store_true", help="with --int8, a fourth side: the int8 planes graph on "
+                    "OpenVINO's CPU device (see the doc)")
     ap.add_argument("--out", type=Path, default=RESULTS)
     ap.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -243,6 +256,12 @@ def main() -> None:
 
     import numpy as np
 
+    if args.openvino:
+        from ago_runtime.providers import Device, check_device
+
+        if not args.int8:
+            raise SystemExit("error: --openvino: it runs the int8 bundle; add --int8")
+        check_device(Device.OPENVINO)     # the openvino package, before any work
     work = args.work.resolve()
     work.mkdir(parents=True, exist_ok=True)
     log = lambda s: print(f"[{time.strftime('%H:%M:%S')}] {s}", flush=True)  # noqa: E731
@@ -252,7 +271,10 @@ def main() -> None:
     ckpt = work / "full_random.pt"
     if not ckpt.is_file():
         run_child(REPO, "checkpoint", str(ckpt))
+    from benchmarks.default_bundle_towns import cpu_line
+
     res: dict = {"baseline": args.baseline, "command": "python -m benchmarks.paper_scale " + " ".join(sys.argv[1:]),
+                 "cpu": cpu_line(),
                  "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "load_start": os.getloadavg()[0]}
     sides = {"base": base, "new": REPO}
     for side, tree in sides.items():
@@ -263,19 +285,23 @@ def main() -> None:
         res["int8_quantise"] = run_child(REPO, "int8", str(work / "bundle_new"), str(work / "bundle_int8"))
         log(f"int8: quantised in {res['int8_quantise']['quantise_s']:.1f} s")
         sides["int8"] = REPO
+        if args.openvino:
+            sides["int8_openvino"] = REPO
     rounds: dict = {side: [] for side in sides}
     for r in range(args.rounds):
         for side, tree in sides.items():
             cache = str(work / f"cache_{side}")
             prof = str(work / "prof_new") if (args.profile and side == "new" and r == 0) else ""
-            rounds[side].append(run_child(tree, "frame", str(work / f"bundle_{side}"), str(args.reps), cache,
-                                          str(work / f"labels_{side}.npy"), prof, "int8" if side == "int8" else ""))
+            bundle = work / ("bundle_int8" if side.startswith("int8") else f"bundle_{side}")
+            rounds[side].append(run_child(tree, "frame", str(bundle), str(args.reps), cache,
+                                          str(work / f"labels_{side}.npy"), prof, VARIANTS.get(side, "")))
             log(f"{side} round {r + 1}: steady {rounds[side][-1]['steady_s']:.2f} s (load {os.getloadavg()[0]:.1f})")
     for side in sides:
         rs = rounds[side]
         res[side] = {k: min(x[k] for x in rs) for k in ("open_s", "first_s", "steady_s", "planes_s", "rss_mib")}
         res[side]["occupied_share"] = rs[0]["occupied_share"]
         res[side]["identifier"] = rs[0]["identifier"]
+    res["rounds_steady_s"] = {side: [x["steady_s"] for x in rounds[side]] for side in sides}
     res["frame"] = rounds["new"][0]["frame"]
     a, b = np.load(work / "labels_base.npy"), np.load(work / "labels_new.npy")
     res["agreement"] = float((a == b).mean()) if a.shape == b.shape else None
@@ -286,6 +312,13 @@ def main() -> None:
         res["int8_speedup"] = res["base"]["steady_s"] / res["int8"]["steady_s"]
         res["int8_vs_fp32"] = res["new"]["steady_s"] / res["int8"]["steady_s"]
         res["int8_occupied_share"] = res["int8"]["occupied_share"]
+    if "int8_openvino" in sides:
+        import openvino
+
+        res["openvino_version"] = openvino.__version__
+        q = np.load(work / "labels_int8_openvino.npy")
+        res["int8_openvino_agreement"] = float((q == b).mean())
+        res["int8_openvino_vs_int8"] = float((q == np.load(work / "labels_int8.npy")).mean())
     if args.profile and rounds["new"][0]["profile"]:
         res["op_split"] = op_split(rounds["new"][0]["profile"])
     res["flops"] = run_child(REPO, "flops")
@@ -301,28 +334,40 @@ def main() -> None:
 def write_report(res: dict, path: Path) -> None:
     from ago_runtime.atomic import write_text
 
-    b, n, q = res["base"], res["new"], res.get("int8")
+    b, n, q, v = res["base"], res["new"], res.get("int8"), res.get("int8_openvino")
+    header, rule = "| | baseline | this tree | ratio |", "|---|---:|---:|---:|"
+    if q:
+        header, rule = header + " this tree, int8 | baseline / int8 | fp32 / int8 |", rule + "---:|---:|---:|"
+    if v:
+        header += " int8, planes on OpenVINO | baseline / it | fp32 / it |"
+        rule += "---:|---:|---:|"
     lines = [
         "# The runtime at the paper's scale (issue 39)", "",
-        f"Command: `{res['command']}` ({res['date']}, this 2-core CPU; load average {res['load_start']:.1f} at the "
+        f"Command: `{res['command']}` ({res['date']}; load average {res['load_start']:.1f} at the "
         f"start, {res['load_end']:.1f} at the end).", "",
+        f"CPU: {res.get('cpu', 'not recorded')}.", "",
         "`full` preset (1600x928 input, 200x200x16 grid, TPV 100x100x16 with the preset's widths), random weights "
         "(cost only; every voxel is called occupied, the runtime's worst case), exported without the parity check by "
         f"each side's code; frame: {res['frame']}. Baseline: commit {res['baseline']}. Best of the alternating rounds.", "",
-        ("| | baseline | this tree | ratio | this tree, int8 | baseline / int8 | fp32 / int8 |\n"
-         "|---|---:|---:|---:|---:|---:|---:|") if q else "| | baseline | this tree | ratio |\n|---|---:|---:|---:|",
+        header, rule,
     ]
     for key, label in (("steady_s", "steady frame (s)"), ("first_s", "first frame (s)"), ("open_s", "bundle open (s)"),
                        ("planes_s", "planes graph alone (s)"), ("rss_mib", "peak RSS (MiB)")):
         row = f"| {label} | {b[key]:.2f} | {n[key]:.2f} | {b[key] / n[key]:.2f}x |"
-        if q:
-            row += f" {q[key]:.2f} | {b[key] / q[key]:.2f}x | {n[key] / q[key]:.2f}x |"
+        for side in (q, v):
+            if side:
+                row += f" {side[key]:.2f} | {b[key] / side[key]:.2f}x | {n[key] / side[key]:.2f}x |"
         lines.append(row)
     lines += [f"| export (s) | {res['base_export']['export_s']:.1f} | {res['new_export']['export_s']:.1f} | |"
-              + (f" + {res['int8_quantise']['quantise_s']:.1f} (quantise) | | |" if q else ""),
+              + (f" + {res['int8_quantise']['quantise_s']:.1f} (quantise) | | |" if q else "")
+              + (" (the same bundle) | | |" if v else ""),
               f"| export peak RSS (MiB) | {res['base_export']['export_rss_mib']:.0f} | "
               f"{res['new_export']['export_rss_mib']:.0f} | |"
-              + (f" {res['int8_quantise']['quantise_rss_mib']:.0f} (quantise) | | |" if q else ""), "",
+              + (f" {res['int8_quantise']['quantise_rss_mib']:.0f} (quantise) | | |" if q else "")
+              + (" | | |" if v else ""), "",
+              "Steady frame round by round, baseline / each side: " + "; ".join(
+                  f"{side} " + ", ".join(f"{bs / x:.2f}x" for bs, x in zip(res["rounds_steady_s"]["base"], xs))
+                  for side, xs in res["rounds_steady_s"].items() if side != "base") + ".", "",
               f"Label agreement (same voxel, same label), this tree vs baseline: "
               f"{100 * res['agreement']:.3f} %." if res["agreement"] is not None else "Label grids differ in shape.", ""]
     if q:
@@ -332,6 +377,13 @@ def write_report(res: dict, path: Path) -> None:
                   f"{100 * res['int8_occupied_share']:.1f} % occupied, fp32 {100 * n['occupied_share']:.1f} %). That "
                   "is the agreement of an uncalibrated random-weight model, not a measure of int8 accuracy on a "
                   "trained one (benchmarks/results/int8_qat_default.md measures that on the default model).", ""]
+    if v:
+        lines += [f"int8 with the planes graph on OpenVINO's CPU device (`Predictor(bundle, int8=True, "
+                  f"device=\"openvino\")`; openvino {res.get('openvino_version', '?')}; the voxel stages on "
+                  f"onnxruntime's CPU provider): labels agree with this tree's fp32 on "
+                  f"{100 * res['int8_openvino_agreement']:.3f} % of the voxels and with onnxruntime's int8 on "
+                  f"{100 * res['int8_openvino_vs_int8']:.3f} %. Its planes graph alone is timed in the Predictor's own "
+                  "OpenVINO session.", ""]
     lines += [f"FLOP bound: {res['flops']['total'] / 1e9:.0f} GFLOP a frame (planes {res['flops']['planes'] / 1e9:.0f}, "
               f"{res['flops']['voxels_note']}: {res['flops']['voxels'] / 1e9:.0f}) at this CPU's best "
               f"{max(res['rate'].values()):.0f} GFLOP/s = {res['bound_s']:.2f} s; the steady frame reaches "

@@ -2,7 +2,9 @@
 
 fp32 must give onnxruntime's labels; bf16 is refused with one line where the CPU has no bf16 units or the
 openvino package is missing (the flag reader is replaced here, so this runs on any CPU), and runs where both are
-there. Tests that open sessions skip without the openvino package (the `openvino` extra)."""
+there; with OpenVINO's CPU device only the planes graph goes to OpenVINO (checked with a stand-in session on any
+machine), and `--int8` runs its int8 planes graph there. Tests that open real OpenVINO sessions skip without the
+openvino package (the `openvino` extra)."""
 
 import os
 
@@ -14,7 +16,7 @@ from ago_runtime import providers
 from ago_runtime.providers import Device, Precision, check_device
 
 
-from conftest import ago_in_process  # noqa: E402
+from conftest import ago_in_process, tiny_town  # noqa: E402
 
 _ago = ago_in_process
 
@@ -47,6 +49,33 @@ def test_openvino_is_refused_with_one_line_when_the_package_is_missing(monkeypat
     assert err.count("\n") == 1
 
 
+def test_with_openvino_on_the_cpu_only_the_planes_graph_goes_to_it(monkeypatch):
+    # OpenVINO replaced by onnxruntime sessions that say they are OpenVINO's: where each graph goes, on any machine
+    import onnxruntime as ort
+
+    from ago_runtime import cache, openvino_session
+    from ago_runtime.predict.bundle import DEFAULT_BUNDLE_DIR, Bundle
+    from ago_runtime.predict.encoder import open_encoder
+
+    class FakeOpenVino(ort.InferenceSession):
+        def get_providers(self):
+            return ["OpenVINO:fake"]
+
+    monkeypatch.setattr(cache, "check_device", lambda device, precision: None)
+    monkeypatch.setattr(openvino_session, "open_openvino_session",
+                        lambda path, threads, precision, cache_dir: FakeOpenVino(str(path), providers=["CPUExecutionProvider"]))
+    b = Bundle.load(DEFAULT_BUNDLE_DIR)
+    for precision in (Precision.FP32, Precision.BF16):
+        enc = open_encoder(b, threads=2, warm_up=False, device=Device.OPENVINO, precision=precision)
+        assert enc.planes.get_providers() == ["OpenVINO:fake"]
+        stages = [s for ss in enc.sessions.values() for s, _ in ss]
+        assert stages and all(s.get_providers() == ["CPUExecutionProvider"] for s in stages)
+        assert enc.slab_pool is not None                  # onnxruntime's stages run in parallel slabs
+    enc = open_encoder(b, threads=2, warm_up=False, device=Device.OPENVINO, precision=Precision.FP16)   # its GPU
+    assert all(s.get_providers() == ["OpenVINO:fake"] for ss in enc.sessions.values() for s, _ in ss)
+    assert enc.slab_pool is None
+
+
 # ---------------------------------------------------------------------------- sessions (need openvino)
 @pytest.fixture(scope="module")
 def bundle_dir(tmp_path_factory):
@@ -58,15 +87,17 @@ def bundle_dir(tmp_path_factory):
     root = tmp_path_factory.mktemp("openvino")
     os.environ["AGO_CACHE_DIR"] = str(root / "cache")
     ckpt = random_checkpoint(root / "tiny.pt", "tiny", prompts="cw", seed=3)
-    export_bundle(ckpt, root / "bundle", bank_prompts=[], real_frame=False, log=lambda s: None)
+    town = tiny_town(root / "town")   # the int8 graph's calibration frames (a random checkpoint records none)
+    export_bundle(ckpt, root / "bundle", int8=True, bank_prompts=[], real_frame=False, log=lambda s: None,
+                  calibration_data=town)
     return root / "bundle"
 
 
-def _labels(bundle_dir, frame, device, precision):
+def _labels(bundle_dir, frame, device, precision, int8=False):
     from ago_runtime.formats.calibration import load_images_folder
     from ago_runtime.predict.predictor import Predictor
 
-    p = Predictor(bundle_dir, device=device, precision=precision)
+    p = Predictor(bundle_dir, device=device, precision=precision, int8=int8)
     images, rig, _ = load_images_folder(frame, fallback_rig=p.bundle.rig)
     bank = p.bundle.load_bank()
     pred = p.predict(images, rig, bank, identifier="min-entropy")
@@ -80,10 +111,24 @@ def test_openvino_fp32_gives_onnxruntimes_labels(bundle_dir, tmp_path):
     _, ref = _labels(bundle_dir, frame, "cpu", "fp32")
     p, got = _labels(bundle_dir, frame, "openvino", "fp32")
     assert p.encoder.planes.get_providers() == ["OpenVINO:CPU:fp32"]
-    assert all(s.get_providers() == ["OpenVINO:CPU:fp32"] for ss in p.encoder.sessions.values() for s, _ in ss)
+    assert all(s.get_providers() == ["CPUExecutionProvider"] for ss in p.encoder.sessions.values() for s, _ in ss)
     assert np.array_equal(got.semantics, ref.semantics)
     assert np.array_equal(got.branch, ref.branch)
     np.testing.assert_allclose(got.confidence, ref.confidence, atol=1e-4)
+
+
+def test_openvino_runs_the_int8_planes_graph(bundle_dir, tmp_path):
+    from ago_runtime.formats.random_frame import write_random_frame
+
+    frame = write_random_frame(tmp_path / "frame", seed=5)
+    _, ref = _labels(bundle_dir, frame, "cpu", "fp32", int8=True)
+    p, got = _labels(bundle_dir, frame, "openvino", "fp32", int8=True)
+    planes, stages = p.bundle.encoder_graphs("int8")
+    assert p.encoder.planes_path == planes.path != bundle_dir / "planes.onnx"
+    assert p.encoder.planes.get_providers() == ["OpenVINO:CPU:fp32"]
+    assert all(s.get_providers() == ["CPUExecutionProvider"] for ss in p.encoder.sessions.values() for s, _ in ss)
+    # the same QDQ graph through OpenVINO's int8 kernels: onnxruntime's int8 labels, up to rounding
+    assert (got.semantics == ref.semantics).mean() > 0.97
 
 
 def test_openvino_session_gives_each_thread_its_own_request(bundle_dir):

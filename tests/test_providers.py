@@ -4,8 +4,8 @@ that replace a silent fall-back to the CPU. Runs on the CPU: the providers a GPU
 import pytest
 
 from ago_runtime.errors import AgoInputError
-from ago_runtime.providers import (Device, Precision, check_device, check_session, openvino_target, parse_device,
-                                   parse_precision, provider_list, provider_tag)
+from ago_runtime.providers import (Device, Precision, check_device, check_int8, check_session, openvino_target,
+                                   parse_device, parse_precision, provider_list, provider_tag, stage_target)
 
 CPU_ONLY = ["AzureExecutionProvider", "CPUExecutionProvider"]
 GPU_BUILD = ["TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider"]
@@ -117,3 +117,22 @@ def test_the_cpu_cache_key_names_the_provider():
     from ago_runtime.cache import optimized_cache_path
 
     assert "-cpu-" in optimized_cache_path("ab" * 32).name
+
+
+def test_int8_runs_on_a_cpu_and_openvino_keeps_the_voxel_stages_on_onnxruntime():
+    # OpenVINO's CPU device runs the planes graph; the per-slab voxel stages stay on onnxruntime's CPU provider
+    assert stage_target(Device.OPENVINO, Precision.FP32) == (Device.CPU, Precision.FP32)
+    assert stage_target(Device.OPENVINO, Precision.BF16) == (Device.CPU, Precision.FP32)
+    assert stage_target(Device.OPENVINO, Precision.FP16) == (Device.OPENVINO, Precision.FP16)   # its GPU device
+    assert stage_target(Device.CUDA, Precision.FP32) == (Device.CUDA, Precision.FP32)
+    assert stage_target(Device.TENSORRT, Precision.FP16) == (Device.TENSORRT, Precision.FP16)
+    for device, precision in [(Device.CPU, Precision.FP32), (Device.OPENVINO, Precision.FP32),
+                              (Device.OPENVINO, Precision.BF16)]:
+        check_int8(device, precision)
+    with pytest.raises(AgoInputError, match=r"^--int8: the int8 graphs run on a CPU \(--device cpu, or --device "
+                                            r"openvino with --precision fp32 or bf16\), not --device cuda$"):
+        check_int8(Device.CUDA, Precision.FP32)
+    with pytest.raises(AgoInputError, match=r"not --device openvino --precision fp16$"):
+        check_int8(Device.OPENVINO, Precision.FP16)
+    with pytest.raises(AgoInputError, match=r"not --device tensorrt$"):
+        check_int8(Device.TENSORRT, Precision.FP16)

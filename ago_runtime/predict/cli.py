@@ -34,7 +34,7 @@ import typer
 
 from ago_runtime.errors import AgoInputError, one_line_warnings
 from ago_runtime.predict.decision import Identifier
-from ago_runtime.providers import Device, Precision
+from ago_runtime.providers import Device, Precision, check_int8
 
 
 def choose_bank(bundle, prompts: Optional[str], bank: Optional[str]):
@@ -224,8 +224,8 @@ def run_infer(images, prompts, bank, bundle, out, identifier, save_volumes, samp
     parse_shard(shard)   # a bad --shard before any work
     device, precision = parse_device(device), parse_precision(precision)
     check_device(device, precision)   # a provider this onnxruntime lacks, before any work
-    if int8 and device is not Device.CPU:
-        raise AgoInputError("--int8", f"the int8 graphs run on the CPU only, not --device {device.value}")
+    if int8:
+        check_int8(device, precision)
     check_output_dir(out, "--out")   # before any work
     b = Bundle.load(resolve_bundle(bundle))
     chosen = choose_bank(b, prompts, bank)   # checked against the bundle here, once

@@ -38,7 +38,7 @@ import numpy as np
 import onnxruntime as ort
 
 from ago_runtime.cache import open_session
-from ago_runtime.providers import Device, Precision
+from ago_runtime.providers import Device, Precision, check_int8, stage_target
 from ago_runtime.errors import AgoInputError
 from ago_runtime.geometry.grid import Grid
 from ago_runtime.predict.bank_product import BankProduct
@@ -154,13 +154,14 @@ class SplitEncoder:
         self.planes = load_session(planes_path, threads, signature, "planes", sha256, device, precision)
         self.bank_product = BankProduct(threads)   # the bank products stay on the CPU (docs/runtime.md, Devices)
         self.threads = max(1, int(threads or os.cpu_count() or 1))
+        stage_device, stage_precision = stage_target(device, precision)
         self.slab_pool = (ThreadPoolExecutor(self.threads, thread_name_prefix="ago-slab")
-                          if self.threads > 1 and device is Device.CPU else None)
+                          if self.threads > 1 and stage_device is Device.CPU else None)
         self._local = threading.local()     # in a slab worker: .single = True, .bank_product (one thread)
         self.sessions = {Branch.MAIN: [], Branch.ADAPTED: []}
         for i, st in enumerate(stages):
             sess = load_session(Path(st.path), threads, stage_signature(st.spec), f"voxel_stages[{i}]", st.sha256,
-                                device, precision)
+                                stage_device, stage_precision)
             self.sessions[st.spec.branch].append((sess, st.spec.activation == "softplus"))
         self.widths = {Branch.MAIN: int(hidden_dim), Branch.ADAPTED: int(adapted_dim)}
         self.softplus = Softplus(threads)
@@ -308,12 +309,11 @@ class SplitEncoder:
 def open_encoder(bundle, int8: bool = False, threads: int | None = None, slab_voxels: int = SLAB_VOXELS,
                  warm_up: bool = True, device: Device = Device.CPU,
                  precision: Precision = Precision.FP32) -> "SplitEncoder":
-    """The encoder of a loaded `Bundle`; int8 picks the bundle's "int8" variant (contract "variants"; CPU only:
-    their integer MatMuls are onnxruntime CPU kernels); device/precision: the execution provider of the graphs
-    (ago_runtime/providers.py); warm_up: see SplitEncoder."""
-    if int8 and device is not Device.CPU:
-        raise AgoInputError("--int8", f"the int8 graphs run on the CPU only, not --device {device.value} "
-                            "(for a faster accelerator frame use --precision fp16 with tensorrt or openvino)")
+    """The encoder of a loaded `Bundle`; int8 picks the bundle's "int8" variant (contract "variants"; on a CPU:
+    `providers.check_int8`); device/precision: the execution provider of the graphs (ago_runtime/providers.py;
+    the voxel stages run where `providers.stage_target` says); warm_up: see SplitEncoder."""
+    if int8:
+        check_int8(device, precision)
     planes, stages = bundle.encoder_graphs(INT8 if int8 else None)
     c = bundle.contract
     return SplitEncoder(planes.path, stages, bundle.grid, c.hidden_dim, c.adapted_dim, threads, slab_voxels,

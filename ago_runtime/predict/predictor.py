@@ -162,7 +162,7 @@ class Predictor:
         """bundle: a bundle folder or a loaded Bundle (checked on load).
         device, precision: where the graphs run (`cpu`, `cuda`, `tensorrt`, `openvino`; `fp16` through
         TensorRT or OpenVINO; ago_runtime/providers.py); the heads and bank products stay on the CPU.
-        int8: the bundle's int8 encoder graphs (CPU only; `ago export --int8`).
+        int8: the bundle's int8 encoder graphs (`ago export --int8`; on a CPU: providers.check_int8).
         workers: frames `predict_many` predicts at once; with more than one, each gets cpu_count // workers
         onnxruntime threads (`pipeline.auto_workers` is `ago infer`'s choice), with one, every core.
         warm_up: run each graph once on dummy inputs now, so that the first frame runs at the steady-state
