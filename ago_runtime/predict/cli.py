@@ -282,7 +282,8 @@ def register(app: typer.Typer) -> None:
                                                    "(repeatable: several frames, one bundle load)"),
         info: Optional[Path] = typer.Option(None, "--info", help="mmdetection3d info .pkl"),
         int8: bool = typer.Option(False, "--int8", help="use the bundle's int8 encoder (needs a bundle exported "
-                                  "with `ago export --int8`; faster, less exact: docs/runtime.md)"),
+                                  "with `ago export --int8`; on the CPU or with --device openvino; faster, less exact: "
+                                  "docs/runtime.md)"),
         picture: Picture = typer.Option(Picture.FULL, "--picture", help="PNG per frame: full (BEVs, legend, "
                                         "cameras), bev (class BEV + legend, cheap) or none"),
         workers: Optional[int] = typer.Option(None, "--workers", help="frames predicted at once (default: 2 over "
