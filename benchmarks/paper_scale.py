@@ -1,7 +1,7 @@
 """The runtime at the paper's scale on this CPU (issue 39): the `full` preset (1600x928 input, 200x200x16 grid,
 the preset's widths) through the runtime, this tree against a baseline commit, side by side in one run.
 
-    python -m benchmarks.paper_scale [--baseline a2187f0] [--reps 3] [--rounds 2] [--profile] [--int8]
+    python -m benchmarks.paper_scale [--baseline a2187f0] [--reps 3] [--rounds 2] [--profile] [--int8] [--openvino]
         # writes benchmarks/results/paper_scale.md (+ .json)
 
 The weights are random (the full preset's TPV encoder and heads; the EfficientNet-Lite0 backbone without its
@@ -22,9 +22,10 @@ Its activation ranges are fixed (benchmarks.int8_static.UNCALIBRATED_RANGE), not
 calibrator does not fit this machine's memory at this scale (benchmarks/results/int8_static_paper.md), and the int8
 kernels' speed does not depend on the range values. So its label agreement with fp32 is that of an uncalibrated
 random-weight model: a check that it runs end to end, not a measure of int8 accuracy.
---openvino (with --int8; needs the `openvino` extra) adds a fourth side: the same int8 bundle with its planes graph
-on OpenVINO's CPU device (`Predictor(bundle, int8=True, device="openvino")`, what `ago infer --int8 --device
-openvino` runs; the voxel stages stay on onnxruntime, ago_runtime.providers.stage_target).
+--openvino (needs the `openvino` extra) adds this tree's fp32 bundle with its planes graph on OpenVINO's CPU device
+(`Predictor(bundle, device="openvino")`, what `ago infer --device openvino` runs; the voxel stages stay on
+onnxruntime, ago_runtime.providers.stage_target) and, with --int8, the int8 bundle the same way (`ago infer --int8
+--device openvino`). The report has one row per side, its labels compared with this tree's fp32.
 """
 
 from __future__ import annotations
@@ -132,7 +133,7 @@ def child_int8(bundle: str, out: str) -> dict:
 
 
 def child_frame(bundle: str, reps: int, cache: str, labels_out: str, profile: str, variant: str = "") -> dict:
-    """variant: "" (fp32), "int8" or "int8-openvino" (the int8 graphs, the planes graph on OpenVINO's CPU device)."""
+    """variant: "" (fp32), "openvino" (the planes graph on OpenVINO's CPU device), "int8" or "int8-openvino"."""
     os.environ["AGO_CACHE_DIR"] = cache
     import numpy as np
     import onnxruntime as ort
@@ -209,7 +210,14 @@ CHILDREN = {"checkpoint": child_checkpoint, "export": child_export, "int8": chil
             "flops": child_flops, "rate": child_rate}
 
 
-VARIANTS = {"int8": "int8", "int8_openvino": "int8-openvino"}   # side -> child_frame's variant
+# side -> (child_frame's variant, the bundle folder it reads in --work, how the report names it)
+SIDES = {
+    "base": ("", "bundle_base", "baseline"),
+    "new": ("", "bundle_new", "this tree, fp32"),
+    "openvino": ("openvino", "bundle_new", "this tree, fp32, planes graph on OpenVINO"),
+    "int8": ("int8", "bundle_int8", "this tree, int8"),
+    "int8_openvino": ("int8-openvino", "bundle_int8", "this tree, int8, planes graph on OpenVINO"),
+}
 
 
 def run_child(tree: Path, *args: str) -> dict:
@@ -241,8 +249,8 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=REPO / "work" / "paper_scale")
     ap.add_argument("--profile", action="store_true")
     ap.add_argument("--int8", action="store_true", help="a third side: this tree's int8 variant (see the doc)")
-    ap.add_argument("--openvino", action="store_true", help="with --int8, a fourth side: the int8 planes graph on "
-                    "OpenVINO's CPU device (see the doc)")
+    ap.add_argument("--openvino", action="store_true", help="more sides: the planes graph on OpenVINO's CPU device, "
+                    "fp32 (and int8 with --int8; see the doc)")
     ap.add_argument("--out", type=Path, default=RESULTS)
     ap.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -259,8 +267,6 @@ def main() -> None:
     if args.openvino:
         from ago_runtime.providers import Device, check_device
 
-        if not args.int8:
-            raise SystemExit("error: --openvino: it runs the int8 bundle; add --int8")
         check_device(Device.OPENVINO)     # the openvino package, before any work
     work = args.work.resolve()
     work.mkdir(parents=True, exist_ok=True)
@@ -285,40 +291,37 @@ def main() -> None:
         res["int8_quantise"] = run_child(REPO, "int8", str(work / "bundle_new"), str(work / "bundle_int8"))
         log(f"int8: quantised in {res['int8_quantise']['quantise_s']:.1f} s")
         sides["int8"] = REPO
-        if args.openvino:
-            sides["int8_openvino"] = REPO
+    if args.openvino:
+        sides = {**{k: v for k, v in sides.items() if k != "int8"}, "openvino": REPO,
+                 **({"int8": REPO, "int8_openvino": REPO} if args.int8 else {})}
     rounds: dict = {side: [] for side in sides}
     for r in range(args.rounds):
         for side, tree in sides.items():
             cache = str(work / f"cache_{side}")
             prof = str(work / "prof_new") if (args.profile and side == "new" and r == 0) else ""
-            bundle = work / ("bundle_int8" if side.startswith("int8") else f"bundle_{side}")
-            rounds[side].append(run_child(tree, "frame", str(bundle), str(args.reps), cache,
-                                          str(work / f"labels_{side}.npy"), prof, VARIANTS.get(side, "")))
+            variant, folder, _ = SIDES[side]
+            rounds[side].append(run_child(tree, "frame", str(work / folder), str(args.reps), cache,
+                                          str(work / f"labels_{side}.npy"), prof, variant))
             log(f"{side} round {r + 1}: steady {rounds[side][-1]['steady_s']:.2f} s (load {os.getloadavg()[0]:.1f})")
     for side in sides:
         rs = rounds[side]
         res[side] = {k: min(x[k] for x in rs) for k in ("open_s", "first_s", "steady_s", "planes_s", "rss_mib")}
         res[side]["occupied_share"] = rs[0]["occupied_share"]
         res[side]["identifier"] = rs[0]["identifier"]
-    res["rounds_steady_s"] = {side: [x["steady_s"] for x in rounds[side]] for side in sides}
+        res[side]["rounds_steady_s"] = [x["steady_s"] for x in rs]
+    res["sides"] = list(sides)
     res["frame"] = rounds["new"][0]["frame"]
-    a, b = np.load(work / "labels_base.npy"), np.load(work / "labels_new.npy")
-    res["agreement"] = float((a == b).mean()) if a.shape == b.shape else None
-    res["speedup"] = res["base"]["steady_s"] / res["new"]["steady_s"]
-    if "int8" in sides:
-        q = np.load(work / "labels_int8.npy")
-        res["int8_agreement"] = float((q == b).mean())
-        res["int8_speedup"] = res["base"]["steady_s"] / res["int8"]["steady_s"]
-        res["int8_vs_fp32"] = res["new"]["steady_s"] / res["int8"]["steady_s"]
-        res["int8_occupied_share"] = res["int8"]["occupied_share"]
+    fp32 = np.load(work / "labels_new.npy")
+    for side in sides:       # labels against this tree's fp32 (the baseline's may differ in shape)
+        lab = np.load(work / f"labels_{side}.npy")
+        res[side]["agreement"] = float((lab == fp32).mean()) if lab.shape == fp32.shape else None
     if "int8_openvino" in sides:
+        res["int8_openvino"]["agreement_int8"] = float((np.load(work / "labels_int8_openvino.npy")
+                                                        == np.load(work / "labels_int8.npy")).mean())
+    if "openvino" in sides:
         import openvino
 
         res["openvino_version"] = openvino.__version__
-        q = np.load(work / "labels_int8_openvino.npy")
-        res["int8_openvino_agreement"] = float((q == b).mean())
-        res["int8_openvino_vs_int8"] = float((q == np.load(work / "labels_int8.npy")).mean())
     if args.profile and rounds["new"][0]["profile"]:
         res["op_split"] = op_split(rounds["new"][0]["profile"])
     res["flops"] = run_child(REPO, "flops")
@@ -334,13 +337,8 @@ def main() -> None:
 def write_report(res: dict, path: Path) -> None:
     from ago_runtime.atomic import write_text
 
-    b, n, q, v = res["base"], res["new"], res.get("int8"), res.get("int8_openvino")
-    header, rule = "| | baseline | this tree | ratio |", "|---|---:|---:|---:|"
-    if q:
-        header, rule = header + " this tree, int8 | baseline / int8 | fp32 / int8 |", rule + "---:|---:|---:|"
-    if v:
-        header += " int8, planes on OpenVINO | baseline / it | fp32 / it |"
-        rule += "---:|---:|---:|"
+    b, n = res["base"], res["new"]
+    sides = res["sides"]
     lines = [
         "# The runtime at the paper's scale (issue 39)", "",
         f"Command: `{res['command']}` ({res['date']}; load average {res['load_start']:.1f} at the "
@@ -348,42 +346,38 @@ def write_report(res: dict, path: Path) -> None:
         f"CPU: {res.get('cpu', 'not recorded')}.", "",
         "`full` preset (1600x928 input, 200x200x16 grid, TPV 100x100x16 with the preset's widths), random weights "
         "(cost only; every voxel is called occupied, the runtime's worst case), exported without the parity check by "
-        f"each side's code; frame: {res['frame']}. Baseline: commit {res['baseline']}. Best of the alternating rounds.", "",
-        header, rule,
+        f"each side's code; frame: {res['frame']}. Baseline: commit {res['baseline']}. Best of the alternating rounds; "
+        "ratios are the baseline's figure over the side's.", "",
+        "| side | steady frame (s) | baseline / it | first frame (s) | bundle open (s) | planes graph alone (s) | "
+        "baseline / it | peak RSS (MiB) | labels = this tree's fp32 (%) |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
-    for key, label in (("steady_s", "steady frame (s)"), ("first_s", "first frame (s)"), ("open_s", "bundle open (s)"),
-                       ("planes_s", "planes graph alone (s)"), ("rss_mib", "peak RSS (MiB)")):
-        row = f"| {label} | {b[key]:.2f} | {n[key]:.2f} | {b[key] / n[key]:.2f}x |"
-        for side in (q, v):
-            if side:
-                row += f" {side[key]:.2f} | {b[key] / side[key]:.2f}x | {n[key] / side[key]:.2f}x |"
-        lines.append(row)
-    lines += [f"| export (s) | {res['base_export']['export_s']:.1f} | {res['new_export']['export_s']:.1f} | |"
-              + (f" + {res['int8_quantise']['quantise_s']:.1f} (quantise) | | |" if q else "")
-              + (" (the same bundle) | | |" if v else ""),
-              f"| export peak RSS (MiB) | {res['base_export']['export_rss_mib']:.0f} | "
-              f"{res['new_export']['export_rss_mib']:.0f} | |"
-              + (f" {res['int8_quantise']['quantise_rss_mib']:.0f} (quantise) | | |" if q else "")
-              + (" | | |" if v else ""), "",
-              "Steady frame round by round, baseline / each side: " + "; ".join(
-                  f"{side} " + ", ".join(f"{bs / x:.2f}x" for bs, x in zip(res["rounds_steady_s"]["base"], xs))
-                  for side, xs in res["rounds_steady_s"].items() if side != "base") + ".", "",
-              f"Label agreement (same voxel, same label), this tree vs baseline: "
-              f"{100 * res['agreement']:.3f} %." if res["agreement"] is not None else "Label grids differ in shape.", ""]
-    if q:
+    for side in sides:
+        r = res[side]
+        agree = f"{100 * r['agreement']:.3f}" if r.get("agreement") is not None else "(grid differs)"
+        lines.append(f"| {SIDES[side][2]} | {r['steady_s']:.2f} | {b['steady_s'] / r['steady_s']:.2f}x | "
+                     f"{r['first_s']:.2f} | {r['open_s']:.2f} | {r['planes_s']:.2f} | {b['planes_s'] / r['planes_s']:.2f}x | "
+                     f"{r['rss_mib']:.0f} | {agree} |")
+    lines += ["", "Steady frame round by round, baseline / side: " + "; ".join(
+        f"{SIDES[side][2]} " + ", ".join(f"{bs / x:.2f}x" for bs, x in zip(b["rounds_steady_s"], res[side]["rounds_steady_s"]))
+        for side in sides if side != "base") + ".", "",
+        f"Export: baseline {res['base_export']['export_s']:.1f} s (peak RSS {res['base_export']['export_rss_mib']:.0f} MiB), "
+        f"this tree {res['new_export']['export_s']:.1f} s ({res['new_export']['export_rss_mib']:.0f} MiB)"
+        + (f"; the int8 variant + {res['int8_quantise']['quantise_s']:.1f} s ({res['int8_quantise']['quantise_rss_mib']:.0f} "
+           "MiB)" if "int8" in sides else "") + ".", ""]
+    if "int8" in sides:
         lines += [f"int8 (`Predictor(bundle, int8=True)`: planes static QDQ with every activation range fixed to "
-                  f"{tuple(res['int8_quantise']['range'])}, not calibrated; voxel stages dynamic int8): labels agree "
-                  f"with this tree's fp32 on {100 * res['int8_agreement']:.3f} % of the voxels (it calls "
-                  f"{100 * res['int8_occupied_share']:.1f} % occupied, fp32 {100 * n['occupied_share']:.1f} %). That "
-                  "is the agreement of an uncalibrated random-weight model, not a measure of int8 accuracy on a "
+                  f"{tuple(res['int8_quantise']['range'])}, not calibrated; voxel stages dynamic int8; it calls "
+                  f"{100 * res['int8']['occupied_share']:.1f} % occupied, fp32 {100 * n['occupied_share']:.1f} %): its "
+                  "label agreement is that of an uncalibrated random-weight model, not a measure of int8 accuracy on a "
                   "trained one (benchmarks/results/int8_qat_default.md measures that on the default model).", ""]
-    if v:
-        lines += [f"int8 with the planes graph on OpenVINO's CPU device (`Predictor(bundle, int8=True, "
-                  f"device=\"openvino\")`; openvino {res.get('openvino_version', '?')}; the voxel stages on "
-                  f"onnxruntime's CPU provider): labels agree with this tree's fp32 on "
-                  f"{100 * res['int8_openvino_agreement']:.3f} % of the voxels and with onnxruntime's int8 on "
-                  f"{100 * res['int8_openvino_vs_int8']:.3f} %. Its planes graph alone is timed in the Predictor's own "
-                  "OpenVINO session.", ""]
+    if "openvino" in sides:
+        lines += [f"Planes graph on OpenVINO (`Predictor(bundle, device=\"openvino\"[, int8=True])`, openvino "
+                  f"{res['openvino_version']}): OpenVINO's CPU device runs the planes graph, the voxel stages stay on "
+                  "onnxruntime's CPU provider (ago_runtime.providers.stage_target); its planes graph alone is timed in "
+                  "the Predictor's own OpenVINO session."
+                  + (f" Its int8 labels agree with onnxruntime's int8 on {100 * res['int8_openvino']['agreement_int8']:.3f} "
+                     "% of the voxels." if "int8_openvino" in sides else ""), ""]
     lines += [f"FLOP bound: {res['flops']['total'] / 1e9:.0f} GFLOP a frame (planes {res['flops']['planes'] / 1e9:.0f}, "
               f"{res['flops']['voxels_note']}: {res['flops']['voxels'] / 1e9:.0f}) at this CPU's best "
               f"{max(res['rate'].values()):.0f} GFLOP/s = {res['bound_s']:.2f} s; the steady frame reaches "
