@@ -97,12 +97,30 @@ class ExportTPV(nn.Module):
 
 
 # --------------------------------------------------------------------------- the two graphs
+def interpolation_matrix(n_in: int, n_out: int) -> torch.Tensor:
+    """(n_out, n_in): linear interpolation along one axis as F.interpolate(mode="bilinear", align_corners=False)
+    does it (output i reads the input at (i + 0.5) * n_in / n_out - 0.5, clamped to [0, n_in - 1]; two taps).
+    Bilinear upsampling of a map is A_rows @ map @ A_cols^T."""
+    src = ((torch.arange(n_out, dtype=torch.float64) + 0.5) * (n_in / n_out) - 0.5).clamp(min=0.0)
+    i0 = src.floor().long().clamp(max=n_in - 1)
+    i1 = (i0 + 1).clamp(max=n_in - 1)
+    w1 = src - i0
+    a = torch.zeros(n_out, n_in, dtype=torch.float64)
+    rows = torch.arange(n_out)
+    a.index_put_((rows, i0), 1.0 - w1, accumulate=True)
+    a.index_put_((rows, i1), w1, accumulate=True)
+    return a.float()
+
+
 class PlanesGraph(nn.Module):
     """planes.onnx: images (1, V, 3, H, W), ego2img (1, V, 4, 4) -> plane_xy (X, Y, Dh), plane_xz (X, Z, Dh),
     plane_yz (Y, Z, Dh): the TPV planes times the decoder's first linear layer (bias in plane_xy only),
     bilinearly upsampled to the grid (align_corners=False, as ago_train.model.aggregate.upsample_planes),
-    channels last. (Running the backbone one camera at a time instead of on the batch of six was
-    measured and did not pay: benchmarks/results/runtime_rewrites.md.)"""
+    channels last. The upsampling runs channels last too, as two matrix products with `interpolation_matrix`
+    (the queries' (rows, cols) order is already channels last): F.interpolate's channels-first Resize and the
+    transpose behind it cost more in onnxruntime and far more in OpenVINO
+    (benchmarks/results/planes_upsampling.md). (Running the backbone one camera at a time instead of on the
+    batch of six was measured and did not pay: benchmarks/results/runtime_rewrites.md.)"""
 
     def __init__(self, model, grid_shape: tuple[int, int, int] | None = None, static_sampling: bool = False):
         """grid_shape: the read-out grid the planes are upsampled to (default the model's grid; a finer one
@@ -116,6 +134,13 @@ class PlanesGraph(nn.Module):
             raise ValueError("the decoder must start with a linear layer")
         self.first = first
         self.grid_shape = tuple(grid_shape) if grid_shape is not None else model.grid_shape
+        X, Y, Z = self.grid_shape
+        target = {"xy": (X, Y), "xz": (X, Z), "yz": (Y, Z)}
+        for p in PLANES:     # per plane and axis, the interpolation matrix where the size changes
+            for axis, n_in, n_out in (("rows", self.tpv.plane_hw[p][0], target[p][0]),
+                                      ("cols", self.tpv.plane_hw[p][1], target[p][1])):
+                self.register_buffer(f"up_{p}_{axis}", interpolation_matrix(n_in, n_out) if n_in != n_out else None,
+                                     persistent=False)
 
     def forward(self, images: torch.Tensor, ego2img: torch.Tensor):
         # flatten, not images[0]: a Reshape onnxruntime runs in place, where [0] is a Gather that copies the images
@@ -124,16 +149,17 @@ class PlanesGraph(nn.Module):
     def from_features(self, feats: list[torch.Tensor], ego2img: torch.Tensor):
         """FPN maps per level (V, D, H_l, W_l), ego2img (1, V, 4, 4) -> the three planes (see the class)."""
         queries = self.tpv(feats, ego2img[0])
-        X, Y, Z = self.grid_shape
-        target = {"xy": (X, Y), "xz": (X, Z), "yz": (Y, Z)}
         out = []
         for p in PLANES:
             rows, cols = self.tpv.plane_hw[p]
             f = F.linear(queries[p], self.first.weight, self.first.bias if p == "xy" else None)   # (Q, Dh)
-            m = f.t().reshape(1, -1, rows, cols)
-            if (rows, cols) != target[p]:
-                m = F.interpolate(m, size=target[p], mode="bilinear", align_corners=False)
-            out.append(m[0].permute(1, 2, 0))
+            m = f.reshape(rows, cols, -1)                       # queries are C order over (rows, cols)
+            up_rows, up_cols = getattr(self, f"up_{p}_rows"), getattr(self, f"up_{p}_cols")
+            if up_rows is not None:                             # (R, rows) @ (rows, cols * Dh)
+                m = torch.matmul(up_rows, m.reshape(rows, -1)).reshape(up_rows.shape[0], cols, -1)
+            if up_cols is not None:                             # (C, cols) @ (R, cols, Dh) -> (R, C, Dh)
+                m = torch.matmul(up_cols, m)
+            out.append(m)
         return tuple(out)
 
 

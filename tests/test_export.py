@@ -18,7 +18,7 @@ torch = pytest.importorskip("torch")
 onnx = pytest.importorskip("onnx")
 
 from ago_export.export import export_bundle, load_model  # noqa: E402
-from ago_export.graphs import LogSigmoidSoftplus, export_activations  # noqa: E402
+from ago_export.graphs import LogSigmoidSoftplus, export_activations, interpolation_matrix  # noqa: E402
 from ago_export.parity import Tolerance, reference_labels  # noqa: E402
 from ago_export.testing import random_checkpoint  # noqa: E402
 from ago_runtime.predict.bundle import Bundle  # noqa: E402
@@ -38,6 +38,24 @@ def env(tmp_path_factory):
     town = tiny_town(root / "town")   # the int8 graph's calibration frames (a random checkpoint records none)
     meta = export_bundle(ckpt, bundle, int8=True, bank_prompts=["ow"], log=lambda s: None, calibration_data=town)
     return {"root": root, "ckpt": ckpt, "bundle": bundle, "meta": meta}
+
+
+def test_plane_upsampling_matrices_are_bilinear_interpolation():
+    # planes.onnx upsamples channels last with two matrix products; they must be F.interpolate's bilinear
+    import torch
+    import torch.nn.functional as F
+
+    g = torch.Generator().manual_seed(0)
+    for (r, c), (R, C) in [((100, 100), (200, 200)), ((100, 16), (200, 16)), ((7, 5), (20, 11)), ((10, 9), (6, 4)),
+                           ((3, 3), (3, 3))]:
+        m = torch.randn(1, 4, r, c, generator=g)
+        ref = F.interpolate(m, size=(R, C), mode="bilinear", align_corners=False)[0].permute(1, 2, 0)
+        a, b = interpolation_matrix(r, R), interpolation_matrix(c, C)
+        got = torch.matmul(b, torch.matmul(a, m[0].permute(1, 2, 0).reshape(r, -1)).reshape(R, c, -1))
+        assert got.shape == (R, C, 4)
+        torch.testing.assert_close(got, ref, atol=1e-5, rtol=1e-5)
+        assert torch.allclose(a.sum(1), torch.ones(R))          # two taps whose weights sum to one
+    assert torch.equal(interpolation_matrix(5, 5), torch.eye(5))
 
 
 def test_bundle_is_self_describing(env):
