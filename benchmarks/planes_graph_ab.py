@@ -41,15 +41,13 @@ def child(bundle: str, runtime: str, graph: str, reps: int, inputs: str, outputs
         from ago_runtime.cache import session_options
 
         sess = ort.InferenceSession(str(path), session_options(), providers=["CPUExecutionProvider"])
-        names = [i.name for i in sess.get_inputs()]
-        run = lambda: sess.run(None, dict(zip(names, feed_arrays.values())))  # noqa: E731
     else:
         from ago_runtime.openvino_session import open_openvino_session
         from ago_runtime.providers import Precision
 
         sess = open_openvino_session(path, None, Precision.FP32)
-        names = [i.name for i in sess.get_inputs()]
-        run = lambda: sess.run(None, dict(zip(names, feed_arrays.values())))  # noqa: E731
+    feed = dict(zip([i.name for i in sess.get_inputs()], feed_arrays.values()))
+    run = lambda: sess.run(None, feed)  # noqa: E731
     out = run()
     times = []
     for _ in range(reps):
@@ -62,7 +60,7 @@ def child(bundle: str, runtime: str, graph: str, reps: int, inputs: str, outputs
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--bundle", action="append", required=True, help="NAME=DIR (two or more)")
+    ap.add_argument("--bundle", action="append", default=[], help="NAME=DIR (two or more)")
     ap.add_argument("--int8", action="store_true")
     ap.add_argument("--openvino", action="store_true")
     ap.add_argument("--rounds", type=int, default=5)
@@ -84,7 +82,8 @@ def main(argv=None) -> None:
 
     bundles = dict(b.split("=", 1) for b in args.bundle)
     if len(bundles) < 2:
-        sys.exit("error: --bundle: give two or more NAME=DIR")
+        print("error: --bundle: give two or more NAME=DIR", file=sys.stderr)
+        sys.exit(2)
     if args.openvino:
         from ago_runtime.providers import Device, check_device
 
@@ -104,7 +103,7 @@ def main(argv=None) -> None:
     for r in range(args.rounds):
         for runtime, graph, name in pairs:
             outputs = args.work / f"out_{runtime}_{graph}_{name}.npz"
-            proc = subprocess.run([sys.executable, "-m", "benchmarks.planes_graph_ab", "--bundle", "x=x", "--child",
+            proc = subprocess.run([sys.executable, "-m", "benchmarks.planes_graph_ab", "--child",
                                    bundles[name], runtime, graph, str(args.reps), str(inputs), str(outputs)],
                                   capture_output=True, text=True, env=env, cwd=str(REPO))
             if proc.returncode != 0:
@@ -121,7 +120,7 @@ def main(argv=None) -> None:
              f"Command: `{cmd}` (commit {commit}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; load average "
              f"{load0[0]:.1f} at the start, {load1[0]:.1f} at the end).", "",
              f"CPU: {cpu_line()}.", "",
-             f"Bundles: " + ", ".join(f"{n} = `{d}`" for n, d in bundles.items()) + f". Frame: {frame}. Each cell: the "
+             "Bundles: " + ", ".join(f"{n} = `{d}`" for n, d in bundles.items()) + f". Frame: {frame}. Each cell: the "
              f"median over {args.rounds} rounds of each child's median of {args.reps} runs (one child process per "
              "bundle, runtime and graph, alternating).", "",
              "| runtime | graph | bundle | planes graph (ms) | vs onnxruntime fp32 of " + ref_name + " | max abs diff to "
