@@ -191,7 +191,7 @@ def child_flops() -> dict:
     X, Y, Z = cfg.grid_obj().shape
     n = X * Y * Z
     phrases = len(load_prompt_bank(parse_prompt_file("cw")).phrase_class)
-    d, dh, da, c = cfg.tpv_dim, cfg.hidden_dim, cfg.adapter_hidden, cfg.embed_dim
+    d, dh, da = cfg.tpv_dim, cfg.hidden_dim, cfg.adapter_hidden
     decoder = 2 * n * (d * dh + dh * dh * (cfg.decoder_layers - 1))
     adapter = 2 * n * (dh * da + da * da * (cfg.adapter_depth - 1))
     main = decoder + 2 * n * phrases * dh          # the main branch: decoder + its bank product, every voxel
@@ -267,7 +267,13 @@ def main() -> None:
     if args.openvino:
         from ago_runtime.providers import Device, check_device
 
-        check_device(Device.OPENVINO)     # the openvino package, before any work
+        from ago_runtime.errors import AgoInputError
+
+        try:
+            check_device(Device.OPENVINO)     # the openvino package, before any work
+        except AgoInputError as e:
+            print(f"error: {e}", file=sys.stderr)
+            sys.exit(2)
     work = args.work.resolve()
     work.mkdir(parents=True, exist_ok=True)
     log = lambda s: print(f"[{time.strftime('%H:%M:%S')}] {s}", flush=True)  # noqa: E731

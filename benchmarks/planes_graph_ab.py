@@ -87,7 +87,13 @@ def main(argv=None) -> None:
     if args.openvino:
         from ago_runtime.providers import Device, check_device
 
-        check_device(Device.OPENVINO)
+        from ago_runtime.errors import AgoInputError
+
+        try:
+            check_device(Device.OPENVINO)     # the openvino package, before any work
+        except AgoInputError as e:
+            print(f"error: {e}", file=sys.stderr)
+            sys.exit(2)
     args.work.mkdir(parents=True, exist_ok=True)
     images, rig, frame = load_frame()
     first = Bundle.load(next(iter(bundles.values())))
