@@ -79,6 +79,19 @@ def test_torch_identifier_equals_the_numpy_specification(identifier):
         assert spec.branch.any() and not spec.branch[free].any()
 
 
+@pytest.mark.parametrize("rows", [1, 2, 17, 256, 257])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_softmax_stats_labels_are_the_first_argmax(rows, dtype):
+    """softmax_stats' label is np.argmax's (the first maximum on ties), on blocks of up to 256 rows (the byte
+    weights) and more (the row loop), in float32 and float64."""
+    rng = np.random.default_rng(rows)
+    z = rng.integers(-4, 2, size=(rows, 3000)).astype(dtype)    # small integers: many ties
+    z[:, :7] = 0.5                                               # every row tied
+    want = np.argmax(z, axis=0)
+    got = decision.softmax_stats(z.copy()).label
+    assert got.dtype == np.intp and np.array_equal(got, want)
+
+
 def test_runtime_float32_equals_the_float64_specification():
     """The runtime's slab loop on whole-grid features (VoxelClassifier.classify_hidden: FoldedHeads float32,
     folded, class-major, numpy products) decides as the float64 spec does on the unfolded embeddings, with

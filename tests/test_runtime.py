@@ -288,6 +288,37 @@ def test_streamed_slabs_match_whole_grid_heads(bundle_dir, frame_dir, monkeypatc
     assert seen == [20 * 4] * 20 and SCORE_BUDGET_BYTES > 1
 
 
+def test_slab_size_follows_the_widest_array_a_slab_holds(bundle_dir, frame_dir, monkeypatch):
+    """Without slab_voxels a slab holds as many x rows as keep its widest per-voxel array near SLAB_BYTES: h (and
+    the main branch's stages) on the usual path, the adapted branch's widths too where it runs on every voxel
+    (volumes); classify sizes its slabs that way."""
+    import ago_runtime.predict.encoder as enc
+    from ago_runtime.formats.calibration import load_images_folder
+    from ago_runtime.predict.predictor import Predictor
+
+    p = Predictor(bundle_dir)
+    X, Y, Z = p.bundle.grid.shape
+    wide_main, wide_all = p.encoder.widest
+    assert wide_all > wide_main                       # the fixture bundle: the adapted branch is wider
+    assert wide_main == max([p.bundle.contract.hidden_dim] + [s.output_dim for s in p.bundle.contract.voxel_stages
+                                                              if s.branch == "main"])
+    assert wide_all >= max([wide_main, p.bundle.contract.adapted_dim] + [s.output_dim for s in
+                                                                        p.bundle.contract.voxel_stages])
+    monkeypatch.setattr(enc, "SLAB_BYTES", 4 * Y * Z * wide_main * 3)        # three rows of h
+    assert p.encoder.slab_rows() == 3
+    assert p.encoder.slab_rows(every_voxel_adapted=True) == max(1, 3 * wide_main // wide_all)
+    assert enc.open_encoder(p.bundle, slab_voxels=2 * Y * Z).slab_rows(every_voxel_adapted=True) == 2
+    images, rig, _ = load_images_folder(frame_dir)
+    x, m = p.prepare(images, rig)
+    bank = p.bundle.load_bank()
+    seen = []
+    slabs = p.encoder.slabs
+    p.encoder.slabs = lambda rows: seen.append(rows) or slabs(rows)
+    p.predict_arrays(x, m, bank, "min-entropy")
+    p.predict_arrays(x, m, bank, "min-entropy", p.fold_with_reference(bank), volumes=True)
+    assert seen == [3, max(1, 3 * wide_main // wide_all)]
+
+
 def test_slabs_in_parallel_give_what_one_thread_gives(bundle_dir, frame_dir):
     """With several threads the slabs run in parallel (SplitEncoder.map_slabs), each on one thread: every output
     equals the one-thread run's, for every identifier, with volumes, and through FrameFeatures re-queries."""

@@ -109,7 +109,7 @@ class VoxelClassifier:
 
         t_planes = time.perf_counter() - t
         t = time.perf_counter()
-        parts = enc.map_slabs(one_slab, list(enc.slabs(enc.slab_rows(folded.num_rows))))
+        parts = enc.map_slabs(one_slab, list(enc.slabs(enc.slab_rows(folded.num_rows, volumes))))
         wall = time.perf_counter() - t
         # slabs may run in parallel: the loop's wall time is split in the ratio of the slabs' own encoder / heads time
         enc_s, heads_s = sum(p[0] for p in parts), sum(p[1] for p in parts)

@@ -48,7 +48,8 @@ from ago_runtime.predict.decision import Branch
 from ago_runtime.predict.heads import SCORE_BUDGET_BYTES
 
 INT8 = "int8"         # the variant `--int8` picks (bundle.json "variants")
-SLAB_VOXELS = 8192    # target voxels per slab (whole x-rows of Y*Z voxels; benchmarks/results/infer_speed.md)
+SLAB_BYTES = 12 << 20  # a slab's widest per-voxel array (n voxels x its width, float32) stays near this size
+                       # (whole x-rows of Y*Z voxels; benchmarks/results/slab_size.md)
 
 
 @dataclass
@@ -125,25 +126,28 @@ def softplus_of_sum_(exps, x0: int, x1: int, ys: slice, out: np.ndarray) -> None
     y in ys, as log(1 + E_xy E_xz E_yz) from the planes' exponentials `exps` (PlaneMaps.exps); out is
     C-contiguous."""
     e_xy, e_xz, e_yz = exps
-    np.multiply(e_xy[x0:x1, ys, None, :], e_xz[x0:x1, None, :, :], out=out)
-    out *= e_yz[ys]
-    out += 1.0
-    flat = out.reshape(-1, out.shape[-1])
-    cv2.log(flat, flat)
+    for i, x in enumerate(range(x0, x1)):     # one x row at a time: its (Y, Z, D) block stays in the core's cache
+        row = out[i]
+        np.multiply(e_yz[ys], e_xz[x, None], out=row)     # E_xz[x] repeats over y: numpy runs it as long rows
+        row *= e_xy[x, ys, None, :]                        # E_xy[x] repeats over z: rows of D
+        flat = row.reshape(-1, row.shape[-1])
+        cv2.add(flat, 1.0, dst=flat)
+        cv2.log(flat, flat)
 
 
 class SplitEncoder:
     """Planes once per frame, then the per-voxel MLP slab by slab (see the module doc).
 
     stages: the bundle's voxel stages (StageGraph), decoder stages first; hidden_dim, adapted_dim: the widths
-    of h and g. sha256: of planes.onnx, for the optimised-graph cache; warm_up: run the graphs once on dummy
-    inputs when opened; image_input: (cameras, height, width) of planes.onnx's images input, when known.
-    Every graph's inputs and outputs are checked against the contract's signatures when it is opened."""
+    of h and g. slab_voxels: voxels per slab (None: `slab_rows` sizes slabs from SLAB_BYTES). sha256: of
+    planes.onnx, for the optimised-graph cache; warm_up: run the graphs once on dummy inputs when opened;
+    image_input: (cameras, height, width) of planes.onnx's images input, when known. Every graph's inputs and
+    outputs are checked against the contract's signatures when it is opened."""
 
     PLANES = list(PLANES_OUTPUTS)
 
     def __init__(self, planes_path: Path, stages: list[StageGraph], grid: Grid, hidden_dim: int, adapted_dim: int,
-                 threads: int | None = None, slab_voxels: int = SLAB_VOXELS, sha256: str | None = None,
+                 threads: int | None = None, slab_voxels: int | None = None, sha256: str | None = None,
                  warm_up: bool = True, device: Device = Device.CPU, precision: Precision = Precision.FP32,
                  image_input: tuple[int, int, int] | None = None):
         self.grid = grid
@@ -159,14 +163,18 @@ class SplitEncoder:
                           if self.threads > 1 and stage_device is Device.CPU else None)
         self._local = threading.local()     # in a slab worker: .single = True, .bank_product (one thread)
         self.sessions = {Branch.MAIN: [], Branch.ADAPTED: []}
+        self.widths = {Branch.MAIN: int(hidden_dim), Branch.ADAPTED: int(adapted_dim)}
+        widest = {Branch.MAIN: int(hidden_dim), Branch.ADAPTED: int(adapted_dim)}
         for i, st in enumerate(stages):
             sess = load_session(Path(st.path), threads, stage_signature(st.spec), f"voxel_stages[{i}]", st.sha256,
                                 stage_device, stage_precision)
             self.sessions[st.spec.branch].append((sess, st.spec.activation == "softplus"))
-        self.widths = {Branch.MAIN: int(hidden_dim), Branch.ADAPTED: int(adapted_dim)}
+            widest[st.spec.branch] = max(widest[st.spec.branch], int(st.spec.output_dim))
+        # the widest per-voxel array of a slab: the main branch's, and the adapted branch's where it runs on every voxel
+        self.widest = (widest[Branch.MAIN], max(widest.values()))
         self.softplus = Softplus(threads)
         self.slab_voxels = slab_voxels
-        self.slab = self.rows_per_slab(slab_voxels)
+        self.slab = self.slab_rows(every_voxel_adapted=True)
         if warm_up:
             self.warm_up()
 
@@ -178,12 +186,15 @@ class SplitEncoder:
         X, Y, Z = self.grid.shape
         return int(max(1, min(X, voxels // (Y * Z))))   # whole x-rows of Y*Z voxels
 
-    def slab_rows(self, num_rows: int | None = None) -> int:
-        """x rows per slab; a bank of many score rows (num_rows = P + 1) gets thinner slabs, so that each
-        (P+1, n) score block stays within the heads' budget."""
-        if num_rows is None:
-            return self.slab
-        return self.rows_per_slab(min(self.slab_voxels, SCORE_BUDGET_BYTES // (4 * num_rows)))
+    def slab_rows(self, num_rows: int | None = None, every_voxel_adapted: bool = False) -> int:
+        """x rows per slab: the slab_voxels given when opened, else as many voxels as keep the slab's widest
+        per-voxel array near SLAB_BYTES (the adapted branch's widths count when it runs on every voxel: volumes,
+        `hidden`); a bank of many score rows (num_rows = P + 1) gets thinner slabs, so that each (P+1, n) score
+        block stays within the heads' budget."""
+        voxels = self.slab_voxels or SLAB_BYTES // (4 * self.widest[1 if every_voxel_adapted else 0])
+        if num_rows is not None:
+            voxels = min(voxels, SCORE_BUDGET_BYTES // (4 * num_rows))
+        return self.rows_per_slab(voxels)
 
     def map_slabs(self, fn, slabs: list[tuple[int, int]]) -> list:
         """[fn(x0, x1) for each slab], in order. With several threads on the CPU the slabs run in parallel, one
@@ -306,7 +317,7 @@ class SplitEncoder:
         return np.concatenate([p[2] for p in parts]), np.concatenate([p[3] for p in parts])
 
 
-def open_encoder(bundle, int8: bool = False, threads: int | None = None, slab_voxels: int = SLAB_VOXELS,
+def open_encoder(bundle, int8: bool = False, threads: int | None = None, slab_voxels: int | None = None,
                  warm_up: bool = True, device: Device = Device.CPU,
                  precision: Precision = Precision.FP32) -> "SplitEncoder":
     """The encoder of a loaded `Bundle`; int8 picks the bundle's "int8" variant (contract "variants"; on a CPU:
