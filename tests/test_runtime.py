@@ -125,6 +125,14 @@ def test_softplus_matches_the_exact_function():
     assert np.all(np.abs(got - want) <= tol) and np.all(np.isfinite(got))
     two = Softplus(threads=2)(x.reshape(-1, 10).copy())            # split over threads: the same values
     assert np.array_equal(two.reshape(-1), got)
+    cube = x[:249993].reshape(-1, 3, 3).copy()                     # 3-D, last axis 3: no channel trap
+    assert np.array_equal(softplus_(cube, np.empty_like(cube)).reshape(-1), got[:249993])
+    wide = np.zeros((len(x), 2), np.float32)
+    wide[:, 0] = x
+    strided = softplus_(wide[:, 0], np.empty(len(x), np.float32))    # not contiguous: numpy's form, same values
+    assert np.allclose(strided, got, rtol=0, atol=1e-6) and np.array_equal(wide[:, 0], strided)
+    odd = softplus_(np.array([[np.nan, np.inf, -np.inf, 0.0]], np.float32), np.empty((1, 4), np.float32))
+    assert np.isnan(odd[0, 0]) and odd[0, 1] == np.inf and odd[0, 2] == 0.0 and abs(odd[0, 3] - np.log(2)) < 1e-6
 
 
 def test_softplus_of_the_plane_sum_from_the_planes_exponentials():

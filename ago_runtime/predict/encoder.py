@@ -75,12 +75,21 @@ def softplus_(x: np.ndarray, tmp: np.ndarray) -> np.ndarray:
 
     The same function as torch's softplus to float32 rounding (softplus(x) > x always, and for x > 20
     log(1 + e^x) = x to float32; absolute error <= 1e-6, tests/test_runtime.py). OpenCV's vectorised
-    cv2.exp / cv2.log are faster than numpy's and than onnxruntime's Log kernel here."""
-    np.minimum(x, 20.0, out=tmp)
-    cv2.exp(tmp, tmp)
-    tmp += 1.0
-    cv2.log(tmp, tmp)
-    np.maximum(tmp, x, out=x)
+    cv2.exp / cv2.log are faster than numpy's and than onnxruntime's Log kernel here, and its min / add / max
+    than numpy's; they run on 2-D views (one channel: a scalar applies to every element). A NaN stays NaN."""
+    if not (x.flags.c_contiguous and tmp.flags.c_contiguous):
+        np.minimum(x, 20.0, out=tmp)
+        cv2.exp(tmp, tmp)
+        tmp += 1.0
+        cv2.log(tmp, tmp)
+        np.maximum(tmp, x, out=x)
+        return x
+    x2, t2 = x.reshape(-1, x.shape[-1] if x.ndim else 1), tmp.reshape(-1, x.shape[-1] if x.ndim else 1)
+    cv2.min(x2, 20.0, dst=t2)
+    cv2.exp(t2, t2)
+    cv2.add(t2, 1.0, dst=t2)
+    cv2.log(t2, t2)
+    cv2.max(t2, x2, dst=x2)        # its first operand NaN (x NaN) gives NaN
     return x
 
 
