@@ -130,9 +130,14 @@ def test_softplus_matches_the_exact_function():
     wide = np.zeros((len(x), 2), np.float32)
     wide[:, 0] = x
     strided = softplus_(wide[:, 0], np.empty(len(x), np.float32))    # not contiguous: numpy's form, same values
-    assert np.allclose(strided, got, rtol=0, atol=1e-6) and np.array_equal(wide[:, 0], strided)
-    odd = softplus_(np.array([[np.nan, np.inf, -np.inf, 0.0]], np.float32), np.empty((1, 4), np.float32))
+    assert np.all(np.abs(strided - want) <= tol) and np.array_equal(wide[:, 0], strided)
+    odd = softplus_(np.array([[np.nan, np.inf, -np.inf, 0.0, 1.0]], np.float32), np.empty((1, 5), np.float32))
     assert np.isnan(odd[0, 0]) and odd[0, 1] == np.inf and odd[0, 2] == 0.0 and abs(odd[0, 3] - np.log(2)) < 1e-6
+    for shape in [(), (1,), (1, 1), (4, 1), (1, 4), (2, 2), (5, 0), (0, 7), (2, 2, 2)]:   # OpenCV reads some as scalars
+        small = np.linspace(-3, 3, int(np.prod(shape))).astype(np.float32).reshape(shape)
+        got_small = softplus_(small.copy(), np.empty_like(small))
+        assert got_small.shape == shape and np.allclose(got_small, np.logaddexp(0.0, small.astype(np.float64)),
+                                                        rtol=0, atol=1e-6), shape
 
 
 def test_softplus_of_the_plane_sum_from_the_planes_exponentials():
@@ -155,6 +160,11 @@ def test_softplus_of_the_plane_sum_from_the_planes_exponentials():
         part = np.empty((1, 2, Z, D), np.float32)                # one x row, some y: the same values
         softplus_of_sum_(pm.exps, 1, 2, slice(2, 4), part)
         assert np.array_equal(part, got[1:2, 2:4])
+    tiny = [rng.uniform(-2, 2, s).astype(np.float32) for s in ((2, 4, 1), (2, 1, 1), (4, 1, 1))]   # rows of 4 x 1
+    got = np.empty((2, 4, 1, 1), np.float32)
+    softplus_of_sum_(PlaneMaps(tiny).exps, 0, 2, slice(None), got)
+    want = np.logaddexp(0.0, tiny[0][:, :, None].astype(np.float64) + tiny[1][:, None] + tiny[2][None])
+    assert np.allclose(got, want, rtol=0, atol=2e-6)
     big = [p.copy() for p in planes]
     big[0][0, 0, 0] = EXP_RANGE                                  # the sum could pass EXP_RANGE: no exps
     assert PlaneMaps(big).exps is None

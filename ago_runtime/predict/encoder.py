@@ -70,21 +70,29 @@ def load_session(path: Path, threads: int | None, signature, what: str, sha256: 
     return sess
 
 
+def row_view(a: np.ndarray) -> np.ndarray | None:
+    """a as one row (1, a.size) sharing its memory, for OpenCV's element-wise functions in place; None where that is
+    not safe: a not C-contiguous (reshape would copy), or 4 elements or fewer (OpenCV's bindings may read such an
+    array as a scalar and then leave dst unwritten). One row: a 3-D array would be read as an image whose last axis
+    is its channels, and a scalar operand then applies to the first channel only."""
+    return a.reshape(1, -1) if a.flags.c_contiguous and a.size > 4 else None
+
+
 def softplus_(x: np.ndarray, tmp: np.ndarray) -> np.ndarray:
     """x <- softplus(x) = max(log(1 + exp(min(x, 20))), x), in place; tmp: scratch of x's shape.
 
     The same function as torch's softplus to float32 rounding (softplus(x) > x always, and for x > 20
     log(1 + e^x) = x to float32; absolute error <= 1e-6, tests/test_runtime.py). OpenCV's vectorised
     cv2.exp / cv2.log are faster than numpy's and than onnxruntime's Log kernel here, and its min / add / max
-    than numpy's; they run on 2-D views (one channel: a scalar applies to every element). A NaN stays NaN."""
-    if not (x.flags.c_contiguous and tmp.flags.c_contiguous):
+    than numpy's; they run on `row_view`s. A NaN stays NaN."""
+    x2, t2 = row_view(x), row_view(tmp)
+    if x2 is None or t2 is None:
         np.minimum(x, 20.0, out=tmp)
-        cv2.exp(tmp, tmp)
+        np.exp(tmp, out=tmp)
         tmp += 1.0
-        cv2.log(tmp, tmp)
+        np.log(tmp, out=tmp)
         np.maximum(tmp, x, out=x)
         return x
-    x2, t2 = x.reshape(-1, x.shape[-1] if x.ndim else 1), tmp.reshape(-1, x.shape[-1] if x.ndim else 1)
     cv2.min(x2, 20.0, dst=t2)
     cv2.exp(t2, t2)
     cv2.add(t2, 1.0, dst=t2)
@@ -139,9 +147,13 @@ def softplus_of_sum_(exps, x0: int, x1: int, ys: slice, out: np.ndarray) -> None
         row = out[i]
         np.multiply(e_yz[ys], e_xz[x, None], out=row)     # E_xz[x] repeats over y: numpy runs it as long rows
         row *= e_xy[x, ys, None, :]                        # E_xy[x] repeats over z: rows of D
-        flat = row.reshape(-1, row.shape[-1])
-        cv2.add(flat, 1.0, dst=flat)
-        cv2.log(flat, flat)
+        flat = row_view(row)
+        if flat is None:
+            row += 1.0
+            np.log(row, out=row)
+        else:
+            cv2.add(flat, 1.0, dst=flat)
+            cv2.log(flat, flat)
 
 
 class SplitEncoder:
