@@ -48,7 +48,7 @@ from ago_runtime.predict.decision import Branch
 from ago_runtime.predict.heads import SCORE_BUDGET_BYTES
 
 INT8 = "int8"         # the variant `--int8` picks (bundle.json "variants")
-SLAB_BYTES = 12 << 20  # a slab's widest per-voxel array (n voxels x its width, float32) stays near this size
+SLAB_BYTES = 7 << 20   # a slab's widest per-voxel array (n voxels x its width, float32) stays near this size
                        # (whole x-rows of Y*Z voxels; benchmarks/results/slab_size.md)
 
 
