@@ -485,6 +485,17 @@ def test_requery_with_frame_features_skips_planes_and_decoder(bundle_dir, frame_
     np.testing.assert_array_equal(again.semantics, whole.semantics)
     np.testing.assert_allclose(again.entropy, whole.entropy, atol=1e-6)
     assert first.semantics.shape == again.semantics.shape
+    # kept slabs thinner than a re-query's (volumes first): h is joined from them, never computed again
+    p.encoder.planes, p.encoder.hidden_slab = types.SimpleNamespace(run=run), hidden
+    thin = FrameFeatures()
+    p.encoder.slab_voxels = p.grid.shape[1] * p.grid.shape[2]            # one x row a slab
+    p.predict_arrays(x, m, bank, folded=p.fold_with_reference(bank), volumes=True, features=thin)
+    kept = dict(thin.hidden)
+    p.encoder.slab_voxels = 3 * p.grid.shape[1] * p.grid.shape[2]        # three rows a slab
+    p.encoder.hidden_slab = lambda *a, **k: calls.append("decoder") or hidden(*a, **k)
+    joined = p.predict_arrays(x, m, bank, features=thin)
+    assert calls == [] and thin.hidden.keys() == kept.keys()
+    np.testing.assert_array_equal(joined.semantics, whole.semantics)
 
 
 def test_bank_swap_to_unseen_classes(bundle_dir, frame_dir, tmp_path):

@@ -39,11 +39,17 @@ class FrameFeatures:
         self.hidden: dict[tuple[int, int], np.ndarray] = {}   # (x0, x1) rows -> h (n, Dh)
 
     def hidden_slab(self, encoder, x0: int, x1: int) -> np.ndarray:
-        """h of rows [x0, x1): sliced from a kept slab that covers them, else computed and kept."""
+        """h of rows [x0, x1): sliced from a kept slab that covers them, joined from kept slabs that cover them
+        together (a re-query may cut the grid into other slabs: volumes use thinner ones), else computed and kept."""
         row = encoder.grid.shape[1] * encoder.grid.shape[2]
-        for (a, b), h in list(self.hidden.items()):     # a copy: slab workers may add slabs meanwhile
-            if a <= x0 and x1 <= b:
-                return h[(x0 - a) * row:(x1 - a) * row]
+        parts, at = [], x0
+        for (a, b), h in sorted(self.hidden.items()):  # a copy: slab workers may add slabs meanwhile
+            if a <= at < b:
+                end = min(b, x1)
+                parts.append(h[(at - a) * row:(end - a) * row])
+                at = end
+                if at == x1:
+                    return parts[0] if len(parts) == 1 else np.concatenate(parts)
         h = encoder.hidden_slab(self.planes, x0, x1)
         self.hidden[(x0, x1)] = h
         return h
