@@ -104,10 +104,19 @@ def _labels(bundle_dir, frame, device, precision, int8=False):
     return p, pred
 
 
-def test_openvino_fp32_gives_onnxruntimes_labels(bundle_dir, tmp_path):
-    from ago_runtime.formats.random_frame import write_random_frame
+def _in_child(check, *args):
+    """check(*args) in a fresh interpreter (spawn), its assertion errors raised here. Once OpenVINO's runtime has
+    run in a process, a later child process that process starts can take it down without a Python-visible signal
+    (seen as an xdist worker dying in a later test's subprocess.run or DataLoader workers); so the test process never
+    loads OpenVINO itself."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
 
-    frame = write_random_frame(tmp_path / "frame", seed=5)
+    with ProcessPoolExecutor(1, mp_context=mp.get_context("spawn")) as ex:
+        return ex.submit(check, *args).result()
+
+
+def _check_fp32_labels(bundle_dir, frame):
     _, ref = _labels(bundle_dir, frame, "cpu", "fp32")
     p, got = _labels(bundle_dir, frame, "openvino", "fp32")
     assert p.encoder.planes.get_providers() == ["OpenVINO:CPU:fp32"]
@@ -117,10 +126,13 @@ def test_openvino_fp32_gives_onnxruntimes_labels(bundle_dir, tmp_path):
     np.testing.assert_allclose(got.confidence, ref.confidence, atol=1e-4)
 
 
-def test_openvino_runs_the_int8_planes_graph(bundle_dir, tmp_path):
+def test_openvino_fp32_gives_onnxruntimes_labels(bundle_dir, tmp_path):
     from ago_runtime.formats.random_frame import write_random_frame
 
-    frame = write_random_frame(tmp_path / "frame", seed=5)
+    _in_child(_check_fp32_labels, bundle_dir, write_random_frame(tmp_path / "frame", seed=5))
+
+
+def _check_int8_planes(bundle_dir, frame):
     _, ref = _labels(bundle_dir, frame, "cpu", "fp32", int8=True)
     p, got = _labels(bundle_dir, frame, "openvino", "fp32", int8=True)
     planes, stages = p.bundle.encoder_graphs("int8")
@@ -131,7 +143,13 @@ def test_openvino_runs_the_int8_planes_graph(bundle_dir, tmp_path):
     assert (got.semantics == ref.semantics).mean() > 0.97
 
 
-def test_openvino_session_gives_each_thread_its_own_request(bundle_dir):
+def test_openvino_runs_the_int8_planes_graph(bundle_dir, tmp_path):
+    from ago_runtime.formats.random_frame import write_random_frame
+
+    _in_child(_check_int8_planes, bundle_dir, write_random_frame(tmp_path / "frame", seed=5))
+
+
+def _check_each_thread_its_own_request(bundle_dir):
     from concurrent.futures import ThreadPoolExecutor
 
     from ago_runtime.openvino_session import open_openvino_session
@@ -147,11 +165,11 @@ def test_openvino_session_gives_each_thread_its_own_request(bundle_dir):
         assert np.array_equal(a, b)
 
 
-@pytest.mark.skipif(not set(providers.BF16_FLAGS) & providers.cpu_flags(), reason="this CPU has no bf16 units")
-def test_openvino_bf16_runs_where_the_cpu_has_bf16_units(bundle_dir, tmp_path):
-    from ago_runtime.formats.random_frame import write_random_frame
+def test_openvino_session_gives_each_thread_its_own_request(bundle_dir):
+    _in_child(_check_each_thread_its_own_request, bundle_dir)
 
-    frame = write_random_frame(tmp_path / "frame", seed=5)
+
+def _check_bf16(bundle_dir, frame):
     _, ref = _labels(bundle_dir, frame, "openvino", "fp32")
     p, got = _labels(bundle_dir, frame, "openvino", "bf16")
     assert p.encoder.planes.get_providers() == ["OpenVINO:CPU:bf16"]
@@ -159,3 +177,10 @@ def test_openvino_bf16_runs_where_the_cpu_has_bf16_units(bundle_dir, tmp_path):
     # bf16 keeps 8 bits of mantissa: the labels mostly agree, and the confidences differ (it did run in bf16)
     assert (got.semantics == ref.semantics).mean() > 0.9
     assert not np.array_equal(got.confidence, ref.confidence)
+
+
+@pytest.mark.skipif(not set(providers.BF16_FLAGS) & providers.cpu_flags(), reason="this CPU has no bf16 units")
+def test_openvino_bf16_runs_where_the_cpu_has_bf16_units(bundle_dir, tmp_path):
+    from ago_runtime.formats.random_frame import write_random_frame
+
+    _in_child(_check_bf16, bundle_dir, write_random_frame(tmp_path / "frame", seed=5))
