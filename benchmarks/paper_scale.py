@@ -52,6 +52,18 @@ def peak_rss_mib() -> float:
     return float("nan")
 
 
+def require_openvino() -> None:
+    """The openvino package, checked before any work: one `error:` line and exit 2 without it."""
+    from ago_runtime.errors import AgoInputError
+    from ago_runtime.providers import Device, check_device
+
+    try:
+        check_device(Device.OPENVINO)
+    except AgoInputError as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
+
+
 def load_frame():
     if (SHARED_SAMPLE / "mmdet3d_info.pkl").is_file():
         from ago_runtime.formats.mmdet3d_info import load_mmdet3d_info
@@ -265,15 +277,7 @@ def main() -> None:
     import numpy as np
 
     if args.openvino:
-        from ago_runtime.providers import Device, check_device
-
-        from ago_runtime.errors import AgoInputError
-
-        try:
-            check_device(Device.OPENVINO)     # the openvino package, before any work
-        except AgoInputError as e:
-            print(f"error: {e}", file=sys.stderr)
-            sys.exit(2)
+        require_openvino()
     work = args.work.resolve()
     work.mkdir(parents=True, exist_ok=True)
     log = lambda s: print(f"[{time.strftime('%H:%M:%S')}] {s}", flush=True)  # noqa: E731

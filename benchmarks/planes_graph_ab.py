@@ -78,22 +78,14 @@ def main(argv=None) -> None:
     from ago_runtime.predict.bundle import Bundle
     from ago_runtime.predict.predictor import prepare_inputs
     from benchmarks.default_bundle_towns import cpu_line
-    from benchmarks.paper_scale import load_frame
+    from benchmarks.paper_scale import load_frame, require_openvino
 
     bundles = dict(b.split("=", 1) for b in args.bundle)
     if len(bundles) < 2:
         print("error: --bundle: give two or more NAME=DIR", file=sys.stderr)
         sys.exit(2)
     if args.openvino:
-        from ago_runtime.providers import Device, check_device
-
-        from ago_runtime.errors import AgoInputError
-
-        try:
-            check_device(Device.OPENVINO)     # the openvino package, before any work
-        except AgoInputError as e:
-            print(f"error: {e}", file=sys.stderr)
-            sys.exit(2)
+        require_openvino()
     args.work.mkdir(parents=True, exist_ok=True)
     images, rig, frame = load_frame()
     first = Bundle.load(next(iter(bundles.values())))

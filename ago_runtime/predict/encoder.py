@@ -185,7 +185,7 @@ class SplitEncoder:
         self._local = threading.local()     # in a slab worker: .single = True, .bank_product (one thread)
         self.sessions = {Branch.MAIN: [], Branch.ADAPTED: []}
         self.widths = {Branch.MAIN: int(hidden_dim), Branch.ADAPTED: int(adapted_dim)}
-        widest = {Branch.MAIN: int(hidden_dim), Branch.ADAPTED: int(adapted_dim)}
+        widest = dict(self.widths)
         for i, st in enumerate(stages):
             sess = load_session(Path(st.path), threads, stage_signature(st.spec), f"voxel_stages[{i}]", st.sha256,
                                 stage_device, stage_precision)
