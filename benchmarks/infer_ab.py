@@ -1,11 +1,13 @@
-"""`ago infer` over a dataset, A/B in child processes: the warm-up run at session open (on / off) or the
-frames predicted at once (`--workers` 1 / 2).
+"""`ago infer` over a dataset, A/B in child processes: the warm-up run at session open (on / off), the
+frames predicted at once (`--workers` 1 / 2), or the int8 variant on OpenVINO against fp32 on onnxruntime.
 
 - warm-up: `Predictor(bundle)` runs each graph once on dummy inputs so that an interactive user's first
   frame runs at the steady-state speed; a batch pays that dummy frame for nothing (its first real frame
   takes onnxruntime's first-run allocations instead). `ago infer` runs without it.
 - workers: with two, two frames run at once, each on sessions with half the cores' onnxruntime threads
   (one Predictor; ago_runtime/predict/cli.py::run_infer). `ago infer` takes two over a dataset.
+- int8_openvino: `ago infer` as it is (onnxruntime, fp32) against `ago infer --int8 --device openvino` (the bundle's
+  int8 planes graph on OpenVINO's CPU device; give a bundle exported with `--int8`): issue 52's whole-frame target.
 
 Each round runs both variants in fresh child processes (order alternating), with the same bundle, dataset
 and warm optimised-graph cache; the table gives the minimum and median seconds per frame (wall of
@@ -14,6 +16,7 @@ run_infer / frames: bundle load, sessions, decode, graphs, heads, npz written) a
 
     python -m benchmarks.infer_ab --vary workers --dataset work/synth12 --bundle work/db24/bundle_model
     python -m benchmarks.infer_ab --vary warm_up --dataset work/synth12 --bundle work/db24/bundle_model
+    python -m benchmarks.infer_ab --vary int8_openvino --dataset work/synth12 --bundle BUNDLE_WITH_INT8
 """
 
 from __future__ import annotations
@@ -25,11 +28,23 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-VARIANTS = {"warm_up": ("on", "off"), "workers": ("1", "2")}
-TITLES = {"warm_up": "warm-up run at session open, on / off", "workers": "one frame at a time or two at once (`--workers`)"}
+VARIANTS = {"warm_up": ("on", "off"), "workers": ("1", "2"), "int8_openvino": ("onnxruntime-fp32", "openvino-int8")}
+TITLES = {"warm_up": "warm-up run at session open, on / off", "workers": "one frame at a time or two at once (`--workers`)",
+          "int8_openvino": "onnxruntime fp32 against `--int8 --device openvino`"}
+OPENVINO_INT8 = {"int8": True, "device": "openvino"}
+
+
+def variant_kwargs(vary: str, value: str) -> dict:
+    """run_infer's keyword arguments for one side of an A/B (in the child)."""
+    if vary == "warm_up":
+        return {"warm_up": value == "on"}
+    if vary == "workers":
+        return {"workers": int(value)}
+    return OPENVINO_INT8 if value == "openvino-int8" else {}                # int8_openvino
 
 
 def child(bundle: str, dataset: str, out: str, vary: str, value: str, picture: str) -> dict:
@@ -39,7 +54,7 @@ def child(bundle: str, dataset: str, out: str, vary: str, value: str, picture: s
 
     from ago_runtime.predict.cli import run_infer
 
-    kwargs = {"warm_up": value == "on"} if vary == "warm_up" else {"workers": int(value)}
+    kwargs = variant_kwargs(vary, value)
     t = time.perf_counter()
     with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
         files = run_infer(dataset, None, None, bundle or None, out, None, False, picture=picture, **kwargs)
@@ -85,9 +100,16 @@ def main() -> None:
                   flush=True)
     load1 = " ".join(f"{x:.2f}" for x in os.getloadavg())
     frames = res[a][0]["frames"]
+    from benchmarks.infer_speed import git_commit
+    from benchmarks.machine import cpu_model_and_flags
+
+    cpu, flags = cpu_model_and_flags()
+    keep = [f for f in ("avx2", "avx512f", "avx512_vnni", "avx512_bf16", "amx_bf16", "amx_int8") if f in flags]
     L = [f"# `ago infer`: {TITLES[args.vary]}\n",
          f"Command: `python -m benchmarks.infer_ab --vary {args.vary} --dataset {args.dataset} --rounds {args.rounds} "
          f"--picture {args.picture}" + (f" --bundle {args.bundle}" if args.bundle else "") + "`  ",
+         f"Commit: {git_commit(REPO)}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}.  ",
+         f"CPU: {cpu}, {os.cpu_count()} cores; flags of interest: {' '.join(keep) or 'none'}.  ",
          f"Bundle: {args.bundle or 'the shipped default bundle'}; {frames} frames; load average at start {load0}, "
          f"at end {load1}.\n",
          f"| {args.vary} | s per frame, min | median | whole run, min s |", "|---|---|---|---|"]
