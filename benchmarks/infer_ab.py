@@ -47,6 +47,24 @@ def variant_kwargs(vary: str, value: str) -> dict:
     return OPENVINO_INT8 if value == "openvino-int8" else {}                # int8_openvino
 
 
+def require_int8_openvino(bundle: str) -> None:
+    """The openvino package and a bundle with an int8 variant, checked before any run: one `error:` line, exit 2."""
+    from ago_runtime.errors import AgoInputError
+    from ago_runtime.predict.bundle import Bundle, resolve_bundle
+    from benchmarks.paper_scale import require_openvino
+
+    require_openvino()
+    try:
+        variants = Bundle.load(resolve_bundle(bundle or None), verify_hashes=False).contract.variants
+    except AgoInputError as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
+    if "int8" not in variants:
+        print(f"error: --bundle: {bundle or 'the shipped bundle'} has no int8 variant (export it with `ago export --int8`)",
+              file=sys.stderr)
+        sys.exit(2)
+
+
 def child(bundle: str, dataset: str, out: str, vary: str, value: str, picture: str) -> dict:
     import contextlib
     import io
@@ -78,6 +96,8 @@ def main() -> None:
         return
     if not args.dataset:
         ap.error("--dataset is required")
+    if args.vary == "int8_openvino":
+        require_int8_openvino(args.bundle)
     out_path = args.out or REPO / "benchmarks" / "results" / f"infer_{args.vary}.md"
     a, b = VARIANTS[args.vary]
     env = dict(os.environ, AGO_NO_PROGRESS="1")
