@@ -43,9 +43,13 @@ JOBS="${JOBS:-2}"
 RIG="${RIG:-nuscenes}"
 LAYOUT="${LAYOUT:-nuscenes}"
 MODEL_SIZE="${MODEL_SIZE:-}"
+# the decoder's hidden width Dh (the cpu preset's 128 when empty); HIDDEN=64 halves the per-voxel work
+# (benchmarks/results/hidden_width.md)
+HIDDEN="${HIDDEN:-}"
 INSTALL="${INSTALL:-$([ "$RIG" = nuscenes ] && echo 1 || echo 0)}"
 MODEL_SET=()
 [ -n "$MODEL_SIZE" ] && MODEL_SET=(--set "model.image_width=${MODEL_SIZE%x*}" --set "model.image_height=${MODEL_SIZE#*x}")
+[ -n "$HIDDEN" ] && MODEL_SET+=(--set "model.hidden_dim=$HIDDEN")
 ASSETS="$REPO/ago_runtime/assets"
 AGO="python -m ago_runtime"
 export AGO_NO_PROGRESS="${AGO_NO_PROGRESS:-0}"
