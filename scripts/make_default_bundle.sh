@@ -43,8 +43,8 @@ JOBS="${JOBS:-2}"
 RIG="${RIG:-nuscenes}"
 LAYOUT="${LAYOUT:-nuscenes}"
 MODEL_SIZE="${MODEL_SIZE:-}"
-# the decoder's hidden width Dh (the cpu preset's 128 when empty); HIDDEN=64 halves the per-voxel work
-# (benchmarks/results/hidden_width.md)
+# the decoder's hidden width Dh (the cpu preset's 128 when empty); HIDDEN=64 about halves the per-voxel work
+# (benchmarks/results/hidden_width.md; with INSTALL=0 to try it without replacing the shipped model)
 HIDDEN="${HIDDEN:-}"
 INSTALL="${INSTALL:-$([ "$RIG" = nuscenes ] && echo 1 || echo 0)}"
 MODEL_SET=()
