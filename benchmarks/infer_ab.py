@@ -121,10 +121,10 @@ def main() -> None:
     load1 = " ".join(f"{x:.2f}" for x in os.getloadavg())
     frames = res[a][0]["frames"]
     from benchmarks.infer_speed import git_commit
-    from benchmarks.machine import cpu_model_and_flags
+    from benchmarks.machine import cpu_model_and_flags, speed_flags
 
     cpu, flags = cpu_model_and_flags()
-    keep = [f for f in ("avx2", "avx512f", "avx512_vnni", "avx512_bf16", "amx_bf16", "amx_int8") if f in flags]
+    keep = speed_flags(flags)
     L = [f"# `ago infer`: {TITLES[args.vary]}\n",
          f"Command: `python -m benchmarks.infer_ab --vary {args.vary} --dataset {args.dataset} --rounds {args.rounds} "
          f"--picture {args.picture}" + (f" --bundle {args.bundle}" if args.bundle else "") + "`  ",

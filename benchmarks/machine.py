@@ -14,3 +14,11 @@ def cpu_model_and_flags() -> tuple[str, list[str]]:
         return "?", []
     fields = dict(ln.split(":", 1) for ln in text.splitlines() if ":" in ln)
     return fields.get("Model name", "?").strip(), fields.get("Flags", "").split()
+
+
+SPEED_FLAGS = ("avx2", "avx512f", "avx512_vnni", "avx512_bf16", "amx_bf16", "amx_int8")   # what int8 / bf16 kernels use
+
+
+def speed_flags(flags: list[str]) -> list[str]:
+    """The SPEED_FLAGS among `flags` (cpu_model_and_flags), in that order: the line a timing's results file records."""
+    return [f for f in SPEED_FLAGS if f in flags]

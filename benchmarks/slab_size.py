@@ -52,7 +52,7 @@ def main(argv=None) -> None:
     from ago_runtime.predict.frames import open_frames
     from ago_runtime.predict.predictor import Predictor
     from benchmarks.bf16_openvino import make_town
-    from benchmarks.machine import cpu_model_and_flags
+    from benchmarks.machine import cpu_model_and_flags, speed_flags
     from benchmarks.infer_speed import git_commit
 
     load_before = uptime()
@@ -89,7 +89,7 @@ def main(argv=None) -> None:
                          f"| {med / best:.2f} | {100 * same:.3f} |")
     load_after = uptime()
     model, flags = cpu_model_and_flags()
-    keep = [f for f in ("avx2", "avx512f", "avx512_vnni", "avx512_bf16", "amx_bf16", "amx_int8") if f in flags]
+    keep = speed_flags(flags)
     cmd = "python -m benchmarks.slab_size " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
     c = p.bundle.contract
     lines = [
