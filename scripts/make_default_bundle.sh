@@ -36,6 +36,9 @@ PRESET="${PRESET:-cpu}"
 GRID="${GRID:-100x100x16}"   # the cpu preset's grid (0.8 x 0.8 x 0.4 m)
 # the pseudo-labels' free-space rule (`ago pseudo-labels --carve`): grazing keeps far ground from being carved free
 CARVE="${CARVE:-grazing}"
+# the moving objects' rule (`ago pseudo-labels --moving`): aggregate superimposes their points where they were in
+# every keyframe, track carries them along their annotated box tracks (benchmarks/results/pseudo_moving_track.md)
+MOVING="${MOVING:-aggregate}"
 # the grid the bundle predicts on: the model's TPV planes read at Occ3D's 0.4 m voxel centres (the
 # synthetic GT's grid; `ago eval --readout gt`, docs/training.md). READOUT_GRID= (empty) keeps the model grid.
 READOUT_GRID="${READOUT_GRID-200x200x16}"
@@ -62,8 +65,9 @@ echo "== 1/6 synthetic data ($SCENES scenes x $FRAMES frames, seed 0) -> $WORK/s
     --frames "$FRAMES" --seed 0 --image-size "$IMAGE_SIZE" --grid 200x200x16 --jobs "$JOBS" --rig "$RIG" --layout "$LAYOUT"; }
 stamp
 
-echo "== 2/6 pseudo-labels ($PROMPTS, grid $GRID, --carve $CARVE, train split) -> $WORK/pseudo"
-$AGO pseudo-labels --data "$WORK/synth" --out "$WORK/pseudo" --prompts "$PROMPTS" --grid "$GRID" --carve "$CARVE" --split train \
+echo "== 2/6 pseudo-labels ($PROMPTS, grid $GRID, --carve $CARVE, --moving $MOVING, train split) -> $WORK/pseudo"
+$AGO pseudo-labels --data "$WORK/synth" --out "$WORK/pseudo" --prompts "$PROMPTS" --grid "$GRID" --carve "$CARVE" \
+    --moving "$MOVING" --split train \
     --segmenter sim --embedder sim --keyframes 10 --interval 1 --jobs "$JOBS"
 stamp
 
