@@ -2,7 +2,8 @@
 # Build the default bundle and demo frame that `ago demo` uses (the shipped ones were made by this
 # script with its defaults):
 #
-#   synthetic city -> pseudo-labels (simulated segmenter + embedder, --carve grazing) -> train (cpu preset, 100x100x16)
+#   synthetic city -> pseudo-labels (simulated segmenter + embedder, --carve grazing, --moving track) -> train (cpu
+#   preset, 100x100x16, decoder width 64)
 #   -> the model kept (last.pt without optimiser state; models/default/) -> ago eval (val split, read out on
 #   the GT's 200x200x16) -> ago export (read out on 200x200x16, parity-checked, with its bundle card)
 #   -> ago_runtime/assets/default_bundle/ + assets/demo_frame/
@@ -36,9 +37,10 @@ PRESET="${PRESET:-cpu}"
 GRID="${GRID:-100x100x16}"   # the cpu preset's grid (0.8 x 0.8 x 0.4 m)
 # the pseudo-labels' free-space rule (`ago pseudo-labels --carve`): grazing keeps far ground from being carved free
 CARVE="${CARVE:-grazing}"
-# the moving objects' rule (`ago pseudo-labels --moving`): aggregate superimposes their points where they were in
-# every keyframe, track carries them along their annotated box tracks (benchmarks/results/pseudo_moving_track.md)
-MOVING="${MOVING:-aggregate}"
+# the moving objects' rule (`ago pseudo-labels --moving`): track carries their points along their annotated box
+# tracks; aggregate (the verb's default; the default model until 2026-12-07) superimposes them where they were in
+# every keyframe (benchmarks/results/pseudo_moving_track.md)
+MOVING="${MOVING:-track}"
 # the grid the bundle predicts on: the model's TPV planes read at Occ3D's 0.4 m voxel centres (the
 # synthetic GT's grid; `ago eval --readout gt`, docs/training.md). READOUT_GRID= (empty) keeps the model grid.
 READOUT_GRID="${READOUT_GRID-200x200x16}"
@@ -46,9 +48,9 @@ JOBS="${JOBS:-2}"
 RIG="${RIG:-nuscenes}"
 LAYOUT="${LAYOUT:-nuscenes}"
 MODEL_SIZE="${MODEL_SIZE:-}"
-# the decoder's hidden width Dh (the cpu preset's 128 when empty); HIDDEN=64 about halves the per-voxel work
-# (benchmarks/results/hidden_width.md; with INSTALL=0 to try it without replacing the shipped model)
-HIDDEN="${HIDDEN:-}"
+# the decoder's hidden width Dh: 64 about halves the per-voxel work of the cpu preset's 128 at the same scores
+# (benchmarks/results/hidden_width.md); HIDDEN= (empty) keeps the preset's
+HIDDEN="${HIDDEN-64}"
 INSTALL="${INSTALL:-$([ "$RIG" = nuscenes ] && echo 1 || echo 0)}"
 MODEL_SET=()
 [ -n "$MODEL_SIZE" ] && MODEL_SET=(--set "model.image_width=${MODEL_SIZE%x*}" --set "model.image_height=${MODEL_SIZE#*x}")
