@@ -68,16 +68,17 @@ def export_snapshot(snapshot: Path, bundle: Path, readout_grid: str, real: Path,
     os.replace(tmp, bundle)
 
 
-def predict_and_score(name: str, bundle: Path | None, real: Path, tokens: list[str], prior: Path, bench: Path,
+def predict_and_score(name: str, bundle: Path | None, real: Path, tokens: list[str], prior: Path | None, bench: Path,
                       metric_path: str | None) -> dict:
-    """Infer `bundle` (None: the shipped synthetic one) on the test tokens and score them against the LiDAR."""
+    """Infer `bundle` (None: the shipped synthetic one) on the test tokens and score them against the LiDAR (with the
+    prior baseline from `prior`'s pseudo-labels when given)."""
     pred, js = bench / f"pred_{name}", bench / f"metric_{name}.json"
     if not js.is_file():
         if not (pred / "done").is_file():
             ago(["infer", "--images", real, *(["--bundle", bundle] if bundle else []),
                  *[a for t in tokens for a in ("--sample", t)], "--out", pred, "--picture", "none"], bench / "bench.log")
             (pred / "done").write_text("")
-        ago(["metric", "--pred", pred, "--lidar", real, "--allow-missing", "--prior", prior, "--json", js],
+        ago(["metric", "--pred", pred, "--lidar", real, "--allow-missing", *(["--prior", prior] if prior else []), "--json", js],
             bench / "bench.log", metric_path)
     return json.loads(js.read_text())["lidar"]
 
