@@ -223,3 +223,38 @@ def test_int8_float_keeps_the_named_modules_convolutions_in_float32(town, tmp_pa
         assert not (tmp_path / "refused").exists()
     r = _ago("export", str(town["fp32"]), "-o", str(tmp_path / "b1"), "--int8-float", "backbone.convs.0")
     assert r.returncode == 2 and r.stderr.strip().splitlines()[-1].startswith("error: --int8-float:")
+
+
+def test_infer_stages_benchmark_times_every_stage_and_bounds_the_ratio(town, tmp_path):
+    """benchmarks/infer_stages.py on an int8 export: a row per stage for each variant, the whole frame's ratio, label
+    agreement and the planes time a 1.3x target would need; bad options are one `error:` line, exit 2, no file."""
+    from ago_export.export import export_bundle
+    from ago_export.testing import random_checkpoint
+
+    ckpt = random_checkpoint(tmp_path / "tiny.pt", "tiny", prompts="cw", seed=1)
+    bundle = tmp_path / "bundle"
+    export_bundle(ckpt, bundle, int8=True, real_frame=False, bank_prompts=[], log=lambda s: None,
+                  calibration_data=town["data"])
+    env = dict(os.environ, AGO_NO_PROGRESS="1", OMP_NUM_THREADS="1", PYTHONPATH=str(REPO))
+
+    def stages(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "benchmarks.infer_stages", "--bundle", str(bundle), *args],
+                              cwd=REPO, env=env, capture_output=True, text=True)
+
+    out = tmp_path / "stages.md"
+    r = stages("--dataset", str(town["data"]), "--frames", "2", "--picture", "bev", "--variants", "fp32,int8-cpu",
+               "--out", str(out))
+    assert r.returncode == 0, r.stderr
+    text = out.read_text()
+    for row in ("decode", "preprocess", "planes", "per-voxel", "heads", "picture", "npz", "**shared**",
+                "**whole frame**"):
+        line = next(ln for ln in text.splitlines() if ln.startswith(f"| {row}"))
+        assert all(float(c.strip(" *")) >= 0 for c in line.split("|")[2:4])
+    assert "| stage | fp32 | int8-cpu |" in text and "2 frames" in text
+    assert "- int8-cpu: whole frame on one core" in text and "% of all voxels" in text and "planes graph would need" in text
+    for bad, what in ((("--dataset", str(town["data"]), "--variants", "int8-cpu"), "--variants"),
+                      (("--dataset", str(tmp_path / "missing")), "--dataset"),
+                      (("--dataset", str(town["data"]), "--frames", "0"), "--frames")):
+        r = stages(*bad, "--out", str(tmp_path / "bad.md"))
+        assert r.returncode == 2 and r.stderr.strip().splitlines()[-1].startswith(f"error: {what}:"), r.stderr
+        assert not (tmp_path / "bad.md").exists()
