@@ -18,7 +18,9 @@ variants alternating frame by frame, and times each stage:
 The table gives each stage's median ms per frame; "shared" is everything but the planes graph (the same code
 and graphs in every variant). The last lines give the whole frame's ratio on one core and the planes time
 the int8 variant would need for a target ratio with the shared stages as measured. Labels of each int8
-variant are compared with fp32's over the same frames.
+variant are compared with fp32's over the same frames. `--openvino-ops` adds where the int8 planes graph's time goes
+on OpenVINO (its PERF_COUNT profile, one thread, on the first frames: milliseconds per run by operator type and
+kernel; what remains float32 shows as `_f32` kernels).
 
     python -m benchmarks.infer_stages --bundle BUNDLE_WITH_INT8 --dataset TOWN --frames 12
 """
@@ -125,7 +127,36 @@ def run(bundle: str, dataset: str, frames: int, picture: str, variants: list[str
     return times, {v: (a[0] / a[1], a[2] / max(1, a[3])) for v, a in agree.items()}, count
 
 
-def report(args, times: dict, agree: dict, count: int, seconds: float) -> str:
+def openvino_ops(bundle: str, dataset: str, frames: int = 4, top: int = 12) -> list[tuple[str, str, float]]:
+    """The int8 planes graph compiled by OpenVINO for one thread with PERF_COUNT, run on the dataset's first
+    `frames` frames (after one untimed run) -> [(operator type, kernel, ms per run)], the `top` largest."""
+    import collections
+
+    import openvino as ov
+
+    from ago_runtime.predict.bundle import Bundle
+    from ago_runtime.predict.frames import InputFrame, open_frames
+    from ago_runtime.predict.predictor import Predictor
+    from ago_runtime.providers import Precision, openvino_target
+
+    b = Bundle.load(bundle)
+    prep = Predictor(b, workers=2, warm_up=False)
+    source = open_frames(Path(dataset), None, None, b.rig)
+    inputs = [prep.prepare(*InputFrame(*f)[1:4]) for f, _ in zip(source, range(frames))]
+    path = b.encoder_graphs("int8")[0].path
+    device, config = openvino_target(Precision.FP32)
+    compiled = ov.Core().compile_model(str(path), device, {**config, "INFERENCE_NUM_THREADS": 1, "PERF_COUNT": True})
+    request = compiled.create_infer_request()
+    request.infer({"images": inputs[0][0], "ego2img": inputs[0][1]})
+    total: collections.Counter = collections.Counter()
+    for x, m in inputs:
+        request.infer({"images": x, "ego2img": m})
+        for info in request.profiling_info:
+            total[(info.node_type, info.exec_type)] += info.real_time.total_seconds() * 1e3
+    return [(op, kernel, ms / len(inputs)) for (op, kernel), ms in total.most_common(top)]
+
+
+def report(args, times: dict, agree: dict, count: int, seconds: float, ops=None) -> str:
     from benchmarks.infer_speed import git_commit
     from benchmarks.machine import cpu_model_and_flags, speed_flags
 
@@ -134,7 +165,7 @@ def report(args, times: dict, agree: dict, count: int, seconds: float) -> str:
     total = {v: sum(M.values()) for v, M in med.items()}
     shared = {v: total[v] - M["planes"] for v, M in med.items()}
     cmd = (f"python -m benchmarks.infer_stages --bundle {args.bundle} --dataset {args.dataset} --frames {args.frames} "
-           f"--picture {args.picture} --variants {','.join(args.variants)}")
+           f"--picture {args.picture} --variants {','.join(args.variants)}" + (" --openvino-ops" if args.openvino_ops else ""))
     L = [f"Command: `{cmd}` ({seconds:.0f} s)  ",
          f"Commit: {git_commit(REPO)}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}.  ",
          f"CPU: {cpu}, {os.cpu_count()} cores; flags of interest: {' '.join(speed_flags(flags)) or 'none'}.  ",
@@ -155,6 +186,12 @@ def report(args, times: dict, agree: dict, count: int, seconds: float) -> str:
                  f"shared stages its planes graph would need {need:.0f} ms "
                  + (f"({med['fp32']['planes'] / need:.2f}x fp32's)" if need > 0 else "(impossible: the shared stages "
                     "alone exceed the target)") + ".")
+    if ops:
+        total = sum(ms for *_, ms in ops)
+        L += ["", f"The int8 planes graph on OpenVINO by operator (`--openvino-ops`: PERF_COUNT, one thread, the first "
+              f"frames; the {len(ops)} largest, {total:.1f} ms per run together):", "",
+              "| operator | kernel | ms per run |", "|---|---|---:|"]
+        L += [f"| {op} | {kernel} | {ms:.2f} |" for op, kernel, ms in ops]
     return "\n".join(L) + "\n"
 
 
@@ -165,16 +202,19 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=12)
     ap.add_argument("--picture", default="full", choices=["full", "bev", "none"])
     ap.add_argument("--variants", default="fp32,int8-openvino", type=lambda s: [v for v in s.split(",") if v])
+    ap.add_argument("--openvino-ops", action="store_true", help="also profile the int8 planes graph on OpenVINO "
+                    "by operator")
     ap.add_argument("--target", type=float, default=1.3, help="the whole-frame ratio the bound is computed for")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "infer_stages.md")
     args = ap.parse_args()
     if args.frames < 1:
         print(f"error: --frames: must be at least 1, got {args.frames}", file=sys.stderr)
         sys.exit(2)
-    check_inputs(args.bundle, args.dataset, args.variants)
+    check_inputs(args.bundle, args.dataset, args.variants + (["int8-openvino"] if args.openvino_ops else []))
     t = time.perf_counter()
     times, agree, count = run(args.bundle, args.dataset, args.frames, args.picture, args.variants)
-    text = report(args, times, agree, count, time.perf_counter() - t)
+    ops = openvino_ops(args.bundle, args.dataset) if args.openvino_ops else None
+    text = report(args, times, agree, count, time.perf_counter() - t, ops)
     print(text)
     from ago_runtime.atomic import write_text
 

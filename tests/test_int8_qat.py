@@ -252,6 +252,17 @@ def test_infer_stages_benchmark_times_every_stage_and_bounds_the_ratio(town, tmp
         assert all(float(c.strip(" *")) >= 0 for c in line.split("|")[2:4])
     assert "| stage | fp32 | int8-cpu |" in text and "2 frames" in text
     assert "- int8-cpu: whole frame on one core" in text and "% of all voxels" in text and "planes graph would need" in text
+    try:
+        import openvino  # noqa: F401
+    except ImportError:
+        openvino = None
+    if openvino is not None:   # the per-operator profile of the int8 planes graph on OpenVINO
+        r = stages("--dataset", str(town["data"]), "--frames", "1", "--picture", "none", "--variants", "fp32",
+                   "--openvino-ops", "--out", str(out))
+        assert r.returncode == 0, r.stderr
+        rows = [ln for ln in out.read_text().split("## Run")[1].splitlines() if ln.startswith("| ") and "_" in ln
+                and ln.count("|") == 4 and not ln.startswith("| operator")]
+        assert rows and all(float(ln.split("|")[3]) >= 0 for ln in rows)
     for bad, what in ((("--dataset", str(town["data"]), "--variants", "int8-cpu"), "--variants"),
                       (("--dataset", str(tmp_path / "missing")), "--dataset"),
                       (("--dataset", str(town["data"]), "--frames", "0"), "--frames")):
