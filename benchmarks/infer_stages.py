@@ -211,6 +211,14 @@ def main() -> None:
         print(f"error: --frames: must be at least 1, got {args.frames}", file=sys.stderr)
         sys.exit(2)
     check_inputs(args.bundle, args.dataset, args.variants + (["int8-openvino"] if args.openvino_ops else []))
+    from ago_runtime.errors import AgoInputError
+    from ago_runtime.outputs import check_output_file
+
+    try:
+        check_output_file(args.out, "--out")   # before any work
+    except AgoInputError as e:
+        print(f"error: {e}", file=sys.stderr)
+        sys.exit(2)
     t = time.perf_counter()
     times, agree, count = run(args.bundle, args.dataset, args.frames, args.picture, args.variants)
     ops = openvino_ops(args.bundle, args.dataset) if args.openvino_ops else None

@@ -265,7 +265,9 @@ def test_infer_stages_benchmark_times_every_stage_and_bounds_the_ratio(town, tmp
         assert rows and all(float(ln.split("|")[3]) >= 0 for ln in rows)
     for bad, what in ((("--dataset", str(town["data"]), "--variants", "int8-cpu"), "--variants"),
                       (("--dataset", str(tmp_path / "missing")), "--dataset"),
-                      (("--dataset", str(town["data"]), "--frames", "0"), "--frames")):
-        r = stages(*bad, "--out", str(tmp_path / "bad.md"))
+                      (("--dataset", str(town["data"]), "--frames", "0"), "--frames"),
+                      (("--dataset", str(town["data"]), "--variants", "fp32,int8-cpu", "--out", str(tmp_path / "stages.md" / "x.md")),
+                       str(tmp_path / "stages.md" / "x.md"))):
+        r = stages(*bad, *(() if "--out" in bad else ("--out", str(tmp_path / "bad.md"))))
         assert r.returncode == 2 and r.stderr.strip().splitlines()[-1].startswith(f"error: {what}:"), r.stderr
         assert not (tmp_path / "bad.md").exists()
