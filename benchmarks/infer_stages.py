@@ -37,6 +37,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 STAGES = ("decode", "preprocess", "planes", "per-voxel", "heads", "picture", "npz")
+PROFILE_FRAMES = 4    # frames `--openvino-ops` profiles
 VARIANTS = {"fp32": {}, "int8-openvino": {"int8": True, "device": "openvino"}, "int8-cpu": {"int8": True}}
 
 
@@ -66,8 +67,9 @@ def check_inputs(bundle: str, dataset: str, variants: list[str]) -> None:
         require_openvino()
 
 
-def run(bundle: str, dataset: str, frames: int, picture: str, variants: list[str]) -> tuple[dict, dict, int]:
-    """-> ({variant: {stage: [s per frame]}}, {variant: (agree all, agree occupied) vs fp32}, frames run)."""
+def run(bundle: str, dataset: str, frames: int, picture: str, variants: list[str]) -> tuple[dict, dict, int, list]:
+    """-> ({variant: {stage: [s per frame]}}, {variant: (agree all, agree occupied) vs fp32}, frames run, the first
+    frames' preprocessed inputs [(images, ego2img)] (up to PROFILE_FRAMES, for `openvino_ops`))."""
     import numpy as np
 
     from ago_runtime.atomic import save_npz
@@ -87,6 +89,7 @@ def run(bundle: str, dataset: str, frames: int, picture: str, variants: list[str
     count = min(frames, len(source))
     times = {v: {s: [] for s in STAGES} for v in variants}
     agree = {v: [0, 0, 0, 0] for v in variants if v != "fp32"}     # same labels, voxels, same occupied, occupied
+    inputs = []
     with tempfile.TemporaryDirectory() as tmp:
         it = iter(source)
         for i in track(range(count), "frames"):
@@ -101,6 +104,8 @@ def run(bundle: str, dataset: str, frames: int, picture: str, variants: list[str
                 t0 = time.perf_counter()
                 x, m = p.prepare(frame.images, frame.rig, frame.source)
                 t1 = time.perf_counter()
+                if v == "fp32" and i < PROFILE_FRAMES:
+                    inputs.append((x, m))
                 planes = p.encoder.plane_maps(x, m)
                 t2 = time.perf_counter()
                 pred = p.predict_arrays(x, m, bank, identifier, folded[v], False, planes=planes)
@@ -124,26 +129,20 @@ def run(bundle: str, dataset: str, frames: int, picture: str, variants: list[str
                 occ = (ref != free) | (sem != free)
                 a[0] += int((sem == ref).sum()); a[1] += ref.size
                 a[2] += int((sem == ref)[occ].sum()); a[3] += int(occ.sum())
-    return times, {v: (a[0] / a[1], a[2] / max(1, a[3])) for v, a in agree.items()}, count
+    return times, {v: (a[0] / a[1], a[2] / max(1, a[3])) for v, a in agree.items()}, count, inputs
 
 
-def openvino_ops(bundle: str, dataset: str, frames: int = 4, top: int = 12) -> list[tuple[str, str, float]]:
-    """The int8 planes graph compiled by OpenVINO for one thread with PERF_COUNT, run on the dataset's first
-    `frames` frames (after one untimed run) -> [(operator type, kernel, ms per run)], the `top` largest."""
+def openvino_ops(bundle: str, inputs: list, top: int = 12) -> list[tuple[str, str, float]]:
+    """The int8 planes graph compiled by OpenVINO for one thread with PERF_COUNT, run on `inputs` (preprocessed
+    frames, `run`'s; after one untimed run) -> [(operator type, kernel, ms per run)], the `top` largest."""
     import collections
 
     import openvino as ov
 
     from ago_runtime.predict.bundle import Bundle
-    from ago_runtime.predict.frames import InputFrame, open_frames
-    from ago_runtime.predict.predictor import Predictor
     from ago_runtime.providers import Precision, openvino_target
 
-    b = Bundle.load(bundle)
-    prep = Predictor(b, workers=2, warm_up=False)
-    source = open_frames(Path(dataset), None, None, b.rig)
-    inputs = [prep.prepare(*InputFrame(*f)[1:4]) for f, _ in zip(source, range(frames))]
-    path = b.encoder_graphs("int8")[0].path
+    path = Bundle.load(bundle, verify_hashes=False).encoder_graphs("int8")[0].path
     device, config = openvino_target(Precision.FP32)
     compiled = ov.Core().compile_model(str(path), device, {**config, "INFERENCE_NUM_THREADS": 1, "PERF_COUNT": True})
     request = compiled.create_infer_request()
@@ -220,8 +219,8 @@ def main() -> None:
         print(f"error: {e}", file=sys.stderr)
         sys.exit(2)
     t = time.perf_counter()
-    times, agree, count = run(args.bundle, args.dataset, args.frames, args.picture, args.variants)
-    ops = openvino_ops(args.bundle, args.dataset) if args.openvino_ops else None
+    times, agree, count, inputs = run(args.bundle, args.dataset, args.frames, args.picture, args.variants)
+    ops = openvino_ops(args.bundle, inputs) if args.openvino_ops else None
     text = report(args, times, agree, count, time.perf_counter() - t, ops)
     print(text)
     from ago_runtime.atomic import write_text
