@@ -20,7 +20,9 @@ and graphs in every variant). The last lines give the whole frame's ratio on one
 the int8 variant would need for a target ratio with the shared stages as measured. Labels of each int8
 variant are compared with fp32's over the same frames. `--openvino-ops` adds where the int8 planes graph's time goes
 on OpenVINO (its PERF_COUNT profile, one thread, on the first frames: milliseconds per run by operator type and
-kernel; what remains float32 shows as `_f32` kernels).
+kernel; what remains float32 shows as `_f32` kernels). `--onnxruntime-ops` adds the same for the fp32 planes graph on
+onnxruntime (its session profile, one thread, the runtime's session options: milliseconds per run by operator type),
+so the two profiles can be set side by side (e.g. what the TPV sampling costs in each variant).
 
     python -m benchmarks.infer_stages --bundle BUNDLE_WITH_INT8 --dataset TOWN --frames 12
 """
@@ -37,7 +39,7 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 STAGES = ("decode", "preprocess", "planes", "per-voxel", "heads", "picture", "npz")
-PROFILE_FRAMES = 4    # frames `--openvino-ops` profiles
+PROFILE_FRAMES = 4    # frames `--openvino-ops` / `--onnxruntime-ops` profile
 VARIANTS = {"fp32": {}, "int8-openvino": {"int8": True, "device": "openvino"}, "int8-cpu": {"int8": True}}
 
 
@@ -155,7 +157,38 @@ def openvino_ops(bundle: str, inputs: list, top: int = 12) -> list[tuple[str, st
     return [(op, kernel, ms / len(inputs)) for (op, kernel), ms in total.most_common(top)]
 
 
-def report(args, times: dict, agree: dict, count: int, seconds: float, ops=None) -> str:
+def onnxruntime_ops(bundle: str, inputs: list, top: int = 12) -> list[tuple[str, float]]:
+    """The fp32 planes graph in an onnxruntime session of one thread with the runtime's options and profiling on,
+    run on `inputs` after one run that is not counted -> [(operator type, ms per run)], the `top` largest."""
+    import collections
+    import json
+
+    import onnxruntime as ort
+
+    from ago_runtime.cache import session_options
+    from ago_runtime.predict.bundle import Bundle
+
+    path = Bundle.load(bundle, verify_hashes=False).encoder_graphs()[0].path
+    so = session_options(threads=1)
+    so.inter_op_num_threads = 1
+    so.enable_profiling = True
+    with tempfile.TemporaryDirectory() as tmp:
+        so.profile_file_prefix = str(Path(tmp) / "ort")
+        session = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+        names = [o.name for o in session.get_outputs()]
+        for x, m in [inputs[0], *inputs]:
+            session.run(names, {"images": x, "ego2img": m})
+        events = json.loads(Path(session.end_profiling()).read_text())
+    runs = sorted((e["ts"], e["ts"] + e["dur"]) for e in events if e.get("name") == "model_run")
+    first_end = runs[0][1]
+    total: collections.Counter = collections.Counter()
+    for e in events:   # one event per node and run; the first run's are left out
+        if e.get("cat") == "Node" and e.get("name", "").endswith("_kernel_time") and e["ts"] > first_end:
+            total[e["args"].get("op_name", "?")] += e["dur"] / 1e3
+    return [(op, ms / len(inputs)) for op, ms in total.most_common(top)]
+
+
+def report(args, times: dict, agree: dict, count: int, seconds: float, ops=None, ort_ops=None) -> str:
     from benchmarks.infer_speed import git_commit
     from benchmarks.machine import cpu_model_and_flags, speed_flags
 
@@ -164,7 +197,8 @@ def report(args, times: dict, agree: dict, count: int, seconds: float, ops=None)
     total = {v: sum(M.values()) for v, M in med.items()}
     shared = {v: total[v] - M["planes"] for v, M in med.items()}
     cmd = (f"python -m benchmarks.infer_stages --bundle {args.bundle} --dataset {args.dataset} --frames {args.frames} "
-           f"--picture {args.picture} --variants {','.join(args.variants)}" + (" --openvino-ops" if args.openvino_ops else ""))
+           f"--picture {args.picture} --variants {','.join(args.variants)}" + (" --openvino-ops" if args.openvino_ops else "")
+           + (" --onnxruntime-ops" if args.onnxruntime_ops else ""))
     L = [f"Command: `{cmd}` ({seconds:.0f} s)  ",
          f"Commit: {git_commit(REPO)}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}.  ",
          f"CPU: {cpu}, {os.cpu_count()} cores; flags of interest: {' '.join(speed_flags(flags)) or 'none'}.  ",
@@ -191,6 +225,12 @@ def report(args, times: dict, agree: dict, count: int, seconds: float, ops=None)
               f"frames; the {len(ops)} largest, {total:.1f} ms per run together):", "",
               "| operator | kernel | ms per run |", "|---|---|---:|"]
         L += [f"| {op} | {kernel} | {ms:.2f} |" for op, kernel, ms in ops]
+    if ort_ops:
+        total = sum(ms for _, ms in ort_ops)
+        L += ["", f"The fp32 planes graph on onnxruntime by operator type (`--onnxruntime-ops`: its session profile, one "
+              f"thread, the first frames; the {len(ort_ops)} largest, {total:.1f} ms per run together):", "",
+              "| operator | ms per run |", "|---|---:|"]
+        L += [f"| {op} | {ms:.2f} |" for op, ms in ort_ops]
     return "\n".join(L) + "\n"
 
 
@@ -203,6 +243,8 @@ def main() -> None:
     ap.add_argument("--variants", default="fp32,int8-openvino", type=lambda s: [v for v in s.split(",") if v])
     ap.add_argument("--openvino-ops", action="store_true", help="also profile the int8 planes graph on OpenVINO "
                     "by operator")
+    ap.add_argument("--onnxruntime-ops", action="store_true", help="also profile the fp32 planes graph on "
+                    "onnxruntime by operator type")
     ap.add_argument("--target", type=float, default=1.3, help="the whole-frame ratio the bound is computed for")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "infer_stages.md")
     args = ap.parse_args()
@@ -221,7 +263,8 @@ def main() -> None:
     t = time.perf_counter()
     times, agree, count, inputs = run(args.bundle, args.dataset, args.frames, args.picture, args.variants)
     ops = openvino_ops(args.bundle, inputs) if args.openvino_ops else None
-    text = report(args, times, agree, count, time.perf_counter() - t, ops)
+    ort_ops = onnxruntime_ops(args.bundle, inputs) if args.onnxruntime_ops else None
+    text = report(args, times, agree, count, time.perf_counter() - t, ops, ort_ops)
     print(text)
     from ago_runtime.atomic import write_text
 

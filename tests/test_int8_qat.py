@@ -227,7 +227,7 @@ def test_int8_float_keeps_the_named_modules_convolutions_in_float32(town, tmp_pa
 
 def test_infer_stages_benchmark_times_every_stage_and_bounds_the_ratio(town, tmp_path):
     """benchmarks/infer_stages.py on an int8 export: a row per stage for each variant, the whole frame's ratio, label
-    agreement and the planes time a 1.3x target would need; bad options are one `error:` line, exit 2, no file."""
+    agreement, the planes time a 1.3x target would need and the fp32 planes graph's onnxruntime profile; bad options are one `error:` line, exit 2, no file."""
     from ago_export.export import export_bundle
     from ago_export.testing import random_checkpoint
 
@@ -243,9 +243,13 @@ def test_infer_stages_benchmark_times_every_stage_and_bounds_the_ratio(town, tmp
 
     out = tmp_path / "stages.md"
     r = stages("--dataset", str(town["data"]), "--frames", "2", "--picture", "bev", "--variants", "fp32,int8-cpu",
-               "--out", str(out))
+               "--onnxruntime-ops", "--out", str(out))
     assert r.returncode == 0, r.stderr
     text = out.read_text()
+    # the fp32 planes graph's onnxruntime profile: a row per operator type, the convolutions and sampling among them
+    ort_rows = {ln.split("|")[1].strip(): float(ln.split("|")[2]) for ln in text.split("by operator type")[1].splitlines()
+                if ln.startswith("| ") and ln.count("|") == 3 and not ln.startswith("| operator")}
+    assert {"Conv", "GridSample"} <= set(ort_rows) and all(ms >= 0 for ms in ort_rows.values()) and ort_rows["Conv"] > 0
     for row in ("decode", "preprocess", "planes", "per-voxel", "heads", "picture", "npz", "**shared**",
                 "**whole frame**"):
         line = next(ln for ln in text.splitlines() if ln.startswith(f"| {row}"))
