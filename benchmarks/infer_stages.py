@@ -9,15 +9,15 @@ variants alternating frame by frame, and times each stage:
 
 - decode: the frame's JPEGs/PNGs read and decoded (the dataset reader; the same code for every variant);
 - preprocess: `Predictor.prepare` (resize, normalise, projections);
-- planes: the planes graph (`SplitEncoder.plane_maps`: onnxruntime fp32, or the int8 graph on OpenVINO /
-  onnxruntime);
+- planes: the planes graph (`SplitEncoder.plane_maps`: onnxruntime fp32, the int8 graph on OpenVINO /
+  onnxruntime, or the fp32 graph on OpenVINO: `fp32-openvino`, what OpenVINO gives without int8);
 - per-voxel: the slab loop's encoder part (first activation, voxel stages, bank products);
 - heads: class scores and the decision (`Predictor.predict_arrays` with the planes given);
 - picture: `prediction_picture` + `save_png` (the `--picture` kind given), npz: `save_npz` of the outputs.
 
 The table gives each stage's median ms per frame; "shared" is everything but the planes graph (the same code
 and graphs in every variant). The last lines give the whole frame's ratio on one core and the planes time
-the int8 variant would need for a target ratio with the shared stages as measured. Labels of each int8
+each variant would need for a target ratio with the shared stages as measured. Labels of each other
 variant are compared with fp32's over the same frames. `--openvino-ops` adds where the int8 planes graph's time goes
 on OpenVINO (its PERF_COUNT profile, one thread, on the first frames: milliseconds per run by operator type and
 kernel; what remains float32 shows as `_f32` kernels). `--onnxruntime-ops` adds the same for the fp32 planes graph on
@@ -40,7 +40,8 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 STAGES = ("decode", "preprocess", "planes", "per-voxel", "heads", "picture", "npz")
 PROFILE_FRAMES = 4    # frames `--openvino-ops` / `--onnxruntime-ops` profile
-VARIANTS = {"fp32": {}, "int8-openvino": {"int8": True, "device": "openvino"}, "int8-cpu": {"int8": True}}
+VARIANTS = {"fp32": {}, "int8-openvino": {"int8": True, "device": "openvino"}, "int8-cpu": {"int8": True},
+            "fp32-openvino": {"device": "openvino"}}   # fp32-openvino: what OpenVINO gives without int8
 
 
 def check_inputs(bundle: str, dataset: str, variants: list[str]) -> None:
@@ -61,9 +62,9 @@ def check_inputs(bundle: str, dataset: str, variants: list[str]) -> None:
         b = Bundle.load(bundle, verify_hashes=False)
     except AgoInputError as e:
         fail("--bundle", str(e))
-    if any(v != "fp32" for v in variants) and "int8" not in b.contract.variants:
+    if any(v.startswith("int8") for v in variants) and "int8" not in b.contract.variants:
         fail("--bundle", "has no int8 variant (export it with `ago export --int8`)")
-    if "int8-openvino" in variants:
+    if any(v.endswith("-openvino") for v in variants):
         from benchmarks.paper_scale import require_openvino
 
         require_openvino()

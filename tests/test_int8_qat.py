@@ -261,9 +261,10 @@ def test_infer_stages_benchmark_times_every_stage_and_bounds_the_ratio(town, tmp
     except ImportError:
         openvino = None
     if openvino is not None:   # the per-operator profile of the int8 planes graph on OpenVINO
-        r = stages("--dataset", str(town["data"]), "--frames", "1", "--picture", "none", "--variants", "fp32",
+        r = stages("--dataset", str(town["data"]), "--frames", "1", "--picture", "none", "--variants", "fp32,fp32-openvino",
                    "--openvino-ops", "--out", str(out))
         assert r.returncode == 0, r.stderr
+        assert "| stage | fp32 | fp32-openvino |" in out.read_text() and "- fp32-openvino: whole frame" in out.read_text()
         rows = [ln for ln in out.read_text().split("## Run")[1].splitlines() if ln.startswith("| ") and "_" in ln
                 and ln.count("|") == 4 and not ln.startswith("| operator")]
         assert rows and all(float(ln.split("|")[3]) >= 0 for ln in rows)
