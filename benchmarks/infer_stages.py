@@ -72,7 +72,7 @@ def check_inputs(bundle: str, dataset: str, variants: list[str]) -> None:
 
 def run(bundle: str, dataset: str, frames: int, picture: str, variants: list[str]) -> tuple[dict, dict, int, list]:
     """-> ({variant: {stage: [s per frame]}}, {variant: (agree all, agree occupied) vs fp32}, frames run, the first
-    frames' preprocessed inputs [(images, ego2img)] (up to PROFILE_FRAMES, for `openvino_ops`))."""
+    frames' preprocessed inputs [(images, ego2img)] (up to PROFILE_FRAMES, for `openvino_ops` / `onnxruntime_ops`))."""
     import numpy as np
 
     from ago_runtime.atomic import save_npz
@@ -180,8 +180,7 @@ def onnxruntime_ops(bundle: str, inputs: list, top: int = 12) -> list[tuple[str,
         for x, m in [inputs[0], *inputs]:
             session.run(names, {"images": x, "ego2img": m})
         events = json.loads(Path(session.end_profiling()).read_text())
-    runs = sorted((e["ts"], e["ts"] + e["dur"]) for e in events if e.get("name") == "model_run")
-    first_end = runs[0][1]
+    first_end = min(e["ts"] + e["dur"] for e in events if e.get("name") == "model_run")   # runs are sequential
     total: collections.Counter = collections.Counter()
     for e in events:   # one event per node and run; the first run's are left out
         if e.get("cat") == "Node" and e.get("name", "").endswith("_kernel_time") and e["ts"] > first_end:

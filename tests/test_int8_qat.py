@@ -227,7 +227,8 @@ def test_int8_float_keeps_the_named_modules_convolutions_in_float32(town, tmp_pa
 
 def test_infer_stages_benchmark_times_every_stage_and_bounds_the_ratio(town, tmp_path):
     """benchmarks/infer_stages.py on an int8 export: a row per stage for each variant, the whole frame's ratio, label
-    agreement, the planes time a 1.3x target would need and the fp32 planes graph's onnxruntime profile; bad options are one `error:` line, exit 2, no file."""
+    agreement, the planes time a 1.3x target would need and the fp32 planes graph's onnxruntime profile; bad options
+    are one `error:` line, exit 2, no file."""
     from ago_export.export import export_bundle
     from ago_export.testing import random_checkpoint
 
